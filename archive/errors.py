@@ -1,0 +1,61 @@
+"""One error tree for the whole package.
+
+Every error a user can cause derives from :class:`ArchiveError`; the CLI prints its message on one
+line and exits non-zero. Specific kinds also derive from the matching built-in so that callers can
+catch ``FileNotFoundError`` or ``ValueError`` as usual. Messages name the file (or cube, key, band)
+and say what was expected and how to fix it.
+"""
+
+from __future__ import annotations
+
+from os import PathLike
+
+
+class ArchiveError(Exception):
+    """Root of all errors raised on purpose by archive."""
+
+    exit_code = 2
+
+
+class InputError(ArchiveError, ValueError):
+    """An input file or argument has the wrong content."""
+
+    def __init__(self, where: str | PathLike | None, problem: str, fix: str | None = None):
+        self.where = None if where is None else str(where)
+        self.problem = problem
+        self.fix = fix
+        text = problem if self.where is None else f"{self.where}: {problem}"
+        if fix:
+            text += f" ({fix})"
+        super().__init__(text)
+
+
+class FormatError(InputError):
+    """A file exists but does not follow its format (header key, column count, size...)."""
+
+
+class MissingInputError(ArchiveError, FileNotFoundError):
+    """A file or directory the user pointed at (or that a flight needs) does not exist."""
+
+    def __init__(self, path: str | PathLike, what: str = "file", fix: str | None = None):
+        self.path = str(path)
+        text = f"{self.path}: {what} not found"
+        if fix:
+            text += f" ({fix})"
+        super().__init__(text)
+
+
+class OutputExistsError(ArchiveError, FileExistsError):
+    """An output exists already and --overwrite was not given."""
+
+    def __init__(self, path: str | PathLike):
+        self.path = str(path)
+        super().__init__(f"{self.path}: output exists already (pass --overwrite to replace it)")
+
+
+class NavigationError(InputError):
+    """Navigation does not cover, or cannot be aligned with, the image lines."""
+
+
+class RenderError(ArchiveError, RuntimeError):
+    """The OpenGL renderer could not start or failed."""

@@ -1,0 +1,41 @@
+"""Processing parameters, built once (from the CLI, or by a caller) and passed down explicitly."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class NavigationParams:
+    """How navigation is turned into per-line camera poses.
+
+    fov_deg: across-track field of view of the camera, degrees.
+    sync_offset: seconds added to every line time before looking up navigation.
+    boresight_deg: camera -> body rotation as (roll, pitch, yaw) degrees, aerospace sign, applied
+        intrinsically Z-Y-X like the body attitude.
+    lever_arm_m: camera position in the body frame (x forward, y right, z down), metres.
+    """
+
+    fov_deg: float
+    sync_offset: float = 0.0
+    boresight_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class RenderParams:
+    """What to render and how.
+
+    gsd: output pixel size, metres.
+    ground_height: flat ground height, metres above the ellipsoid; None means automatic.
+    mode: 'raw' | 'relative' | 'radiance' | 'reflectance'.
+    bands: band indices (0-based) to render, in output order; None means all bands.
+    overlap: 'last' (the later line wins) or 'mean'.
+    """
+
+    gsd: float
+    ground_height: float | None = None
+    mode: str = "radiance"
+    bands: tuple[int, ...] | None = None
+    overlap: str = "last"
+    navigation: NavigationParams = field(default_factory=lambda: NavigationParams(fov_deg=47.5))
