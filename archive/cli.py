@@ -18,6 +18,7 @@ from archive.errors import ArchiveError
 HANDLERS = {
     "simulate": "archive.simulator.command:run",
     "render": "archive.pipeline:run",
+    "info": "archive.ingest.summary:run",
 }
 
 
@@ -90,6 +91,22 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def _add_info(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "info",
+        help="check a raw flight directory and print its summary",
+        description=(
+            "Read every cube of a raw flight directory (headers, .times, .lcf, calibration), check "
+            "that each is complete and that navigation covers every line, and print a summary: cubes, "
+            "lines, bands, wavelengths, time span, UTM zone, ground track length and altitude."
+        ),
+    )
+    p.add_argument("directory", metavar="DIR", help="raw flight directory")
+    p.add_argument("--fov", type=float, default=47.5, metavar="DEG", help="field of view used for the swath width (default 47.5)")
+    p.add_argument("--sync-offset", type=float, default=0.0, metavar="S", help="camera-to-navigation time offset, seconds (default 0)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="archive",
@@ -102,6 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_simulate(sub)
     _add_render(sub)
+    _add_info(sub)
     return parser
 
 
