@@ -1,0 +1,141 @@
+"""``archive info DIR``: check a raw flight directory completely and print its summary.
+
+Checks (through :class:`archive.source.RawFlightSource`): every cube's header and data file size,
+``.times`` line count and order, ``.lcf`` parse, navigation coverage of every line (with the given
+sync offset), and the calibration if there is one (its bands and samples must fit every cube).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from typing import Any
+
+import numpy as np
+
+from archive.ingest.lcf import gps_seconds_to_datetime
+from archive.params import NavigationParams
+from archive.source import RawFlightSource
+
+# A gap between cubes longer than this many frame intervals ends a strip (DESIGN 3).
+STRIP_GAP_FRAMES = 1.5
+
+
+def _number(x: float | None, digits: int = 3) -> float | None:
+    return None if x is None or not math.isfinite(x) else round(float(x), digits)
+
+
+def summarize(source: RawFlightSource, fov_deg: float) -> dict[str, Any]:
+    """Summary of a flight as plain JSON-able values (times s, lengths m, angles deg)."""
+    cubes = []
+    track_length = 0.0
+    track_time = 0.0
+    altitudes = []
+    strips = 1
+    previous_end = None
+    cal = source.calibration()
+    for info in source.cubes:
+        t = source.line_times(info.index)
+        track = source.track(info.index)
+        lcf_alt = -track.position[:, 2] + source.frame.origin_alt
+        altitudes.append(lcf_alt)
+        step = np.diff(track.position[:, :2], axis=0)
+        length = float(np.hypot(step[:, 0], step[:, 1]).sum())
+        track_length += length
+        track_time += float(track.time[-1] - track.time[0])
+        duration = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+        interval = duration / (len(t) - 1) if len(t) > 1 else float("nan")
+        if previous_end is not None and np.isfinite(interval) and t[0] - previous_end > STRIP_GAP_FRAMES * interval:
+            strips += 1
+        previous_end = float(t[-1])
+        if cal is not None:
+            # check the calibration fits this cube (bands, samples, binning, exposure keys)
+            source.radiometry(info.index, [0], "radiance")
+        cubes.append({
+            "index": info.index, "base": info.base, "lines": info.lines, "samples": info.samples,
+            "bands": info.bands, "framerate_hz": _number(info.framerate), "shutter_ms": _number(info.shutter_ms),
+            "gain_db": _number(info.gain_db), "bit_depth": info.bit_depth,
+            "start_s": round(float(t[0]), 3), "end_s": round(float(t[-1]), 3), "duration_s": round(duration, 3),
+            "measured_line_rate_hz": _number(1.0 / interval if interval > 0 else None),
+            "track_length_m": round(length, 2), "mean_altitude_m": round(float(np.mean(lcf_alt)), 2),
+            "lcf": str(source.files(info.index).lcf.name), "lcf_rows": int(len(track.time)),
+        })
+    start = source.cubes[0].first_time
+    end = float(source.line_times(len(source.cubes) - 1)[-1])
+    alt = np.concatenate(altitudes)
+    wl = source.wavelengths
+    half = math.tan(math.radians(fov_deg) / 2)
+    samples = source.cubes[0].samples
+    duration = end - start
+    return {
+        "directory": str(source.directory),
+        "id": source.id,
+        "cubes": len(source.cubes),
+        "strips": strips,
+        "lines": int(sum(c.lines for c in source.cubes)),
+        "samples": samples,
+        "bands": source.cubes[0].bands,
+        "wavelength_min_nm": None if not wl else round(min(wl), 3),
+        "wavelength_max_nm": None if not wl else round(max(wl), 3),
+        "start_gps_s": round(start, 3),
+        "end_gps_s": round(end, 3),
+        "duration_s": round(duration, 3),
+        "start_utc": gps_seconds_to_datetime(start).isoformat(),
+        "sync_offset_s": source.params.sync_offset,
+        "epsg": source.frame.epsg,
+        "track_length_m": round(track_length, 2),
+        "mean_speed_m_s": _number(track_length / track_time if track_time > 0 else None, 2),
+        "mean_altitude_m": round(float(np.mean(alt)), 2),
+        "min_altitude_m": round(float(np.min(alt)), 2),
+        "max_altitude_m": round(float(np.max(alt)), 2),
+        "fov_deg": fov_deg,
+        "swath_per_m_height": round(2 * half, 4),
+        "gsd_per_m_height": round(2 * half / samples, 6),
+        "calibration": None if source.calibration_path is None else str(source.calibration_path),
+        "cube_list": cubes,
+    }
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    """Readable multi-line text of :func:`summarize`'s result."""
+    wl = ("no wavelengths" if s["wavelength_min_nm"] is None
+          else f"{s['wavelength_min_nm']:.1f}\u2013{s['wavelength_max_nm']:.1f} nm")
+    lines = [
+        f"flight     {s['directory']}  (id {s['id']})",
+        f"cubes      {s['cubes']} in {s['strips']} strip(s), {s['lines']} lines x {s['samples']} samples x "
+        f"{s['bands']} bands, {wl}",
+        f"time       {s['start_utc']}  ({s['start_gps_s']:.3f} s GPS), {s['duration_s']:.1f} s, "
+        f"sync offset {s['sync_offset_s']:+.3f} s",
+        f"frame      EPSG:{s['epsg']} (WGS 84 / UTM)",
+        f"track      {s['track_length_m']:.1f} m"
+        + ("" if s["mean_speed_m_s"] is None else f" at {s['mean_speed_m_s']:.2f} m/s mean")
+        + f", altitude {s['mean_altitude_m']:.1f} m mean ({s['min_altitude_m']:.1f}\u2013{s['max_altitude_m']:.1f}) "
+        "above the ellipsoid",
+        f"swath      {s['swath_per_m_height']:.3f} x height above ground (FOV {s['fov_deg']:g} deg); nominal GSD "
+        f"{s['gsd_per_m_height'] * 100:.3f} cm per m of height ({s['gsd_per_m_height'] * 40 * 100:.2f} cm at 40 m)",
+        f"calibration {s['calibration'] or 'none (only --mode raw and relative)'}",
+        "",
+        f"{'#':>3}  {'cube':<28} {'lines':>6} {'Hz':>8} {'shutter ms':>10} {'gain dB':>7} {'start s':>16} "
+        f"{'dur s':>7} {'track m':>8} {'alt m':>7}",
+    ]
+    for c in s["cube_list"]:
+        def f(v, fmt):
+            return "-" if v is None else format(v, fmt)
+        lines.append(
+            f"{c['index']:>3}  {c['base']:<28} {c['lines']:>6} {f(c['framerate_hz'], '8.3f')} "
+            f"{f(c['shutter_ms'], '10.3f')} {f(c['gain_db'], '7.2f')} {c['start_s']:>16.3f} {c['duration_s']:>7.3f} "
+            f"{c['track_length_m']:>8.1f} {c['mean_altitude_m']:>7.1f}")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    """``archive info DIR [--fov DEG] [--sync-offset S] [--json]``; errors propagate as ArchiveError."""
+    params = NavigationParams(fov_deg=float(args.fov), sync_offset=float(args.sync_offset))
+    source = RawFlightSource(args.directory, params)
+    summary = summarize(source, params.fov_deg)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(format_summary(summary))
+    return 0
