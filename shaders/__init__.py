@@ -1,1 +1,1 @@
-"""GLSL shaders of the renderer, loaded by name (see archive.render.gl)."""
+"""GLSL shaders of the renderer, loaded by name (see archive.render.context)."""

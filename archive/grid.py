@@ -1,0 +1,167 @@
+"""The output grid: one small immutable value passed everywhere (CRS, affine, shape).
+
+A :class:`Grid` is north-up and pixel-is-area: square pixels of ``gsd`` metres, the top-left
+*corner* of pixel (row 0, col 0) at UTM ``(x0, y0)``. Rows grow southwards, columns eastwards;
+rasters on a grid are ``(band, y, x)`` = ``(band, row, col)``. Every operation returns a new grid.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from archive.errors import InputError
+
+# Bounds within this fraction of a pixel of a multiple of the GSD count as on it (float noise).
+_SNAP_TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True)
+class Grid:
+    """North-up output grid.
+
+    epsg: EPSG code of the (UTM) CRS.
+    gsd: pixel size, metres.
+    x0, y0: UTM easting / northing of the top-left corner of the top-left pixel, metres.
+    width, height: number of columns / rows.
+    """
+
+    epsg: int
+    gsd: float
+    x0: float
+    y0: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.gsd, (int, float)) and math.isfinite(self.gsd) and self.gsd > 0):
+            raise InputError("grid", f"gsd must be a positive number of metres, got {self.gsd!r}")
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
+                raise InputError("grid", f"{name} must be a positive integer, got {value!r}")
+            object.__setattr__(self, name, int(value))
+        if not (math.isfinite(self.x0) and math.isfinite(self.y0)):
+            raise InputError("grid", f"corner must be finite, got ({self.x0!r}, {self.y0!r})")
+        object.__setattr__(self, "epsg", int(self.epsg))
+        object.__setattr__(self, "gsd", float(self.gsd))
+        object.__setattr__(self, "x0", float(self.x0))
+        object.__setattr__(self, "y0", float(self.y0))
+
+    # ---- construction -------------------------------------------------------------------
+    @classmethod
+    def from_bounds(
+        cls, epsg: int, west: float, south: float, east: float, north: float, gsd: float
+    ) -> Grid:
+        """The smallest grid with corners on multiples of ``gsd`` that contains the bounds (metres)."""
+        if not (isinstance(gsd, (int, float)) and math.isfinite(gsd) and gsd > 0):
+            raise InputError("grid", f"gsd must be a positive number of metres, got {gsd!r}")
+        if not all(math.isfinite(v) for v in (west, south, east, north)):
+            raise InputError("grid", f"bounds must be finite, got {(west, south, east, north)}")
+        if east < west or north < south:
+            raise InputError(
+                "grid", f"bounds (W, S, E, N) = {(west, south, east, north)} are inverted",
+                "give west <= east and south <= north",
+            )
+        c0 = math.floor(west / gsd + _SNAP_TOLERANCE)
+        c1 = math.ceil(east / gsd - _SNAP_TOLERANCE)
+        r0 = math.ceil(north / gsd - _SNAP_TOLERANCE)
+        r1 = math.floor(south / gsd + _SNAP_TOLERANCE)
+        return cls(epsg, gsd, c0 * gsd, r0 * gsd, max(c1 - c0, 1), max(r0 - r1, 1))
+
+    # ---- geo-referencing ---------------------------------------------------------------
+    @property
+    def transform(self):
+        """GDAL/rasterio affine transform (pixel (col, row) -> UTM (x, y) of the pixel corner)."""
+        from affine import Affine
+
+        return Affine(self.gsd, 0.0, self.x0, 0.0, -self.gsd, self.y0)
+
+    @property
+    def crs(self):
+        """rasterio CRS of the grid."""
+        from rasterio.crs import CRS
+
+        return CRS.from_epsg(self.epsg)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(height, width) = (rows, cols)."""
+        return (self.height, self.width)
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(west, south, east, north), metres."""
+        return (self.x0, self.y0 - self.height * self.gsd, self.x0 + self.width * self.gsd, self.y0)
+
+    def xy_centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """UTM coordinates of the pixel centres: x (width,) eastings, y (height,) northings (north first)."""
+        x = self.x0 + (np.arange(self.width) + 0.5) * self.gsd
+        y = self.y0 - (np.arange(self.height) + 0.5) * self.gsd
+        return x, y
+
+    def rowcol(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        """Fractional (row, col) of UTM points; pixel (r, c) spans [r, r+1) x [c, c+1), centre at +0.5."""
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        return (self.y0 - y) / self.gsd, (x - self.x0) / self.gsd
+
+    # ---- sub-grids ----------------------------------------------------------------------
+    def window(self, row0: int, col0: int, height: int, width: int) -> Grid:
+        """The sub-grid of ``height`` x ``width`` pixels whose top-left pixel is (row0, col0) here."""
+        if row0 < 0 or col0 < 0 or height <= 0 or width <= 0 or row0 + height > self.height or (
+            col0 + width > self.width
+        ):
+            raise InputError(
+                "grid",
+                f"window rows {row0}..{row0 + height}, cols {col0}..{col0 + width} is not inside "
+                f"the {self.height} x {self.width} grid",
+            )
+        return Grid(
+            self.epsg, self.gsd, self.x0 + col0 * self.gsd, self.y0 - row0 * self.gsd, width, height
+        )
+
+    def tiles(self, size: int | tuple[int, int]) -> list[tuple[int, int, Grid]]:
+        """Chunk-aligned tiling: ``(row0, col0, window)`` in row-major order, covering every pixel once.
+
+        size: tile size in pixels, one int (square) or (height, width). Edge tiles are smaller.
+        """
+        th, tw = (size, size) if isinstance(size, (int, np.integer)) else size
+        if th <= 0 or tw <= 0:
+            raise InputError("grid", f"tile size must be positive, got {size!r}")
+        out = []
+        for r in range(0, self.height, th):
+            for c in range(0, self.width, tw):
+                h = min(th, self.height - r)
+                w = min(tw, self.width - c)
+                out.append((r, c, self.window(r, c, h, w)))
+        return out
+
+    def crop(
+        self, west: float, south: float, east: float, north: float
+    ) -> tuple[int, int, Grid] | None:
+        """``(row0, col0, window)`` of the pixels of this grid that touch the bounds, None if none do."""
+        c0 = max(math.floor((west - self.x0) / self.gsd), 0)
+        c1 = min(math.ceil((east - self.x0) / self.gsd), self.width)
+        r0 = max(math.floor((self.y0 - north) / self.gsd), 0)
+        r1 = min(math.ceil((self.y0 - south) / self.gsd), self.height)
+        if c1 <= c0 or r1 <= r0:
+            return None
+        return r0, c0, self.window(r0, c0, r1 - r0, c1 - c0)
+
+    def intersect(self, other: Grid) -> tuple[int, int, Grid] | None:
+        """The part of this grid inside ``other`` (same CRS and GSD, aligned pixels), as :meth:`crop`."""
+        if other.epsg != self.epsg or not math.isclose(other.gsd, self.gsd, rel_tol=1e-9):
+            raise InputError(
+                "grid", f"cannot intersect grids of EPSG {self.epsg} / {self.gsd} m and "
+                f"EPSG {other.epsg} / {other.gsd} m", "use one CRS and GSD",
+            )
+        off = np.array([(other.x0 - self.x0), (self.y0 - other.y0)]) / self.gsd
+        if np.max(np.abs(off - np.round(off))) > 1e-6:
+            raise InputError("grid", "cannot intersect grids whose pixels are not aligned")
+        return self.crop(*other.bounds)
+
+    def __dask_tokenize__(self):
+        return ("archive.grid.Grid", self.epsg, self.gsd, self.x0, self.y0, self.width, self.height)
