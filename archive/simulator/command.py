@@ -207,7 +207,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                   file=sys.stderr) as bar, ThreadPoolExecutor(workers) as pool:
             for plan in plans:
                 hdr = header_text(samples, lines, bands, wavelengths, plan.shutter_ms, plan.gain_db,
-                                  FRAMERATE, plan.line_time[0], plan.base)
+                                  FRAMERATE, plan.line_time[0], plan.base, GROUND_HEIGHT)
                 jobs = [(plan, i0, plan.line_time[i0:i0 + block]) for i0 in range(0, lines, block)]
                 with BilWriter(tmp / f"{plan.base}.bil", samples, lines, bands, hdr) as out:
                     for dn in _parallel_map(lambda job: _cube_block(job, context), jobs, pool,

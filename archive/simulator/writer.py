@@ -20,9 +20,11 @@ __all__ = ["BilWriter", "header_text"]
 
 
 def header_text(samples: int, lines: int, bands: int, wavelengths: np.ndarray, shutter_ms: float,
-                gain_db: float, framerate: float, gps_time: float, label: str) -> str:
+                gain_db: float, framerate: float, gps_time: float, label: str,
+                ground_elevation: float | None = None) -> str:
     """Resonon-like raw header. ``timestamp`` is the GPS time of the first line, not UTC-corrected
-    (as Resonon writes it)."""
+    (as Resonon writes it). ``ground_elevation`` (m, same datum as the .lcf altitude), as the 2023
+    acquisition software records it, lets ``--ground-height auto`` work."""
     stamp = (GPS_EPOCH + timedelta(seconds=float(gps_time))).strftime("%m/%d/%Y-%Hh%Mm%Ss")
     wl = ", ".join(f"{w:.3f}" for w in np.asarray(wavelengths, float))
     rows = [
@@ -51,6 +53,8 @@ def header_text(samples: int, lines: int, bands: int, wavelengths: np.ndarray, s
         "target = simulate",
         f"label = {label}",
     ]
+    if ground_elevation is not None:
+        rows.insert(-2, f"ground elevation = {ground_elevation:.3f}")
     return "\n".join(rows) + "\n"
 
 
