@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import pickle
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from archive.ingest.navigation import LocalFrame, Poses
 from archive.render.context import get_context, gl_info
 from archive.render.mesh import build_mesh
 from archive.render.reference import reference_lookup, reference_values
-from archive.render.renderer import render_cube
+from archive.render.renderer import Lookup, rasterize_lookup, render_cube, render_lookup
 from archive.source import Radiometry
 
 FOV = 47.5
@@ -233,3 +234,103 @@ def test_each_thread_gets_its_own_context_and_the_same_pixels():
     assert out["same_ctx"] and out["ctx"] is not get_context()
     assert out["error"] == "GL_NO_ERROR"
     np.testing.assert_array_equal(out["result"].values, here.values)
+
+
+def rolled_pitched(lines):
+    k = np.arange(lines)
+    euler = np.stack([0.2 + 0.002 * k, 0.08 * np.sin(k / 15.0), 0.17 + 0.05 * np.cos(k / 20.0)], axis=1)
+    return build_mesh(flight(lines, attitude=Rotation.from_euler("ZYX", euler)), FOV, 110.0, SHUTTER, RATE)
+
+
+@pytest.mark.parametrize("per_pass", [4, 8, 6])
+def test_lookup_then_bands_equals_render_cube(per_pass):
+    nb, lines, samples = 11, 120, 200
+    mesh = rolled_pitched(lines)
+    dn = pattern(nb, lines, samples)
+    dn[9, 90:110, 50:90] = 65535                   # saturated in band 9 only (second group of 8)
+    rad = radiometry(nb, lines, samples, saturation=65535)
+    grid = grid_around(mesh)
+    whole = render_cube(mesh, dn, rad, grid)
+    lookup = rasterize_lookup(mesh, grid, samples)
+    assert isinstance(lookup, Lookup) and lookup.line.dtype == np.int32 and lookup.line.shape == grid.shape
+    result = render_lookup(lookup, dn, rad, per_pass)
+    np.testing.assert_array_equal(result.values, whole.values)
+    np.testing.assert_array_equal(result.covered, whole.covered)
+    np.testing.assert_array_equal(result.saturated, whole.saturated)
+    assert 300 < result.saturated.sum() < result.covered.sum() / 10
+    # NaN exactly where not covered, in every band; the lookup's -1 marks the same pixels.
+    assert np.array_equal(np.isnan(result.values), np.broadcast_to(~result.covered, result.values.shape))
+    np.testing.assert_array_equal(lookup.line >= 0, result.covered)
+    np.testing.assert_array_equal(lookup.sample >= 0, result.covered)
+    assert lookup.sample.max() == samples - 1 and lookup.line.max() == lines - 1
+    # The values are the radiometry of the DN at the lookup's (line, sample).
+    li, si = lookup.line[result.covered], lookup.sample[result.covered]
+    want = (dn[:, li, si] - rad.dark[:, si].astype(np.float64)) * rad.gain[:, si] / rad.response[li]
+    np.testing.assert_allclose(result.values[:, result.covered], want, rtol=2e-6, atol=1e-4)
+    assert get_context().error == "GL_NO_ERROR"
+
+
+def test_lookup_pickles_and_is_reused_for_band_groups():
+    nb, lines, samples = 6, 60, 40
+    mesh = build_mesh(flight(lines), FOV, 110.0, SHUTTER, RATE)
+    dn = pattern(nb, lines, samples)
+    grid = grid_around(mesh)
+    lookup = pickle.loads(pickle.dumps(rasterize_lookup(mesh, grid, samples)))
+    assert lookup.grid == grid and (lookup.lines, lookup.samples) == (lines, samples)
+    whole = render_cube(mesh, dn, None, grid)
+    first = render_lookup(lookup, dn[:2], None)
+    rest = render_lookup(lookup, dn[2:], None, 8)
+    np.testing.assert_array_equal(np.concatenate([first.values, rest.values]), whole.values)
+    assert lookup.box() is not None and whole.covered.sum() > 1000
+    with pytest.raises(InputError, match="lookup"):
+        render_lookup(lookup, dn[:, :, :-1], None)
+    with pytest.raises(InputError, match="bands_per_pass"):
+        render_lookup(lookup, dn, None, 9)
+
+
+def test_lookup_indices_equal_the_cpu_reference():
+    lines, samples = 120, 200
+    mesh = rolled_pitched(lines)
+    grid = grid_around(mesh)
+    lookup = rasterize_lookup(mesh, grid, samples)
+    x, y = grid.xy_centres()
+    rng = np.random.default_rng(4)
+    rows = rng.integers(0, grid.height, 5000)
+    cols = rng.integers(0, grid.width, 5000)
+    ref_line, ref_sample, ref_cov = reference_lookup(mesh, samples, x[cols], y[rows])
+    got_line, got_sample = lookup.line[rows, cols], lookup.sample[rows, cols]
+    assert ref_cov.sum() > 1500
+    assert ((got_line >= 0) == ref_cov).mean() > 0.995
+    both = (got_line >= 0) & ref_cov
+    same = (got_line[both] == ref_line[both]) & (got_sample[both] == ref_sample[both])
+    assert same.mean() > 0.99, same.mean()
+    # Off by at most one line / sample where float rounding at a boundary decides.
+    assert np.abs(got_line[both] - ref_line[both]).max() <= 1
+    assert np.abs(got_sample[both] - ref_sample[both]).max() <= 1
+
+
+def test_lookup_windows_and_line_chunks_equal_a_single_pass():
+    nb, lines, samples = 7, 200, 64
+    mesh = build_mesh(flight(lines), FOV, 110.0, SHUTTER, RATE)
+    dn = pattern(nb, lines, samples)
+    rad = radiometry(nb, lines, samples, saturation=3000)
+    grid = grid_around(mesh)
+    whole = rasterize_lookup(mesh, grid, samples)
+    tiled = rasterize_lookup(mesh, grid, samples, max_size=70)
+    np.testing.assert_array_equal(tiled.line, whole.line)
+    np.testing.assert_array_equal(tiled.sample, whole.sample)
+    one = render_lookup(whole, dn, rad, 8)
+    many = render_lookup(whole, dn, rad, 8, max_size=70)      # 70-px windows, 70-line textures
+    np.testing.assert_array_equal(many.values, one.values)
+    np.testing.assert_array_equal(many.saturated, one.saturated)
+    assert one.saturated.any() and get_context().error == "GL_NO_ERROR"
+
+
+def test_nothing_covered_gives_an_empty_lookup():
+    lines, samples = 40, 32
+    mesh = build_mesh(flight(lines), FOV, 110.0, SHUTTER, RATE)
+    far = Grid(FRAME.epsg, GSD, FRAME.origin_e + 100.0, FRAME.origin_n + 100.0, 20, 10)
+    lookup = rasterize_lookup(mesh, far, samples)
+    assert (lookup.line == -1).all() and (lookup.sample == -1).all() and lookup.box() is None
+    result = render_lookup(lookup, pattern(3, lines, samples), None)
+    assert np.isnan(result.values).all() and not result.covered.any()

@@ -1,14 +1,18 @@
-"""Render one cube's bands onto an output grid with OpenGL (inverse georectification).
+"""Render one cube's bands onto an output grid with OpenGL (inverse georectification), in two passes.
 
-The cube's ground mesh is drawn with an orthographic map projection onto a float framebuffer that
-covers a window of the output grid; each fragment (= output pixel centre) finds its line
-(floor(L + 0.5)) and sample (floor(samples * s), perspective-correct s) and fetches that pixel's
-DN from an integer texture, up to 4 bands per RGBA fetch, then applies
-``value = (DN - dark) * gain / response``. Later lines are drawn later and win where the mesh
-folds over itself. A second render target records (covered, saturated).
+1. :func:`rasterize_lookup` draws the cube's ground mesh once, with an orthographic map projection,
+   onto a float framebuffer that covers a window of the output grid; each fragment (= output pixel
+   centre) records the line (floor(L + 0.5), discarded outside [0, lines)) and the sample
+   (floor(samples * s), perspective-correct s, clamped) it sees. Later lines are drawn later and win
+   where the mesh folds over itself. The result, a :class:`Lookup`, is a small picklable value:
+   compute it once per cube and reuse it for every group of bands.
+2. :func:`render_lookup` runs one full-screen pass per group of up to 4 bands (8 with two render
+   targets) over the covered part of the grid: the fragment shader reads the pixel's (line, sample)
+   from the lookup texture and fetches its DN from an integer texture, 4 bands per RGBA fetch, then
+   applies ``value = (DN - dark) * gain / response``, and flags saturated DN.
 
-Only the part of the grid under the mesh's bounding box is rendered, in windows no larger than the
-GL size limit; cubes with more lines than the texture limit are drawn in line chunks.
+:func:`render_cube` = both. Rendering goes window by window (no side larger than the GL size
+limit); cubes with more lines than the texture limit are uploaded in line chunks.
 """
 
 from __future__ import annotations
@@ -28,6 +32,8 @@ _NO_SATURATION = 3.0e38
 # Largest framebuffer side by default (pixels): 4096^2 RGBA32F is 256 MiB, the GL limit (16384^2 on
 # llvmpipe) would be 4 GiB. Bigger renders go window by window.
 _WINDOW = 4096
+# Line and sample indices travel as float32 in pass 1: exact below 2^24.
+_MAX_INDEX = 1 << 24
 
 
 @dataclass(frozen=True, eq=False)
@@ -43,6 +49,36 @@ class RenderResult:
     values: np.ndarray
     saturated: np.ndarray
     covered: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Lookup:
+    """Which pixel of a cube each pixel centre of ``grid`` sees (pass 1 of the renderer).
+
+    line: (height, width) int32 line index within the cube, -1 where not covered.
+    sample: (height, width) int32 sample index, -1 where not covered.
+    lines, samples: the cube's size. Picklable; holds no GL object.
+    """
+
+    grid: Grid
+    line: np.ndarray
+    sample: np.ndarray
+    lines: int
+    samples: int
+
+    @property
+    def covered(self) -> np.ndarray:
+        """(height, width) bool: a line of the cube covers the pixel centre."""
+        return self.line >= 0
+
+    def box(self) -> tuple[int, int, int, int] | None:
+        """(row0, col0, height, width) of the covered pixels' bounding box, None if none is covered."""
+        cov = self.covered
+        rows = np.flatnonzero(cov.any(axis=1))
+        if rows.size == 0:
+            return None
+        cols = np.flatnonzero(cov.any(axis=0))
+        return (int(rows[0]), int(cols[0]), int(rows[-1] - rows[0] + 1), int(cols[-1] - cols[0] + 1))
 
 
 def _dn_texture_format(dn: np.ndarray) -> tuple[np.ndarray, str, tuple[str, ...]]:
@@ -88,6 +124,270 @@ def _pad(a: np.ndarray, comps: int) -> np.ndarray:
     return out
 
 
+def _limits(max_size: int | None) -> tuple[int, int]:
+    """(texture limit, framebuffer window side) in pixels."""
+    limit = int(max_size) if max_size else gl_max_size()
+    window = int(max_size) if max_size else min(limit, _WINDOW)
+    return limit, window
+
+
+def _check_gl(ctx, what: str) -> None:
+    error = ctx.error
+    if error != "GL_NO_ERROR":
+        raise RenderError(f"OpenGL reported {error} while {what}")
+
+
+class _Owned:
+    """GL objects made by one call, released (in reverse order) when the call ends."""
+
+    def __init__(self):
+        self.objects = []
+
+    def __call__(self, obj):
+        self.objects.append(obj)
+        return obj
+
+    def release(self) -> None:
+        park_framebuffer()
+        while self.objects:
+            self.objects.pop().release()
+
+
+def rasterize_lookup(mesh: Mesh, grid: Grid, samples: int, *, max_size: int | None = None) -> Lookup:
+    """Pass 1: draw ``mesh`` once onto ``grid`` and record each pixel centre's (line, sample).
+
+    mesh: the cube's ground mesh (:func:`archive.render.mesh.build_mesh`), same EPSG as ``grid``.
+    samples: samples per line of the cube (the mesh knows only the field of view's ends).
+    max_size: largest framebuffer side in pixels (default min(4096, GL limit)); small values force
+        window-by-window rendering (for tests).
+    Returns a :class:`Lookup` of (height, width) int32 arrays, north row first, -1 where not covered.
+    """
+    samples = int(samples)
+    if samples < 1:
+        raise InputError("samples", f"a cube needs at least one sample per line, got {samples}")
+    if mesh.epsg != grid.epsg:
+        raise InputError("grid", f"grid is EPSG:{grid.epsg} but the mesh EPSG:{mesh.epsg}",
+                         "render on a grid in the flight's UTM zone")
+    if mesh.lines >= _MAX_INDEX or samples >= _MAX_INDEX:
+        raise RenderError(f"cube of {mesh.lines} lines x {samples} samples: indices of 2^24 or "
+                          "more are not exact in the float lookup target; split the cube")
+    line = np.full(grid.shape, -1, np.int32)
+    sample = np.full(grid.shape, -1, np.int32)
+    lookup = Lookup(grid, line, sample, int(mesh.lines), samples)
+    crop = grid.crop(*mesh.bounds_utm()) if mesh.rows >= 2 else None
+    if crop is None:
+        return lookup
+    row0, col0, sub = crop
+
+    ctx = get_context()
+    _, window = _limits(max_size)
+    program = get_program("cube.vert.glsl", "lookup.frag.glsl")
+
+    # Vertex data: float32 metres relative to the mesh centre (float64 offsets go in uniforms).
+    pos, attr = mesh.vertex_attributes()
+    centre = pos.mean(axis=0)                        # (N, E) local metres
+    vdata = np.empty((pos.shape[0], 5), np.float32)
+    vdata[:, 0] = pos[:, 1] - centre[1]
+    vdata[:, 1] = pos[:, 0] - centre[0]
+    vdata[:, 2:] = attr
+    centre_e = mesh.frame.origin_e + centre[1]
+    centre_n = mesh.frame.origin_n + centre[0]
+    # 2 triangles per quad in line order (later lines drawn later win where the mesh folds).
+    triangles = mesh.triangles().reshape(-1).astype(np.int32)
+    windows = sub.tiles(window)
+    fbw = max(w.width for _, _, w in windows)
+    fbh = max(w.height for _, _, w in windows)
+
+    keep = _Owned()
+    try:
+        import moderngl
+
+        ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+        vbo = keep(ctx.buffer(vdata.tobytes()))
+        ibo = keep(ctx.buffer(triangles.tobytes()))
+        vao = keep(ctx.vertex_array(program, [(vbo, "2f 3f", "in_pos", "in_attr")],
+                                    index_buffer=ibo, index_element_size=4))
+        index_rb = keep(ctx.renderbuffer((fbw, fbh), 2, dtype="f4"))
+        fbo = keep(ctx.framebuffer(color_attachments=[index_rb]))
+        program["u_inv_gsd"].value = 1.0 / grid.gsd
+        program["u_samples"].value = samples
+        program["u_lo"].value = 0
+        program["u_hi"].value = int(mesh.lines)
+        for wr, wc, win in windows:
+            fbo.use()
+            vp = (0, 0, win.width, win.height)
+            ctx.viewport = vp
+            fbo.clear(-1.0, -1.0, 0.0, 0.0, viewport=vp)
+            program["u_size"].value = (float(win.width), float(win.height))
+            program["u_centre_px"].value = (
+                (centre_e - win.x0) / grid.gsd, (win.y0 - centre_n) / grid.gsd)
+            vao.render(moderngl.TRIANGLES)
+            idx = np.frombuffer(fbo.read(viewport=vp, components=2, dtype="f4"), np.float32)
+            idx = idx.reshape(win.height, win.width, 2)
+            rs = slice(row0 + wr, row0 + wr + win.height)
+            cs = slice(col0 + wc, col0 + wc + win.width)
+            line[rs, cs] = idx[..., 0]
+            sample[rs, cs] = idx[..., 1]
+        _check_gl(ctx, f"rasterizing the lookup of a {mesh.lines}-line cube")
+    finally:
+        keep.release()
+    return lookup
+
+
+def render_lookup(
+    lookup: Lookup,
+    dn: np.ndarray,
+    radiometry,
+    bands_per_pass: int = 4,
+    *,
+    max_size: int | None = None,
+) -> RenderResult:
+    """Pass 2: the values of the bands of ``dn`` at each pixel of ``lookup.grid``.
+
+    lookup: from :func:`rasterize_lookup` for this cube.
+    dn: (bands, lines, samples) DN, uint16 (other integer types in 0..65535, or float32, accepted).
+    radiometry: object with dark (bands, samples), gain (bands, samples), response (lines,),
+        saturation (DN threshold or None), e.g. :class:`archive.source.Radiometry`; None = raw DN.
+    bands_per_pass: 1..8 bands per full-screen pass (up to 4 per texel fetch and render target).
+    max_size: largest texture and framebuffer side in pixels (default: the GL texture limit for the
+        DN textures, min(4096, GL limit) for framebuffer windows); for tests.
+    Returns a :class:`RenderResult` with values (bands, height, width) float32, north row first.
+    """
+    dn = np.asarray(dn)
+    if dn.ndim != 3:
+        raise InputError("dn", f"expected a (bands, lines, samples) cube, got shape {dn.shape}")
+    nb, lines, samples = dn.shape
+    if (lines, samples) != (lookup.lines, lookup.samples):
+        raise InputError("dn", f"cube has {lines} lines x {samples} samples but its lookup "
+                         f"{lookup.lines} x {lookup.samples}", "rasterize the lookup for this cube")
+    if not 1 <= bands_per_pass <= 8:
+        raise InputError("bands_per_pass", f"must be 1..8, got {bands_per_pass}")
+    dark, gain, resp, saturation = _radiometry_arrays(radiometry, nb, lines, samples)
+    dn_up, dn_dtype, defines = _dn_texture_format(dn)
+
+    grid = lookup.grid
+    covered = lookup.covered
+    values = np.full((nb, grid.height, grid.width), np.nan, np.float32)
+    saturated = np.zeros(grid.shape, bool)
+    result = RenderResult(grid, values, saturated, covered)
+    box = lookup.box() if nb > 0 else None
+    if box is None:
+        return result
+    row0, col0, sub = box[0], box[1], grid.window(*box)
+
+    ctx = get_context()
+    limit, window = _limits(max_size)
+    if samples > limit:
+        raise RenderError(f"cube has {samples} samples, more than the GL texture limit {limit}")
+    chunks = [(lo, min(lo + limit, lines)) for lo in range(0, lines, limit)]
+    # Windows with covered pixels, and the line chunks each of them needs.
+    windows = []
+    for wr, wc, win in sub.tiles(window):
+        rs = slice(row0 + wr, row0 + wr + win.height)
+        cs = slice(col0 + wc, col0 + wc + win.width)
+        wl = lookup.line[rs, cs]
+        seen = wl[wl >= 0]
+        if seen.size:
+            lo, hi = int(seen.min()), int(seen.max())
+            need = [i for i, (a, b) in enumerate(chunks) if a <= hi and b > lo]
+            windows.append((rs, cs, win, need))
+    fbw = max(w.width for _, _, w, _ in windows)
+    fbh = max(w.height for _, _, w, _ in windows)
+    flag = saturation is not None
+
+    keep = _Owned()
+    try:
+        import moderngl
+
+        def texture(size, comps, data, dtype, objs):
+            tex = objs(ctx.texture(size, comps, data, dtype=dtype, alignment=1))
+            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            tex.repeat_x = tex.repeat_y = False
+            return tex
+
+        ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+        # Per call: lookup textures (one per window), response textures (one per chunk), targets.
+        lookup_tex = [
+            texture((win.width, win.height), 2,
+                    np.stack([lookup.line[rs, cs], lookup.sample[rs, cs]], axis=-1).tobytes(), "i4", keep)
+            for rs, cs, win, _ in windows
+        ]
+        resp_tex = [texture((hi - lo, 1), 1, np.ascontiguousarray(resp[lo:hi]).tobytes(), "f4", keep)
+                    for lo, hi in chunks]
+        targets = 2 if bands_per_pass > 4 else 1
+        value_rb = [keep(ctx.renderbuffer((fbw, fbh), 4, dtype="f4")) for _ in range(targets)]
+        flag_rb = [keep(ctx.renderbuffer((fbw, fbh), 1, dtype="f1"))] if flag else []
+        fbos = {4: keep(ctx.framebuffer(color_attachments=[value_rb[0], *flag_rb]))}
+        if bands_per_pass > 4:
+            fbos[8] = keep(ctx.framebuffer(color_attachments=[*value_rb, *flag_rb]))
+        programs = {4: get_program("fullscreen.vert.glsl", "bands.frag.glsl", defines)}
+        if bands_per_pass > 4:
+            programs[8] = get_program("fullscreen.vert.glsl", "bands.frag.glsl", (*defines, "BANDS8"))
+        vaos = {m: keep(ctx.vertex_array(p, [])) for m, p in programs.items()}
+        units = {"u_lookup": 0, "u_resp": 1, "u_dn": 2, "u_dark": 3, "u_gain": 4,
+                 "u_dn2": 5, "u_dark2": 6, "u_gain2": 7}
+        for p in programs.values():
+            p["u_sat"].value = _NO_SATURATION if saturation is None else float(saturation)
+            p["u_nan"].value = float("nan")
+            for name, unit in units.items():
+                if p.get(name, None) is not None:
+                    p[name].value = unit
+
+        for b0 in range(0, nb, bands_per_pass):
+            b1 = min(b0 + bands_per_pass, nb)
+            k = b1 - b0
+            mode = 8 if k > 4 else 4
+            program, vao, fbo = programs[mode], vaos[mode], fbos[mode]
+            program["u_bands"].value = k
+            groups = [(b0, min(b0 + 4, b1)), *([(b0 + 4, b1)] if k > 4 else [])]
+            pass_objs = _Owned()
+            try:
+                band_tex = []       # per group: dark, gain, [DN texture per chunk]
+                for g0, g1 in groups:
+                    gk = g1 - g0
+                    comps = 4 if gk == 3 else gk
+                    band_tex.append((
+                        texture((samples, 1), comps, _pad(dark[g0:g1].T, comps).tobytes(), "f4", pass_objs),
+                        texture((samples, 1), comps, _pad(gain[g0:g1].T, comps).tobytes(), "f4", pass_objs),
+                        [texture((samples, hi - lo), comps,
+                                 _pad(np.moveaxis(dn_up[g0:g1, lo:hi], 0, -1), comps).tobytes(),
+                                 dn_dtype, pass_objs)
+                         for lo, hi in chunks],
+                    ))
+                for g, (dark_tex, gain_tex, _) in enumerate(band_tex):
+                    dark_tex.use(3 + 3 * g)
+                    gain_tex.use(4 + 3 * g)
+                fbo.use()
+                for (rs, cs, win, need), lk_tex in zip(windows, lookup_tex):
+                    vp = (0, 0, win.width, win.height)
+                    ctx.viewport = vp
+                    lk_tex.use(0)
+                    for c in need:
+                        lo, hi = chunks[c]
+                        program["u_lo"].value = lo
+                        program["u_hi"].value = hi
+                        resp_tex[c].use(1)
+                        for g, (_, _, dn_tex) in enumerate(band_tex):
+                            dn_tex[c].use(2 + 3 * g)
+                        vao.render(moderngl.TRIANGLES, vertices=3)
+                    for g, (g0, g1) in enumerate(groups):
+                        val = np.frombuffer(fbo.read(viewport=vp, components=4, attachment=g, dtype="f4"),
+                                            np.float32).reshape(win.height, win.width, 4)
+                        values[g0:g1, rs, cs] = np.moveaxis(val[..., : g1 - g0], -1, 0)
+                    if flag:
+                        sat = np.frombuffer(fbo.read(viewport=vp, components=1, attachment=len(groups),
+                                                     dtype="f1"), np.uint8).reshape(win.height, win.width)
+                        saturated[rs, cs] |= sat > 127
+            finally:
+                pass_objs.release()
+        _check_gl(ctx, f"rendering a {nb}-band cube")
+    finally:
+        keep.release()
+    # Uncovered pixels of the rendered windows hold the shader's NaN: no pass over all bands here.
+    saturated &= covered
+    return result
+
+
 def render_cube(
     mesh: Mesh,
     dn: np.ndarray,
@@ -97,13 +397,13 @@ def render_cube(
     *,
     max_size: int | None = None,
 ) -> RenderResult:
-    """Render the bands of one cube onto ``grid``.
+    """Render the bands of one cube onto ``grid``: :func:`rasterize_lookup` then :func:`render_lookup`.
 
     mesh: the cube's ground mesh (:func:`archive.render.mesh.build_mesh`), same EPSG as ``grid``.
     dn: (bands, lines, samples) DN, uint16 (other integer types in 0..65535, or float32, accepted).
     radiometry: object with dark (bands, samples), gain (bands, samples), response (lines,),
         saturation (DN threshold or None), e.g. :class:`archive.source.Radiometry`; None = raw DN.
-    bands_per_pass: 1..4 bands read per texel fetch and written per pass.
+    bands_per_pass: 1..8 bands per pass (up to 4 per texel fetch and render target).
     max_size: largest texture and framebuffer side in pixels (default: the GL texture limit for the
         DN textures, min(4096, GL limit) for framebuffer windows); small values force
         window-by-window rendering and line chunks (for tests).
@@ -116,144 +416,14 @@ def render_cube(
     if lines != mesh.lines:
         raise InputError("dn", f"cube has {lines} lines but its mesh {mesh.lines}",
                          "build the mesh from this cube's poses")
-    if not 1 <= bands_per_pass <= 4:
-        raise InputError("bands_per_pass", f"must be 1..4, got {bands_per_pass}")
+    if not 1 <= bands_per_pass <= 8:
+        raise InputError("bands_per_pass", f"must be 1..8, got {bands_per_pass}")
     if mesh.epsg != grid.epsg:
         raise InputError("grid", f"grid is EPSG:{grid.epsg} but the mesh EPSG:{mesh.epsg}",
                          "render on a grid in the flight's UTM zone")
-    dark, gain, resp, saturation = _radiometry_arrays(radiometry, nb, lines, samples)
-    dn_up, dn_dtype, defines = _dn_texture_format(dn)
-
-    values = np.full((nb, grid.height, grid.width), np.nan, np.float32)
-    covered = np.zeros(grid.shape, bool)
-    saturated = np.zeros(grid.shape, bool)
-    result = RenderResult(grid, values, saturated, covered)
-    crop = grid.crop(*mesh.bounds_utm()) if mesh.rows >= 2 and nb > 0 else None
-    if crop is None:
-        return result
-    row0, col0, sub = crop
-
-    ctx = get_context()
-    limit = int(max_size) if max_size else gl_max_size()
-    window = int(max_size) if max_size else min(limit, _WINDOW)
-    if samples > limit:
-        raise RenderError(f"cube has {samples} samples, more than the GL texture limit {limit}")
-    program = get_program("cube.vert.glsl", "cube.frag.glsl", defines)
-
-    # Vertex data: float32 metres relative to the mesh centre (float64 offsets go in uniforms).
-    pos, attr = mesh.vertex_attributes()
-    centre = pos.mean(axis=0)                        # (N, E) local metres
-    vdata = np.empty((pos.shape[0], 5), np.float32)
-    vdata[:, 0] = pos[:, 1] - centre[1]
-    vdata[:, 1] = pos[:, 0] - centre[0]
-    vdata[:, 2:] = attr
-    centre_e = mesh.frame.origin_e + centre[1]
-    centre_n = mesh.frame.origin_n + centre[0]
-    triangles = mesh.triangles()                     # 2 per quad, quad k between rows k and k+1
-
-    chunks = [(lo, min(lo + limit, lines)) for lo in range(0, lines, limit)]
-    windows = sub.tiles(window)
-    fbw = max(w.width for _, _, w in windows)
-    fbh = max(w.height for _, _, w in windows)
-
-    owned = []   # every GL object made here, released in finally
-
-    def keep(obj):
-        owned.append(obj)
-        return obj
-
-    try:
-        import moderngl
-
-        ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST | moderngl.CULL_FACE)
-        vbo = keep(ctx.buffer(vdata.tobytes()))
-        vaos = []
-        for lo, hi in chunks:
-            # Quads whose rows k, k+1 hold lines that can round into [lo, hi).
-            quads = np.nonzero((mesh.line[:-1] >= lo - 1) & (mesh.line[:-1] <= hi - 1))[0]
-            if quads.size == 0:
-                vaos.append(None)
-                continue
-            idx = triangles.reshape(-1, 2, 3)[quads].reshape(-1).astype(np.int32)
-            ibo = keep(ctx.buffer(idx.tobytes()))
-            vaos.append(keep(ctx.vertex_array(program, [(vbo, "2f 3f", "in_pos", "in_attr")],
-                                              index_buffer=ibo, index_element_size=4)))
-        value_rb = keep(ctx.renderbuffer((fbw, fbh), 4, dtype="f4"))
-        flag_rb = keep(ctx.renderbuffer((fbw, fbh), 2, dtype="f1"))
-        fbo = keep(ctx.framebuffer(color_attachments=[value_rb, flag_rb]))
-
-        program["u_inv_gsd"].value = 1.0 / grid.gsd
-        program["u_samples"].value = samples
-        program["u_sat"].value = _NO_SATURATION if saturation is None else float(saturation)
-        program["u_dn"].value = 0
-        program["u_dark"].value = 1
-        program["u_gain"].value = 2
-        program["u_resp"].value = 3
-
-        for b0 in range(0, nb, bands_per_pass):
-            b1 = min(b0 + bands_per_pass, nb)
-            k = b1 - b0
-            comps = 4 if k == 3 else k
-            program["u_bands"].value = k
-            pass_objs = []
-
-            def texture(size, data, dtype, comps_=comps):
-                tex = ctx.texture(size, comps_, data, dtype=dtype, alignment=1)
-                tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
-                tex.repeat_x = tex.repeat_y = False
-                pass_objs.append(tex)
-                return tex
-
-            try:
-                dark_tex = texture((samples, 1), _pad(dark[b0:b1].T, comps).tobytes(), "f4")
-                gain_tex = texture((samples, 1), _pad(gain[b0:b1].T, comps).tobytes(), "f4")
-                chunk_tex = []
-                for lo, hi in chunks:
-                    block = np.moveaxis(dn_up[b0:b1, lo:hi], 0, -1)     # (lines, samples, k)
-                    chunk_tex.append((
-                        texture((samples, hi - lo), _pad(block, comps).tobytes(), dn_dtype),
-                        texture((hi - lo, 1), np.ascontiguousarray(resp[lo:hi]).tobytes(), "f4", 1),
-                    ))
-                for wr, wc, win in windows:
-                    fbo.use()
-                    fbo.clear(0.0, 0.0, 0.0, 0.0)
-                    ctx.viewport = (0, 0, win.width, win.height)
-                    program["u_size"].value = (float(win.width), float(win.height))
-                    program["u_centre_px"].value = (
-                        (centre_e - win.x0) / grid.gsd, (win.y0 - centre_n) / grid.gsd)
-                    dark_tex.use(1)
-                    gain_tex.use(2)
-                    for (lo, hi), vao, (dn_tex, resp_tex) in zip(chunks, vaos, chunk_tex):
-                        if vao is None:
-                            continue
-                        program["u_lo"].value = lo
-                        program["u_hi"].value = hi
-                        dn_tex.use(0)
-                        resp_tex.use(3)
-                        vao.render(moderngl.TRIANGLES)
-                    vp = (0, 0, win.width, win.height)
-                    val = np.frombuffer(fbo.read(viewport=vp, components=4, attachment=0, dtype="f4"),
-                                        np.float32).reshape(win.height, win.width, 4)
-                    rs = slice(row0 + wr, row0 + wr + win.height)
-                    cs = slice(col0 + wc, col0 + wc + win.width)
-                    values[b0:b1, rs, cs] = np.moveaxis(val[..., :k], -1, 0)
-                    if b0 == 0 or saturation is not None:    # coverage is the same in every pass
-                        flags = np.frombuffer(
-                            fbo.read(viewport=vp, components=2, attachment=1, dtype="f1"), np.uint8
-                        ).reshape(win.height, win.width, 2)
-                        if b0 == 0:
-                            covered[rs, cs] = flags[..., 0] > 127
-                        saturated[rs, cs] |= flags[..., 1] > 127
-            finally:
-                for obj in pass_objs:
-                    obj.release()
-        error = ctx.error
-        if error != "GL_NO_ERROR":
-            raise RenderError(f"OpenGL reported {error} while rendering a {nb}-band cube")
-    finally:
-        park_framebuffer()
-        for obj in reversed(owned):
-            obj.release()
-    values[:, ~covered] = np.nan
-    saturated &= covered
-    return result
+    if nb == 0:
+        empty = Lookup(grid, np.full(grid.shape, -1, np.int32), np.full(grid.shape, -1, np.int32),
+                       lines, samples)
+        return render_lookup(empty, dn, radiometry, bands_per_pass, max_size=max_size)
+    lookup = rasterize_lookup(mesh, grid, samples, max_size=max_size)
+    return render_lookup(lookup, dn, radiometry, bands_per_pass, max_size=max_size)
