@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import sys
 from collections.abc import Sequence
 
@@ -19,6 +20,9 @@ HANDLERS = {
     "simulate": "archive.simulator.command:run",
     "render": "archive.pipeline:run",
     "info": "archive.ingest.summary:run",
+    "ingest": "archive.ingest.command:run",
+    "verify": "archive.ingest.command:run_verify",
+    "catalog": "archive.catalog.command:run",
 }
 
 
@@ -107,6 +111,78 @@ def _add_info(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
+def _add_ingest(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "ingest",
+        help="ingest raw flights into chunked Zarr collections and catalog them",
+        description=(
+            "Check each raw flight directory completely, then store it as ARCHIVE/collections/<id>.zarr "
+            "(Zarr v3: DN chunked one band of one cube per chunk and compressed, per-line times and poses, "
+            "the raw navigation, calibration, header metadata, source checksums) and describe it by a STAC "
+            "Item in the archive's catalog. The id is <sensor>_<UTC start>. Ingesting a flight again is a "
+            "no-op; an interrupted ingest resumes when rerun. The archive is created if needed."
+        ),
+    )
+    p.add_argument("directories", nargs="+", metavar="RAW_DIR", help="raw flight directory")
+    p.add_argument("--archive", required=True, metavar="ARCHIVE", help="archive directory (created if absent or empty)")
+    p.add_argument("--fov", required=True, type=float, metavar="DEG",
+                   help="across-track field of view of the camera, degrees (47.5 for a Pika L and for 'archive simulate')")
+    p.add_argument("--calibration", metavar="FILE.icp", help="radiometric calibration (default: the *.icp in the flight directory)")
+    p.add_argument("--ground-height", type=float, metavar="M",
+                   help="ground height, metres above the ellipsoid, for the catalog footprint "
+                        "(default: the header's 'ground elevation')")
+    p.add_argument("--workers", type=_positive_int, metavar="N", help="threads writing chunks (default: CPU count)")
+    p.add_argument("--overwrite", action="store_true", help="re-ingest flights that are already in the archive")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _add_verify(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "verify",
+        help="re-check stored collections against their recorded checksums",
+        description=(
+            "Decode every DN chunk and small array of a collection (or of all collections) and compare "
+            "their sha256 with those recorded at ingest. Exit code 0 when all are intact, 1 otherwise."
+        ),
+    )
+    p.add_argument("id", nargs="?", metavar="ID", help="collection id (default: every collection)")
+    p.add_argument("--archive", required=True, metavar="ARCHIVE", help="archive directory")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _add_catalog(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "catalog",
+        help="search, list or rebuild an archive's catalog",
+        description="Query the archive's catalog (STAC Items + SQLite index) or rebuild the index from the Items.",
+    )
+    csub = p.add_subparsers(dest="catalog_command", metavar="SUBCOMMAND", required=True)
+    s = csub.add_parser(
+        "search",
+        help="find flights by place, time and wavelength",
+        description=(
+            "Print the flights whose footprint bbox intersects --bbox, whose time range meets --datetime "
+            "and whose wavelength range holds --wavelength (all given filters must match)."
+        ),
+    )
+    # Let '--bbox -90.1,35,-89.8,35.3' through: argparse would take the negative west for an option.
+    s._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-[\d.]+(,\s*-?[\d.]+)+$")
+    s.add_argument("--archive", required=True, metavar="ARCHIVE", help="archive directory")
+    s.add_argument("--bbox", metavar="W,S,E,N", help="longitude/latitude box, degrees (west, south, east, north)")
+    s.add_argument("--datetime", metavar="A/B",
+                   help="ISO 8601 instant or range (UTC unless a zone is given; '..' for an open end)")
+    s.add_argument("--wavelength", type=float, metavar="NM", help="a wavelength the flight must cover, nm")
+    s.add_argument("--json", action="store_true", help="print a STAC ItemCollection instead of a table")
+    ls = csub.add_parser("list", help="list every cataloged flight", description="List every cataloged flight.")
+    ls.add_argument("--archive", required=True, metavar="ARCHIVE", help="archive directory")
+    ls.add_argument("--json", action="store_true", help="print a STAC ItemCollection instead of a table")
+    r = csub.add_parser("rebuild", help="rebuild the index from the STAC Item files",
+                        description="Recreate catalog/index.sqlite from catalog/items/*.json.")
+    r.add_argument("--archive", required=True, metavar="ARCHIVE", help="archive directory")
+    r.add_argument("--items", action="store_true",
+                   help="also rewrite every Item from its collection store before indexing")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="archive",
@@ -120,6 +196,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulate(sub)
     _add_render(sub)
     _add_info(sub)
+    _add_ingest(sub)
+    _add_verify(sub)
+    _add_catalog(sub)
     return parser
 
 

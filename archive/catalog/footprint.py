@@ -1,0 +1,147 @@
+"""Ground footprint of a flight from its per-line camera poses (numpy only, no OpenGL).
+
+Each line's swath edges (focal-plane u = -tan(fov/2) and +tan(fov/2), DESIGN 3) are intersected
+with the flat ground; the lines are split into strips where time jumps (a turn, a pause: never
+joined, as in the mesh); each strip's outline is the convex hull of its edge points grown by a
+margin. The margin covers what the start-of-exposure poses leave out (the last line's own span,
+mid-exposure centring, a few cm) and curved passes are covered by the hull, so the outline always
+CONTAINS the true footprint; it is a catalog footprint, not a coverage mask.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pyproj import Transformer
+from scipy.spatial import ConvexHull
+from scipy.spatial.transform import Rotation
+
+from archive.errors import InputError
+
+# A time step above this many median line intervals starts a new strip.
+GAP_FACTOR = 1.5
+# Outline growth beyond the hull, metres, on top of two along-track line steps.
+MARGIN_M = 0.5
+
+
+@dataclass(frozen=True)
+class Footprint:
+    """strips_utm: one (k, 2) array of UTM (E, N) vertices per strip, counter-clockwise, not closed.
+    epsg: UTM zone of those vertices. gsd: nominal across-track pixel size at nadir, metres.
+    """
+
+    strips_utm: tuple[np.ndarray, ...]
+    epsg: int
+    gsd: float
+
+    def lonlat(self) -> list[np.ndarray]:
+        """Strips as (k, 2) lon, lat degree arrays (same vertex order)."""
+        tr = Transformer.from_crs(self.epsg, 4326, always_xy=True)
+        out = []
+        for ring in self.strips_utm:
+            lon, lat = tr.transform(ring[:, 0], ring[:, 1])
+            out.append(np.stack([np.asarray(lon), np.asarray(lat)], axis=-1))
+        return out
+
+    def geometry(self) -> dict:
+        """GeoJSON Polygon (one strip) or MultiPolygon, lon/lat degrees, rings closed, CCW."""
+        rings = []
+        for ring in self.lonlat():
+            closed = np.vstack([ring, ring[:1]])
+            rings.append([[round(float(x), 9), round(float(y), 9)] for x, y in closed])
+        if len(rings) == 1:
+            return {"type": "Polygon", "coordinates": [rings[0]]}
+        return {"type": "MultiPolygon", "coordinates": [[r] for r in rings]}
+
+    def bbox(self) -> list[float]:
+        """[west, south, east, north] degrees of all strips (from the rounded GeoJSON vertices)."""
+        geom = self.geometry()
+        polys = [geom["coordinates"]] if geom["type"] == "Polygon" else geom["coordinates"]
+        pts = np.array([p for poly in polys for p in poly[0]], float)
+        return [float(pts[:, 0].min()), float(pts[:, 1].min()), float(pts[:, 0].max()), float(pts[:, 1].max())]
+
+
+def swath_edges(position: np.ndarray, attitude: Rotation, fov_deg: float, ground_down: float,
+                where: str = "") -> tuple[np.ndarray, np.ndarray]:
+    """Ground points of the two swath edges of every line.
+
+    position: (lines, 3) camera N, E, D metres; attitude: (lines,) camera -> NED; fov_deg: across-
+    track field of view; ground_down: the ground plane's D coordinate in the same frame, metres.
+    Returns (left, right), each (lines, 2) N, E metres (left = sample 0 end, u = -tan(fov/2)).
+    """
+    t = np.tan(np.radians(fov_deg) / 2.0)
+    position = np.asarray(position, float)
+    out = []
+    for u in (-t, t):
+        d = attitude.apply(np.array([0.0, u, 1.0]))
+        d = np.atleast_2d(d)
+        if np.any(d[:, 2] <= 1e-6):
+            bad = int(np.flatnonzero(d[:, 2] <= 1e-6)[0])
+            raise InputError(where or None, f"line {bad}: the swath edge looks at or above the horizon",
+                             "check the attitude (roll/pitch) and --fov")
+        s = (ground_down - position[:, 2]) / d[:, 2]
+        if np.any(s <= 0):
+            bad = int(np.flatnonzero(s <= 0)[0])
+            raise InputError(where or None, f"line {bad}: the camera is at or below the ground "
+                             f"(camera D {position[bad, 2]:.2f} m, ground D {ground_down:.2f} m)",
+                             "check the ground height")
+        out.append(position[:, :2] + s[:, None] * d[:, :2])
+    return out[0], out[1]
+
+
+def strips(time: np.ndarray) -> list[slice]:
+    """Split line indices into strips wherever the time step exceeds GAP_FACTOR median steps."""
+    time = np.asarray(time, float)
+    if time.size < 2:
+        return [slice(0, time.size)]
+    step = np.diff(time)
+    interval = float(np.median(step))
+    cuts = np.flatnonzero(step > GAP_FACTOR * interval) + 1
+    edges = [0, *cuts.tolist(), time.size]
+    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def _grown_hull(points: np.ndarray, margin: float) -> np.ndarray:
+    # Minkowski sum with a 16-gon circumscribing a circle of radius `margin`: contains the buffer.
+    k = 16
+    ang = 2 * np.pi * np.arange(k) / k
+    r = margin / np.cos(np.pi / k)
+    ring = np.stack([np.cos(ang), np.sin(ang)], axis=-1) * r
+    pts = (points[:, None, :] + ring[None, :, :]).reshape(-1, 2)
+    hull = ConvexHull(pts)
+    return pts[hull.vertices]  # counter-clockwise for 2-D input
+
+
+def flight_footprint(time: np.ndarray, position: np.ndarray, attitude: Rotation, frame, fov_deg: float,
+                     ground_height: float, samples: int, where: str = "") -> Footprint:
+    """Footprint of a flight: time (lines,) s; position (lines, 3) N, E, D m; attitude (lines,)
+    camera -> NED; frame: the navigation LocalFrame; ground_height: m above the ellipsoid."""
+    ground_down = frame.origin_alt - float(ground_height)
+    left, right = swath_edges(position, attitude, fov_deg, ground_down, where)
+    width = np.linalg.norm(right - left, axis=1)
+    gsd = float(np.median(width) / max(int(samples), 1))
+    rings = []
+    for sl in strips(time):
+        pts = np.vstack([left[sl], right[sl]])  # (N, E)
+        centre = (left[sl] + right[sl]) / 2.0
+        step = float(np.max(np.linalg.norm(np.diff(centre, axis=0), axis=1))) if len(centre) > 1 else 0.0
+        margin = MARGIN_M + 2.0 * step + gsd
+        en = pts[:, ::-1] + np.array([frame.origin_e, frame.origin_n])  # (E, N) UTM
+        rings.append(_grown_hull(en, margin))
+    return Footprint(tuple(rings), frame.epsg, gsd)
+
+
+def points_in_polygon(points: np.ndarray, ring: np.ndarray) -> np.ndarray:
+    """Even-odd test: points (m, 2) against a ring (k, 2) (closed or not). Returns (m,) bool."""
+    points = np.asarray(points, float)
+    ring = np.asarray(ring, float)
+    if np.allclose(ring[0], ring[-1]):
+        ring = ring[:-1]
+    x, y = points[:, 0][:, None], points[:, 1][:, None]
+    x0, y0 = ring[:, 0][None, :], ring[:, 1][None, :]
+    x1, y1 = np.roll(ring[:, 0], -1)[None, :], np.roll(ring[:, 1], -1)[None, :]
+    crosses = (y0 > y) != (y1 > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xint = x0 + (y - y0) * (x1 - x0) / (y1 - y0)
+    return np.count_nonzero(crosses & (x < xint), axis=1) % 2 == 1

@@ -1,0 +1,132 @@
+"""An archive root: a directory marked by ``archive.json``, holding collections and a catalog.
+
+Layout::
+
+    <ARCHIVE>/archive.json                   {"format": "archive", "version": 1}
+    <ARCHIVE>/collections/<id>.zarr          completed collections (Zarr v3)
+    <ARCHIVE>/collections/<id>.zarr.partial  an ingest in progress (never listed)
+    <ARCHIVE>/catalog/items/<id>.json        one STAC Item per completed collection
+    <ARCHIVE>/catalog/index.sqlite           the query index, rebuildable from the Items
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from archive.errors import InputError, MissingInputError
+
+MARKER = "archive.json"
+FORMAT = "archive"
+VERSION = 1
+
+# Collection ids are file names: letters, digits, '-', '_' and '.', not starting with '.'.
+_ID = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,127}$")
+
+
+def check_collection_id(cid: str) -> str:
+    """Return ``cid`` if it is a valid collection id (safe as a file name), else raise InputError."""
+    if not isinstance(cid, str) or not _ID.match(cid) or cid.endswith(".partial"):
+        raise InputError(None, f"{cid!r} is not a valid collection id",
+                         "ids use letters, digits, '-', '_' and '.', e.g. Pika-L-536_20230626T090301")
+    return cid
+
+
+@dataclass(frozen=True)
+class ArchiveRoot:
+    """Paths inside one archive directory (no I/O in the constructor)."""
+
+    path: Path
+
+    @property
+    def collections(self) -> Path:
+        return self.path / "collections"
+
+    @property
+    def items(self) -> Path:
+        return self.path / "catalog" / "items"
+
+    @property
+    def index_path(self) -> Path:
+        return self.path / "catalog" / "index.sqlite"
+
+    def store(self, cid: str) -> Path:
+        """Path of the completed collection store ``<id>.zarr``."""
+        return self.collections / f"{check_collection_id(cid)}.zarr"
+
+    def partial(self, cid: str) -> Path:
+        """Path of the store while it is being written (renamed to :meth:`store` when complete)."""
+        return self.collections / f"{check_collection_id(cid)}.zarr.partial"
+
+    def item_path(self, cid: str) -> Path:
+        return self.items / f"{check_collection_id(cid)}.json"
+
+    def collection_ids(self) -> list[str]:
+        """Ids of the completed stores on disk (a ``.zarr`` directory whose group says complete)."""
+        from archive.ingest.collection import is_complete
+
+        if not self.collections.is_dir():
+            return []
+        ids = [p.name[: -len(".zarr")] for p in self.collections.iterdir()
+               if p.name.endswith(".zarr") and p.is_dir()]
+        return sorted(cid for cid in ids if is_complete(self.collections / f"{cid}.zarr"))
+
+    def require_collection(self, cid: str) -> Path:
+        """Path of a completed collection, or MissingInputError naming the id and the archive."""
+        from archive.ingest.collection import is_complete
+
+        store = self.store(cid)
+        if not is_complete(store):
+            known = self.collection_ids()
+            hint = ("known ids: " + ", ".join(known[:10]) + (" ..." if len(known) > 10 else "")) if known \
+                else "the archive holds no collection yet: run 'archive ingest'"
+            raise MissingInputError(store, f"collection {cid!r}", hint)
+        return store
+
+
+def open_archive(path: str | os.PathLike) -> ArchiveRoot:
+    """Open an existing archive; MissingInputError if ``path`` does not exist, InputError if it is
+    not an archive (no readable ``archive.json``) or has a newer format version."""
+    root = Path(path)
+    if not root.exists():
+        raise MissingInputError(root, "archive directory", "create one with 'archive ingest RAW_DIR --archive PATH'")
+    marker = root / MARKER
+    if not marker.is_file():
+        raise InputError(root, f"not an archive (no {MARKER})",
+                         "point --archive at a directory made by 'archive ingest'")
+    try:
+        info = json.loads(marker.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(marker, f"unreadable archive marker: {exc}", "restore it: {\"format\": \"archive\", \"version\": 1}") from exc
+    if not isinstance(info, dict) or info.get("format") != FORMAT:
+        raise InputError(marker, "not an archive marker (expected \"format\": \"archive\")")
+    version = info.get("version")
+    if not isinstance(version, int) or version > VERSION:
+        raise InputError(marker, f"archive format version {version!r} is not supported (this software reads {VERSION})",
+                         "upgrade archive")
+    return ArchiveRoot(root)
+
+
+def create_archive(path: str | os.PathLike) -> ArchiveRoot:
+    """Open the archive at ``path``, creating it (directories and ``archive.json``) when ``path``
+    does not exist or is an empty directory. A non-empty directory that is not an archive is
+    refused, so that an ingest never scatters files into an unrelated folder."""
+    root = Path(path)
+    if (root / MARKER).exists():
+        return open_archive(root)
+    if root.exists():
+        if not root.is_dir():
+            raise InputError(root, "exists and is not a directory", "choose another --archive path")
+        if any(root.iterdir()):
+            raise InputError(root, f"is a non-empty directory without {MARKER}, so not an archive",
+                             "choose a new or empty directory for --archive")
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "collections").mkdir(exist_ok=True)
+    (root / "catalog" / "items").mkdir(parents=True, exist_ok=True)
+    tmp = root / f".{MARKER}.tmp"
+    tmp.write_text(json.dumps({"format": FORMAT, "version": VERSION}, indent=2) + "\n")
+    os.replace(tmp, root / MARKER)
+    return ArchiveRoot(root)

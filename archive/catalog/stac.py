@@ -1,0 +1,132 @@
+"""STAC Items describing collections: one JSON file per completed collection.
+
+An Item (STAC 1.0/1.1 core, plain dicts, no pystac needed to write them) carries: the footprint
+polygon in lon/lat (one ring per strip), its bbox, ``start_datetime``/``end_datetime`` (and
+``datetime`` = start), ``instruments`` (the sensor), ``gsd`` (nominal, m), ``eo:bands`` (centre
+wavelengths in micrometres as the eo extension wants) and ``archive:wavelengths`` (nm), and one asset
+``data`` pointing at the Zarr store by a relative href.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from archive.errors import FormatError
+
+STAC_VERSION = "1.0.0"
+EO_EXTENSION = "https://stac-extensions.github.io/eo/v1.1.0/schema.json"
+ZARR_MEDIA_TYPE = "application/vnd+zarr"
+
+
+def rfc3339(moment: datetime) -> str:
+    """UTC, 'Z' suffix, microseconds only when non-zero."""
+    moment = moment.astimezone(UTC)
+    text = moment.strftime("%Y-%m-%dT%H:%M:%S")
+    if moment.microsecond:
+        text += f".{moment.microsecond:06d}"
+    return text + "Z"
+
+
+def make_item(cid: str, geometry: dict, bbox: list[float], start: datetime, end: datetime,
+              wavelengths: list[float] | None, bands: int, sensor: str | None, gsd: float,
+              store_href: str, extra: dict[str, Any] | None = None) -> dict:
+    """A STAC Item dict. geometry: GeoJSON (lon/lat); bbox [west, south, east, north] degrees;
+    start/end: UTC datetimes of the first and last line; wavelengths nm (bands,) or None;
+    store_href: the Zarr store relative to the Item file; extra: more ``archive:*`` properties."""
+    props: dict[str, Any] = {
+        "datetime": rfc3339(start),
+        "start_datetime": rfc3339(start),
+        "end_datetime": rfc3339(end),
+        "instruments": [sensor] if sensor else [],
+        "gsd": round(float(gsd), 4),
+        "archive:bands": int(bands),
+    }
+    extensions = []
+    if wavelengths is not None:
+        props["archive:wavelengths"] = [float(w) for w in wavelengths]
+        props["eo:bands"] = [{"name": f"b{i}", "center_wavelength": round(float(w) / 1000.0, 6)}
+                             for i, w in enumerate(wavelengths)]
+        extensions.append(EO_EXTENSION)
+    if extra:
+        props.update(extra)
+    return {
+        "type": "Feature",
+        "stac_version": STAC_VERSION,
+        "stac_extensions": extensions,
+        "id": cid,
+        "geometry": geometry,
+        "bbox": [float(v) for v in bbox],
+        "properties": props,
+        "links": [],
+        "assets": {
+            "data": {
+                "href": store_href,
+                "type": ZARR_MEDIA_TYPE,
+                "title": "Raw DN, navigation and calibration (Zarr v3 collection)",
+                "roles": ["data"],
+            }
+        },
+    }
+
+
+def write_item(path: str | os.PathLike, item: dict) -> Path:
+    """Write an Item as JSON (temporary name, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(item, indent=1) + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+def _time(props: dict, key: str, where: str) -> datetime:
+    value = props.get(key) or props.get("datetime")
+    if not isinstance(value, str):
+        raise FormatError(where, f"Item has no {key}", "re-ingest the flight or rewrite the Item")
+    try:
+        moment = datetime.fromisoformat(value.replace("Z", "+00:00"))
+    except ValueError:
+        raise FormatError(where, f"{key} {value!r} is not RFC 3339") from None
+    return moment if moment.tzinfo else moment.replace(tzinfo=UTC)
+
+
+def item_summary(item: dict, where: str = "") -> dict:
+    """The queryable fields of an Item: id, start/end (epoch s and ISO), bands, min/max wavelength
+    (nm or None), bbox, sensor, gsd. FormatError naming ``where`` when a field is missing."""
+    try:
+        cid = item["id"]
+        props = item["properties"]
+        bbox = [float(v) for v in item["bbox"]]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise FormatError(where, f"not a STAC Item (missing or bad {exc})") from None
+    if len(bbox) != 4:
+        raise FormatError(where, f"bbox must have 4 numbers, has {len(bbox)}")
+    start = _time(props, "start_datetime", where)
+    end = _time(props, "end_datetime", where)
+    wl = props.get("archive:wavelengths")
+    if wl is None and props.get("eo:bands"):
+        wl = [b["center_wavelength"] * 1000.0 for b in props["eo:bands"] if "center_wavelength" in b]
+    bands = props.get("archive:bands", len(wl) if wl else 0)
+    instruments = props.get("instruments") or [None]
+    return {
+        "id": str(cid),
+        "start_time": start.timestamp(),
+        "end_time": end.timestamp(),
+        "start_iso": rfc3339(start),
+        "end_iso": rfc3339(end),
+        "bands": int(bands),
+        "min_wavelength": float(min(wl)) if wl else None,
+        "max_wavelength": float(max(wl)) if wl else None,
+        "bbox": bbox,
+        "sensor": instruments[0],
+        "gsd": props.get("gsd"),
+    }
+
+
+def item_collection(items: list[dict]) -> dict:
+    """A STAC ItemCollection (GeoJSON FeatureCollection) of Items."""
+    return {"type": "FeatureCollection", "features": items}

@@ -1,0 +1,520 @@
+"""Collection stores: one raw flight ingested into a chunked, compressed Zarr v3 group, and read back.
+
+Layout of ``<ARCHIVE>/collections/<id>.zarr`` (axis orders in brackets)::
+
+    dn            [band, line, sample]  raw DN, all cubes' lines in capture order, native dtype
+                  (uint16 for Resonon), one chunk = one band x CHUNK_LINES lines (see below)
+    dn_sha256     [band, chunk, 32]     sha256 of each decoded dn chunk (C order, little endian)
+    time          [line]                line exposure start on the .lcf scale, sync offset 0 (s)
+    camera_time   [line]                the raw .bil.times values (camera clock, s)
+    cube          [line]                cube index of each line
+    position      [line, 3]             camera N, E, D (m) in the collection frame, sync 0, no lever arm
+    attitude      [line, 4]             camera -> NED quaternion (x, y, z, w), sync 0, no boresight
+    response      [line]                exposure factor vs the calibration (1 ms at 0 dB if none)
+    navigation    [sample, 7]           raw .lcf samples of all cubes: time, roll, pitch, yaw, lon, lat, alt
+    navigation_offset [cube + 1]        rows of cube k are navigation[offset[k]:offset[k+1]]
+    wavelength    [band]                nm (NaN when the header has none)
+    dark          [cube, band, sample]  calibration dark of each cube, float32 (only with a calibration)
+    gain          [set, band, sample]   calibration gain, float32; cube k uses gain[gain_index[k]]
+    gain_index    [cube]
+
+Group attributes hold the id, software version, field of view, ground height, the local frame,
+every cube's full header metadata, the source files (name, size, sha256), calibration reference
+exposure, sha256 of every small array, and LAST ``"archive:complete": true``. Nothing depends on
+the wall clock, so ingesting the same flight twice gives byte-identical stores.
+
+Chunking: Zarr 3 needs a regular chunk grid, so the line chunk length is the most common cube
+length (ties: the longest). Flights whose cubes all have that length (the last may be shorter)
+get exactly one chunk per band per cube; otherwise a cube's lines may span two chunks and each
+write task assembles its chunk from the cubes it overlaps, so that every task still writes whole
+chunks (concurrent partial writes into one chunk lose updates). Sharding would not help: shards
+are regular too, and per-band tasks would then share shards.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import threading
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import zarr
+from scipy.spatial.transform import Rotation
+from zarr.codecs import BloscCodec
+
+from archive.errors import FormatError, InputError
+from archive.ingest.envi import EnviCube, EnviHeader, header_from_metadata
+from archive.ingest.lcf import LcfData
+from archive.ingest.navigation import (LocalFrame, Poses, Track, boresight_rotation, check_coverage,
+                                       interpolate_poses, line_times, track_from_lcf)
+from archive.ingest.icp import response as exposure_response
+from archive.params import NavigationParams
+from archive.source import (NAV_TOLERANCE, RELATIVE_GAIN_DB, RELATIVE_SHUTTER_MS, CubeInfo, Radiometry,
+                            _band_list, _check_cube, _check_mode, _exposure, _saturation, _white)
+
+FORMAT = "archive-collection"
+FORMAT_VERSION = 1
+COMPLETE = "archive:complete"
+NAV_COLUMNS = ("time", "roll", "pitch", "yaw", "lon", "lat", "alt")
+# Chosen from bench/RESULTS.md "Ingest codec": best ratio on 12-bit DN among fast decoders.
+DN_CODEC = {"cname": "zstd", "clevel": 3, "shuffle": "bitshuffle"}
+SMALL_CODEC = {"cname": "zstd", "clevel": 5, "shuffle": "shuffle"}
+
+
+def _blosc(spec: dict) -> BloscCodec:
+    return BloscCodec(cname=spec["cname"], clevel=spec["clevel"], shuffle=spec["shuffle"])
+
+
+def is_complete(store: str | os.PathLike) -> bool:
+    """Whether ``store`` is a collection whose completion marker was written (reads only zarr.json)."""
+    try:
+        meta = json.loads((Path(store) / "zarr.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and (meta.get("attributes") or {}).get(COMPLETE) is True
+
+
+def sha256_file(path: str | os.PathLike, block: int = 1 << 22) -> str:
+    """Hex sha256 of a file, read in 4 MiB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(block):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def chunk_digest(data: np.ndarray) -> bytes:
+    """sha256 of an array's bytes in C order, little endian (the recorded chunk checksum)."""
+    a = np.ascontiguousarray(data)
+    a = a.astype(a.dtype.newbyteorder("<"), copy=False)
+    return hashlib.sha256(a.tobytes()).digest()
+
+
+def array_digest(data: np.ndarray) -> str:
+    return chunk_digest(np.asarray(data)).hex() + f":{np.asarray(data).dtype.str}:{list(np.shape(data))}"
+
+
+def chunk_lines_for(cube_lines: Sequence[int]) -> int:
+    """Line chunk length: the most common cube length, ties broken by the longest."""
+    counts = Counter(int(n) for n in cube_lines)
+    return max(counts, key=lambda n: (counts[n], n))
+
+
+@dataclass(frozen=True)
+class ChunkTask:
+    """One dn chunk: band ``band``, lines [line0, line1) of the collection, assembled from
+    ``pieces`` = ((data file, first cube line, end cube line), ...) in order."""
+
+    band: int
+    chunk: int
+    line0: int
+    line1: int
+    pieces: tuple[tuple[str, int, int], ...]
+
+
+def chunk_tasks(data_files: Sequence[str], cube_lines: Sequence[int], bands: int, chunk_lines: int) -> list[ChunkTask]:
+    """Every (band, chunk) of a flight, band-major, and the cube line ranges that fill it."""
+    offsets = np.concatenate([[0], np.cumsum(cube_lines)]).astype(int)
+    total = int(offsets[-1])
+    layout = []
+    for k, l0 in enumerate(range(0, total, chunk_lines)):
+        l1 = min(l0 + chunk_lines, total)
+        pieces = []
+        for c, path in enumerate(data_files):
+            a, b = max(l0, offsets[c]), min(l1, offsets[c + 1])
+            if a < b:
+                pieces.append((str(path), int(a - offsets[c]), int(b - offsets[c])))
+        layout.append((k, l0, l1, tuple(pieces)))
+    return [ChunkTask(b, k, l0, l1, pieces) for b in range(bands) for k, l0, l1, pieces in layout]
+
+
+def chunk_path(store: Path, band: int, chunk: int) -> Path:
+    """File of dn chunk (band, chunk) in a local Zarr v3 store (default '/' chunk key encoding)."""
+    return store / "dn" / "c" / str(band) / str(chunk) / "0"
+
+
+@lru_cache(maxsize=64)
+def _cube(path: str, size: int, mtime_ns: int) -> EnviCube:
+    return EnviCube(path)
+
+
+def _numcodecs_blosc(spec: dict):
+    import numcodecs
+
+    shuffle = {"noshuffle": numcodecs.Blosc.NOSHUFFLE, "shuffle": numcodecs.Blosc.SHUFFLE,
+               "bitshuffle": numcodecs.Blosc.BITSHUFFLE}[spec["shuffle"]]
+    return numcodecs.Blosc(cname=spec["cname"], clevel=spec["clevel"], shuffle=shuffle, blocksize=0)
+
+
+def write_chunk(store: str, task: ChunkTask, chunk_lines: int, resume: bool) -> tuple[int, int, str]:
+    """Dask task body: read one band of the raw cubes for ``task``, write it as one dn chunk, and
+    return (band, chunk, hex sha256 of the chunk's values).
+
+    The chunk is encoded here with the store's codec (bytes little endian + Blosc, the same bytes
+    zarr writes, checked by the tests) and written under a temporary name then renamed, which runs
+    the compression in this worker thread instead of zarr's event loop. An edge chunk is padded
+    with the fill value 0 to ``chunk_lines`` lines, as Zarr stores it. With ``resume``, a chunk
+    already on disk that decodes to the same values is kept. Memory: one chunk and its encoding.
+    """
+    parts = []
+    for path, a, b in task.pieces:
+        st = os.stat(path)
+        parts.append(_cube(path, st.st_size, st.st_mtime_ns).band(task.band)[a:b])
+    data = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=0)
+    data = np.ascontiguousarray(data, dtype=data.dtype.newbyteorder("<"))
+    digest = chunk_digest(data)
+    codec = _numcodecs_blosc(DN_CODEC)
+    target = chunk_path(Path(store), task.band, task.chunk)
+    if resume and target.is_file():
+        try:
+            old = np.frombuffer(codec.decode(target.read_bytes()), data.dtype)
+            if chunk_digest(old[: data.size]) == digest:
+                return task.band, task.chunk, digest.hex()
+        except Exception:  # noqa: BLE001 - a damaged chunk from a killed run is simply rewritten
+            pass
+    if data.shape[0] < chunk_lines:
+        padded = np.zeros((chunk_lines, data.shape[1]), data.dtype)
+        padded[: data.shape[0]] = data
+        data = padded
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f"{target.name}.{os.getpid()}.{threading.get_ident()}.partial")
+    tmp.write_bytes(codec.encode(data))
+    os.replace(tmp, target)
+    return task.band, task.chunk, digest.hex()
+
+
+def hash_file_task(path: str) -> tuple[str, str]:
+    """Dask task body: (path, hex sha256)."""
+    return path, sha256_file(path)
+
+
+# ----------------------------------------------------------------------------------------------
+# writing
+
+
+@dataclass
+class StorePlan:
+    """Everything an ingest writes, prepared in memory before the archive is touched.
+
+    arrays: small arrays by name; attrs: group attributes (without checksums and the marker);
+    data_files: the cubes' data files in capture order; cube_lines, bands, samples, dtype: dn shape
+    and type; sources: (path, size) of every raw file whose sha256 is recorded.
+    """
+
+    cid: str
+    arrays: dict[str, np.ndarray]
+    attrs: dict
+    data_files: list[str]
+    cube_lines: list[int]
+    bands: int
+    samples: int
+    dtype: np.dtype
+    sources: list[tuple[str, int]]
+    dims: dict[str, tuple[str, ...]] = field(default_factory=dict)
+
+    @property
+    def chunk_lines(self) -> int:
+        return chunk_lines_for(self.cube_lines)
+
+    def token(self) -> str:
+        """Identifies what is being written (sources, shapes, parameters), to resume safely."""
+        text = json.dumps([self.cid, self.sources, self.cube_lines, self.bands, self.samples, self.dtype.str,
+                           self.attrs.get("fov_deg"), self.attrs.get("ground_height"), DN_CODEC], default=str)
+        return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _create_arrays(store: Path, plan: StorePlan) -> None:
+    group = zarr.open_group(store, mode="w", zarr_format=3)
+    total = sum(plan.cube_lines)
+    group.create_array(
+        "dn", shape=(plan.bands, total, plan.samples), chunks=(1, plan.chunk_lines, plan.samples),
+        dtype=plan.dtype, compressors=[_blosc(DN_CODEC)], fill_value=0,
+        dimension_names=("band", "line", "sample"), config={"write_empty_chunks": True})
+    for name, values in plan.arrays.items():
+        a = group.create_array(name, shape=values.shape, chunks=values.shape or (1,), dtype=values.dtype,
+                               compressors=[_blosc(SMALL_CODEC)], fill_value=0,
+                               dimension_names=plan.dims.get(name), config={"write_empty_chunks": True})
+        a[...] = values
+
+
+def _clean_stray_temporaries(store: Path) -> None:
+    # zarr's LocalStore writes '<key>.<uuid>.partial' then renames; a SIGKILL can leave them.
+    for p in store.rglob("*.partial"):
+        if p.is_file():
+            p.unlink()
+
+
+def open_partial(partial: Path, plan: StorePlan) -> bool:
+    """Prepare ``partial`` for writing ``plan``: reuse it when an earlier run of the same plan left
+    it (returns True: resume), else create it afresh (returns False)."""
+    token = plan.token()
+    if partial.exists():
+        try:
+            attrs = json.loads((partial / "zarr.json").read_text()).get("attributes", {})
+        except (OSError, ValueError):
+            attrs = {}
+        if attrs.get("archive:plan") == token:
+            _clean_stray_temporaries(partial)
+            return True
+        shutil.rmtree(partial)
+    partial.parent.mkdir(parents=True, exist_ok=True)
+    _create_arrays(partial, plan)
+    # Written after every array exists: a partial store carrying this token is fully laid out.
+    group = zarr.open_group(partial, mode="r+")
+    group.attrs.put({"archive:plan": token})
+    return False
+
+
+def finish_store(partial: Path, plan: StorePlan, chunk_digests: dict[tuple[int, int], str],
+                 file_digests: dict[str, str]) -> None:
+    """Record checksums and metadata, then the completion marker (last write)."""
+    nchunks = -(-sum(plan.cube_lines) // plan.chunk_lines)
+    table = np.zeros((plan.bands, nchunks, 32), np.uint8)
+    for (b, k), hexd in chunk_digests.items():
+        table[b, k] = np.frombuffer(bytes.fromhex(hexd), np.uint8)
+    group = zarr.open_group(partial, mode="r+")
+    a = group.create_array("dn_sha256", shape=table.shape, chunks=table.shape, dtype=np.uint8,
+                           compressors=[_blosc(SMALL_CODEC)], fill_value=0, overwrite=True,
+                           dimension_names=("band", "chunk", "byte"), config={"write_empty_chunks": True})
+    a[...] = table
+    attrs = dict(plan.attrs)
+    attrs["sources"] = [{"name": attrs["source_names"][path], "size": size, "sha256": file_digests[path]}
+                        for path, size in plan.sources]
+    del attrs["source_names"]
+    attrs["array_sha256"] = {name: array_digest(v) for name, v in sorted(plan.arrays.items())}
+    attrs["archive:plan"] = plan.token()
+    group.attrs.put(attrs)
+    group.attrs.put({**attrs, COMPLETE: True})
+
+
+def publish(partial: Path, final: Path) -> None:
+    """Rename the finished partial store to its final name (replacing an older store)."""
+    if final.exists():
+        old = final.with_name(final.name + ".replaced")
+        if old.exists():
+            shutil.rmtree(old)
+        os.rename(final, old)
+        os.rename(partial, final)
+        shutil.rmtree(old)
+    else:
+        os.rename(partial, final)
+
+
+# ----------------------------------------------------------------------------------------------
+# verifying
+
+
+def verify_store(store: str | os.PathLike, progress: bool = False) -> list[str]:
+    """Recompute the sha256 of every dn chunk and every small array and compare with the recorded
+    ones. Returns the problems found (empty: OK)."""
+    from tqdm import tqdm
+
+    store = Path(store)
+    if not is_complete(store):
+        return [f"{store}: incomplete collection (no completion marker)"]
+    group = zarr.open_group(store, mode="r")
+    attrs = dict(group.attrs)
+    problems = []
+    for name, expected in sorted(attrs.get("array_sha256", {}).items()):
+        try:
+            found = array_digest(group[name][...])
+        except Exception as exc:  # noqa: BLE001 - report any unreadable array
+            problems.append(f"array {name}: unreadable ({type(exc).__name__}: {exc})")
+            continue
+        if found != expected:
+            problems.append(f"array {name}: checksum mismatch")
+    dn = group["dn"]
+    table = group["dn_sha256"][...]
+    chunk = dn.chunks[1]
+    bands, total = dn.shape[0], dn.shape[1]
+    nchunks = table.shape[1]
+    with tqdm(total=bands * nchunks, desc=f"verify {store.name}", unit="chunk", disable=not progress) as bar:
+        for b in range(bands):
+            for k in range(nchunks):
+                where = f"dn chunk (band {b}, lines {k * chunk}-{min((k + 1) * chunk, total) - 1})"
+                if not chunk_path(store, b, k).is_file():
+                    problems.append(f"{where}: missing")
+                else:
+                    try:
+                        if chunk_digest(dn[b, k * chunk:(k + 1) * chunk]) != table[b, k].tobytes():
+                            problems.append(f"{where}: checksum mismatch")
+                    except Exception as exc:  # noqa: BLE001 - undecodable chunk
+                        problems.append(f"{where}: cannot be decoded ({type(exc).__name__})")
+                bar.update(1)
+    return problems
+
+
+# ----------------------------------------------------------------------------------------------
+# reading
+
+
+class CollectionSource:
+    """A :class:`archive.source.FlightSource` over an ingested collection.
+
+    Poses are recomputed from the stored raw navigation with ``params`` (sync offset, boresight,
+    lever arm), exactly as :class:`archive.source.RawFlightSource` does from the raw files, so both
+    give bit-identical poses, DN and radiometry. ``read_bands`` reads only the chunks of the cube's
+    lines. ``params.fov_deg`` is the caller's; the ingested one is ``self.fov_deg``. Picklable.
+    """
+
+    def __init__(self, archive: str | os.PathLike, id: str, params: NavigationParams,
+                 white_reference: np.ndarray | None = None):
+        from archive.catalog.root import open_archive
+
+        self.store = open_archive(archive).require_collection(id)
+        self.id = id
+        self.params = params
+        self.white_reference = None if white_reference is None else np.asarray(white_reference, float)
+        group = zarr.open_group(self.store, mode="r")
+        attrs = dict(group.attrs)
+        if attrs.get("archive:format") != FORMAT or int(attrs.get("archive:format_version", 0)) > FORMAT_VERSION:
+            raise FormatError(self.store, "not a collection store this software can read",
+                              "re-ingest the flight or upgrade archive")
+        self.attrs = attrs
+        self.fov_deg = float(attrs["fov_deg"])
+        self.ground_height = attrs.get("ground_height")
+        f = attrs["frame"]
+        self.frame = LocalFrame(int(f["epsg"]), float(f["origin_e"]), float(f["origin_n"]), float(f["origin_alt"]))
+        nav = group["navigation"][...]
+        offsets = group["navigation_offset"][...]
+        camera_time = group["camera_time"][...]
+        self._headers = [header_from_metadata(c["header"], self.store / f"{c['base']}.hdr") for c in attrs["cubes"]]
+        self._line_offset = [int(c["line_offset"]) for c in attrs["cubes"]]
+        self._lcf: list[LcfData] = []
+        self._times: list[np.ndarray] = []
+        for k, c in enumerate(attrs["cubes"]):
+            rows = nav[int(offsets[k]):int(offsets[k + 1])]
+            self._lcf.append(LcfData(None, *(np.ascontiguousarray(rows[:, j]) for j in range(7))))
+            self._times.append(np.ascontiguousarray(camera_time[c["line_offset"]:c["line_offset"] + c["lines"]]))
+        self._tracks = [track_from_lcf(lcf, self.frame) for lcf in self._lcf]
+        self._boresight = boresight_rotation(params.boresight_deg)
+        self.wavelengths = self._headers[0].wavelengths
+        self.cubes = tuple(
+            CubeInfo(index=i, base=c["base"], lines=h.lines, samples=h.samples, bands=h.bands,
+                     wavelengths=h.wavelengths, shutter_ms=h.shutter, gain_db=h.gain, framerate=h.framerate,
+                     bit_depth=h.bit_depth, first_time=float(lcf.time[0]) + float(params.sync_offset))
+            for i, (c, h, lcf) in enumerate(zip(attrs["cubes"], self._headers, self._lcf, strict=True)))
+        self._calibration = attrs.get("calibration")
+        # As RawFlightSource.calibration_path, None when ingested without calibration; otherwise the
+        # ingested .icp's file name only (its arrays are in the store, the file is not needed).
+        self.calibration_path: Path | None = None if self._calibration is None else Path(self._calibration["name"])
+        self._dn = None
+        for i in range(len(self.cubes)):
+            self.check_navigation(i)
+
+    def __repr__(self) -> str:
+        return f"CollectionSource({str(self.store)!r}, cubes={len(self.cubes)})"
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_dn"] = None
+        return state
+
+    def __dask_tokenize__(self):
+        # What renders depend on: the stored content (its plan token covers sources and layout),
+        # the navigation parameters and the white reference; never the pixels.
+        white = None if self.white_reference is None else self.white_reference.tobytes()
+        return ("CollectionSource", str(self.store), self.id, self.attrs.get("archive:plan"), self.params, white)
+
+    def _where(self, cube: int) -> str:
+        return f"{self.store} cube {cube} ({self.cubes[cube].base})"
+
+    def _tolerance(self) -> float:
+        return NAV_TOLERANCE + abs(float(self.params.sync_offset))
+
+    def line_times(self, cube: int) -> np.ndarray:
+        """(lines,) exposure-start times of ``cube`` on the .lcf scale (sync offset included), s."""
+        cube = _check_cube(cube, self.cubes, str(self.store))
+        return line_times(self._times[cube], self._lcf[cube].time[0], self.params.sync_offset)
+
+    def check_navigation(self, cube: int) -> None:
+        """NavigationError unless the cube's navigation covers its lines (as RawFlightSource)."""
+        t = self.line_times(cube)
+        shutter = self._headers[cube].shutter
+        half = 0.0 if shutter is None else shutter / 2000.0
+        check_coverage(self._tracks[cube].time, np.array([t[0], t[-1] + half]), self._where(cube), self._tolerance())
+
+    def track(self, cube: int) -> Track:
+        return self._tracks[_check_cube(cube, self.cubes, str(self.store))]
+
+    def header(self, cube: int) -> EnviHeader:
+        """The cube's ENVI header as ingested (its path names the store, not a file)."""
+        return self._headers[_check_cube(cube, self.cubes, str(self.store))]
+
+    def poses(self, cube: int, delay: float = 0.0) -> Poses:
+        """Camera poses of every line of ``cube`` at exposure start + ``delay`` s (see RawFlightSource)."""
+        cube = _check_cube(cube, self.cubes, str(self.store))
+        t = self.line_times(cube) + float(delay)
+        return interpolate_poses(self._tracks[cube], t, self.frame, boresight=self._boresight,
+                                 lever_arm=self.params.lever_arm_m, where=self._where(cube),
+                                 tolerance=self._tolerance() + abs(float(delay)))
+
+    def read_bands(self, cube: int, bands: Sequence[int]) -> np.ndarray:
+        """(len(bands), lines, samples) DN of ``cube`` in the stored (native) dtype; reads only the
+        chunks holding those bands and the cube's lines."""
+        cube = _check_cube(cube, self.cubes, str(self.store))
+        idx = _band_list(bands, self.cubes[cube].bands, self._where(cube))
+        if self._dn is None:
+            self._dn = zarr.open_array(self.store, path="dn", mode="r")
+        l0 = self._line_offset[cube]
+        out = np.empty((len(idx), self.cubes[cube].lines, self.cubes[cube].samples), self._dn.dtype)
+        for k, b in enumerate(idx):
+            out[k] = self._dn[b, l0:l0 + self.cubes[cube].lines]
+        return out
+
+    def _stored_calibration(self, cube: int, idx: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        group = zarr.open_group(self.store, mode="r")
+        dark = group["dark"][cube]
+        gain = group["gain"][int(group["gain_index"][cube])]
+        return dark[idx], gain[idx]
+
+    def radiometry(self, cube: int, bands: Sequence[int], mode: str,
+                   white_reference: np.ndarray | None = None) -> Radiometry:
+        """Radiometric terms of ``bands`` of ``cube`` in ``mode``, as RawFlightSource.radiometry,
+        from the calibration stored at ingest."""
+        _check_mode(mode)
+        cube = _check_cube(cube, self.cubes, str(self.store))
+        h = self._headers[cube]
+        idx = _band_list(bands, h.bands, self._where(cube))
+        shape = (len(idx), h.samples)
+        saturation = _saturation(h.bit_depth, h.dtype)
+        if mode == "raw":
+            return Radiometry(np.zeros(shape, np.float32), np.ones(shape, np.float32),
+                              np.ones(h.lines, np.float32), saturation)
+        cal = self._calibration
+        if mode == "relative":
+            dark = np.zeros(shape, np.float32) if cal is None else self._stored_calibration(cube, idx)[0].astype(np.float32)
+            exposure = _exposure(h.shutter, h.gain, RELATIVE_SHUTTER_MS, RELATIVE_GAIN_DB)
+            return Radiometry(dark, np.ones(shape, np.float32), np.full(h.lines, exposure, np.float32), saturation)
+        if cal is None:
+            raise InputError(self.store, f"mode '{mode}' needs a radiometric calibration and none was ingested",
+                             "re-ingest with --calibration FILE.icp, or use --mode raw")
+        for key, value in (("shutter", h.shutter), ("gain", h.gain)):
+            if value is None:
+                raise InputError(self._where(cube), f"no '{key}' header key: cannot scale the calibration",
+                                 "use --mode raw")
+        dark, gain = self._stored_calibration(cube, idx)
+        dark = np.asarray(dark, np.float64)
+        gain = np.asarray(gain, np.float64)
+        if mode == "reflectance":
+            white = white_reference if white_reference is not None else self.white_reference
+            gain = gain / _white(white, idx, h.bands, str(self.store))[:, None]
+        resp = exposure_response(h.shutter, h.gain, float(cal["shutter_cal"]), float(cal["gain_cal"]))
+        return Radiometry(dark.astype(np.float32), gain.astype(np.float32),
+                          np.full(h.lines, resp, np.float32), saturation)
+
+    def stored_poses(self) -> tuple[np.ndarray, Rotation]:
+        """The poses recorded at ingest (sync 0, no boresight): (lines, 3) N, E, D m and attitudes."""
+        group = zarr.open_group(self.store, mode="r")
+        return group["position"][...], Rotation.from_quat(group["attitude"][...])
+
+
+__all__ = ["CollectionSource", "FORMAT", "FORMAT_VERSION", "StorePlan", "chunk_tasks", "is_complete",
+           "verify_store", "write_chunk"]

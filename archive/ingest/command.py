@@ -1,0 +1,321 @@
+"""``archive ingest`` and ``archive verify``.
+
+Ingest checks every raw flight completely (headers, data sizes, times, navigation coverage,
+calibration) before touching the archive, then writes each into ``<id>.zarr.partial`` with a Dask
+graph of per-(cube, band) chunk tasks and per-file checksum tasks, records checksums and metadata,
+writes the completion marker, renames the store to ``<id>.zarr`` and catalogs it. A rerun after a
+kill resumes the partial store (chunks already written with the right values are kept); a rerun
+after success is a no-op.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+import archive
+from archive.catalog.root import ArchiveRoot, check_collection_id, create_archive, open_archive
+from archive.errors import InputError
+from archive.ingest.collection import (FORMAT, FORMAT_VERSION, NAV_COLUMNS, StorePlan, chunk_tasks,
+                                       finish_store, hash_file_task, is_complete, open_partial, publish,
+                                       verify_store, write_chunk)
+from archive.ingest.icp import response as exposure_response
+from archive.ingest.lcf import gps_seconds_to_datetime, read_lcf
+from archive.ingest.navigation import line_times
+from archive.ingest.times import read_times
+from archive.params import NavigationParams
+
+
+def sensor_name(metadata: dict) -> str | None:
+    """The sensor named by a header: imager serial number, else sensor type, else None."""
+    for key in ("imager serial number", "sensor type", "sensor"):
+        value = metadata.get(key)
+        if value not in (None, ""):
+            return str(value).strip()
+    return None
+
+
+def collection_id(sensor: str | None, start) -> str:
+    """``<sensor>_<UTC start YYYYmmddTHHMMSS>``, sensor reduced to [A-Za-z0-9-] ('flight' if none)."""
+    name = re.sub(r"[^A-Za-z0-9]+", "-", sensor or "").strip("-") or "flight"
+    return check_collection_id(f"{name}_{start.strftime('%Y%m%dT%H%M%S')}")
+
+
+def _ground_height(metadata: dict, given: float | None, where) -> tuple[float, str]:
+    value = metadata.get("ground elevation")
+    if isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value):
+        if given is not None and float(given) != float(value):
+            return float(given), "argument"
+        return float(value), "header 'ground elevation'"
+    if given is not None:
+        return float(given), "argument"
+    raise InputError(where, "no 'ground elevation' in the header: the footprint needs the ground height",
+                     "pass --ground-height M (metres above the ellipsoid, the .lcf altitude datum)")
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: str | os.PathLike | None = None,
+                   ground_height: float | None = None) -> StorePlan:
+    """Read and check a raw flight (everything but the pixels) and return what its store will hold.
+    Raises a clear ArchiveError naming the cube or file for a broken flight; writes nothing."""
+    from archive.source import RawFlightSource
+
+    if not (np.isfinite(fov_deg) and 0 < fov_deg < 180):
+        raise InputError("--fov", f"field of view {fov_deg} deg is not in (0, 180)", "47.5 for a Pika L")
+    src = RawFlightSource(directory, NavigationParams(fov_deg=float(fov_deg)), calibration=calibration)
+    n = len(src.cubes)
+    headers = [src.header(i) for i in range(n)]
+    files = [src.files(i) for i in range(n)]
+    first = headers[0]
+    for h in headers[1:]:
+        if h.samples != first.samples or h.dtype.newbyteorder("=") != first.dtype.newbyteorder("="):
+            raise InputError(h.path, f"{h.samples} samples of {h.dtype}, but {first.path.name} has "
+                             f"{first.samples} of {first.dtype}", "a flight's cubes must share samples and data type")
+    times = [read_times(f.times, expected_lines=h.lines) for f, h in zip(files, headers, strict=True)]
+    lcfs = [read_lcf(f.lcf) for f in files]
+    poses = [src.poses(i) for i in range(n)]
+    cal = src.calibration()
+    darks, gains, gain_index = [], [], []
+    resp = []
+    for i, h in enumerate(headers):
+        if cal is not None:
+            dark, gain = cal.for_cube(h)  # FormatError naming the cube's header if they do not match
+            darks.append(dark)
+            for g, known in enumerate(gains):
+                if known.shape == gain.shape and np.array_equal(known, gain):
+                    gain_index.append(g)
+                    break
+            else:
+                gain_index.append(len(gains))
+                gains.append(gain)
+        if cal is not None and h.shutter is not None and h.gain is not None:
+            r = exposure_response(h.shutter, h.gain, cal.shutter_cal, cal.gain_cal)
+        elif h.shutter is not None:
+            r = exposure_response(h.shutter, h.gain or 0.0, 1.0, 0.0)
+        else:
+            r = 1.0
+        resp.append(np.full(h.lines, r))
+
+    line_offset = np.concatenate([[0], np.cumsum([h.lines for h in headers])]).astype(int)
+    nav_offset = np.concatenate([[0], np.cumsum([len(lcf.time) for lcf in lcfs])]).astype(np.int64)
+    arrays: dict[str, np.ndarray] = {
+        "time": np.concatenate([line_times(t, lcf.time[0], 0.0) for t, lcf in zip(times, lcfs, strict=True)]),
+        "camera_time": np.concatenate(times).astype(np.float64),
+        "cube": np.concatenate([np.full(h.lines, i, np.uint16) for i, h in enumerate(headers)]),
+        "position": np.concatenate([p.position for p in poses]),
+        "attitude": np.concatenate([p.attitude.as_quat() for p in poses]),
+        "response": np.concatenate(resp).astype(np.float64),
+        "navigation": np.concatenate([np.stack([getattr(lcf, c) for c in NAV_COLUMNS], axis=-1) for lcf in lcfs]),
+        "navigation_offset": nav_offset,
+        "wavelength": np.asarray(first.wavelengths if first.wavelengths else [np.nan] * first.bands, np.float64),
+    }
+    dims = {"time": ("line",), "camera_time": ("line",), "cube": ("line",), "position": ("line", "ned"),
+            "attitude": ("line", "xyzw"), "response": ("line",), "navigation": ("sample", "column"),
+            "navigation_offset": ("cube_edge",), "wavelength": ("band",)}
+    if cal is not None:
+        arrays["dark"] = np.stack(darks).astype(np.float32)
+        arrays["gain"] = np.stack(gains).astype(np.float32)
+        arrays["gain_index"] = np.asarray(gain_index, np.uint16)
+        dims.update({"dark": ("cube", "band", "sample"), "gain": ("set", "band", "sample"), "gain_index": ("cube",)})
+
+    sensor = sensor_name(first.metadata)
+    start = gps_seconds_to_datetime(float(arrays["time"][0]))
+    end = gps_seconds_to_datetime(float(arrays["time"][-1]))
+    cid = collection_id(sensor, start)
+    ground, ground_source = _ground_height(first.metadata, ground_height, first.path)
+
+    sources: list[tuple[str, int]] = []
+    names: dict[str, str] = {}
+    for f in files:
+        for p in (f.data, f.header, f.times, f.lcf):
+            sources.append((str(p), p.stat().st_size))
+            names[str(p)] = p.name
+    if src.calibration_path is not None:
+        p = Path(src.calibration_path)
+        sources.append((str(p), p.stat().st_size))
+        names[str(p)] = p.name
+    cubes = [{
+        "index": i, "base": f.base, "lines": h.lines, "samples": h.samples, "bands": h.bands,
+        "line_offset": int(line_offset[i]), "navigation_rows": int(nav_offset[i + 1] - nav_offset[i]),
+        "data_file": f.data.name, "header": _jsonable(h.metadata)}
+        for i, (f, h) in enumerate(zip(files, headers, strict=True))]
+    frame = src.frame
+    attrs = {
+        "archive:format": FORMAT,
+        "archive:format_version": FORMAT_VERSION,
+        "archive:id": cid,
+        "archive:software": f"archive {archive.__version__}",
+        "sensor": sensor,
+        "start_datetime": start.isoformat(),
+        "end_datetime": end.isoformat(),
+        "fov_deg": float(fov_deg),
+        "ground_height": ground,
+        "ground_height_source": ground_source,
+        "frame": {"epsg": int(frame.epsg), "origin_e": float(frame.origin_e), "origin_n": float(frame.origin_n),
+                  "origin_alt": float(frame.origin_alt)},
+        "poses": "position/attitude at exposure start, sync offset 0, no boresight or lever arm",
+        "navigation_columns": list(NAV_COLUMNS),
+        "response_reference": "calibration" if cal is not None else "1 ms at 0 dB",
+        "calibration": None if cal is None else {
+            "name": Path(src.calibration_path).name, "shutter_cal": float(cal.shutter_cal),
+            "gain_cal": float(cal.gain_cal)},
+        "dtype": first.dtype.newbyteorder("<").str,
+        "cubes": cubes,
+        "source_names": names,
+    }
+    return StorePlan(cid=cid, arrays=arrays, attrs=attrs, data_files=[str(f.data) for f in files],
+                     cube_lines=[h.lines for h in headers], bands=first.bands, samples=first.samples,
+                     dtype=first.dtype.newbyteorder("<"), sources=sources, dims=dims)
+
+
+class _Progress:
+    """A tqdm bar advanced by a Dask scheduler callback."""
+
+    def __init__(self, total: int, desc: str, enabled: bool):
+        from dask.callbacks import Callback
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, desc=desc, unit="task", disable=not enabled, file=sys.stderr)
+
+        class _Cb(Callback):
+            def _posttask(self, key, result, dsk, state, worker_id):
+                bar.update(1)
+
+        self.bar = bar
+        self.callback = _Cb()
+
+
+def write_flight(plan: StorePlan, root: ArchiveRoot, workers: int | None = None, progress: bool = True) -> bool:
+    """Write ``plan`` into ``root`` (partial store, Dask graph, checksums, marker, rename). Returns
+    whether the store was resumed from an interrupted run."""
+    import dask
+    from dask.base import tokenize
+
+    partial = root.partial(plan.cid)
+    resumed = open_partial(partial, plan)
+    tasks = chunk_tasks(plan.data_files, plan.cube_lines, plan.bands, plan.chunk_lines)
+    token = tokenize(plan.token(), resumed)
+    chunk_jobs = [dask.delayed(write_chunk, pure=True)(str(partial), t, plan.chunk_lines, resumed,
+                                                         dask_key_name=f"dn-chunk-{t.band}-{t.chunk}-{token}")
+                  for t in tasks]
+    hash_jobs = [dask.delayed(hash_file_task, pure=True)(path, dask_key_name=f"sha256-{k}-{token}")
+                 for k, (path, _) in enumerate(plan.sources)]
+    bar = _Progress(len(chunk_jobs) + len(hash_jobs), f"ingest {plan.cid}", progress)
+    try:
+        with bar.callback:
+            chunks, files = dask.compute(chunk_jobs, hash_jobs, scheduler="threads",
+                                         num_workers=workers or os.cpu_count() or 1)
+    finally:
+        bar.bar.close()
+    finish_store(partial, plan, {(b, k): d for b, k, d in chunks}, dict(files))
+    publish(partial, root.store(plan.cid))
+    return resumed
+
+
+def _same_sources(store: Path, plan: StorePlan) -> bool:
+    """Whether ``store`` was ingested from the same files as ``plan``: same names and sizes, and
+    the same sha256 for the small files (headers, times, navigation, calibration); data files are
+    not re-hashed, so that a repeated ingest stays a quick no-op."""
+    import zarr
+
+    from archive.ingest.collection import sha256_file
+
+    recorded = zarr.open_group(store, mode="r").attrs.get("sources", [])
+    if [(s["name"], s["size"]) for s in recorded] != [(plan.attrs["source_names"][p], n) for p, n in plan.sources]:
+        return False
+    data = set(plan.data_files)
+    return all(path in data or sha256_file(path) == rec["sha256"]
+               for (path, _), rec in zip(plan.sources, recorded, strict=True))
+
+
+def _cataloged(root: ArchiveRoot, cid: str) -> bool:
+    from archive.catalog.index import search
+
+    if not root.item_path(cid).exists() or not root.index_path.exists():
+        return False
+    return bool(search(root.index_path, ids=[cid]))
+
+
+@dataclass(frozen=True)
+class IngestResult:
+    cid: str
+    store: Path
+    status: str  # 'ingested' | 'resumed' | 'already ingested'
+
+
+def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: float,
+           calibration: str | os.PathLike | None = None, ground_height: float | None = None,
+           overwrite: bool = False, workers: int | None = None, progress: bool = True) -> list[IngestResult]:
+    """Ingest raw flight ``directories`` into the archive (created when absent). Every flight is
+    checked before anything is written; see the module docstring."""
+    from archive.catalog.describe import catalog_collection
+
+    plans = [prepare_flight(d, fov_deg, calibration, ground_height) for d in directories]
+    root = create_archive(archive_path)
+    results = []
+    for plan in plans:
+        final = root.store(plan.cid)
+        if final.exists() and not overwrite:
+            if not is_complete(final):
+                raise InputError(final, "exists but has no completion marker", "pass --overwrite to re-ingest")
+            if not _same_sources(final, plan):
+                raise InputError(final, f"holds a different flight than {directories[plans.index(plan)]} under the "
+                                 f"same id {plan.cid} (same sensor, same start second)",
+                                 "pass --overwrite to replace it")
+            if not _cataloged(root, plan.cid):
+                catalog_collection(root, plan.cid)  # an earlier run may have died before cataloging
+            results.append(IngestResult(plan.cid, final, "already ingested"))
+            continue
+        resumed = write_flight(plan, root, workers, progress)
+        catalog_collection(root, plan.cid)
+        results.append(IngestResult(plan.cid, final, "resumed" if resumed else "ingested"))
+    return results
+
+
+def run(args: argparse.Namespace) -> int:
+    """CLI handler of ``archive ingest``."""
+    results = ingest(args.directories, args.archive, args.fov, calibration=args.calibration,
+                     ground_height=args.ground_height, overwrite=args.overwrite, workers=args.workers,
+                     progress=not args.quiet)
+    for r in results:
+        print(f"{r.cid}: {r.status} ({r.store})")
+    return 0
+
+
+def run_verify(args: argparse.Namespace) -> int:
+    """CLI handler of ``archive verify``: exit 0 when every checked collection is intact, 1 if not."""
+    root = open_archive(args.archive)
+    ids = [args.id] if args.id else root.collection_ids()
+    if args.id:
+        root.require_collection(args.id)
+    if not ids:
+        print(f"{root.path}: no collections")
+        return 0
+    bad = 0
+    for cid in ids:
+        problems = verify_store(root.store(cid), progress=not args.quiet)
+        if problems:
+            bad += 1
+            print(f"{cid}: CORRUPT ({len(problems)} problems)")
+            for p in problems[:20]:
+                print(f"  {p}")
+            if len(problems) > 20:
+                print(f"  ... {len(problems) - 20} more")
+        else:
+            print(f"{cid}: OK")
+    return 1 if bad else 0
