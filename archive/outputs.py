@@ -1,0 +1,528 @@
+"""Writers for rendered mosaics: Zarr, Cloud-Optimized GeoTIFF, ENVI BSQ and an RGB quicklook.
+
+Every mosaic is first written, tile by tile, into a Zarr store (:class:`MosaicStore`): one chunk is
+one band of one 1024 x 1024 tile, so tasks writing different tiles or bands never share a chunk.
+The other formats are converted from that store chunk by chunk, so no writer ever holds the whole
+mosaic in memory. Rasters are ``(band, y, x)`` float32, NaN where no line covers a pixel; ``y`` grows
+southwards (row 0 is the northern edge).
+
+Nothing is ever half-written at the requested path: :class:`Output` writes to hidden temporary
+siblings (``.<name>.partial-<pid>...``), renames them into place only when complete, and removes them
+on failure. An existing output is refused unless ``overwrite`` is set, and then it is replaced only
+once the new one is complete.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import warnings
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from archive.errors import InputError, OutputExistsError
+from archive.grid import Grid
+
+__all__ = [
+    "CHUNK",
+    "FORMATS",
+    "MosaicStore",
+    "Output",
+    "Tile",
+    "output_format",
+    "quicklook_bands",
+    "variable_for_mode",
+    "write_mosaic",
+    "zarr_to_cog",
+    "zarr_to_envi",
+    "write_quicklook",
+]
+
+#: Output tile = Zarr chunk edge, pixels.
+CHUNK = 1024
+#: Output suffix -> format name.
+FORMATS = {".zarr": "zarr", ".tif": "cog", ".tiff": "cog", ".hdr": "envi"}
+_VARIABLES = {"raw": "dn", "relative": "relative", "radiance": "radiance", "reflectance": "reflectance"}
+_UNITS = {"raw": "DN", "relative": "DN (exposure-normalised)", "radiance": "calibration radiance units",
+          "reflectance": "1"}
+_GRID_ATTR = "archive_grid"
+# Quicklook targets (nm) for red, green, blue.
+_RGB_NM = (640.0, 550.0, 460.0)
+
+
+def variable_for_mode(mode: str) -> str:
+    """Name of the data variable for a radiometric mode ('raw' -> 'dn', 'radiance' -> 'radiance'...)."""
+    try:
+        return _VARIABLES[mode]
+    except KeyError:
+        raise InputError("--mode", f"unknown mode {mode!r}", f"use one of {', '.join(_VARIABLES)}") from None
+
+
+def output_format(path: str | os.PathLike) -> str:
+    """'zarr' | 'cog' | 'envi' from the output suffix; InputError for anything else."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in FORMATS:
+        raise InputError(
+            path, f"unknown output type {suffix or '(no suffix)'!r}",
+            "end the path in .zarr (Zarr), .tif/.tiff (Cloud-Optimized GeoTIFF) or .hdr (ENVI BSQ)",
+        )
+    return FORMATS[suffix]
+
+
+def _exists(path: Path) -> bool:
+    return path.exists() or path.is_symlink()
+
+
+def _remove(path: Path) -> None:
+    """Delete a file or directory tree; silent when absent."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            pass
+
+
+# ---------------------------------------------------------------------------------------------
+# The Zarr mosaic store (written tile by tile, possibly by many processes)
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Tile:
+    """One assembled output tile of a band group.
+
+    band0: position of values[0] among the output bands; row0, col0: top-left pixel in the grid.
+    values: (nb, h, w) float32, NaN where uncovered. saturated: (h, w) bool or None.
+    """
+
+    band0: int
+    row0: int
+    col0: int
+    values: np.ndarray
+    saturated: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class MosaicStore:
+    """Handle on a mosaic Zarr store (only paths and names: cheap to pickle into tasks).
+
+    The store holds ``<variable>`` (band, y, x) float32 chunked (1, 1024, 1024) with NaN fill,
+    ``saturated`` (y, x) uint8 chunked (1024, 1024) with 0 fill, x/y pixel-centre coordinates,
+    ``wavelength`` (band) in nm, ``spatial_ref`` (rioxarray CRS + GeoTransform) and the grid as a
+    root attribute. Reopen with ``xr.open_zarr(path, decode_coords="all")``.
+    """
+
+    path: str
+    variable: str
+
+    @classmethod
+    def create(
+        cls,
+        path: str | os.PathLike,
+        grid: Grid,
+        wavelengths: Sequence[float] | None,
+        band_indices: Sequence[int],
+        variable: str = "radiance",
+        attrs: dict | None = None,
+    ) -> MosaicStore:
+        """Write the store's metadata and coordinates (no chunk data: unwritten chunks read as NaN).
+
+        wavelengths: nm per output band (or None); band_indices: the source band index of each output band.
+        """
+        import dask.array as da
+        import xarray as xr
+        import rioxarray  # noqa: F401  (registers .rio)
+
+        nb = len(band_indices)
+        if wavelengths is not None and len(wavelengths) != nb:
+            raise ValueError(f"{len(wavelengths)} wavelengths for {nb} bands")
+        x, y = grid.xy_centres()
+        values = da.full((nb, grid.height, grid.width), np.nan, dtype=np.float32,
+                         chunks=(1, CHUNK, CHUNK))
+        saturated = da.zeros(grid.shape, dtype=np.uint8, chunks=(CHUNK, CHUNK))
+        coords = {"band": np.asarray(band_indices, dtype=np.int32), "y": y, "x": x}
+        if wavelengths is not None:
+            coords["wavelength"] = ("band", np.asarray(wavelengths, dtype=np.float64))
+        ds = xr.Dataset(
+            {variable: (("band", "y", "x"), values), "saturated": (("y", "x"), saturated)}, coords=coords
+        )
+        ds[variable].attrs.update(
+            {"long_name": variable, "_description": "NaN where no image line covers the pixel"}
+        )
+        ds["saturated"].attrs.update({"long_name": "saturated", "flag_values": [0, 1],
+                                      "flag_meanings": "ok saturated_in_some_band"})
+        ds["band"].attrs.update({"long_name": "source band index (0-based)"})
+        if wavelengths is not None:
+            ds["wavelength"].attrs.update({"units": "nm", "long_name": "band centre wavelength"})
+        ds["x"].attrs.update({"units": "m", "standard_name": "projection_x_coordinate"})
+        ds["y"].attrs.update({"units": "m", "standard_name": "projection_y_coordinate"})
+        ds.attrs.update(attrs or {})
+        ds.attrs[_GRID_ATTR] = json.dumps(
+            {"epsg": grid.epsg, "gsd": grid.gsd, "x0": grid.x0, "y0": grid.y0,
+             "width": grid.width, "height": grid.height}
+        )
+        ds = ds.rio.write_crs(grid.epsg).rio.write_transform(grid.transform)
+        ds[variable].encoding.update({"chunks": (1, CHUNK, CHUNK), "_FillValue": np.float32(np.nan)})
+        ds["saturated"].encoding.update({"chunks": (CHUNK, CHUNK)})
+        with warnings.catch_warnings():
+            # zarr warns that consolidated metadata is not yet in the v3 spec; xarray reads it fine.
+            warnings.simplefilter("ignore")
+            ds.to_zarr(os.fspath(path), mode="w-", compute=False, zarr_format=3, consolidated=True)
+        return cls(os.fspath(path), variable)
+
+    # ---- reading back ------------------------------------------------------------------------
+    def _array(self, name: str, mode: str = "r"):
+        import zarr
+
+        return zarr.open_array(self.path, path=name, mode=mode)
+
+    @property
+    def grid(self) -> Grid:
+        import zarr
+
+        meta = json.loads(zarr.open_group(self.path, mode="r").attrs[_GRID_ATTR])
+        return Grid(**meta)
+
+    @property
+    def wavelengths(self) -> np.ndarray | None:
+        import zarr
+
+        group = zarr.open_group(self.path, mode="r")
+        return np.asarray(group["wavelength"][:]) if "wavelength" in group else None
+
+    @property
+    def band_indices(self) -> np.ndarray:
+        return np.asarray(self._array("band")[:])
+
+    # ---- writing tiles -----------------------------------------------------------------------
+    def _check_aligned(self, shape: tuple[int, ...], row0: int, col0: int) -> None:
+        height, width = shape[-2:]
+        full_h, full_w = self._array(self.variable).shape[1:]
+        for start, size, full in ((row0, height, full_h), (col0, width, full_w)):
+            if start % CHUNK or not (size == CHUNK or start + size == full) or start + size > full:
+                raise ValueError(
+                    f"{self.path}: tile at ({row0}, {col0}) of {height} x {width} px is not aligned to "
+                    f"the {CHUNK} px chunks of a {full_h} x {full_w} mosaic"
+                )
+
+    def write_values(self, band0: int, row0: int, col0: int, values: np.ndarray) -> None:
+        """Write whole chunks: values (nb, h, w) float32 at bands band0.., rows row0.., cols col0.."""
+        values = np.asarray(values, dtype=np.float32)
+        self._check_aligned(values.shape, row0, col0)
+        nb, h, w = values.shape
+        self._array(self.variable, "r+")[band0:band0 + nb, row0:row0 + h, col0:col0 + w] = values
+
+    def write_saturated(self, row0: int, col0: int, mask: np.ndarray) -> None:
+        """Write whole chunks of the saturation flags: mask (h, w) bool."""
+        mask = np.asarray(mask)
+        self._check_aligned(mask.shape, row0, col0)
+        h, w = mask.shape
+        self._array("saturated", "r+")[row0:row0 + h, col0:col0 + w] = mask.astype(np.uint8)
+
+    def write_tile(self, tile: Tile) -> None:
+        self.write_values(tile.band0, tile.row0, tile.col0, tile.values)
+        if tile.saturated is not None:
+            self.write_saturated(tile.row0, tile.col0, tile.saturated)
+
+    def chunks(self) -> list[tuple[int, int, int, int]]:
+        """(row0, col0, height, width) of every spatial chunk, row-major."""
+        grid = self.grid
+        return [(r, c, g.height, g.width) for r, c, g in grid.tiles(CHUNK)]
+
+
+# ---------------------------------------------------------------------------------------------
+# Conversions from the finished store (chunk by chunk)
+# ---------------------------------------------------------------------------------------------
+def _band_labels(store: MosaicStore) -> list[str]:
+    wl = store.wavelengths
+    idx = store.band_indices
+    if wl is None:
+        return [f"band {i}" for i in idx]
+    return [f"band {i}: {w:.1f} nm" for i, w in zip(idx, wl)]
+
+
+def zarr_to_cog(store: MosaicStore, path: str | os.PathLike, work: str | os.PathLike,
+                compress: str = "DEFLATE") -> None:
+    """Write the store as a Cloud-Optimized GeoTIFF at ``path`` (512 px tiles, overviews, NaN nodata).
+
+    The bands are first copied chunk by chunk into a tiled GeoTIFF at ``work`` (deleted afterwards),
+    which GDAL's COG driver then rewrites with overviews in the cloud-optimized layout.
+    """
+    import rasterio
+    import rasterio.shutil
+    from rasterio.windows import Window
+
+    grid = store.grid
+    values = store._array(store.variable)
+    nb = values.shape[0]
+    labels = _band_labels(store)
+    wl = store.wavelengths
+    profile = dict(
+        driver="GTiff", width=grid.width, height=grid.height, count=nb, dtype="float32",
+        crs=grid.crs, transform=grid.transform, nodata=np.nan, tiled=True, blockxsize=512,
+        blockysize=512, interleave="band", compress="ZSTD", zstd_level=1, predictor=3,
+        bigtiff="IF_SAFER",
+    )
+    try:
+        with rasterio.open(work, "w", **profile) as dst:
+            for b in range(nb):
+                for row0, col0, h, w in store.chunks():
+                    block = values[b, row0:row0 + h, col0:col0 + w]
+                    dst.write(block, b + 1, window=Window(col0, row0, w, h))
+                dst.set_band_description(b + 1, labels[b])
+                if wl is not None:
+                    dst.update_tags(b + 1, wavelength=f"{wl[b]:.4f}", wavelength_units="nm")
+            tags = {"variable": store.variable, "source_bands": ",".join(str(i) for i in store.band_indices)}
+            if wl is not None:
+                tags.update(wavelength="{" + ", ".join(f"{w:.4f}" for w in wl) + "}", wavelength_units="nm")
+            dst.update_tags(**tags)
+        rasterio.shutil.copy(
+            work, os.fspath(path), driver="COG", compress=compress, predictor="FLOATING_POINT",
+            blocksize=512, overviews="AUTO", resampling="AVERAGE", bigtiff="IF_SAFER",
+            num_threads="ALL_CPUS",
+        )
+    finally:
+        _remove(Path(work))
+
+
+def _envi_map_info(grid: Grid) -> str:
+    zone, north = None, True
+    if 32601 <= grid.epsg <= 32660:
+        zone = grid.epsg - 32600
+    elif 32701 <= grid.epsg <= 32760:
+        zone, north = grid.epsg - 32700, False
+    if zone is None:
+        return f"{{Arbitrary, 1, 1, {grid.x0!r}, {grid.y0!r}, {grid.gsd!r}, {grid.gsd!r}, units=Meters}}"
+    hemisphere = "North" if north else "South"
+    return (f"{{UTM, 1, 1, {grid.x0!r}, {grid.y0!r}, {grid.gsd!r}, {grid.gsd!r}, {zone}, {hemisphere}, "
+            f"WGS-84, units=Meters}}")
+
+
+def envi_data_path(header: str | os.PathLike) -> Path:
+    """The BSQ data file of an ENVI output ``<name>.hdr``: ``<name>`` (the header path minus .hdr)."""
+    header = Path(header)
+    return header.with_name(header.name[: -len(".hdr")]) if header.name.lower().endswith(".hdr") else header
+
+
+def zarr_to_envi(store: MosaicStore, header: str | os.PathLike, data: str | os.PathLike) -> None:
+    """Write the store as ENVI BSQ: float32 little-endian ``data`` plus its ``header`` text.
+
+    The data are copied chunk by chunk through a memory map (no band is held whole).
+    """
+    grid = store.grid
+    values = store._array(store.variable)
+    nb = values.shape[0]
+    out = np.memmap(data, dtype="<f4", mode="w+", shape=(nb, grid.height, grid.width))
+    try:
+        for b in range(nb):
+            for row0, col0, h, w in store.chunks():
+                out[b, row0:row0 + h, col0:col0 + w] = values[b, row0:row0 + h, col0:col0 + w]
+            out.flush()
+    finally:
+        del out
+    wl = store.wavelengths
+    lines = [
+        "ENVI",
+        f"description = {{archive render mosaic: {store.variable}, NaN where not covered}}",
+        f"samples = {grid.width}",
+        f"lines = {grid.height}",
+        f"bands = {nb}",
+        "header offset = 0",
+        "file type = ENVI Standard",
+        "data type = 4",
+        "interleave = bsq",
+        "byte order = 0",
+        f"map info = {_envi_map_info(grid)}",
+        f"coordinate system string = {{{grid.crs.to_wkt(version='WKT1_ESRI')}}}",
+        "data ignore value = NaN",
+        "band names = {" + ", ".join(lbl.replace(",", ";") for lbl in _band_labels(store)) + "}",
+    ]
+    if wl is not None:
+        lines += ["wavelength units = Nanometers",
+                  "wavelength = {" + ", ".join(f"{w:.4f}" for w in wl) + "}"]
+    Path(header).write_text("\n".join(lines) + "\n", encoding="ascii")
+
+
+def quicklook_bands(wavelengths: Sequence[float] | None, nbands: int) -> tuple[int, int, int]:
+    """Output band positions for (red, green, blue).
+
+    The bands nearest 640 / 550 / 460 nm when those lie within the bands' range; else the last /
+    middle / first band (which for ascending wavelengths keeps long wavelengths red).
+    """
+    if wavelengths is not None and len(wavelengths) == nbands and nbands > 0:
+        wl = np.asarray(wavelengths, dtype=float)
+        half = (wl.max() - wl.min()) / max(nbands - 1, 1) / 2 if nbands > 1 else 0.0
+        if all(wl.min() - half <= t <= wl.max() + half for t in _RGB_NM):
+            return tuple(int(np.argmin(np.abs(wl - t))) for t in _RGB_NM)  # type: ignore[return-value]
+    return (nbands - 1, nbands // 2, 0)
+
+
+def write_quicklook(store: MosaicStore, path: str | os.PathLike, max_size: int = 2048) -> None:
+    """Write an RGBA PNG preview: 2 %/98 % stretch per channel over covered pixels, uncovered transparent.
+
+    Reads every ``step``-th pixel only (step so that the longer side is at most ``max_size``).
+    """
+    from PIL import Image
+
+    grid = store.grid
+    values = store._array(store.variable)
+    step = max(1, math.ceil(max(grid.height, grid.width) / max_size))
+    bands = quicklook_bands(store.wavelengths, values.shape[0])
+    channels = [np.asarray(values[b, ::step, ::step], dtype=np.float32) for b in bands]
+    covered = np.zeros(channels[0].shape, dtype=bool)
+    for c in channels:
+        covered |= np.isfinite(c)
+    rgba = np.zeros(channels[0].shape + (4,), dtype=np.uint8)
+    for i, c in enumerate(channels):
+        ok = np.isfinite(c)
+        if ok.any():
+            lo, hi = np.percentile(c[ok], [2.0, 98.0])
+            scale = 255.0 / (hi - lo) if hi > lo else 0.0
+            stretched = np.clip((np.where(ok, c, lo) - lo) * scale, 0, 255)
+            rgba[..., i] = np.where(ok, np.round(stretched), 0).astype(np.uint8)
+    rgba[..., 3] = np.where(covered, 255, 0)
+    Image.fromarray(rgba, mode="RGBA").save(path, format="PNG")
+
+
+# ---------------------------------------------------------------------------------------------
+# Output paths: temporary siblings, refusal of existing outputs, publication
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class Output:
+    """One requested output (plus an optional quicklook) and the temporary files that build it.
+
+    Use: ``out.check()`` early; write tiles into ``out.store_path`` (a MosaicStore); then
+    ``out.finalize(store)``; always ``out.cleanup()`` in a ``finally`` (it removes temporaries only).
+    """
+
+    path: Path
+    overwrite: bool = False
+    quicklook: Path | None = None
+    _temps: list[Path] = field(default_factory=list, repr=False)
+    _made_dirs: list[Path] = field(default_factory=list, repr=False)
+
+    def __post_init__(self) -> None:
+        self.path = Path(self.path)
+        self.quicklook = None if self.quicklook is None else Path(self.quicklook)
+        self.format = output_format(self.path)
+        if self.quicklook is not None and self.quicklook.suffix.lower() != ".png":
+            raise InputError(self.quicklook, "the quicklook must be a .png file", "name it <something>.png")
+
+    def _temp(self, final: Path, tag: str = "") -> Path:
+        tmp = final.with_name(f".{final.name}.partial-{os.getpid()}{tag}")
+        self._temps.append(tmp)
+        return tmp
+
+    @property
+    def finals(self) -> list[Path]:
+        """Every path this output will occupy (ENVI: data and header; plus the quicklook)."""
+        paths = [envi_data_path(self.path), self.path] if self.format == "envi" else [self.path]
+        return paths + ([self.quicklook] if self.quicklook is not None else [])
+
+    def check(self) -> None:
+        """OutputExistsError if a final path exists and overwrite is off; InputError for a bad parent."""
+        for final in self.finals:
+            if final.parent.exists() and not final.parent.is_dir():
+                raise InputError(final.parent, "is not a directory", "choose another output path")
+            if _exists(final) and not self.overwrite:
+                raise OutputExistsError(final)
+            if _exists(final) and final.is_dir() != (final.suffix.lower() == ".zarr"):
+                raise InputError(final, "exists and is of another kind (file vs directory)",
+                                 "remove it or choose another output path")
+
+    @property
+    def store_path(self) -> Path:
+        """Where the tiles go: the Zarr output's own temporary, or a temporary store to convert from."""
+        if not hasattr(self, "_store_path"):
+            self.check()
+            for final in self.finals:
+                missing = [d for d in (final.parent, *final.parent.parents) if not d.exists()]
+                final.parent.mkdir(parents=True, exist_ok=True)
+                self._made_dirs.extend(missing)  # deepest first: removed again if left empty
+            tag = "" if self.format == "zarr" else ".zarr"
+            self._store_path = self._temp(self.path, tag)
+        return self._store_path
+
+    def finalize(self, store: MosaicStore) -> None:
+        """Convert the finished store to the output format and move everything into place."""
+        moves: list[tuple[Path, Path]] = []
+        if self.format == "zarr":
+            moves.append((Path(store.path), self.path))
+        elif self.format == "cog":
+            tmp = self._temp(self.path)
+            zarr_to_cog(store, tmp, self._temp(self.path, ".gtiff"))
+            moves.append((tmp, self.path))
+        else:
+            data = envi_data_path(self.path)
+            tmp_data, tmp_header = self._temp(data), self._temp(self.path)
+            zarr_to_envi(store, tmp_header, tmp_data)
+            moves += [(tmp_data, data), (tmp_header, self.path)]  # header last: it makes it visible
+        if self.quicklook is not None:
+            tmp = self._temp(self.quicklook)
+            write_quicklook(store, tmp)
+            moves.append((tmp, self.quicklook))
+        self.check()  # something may have appeared meanwhile
+        for tmp, final in moves:
+            _replace(tmp, final)
+
+    def cleanup(self) -> None:
+        """Remove every temporary this output created (never the final paths)."""
+        for tmp in self._temps:
+            _remove(tmp)
+        self._temps.clear()
+        for d in self._made_dirs:
+            try:
+                d.rmdir()  # only when empty: after a failure, leave no trace at all
+            except OSError:
+                pass
+        self._made_dirs.clear()
+
+
+def _replace(tmp: Path, final: Path) -> None:
+    """Rename tmp to final; an existing final is moved aside first and deleted only afterwards."""
+    old = None
+    if _exists(final):
+        old = final.with_name(f".{final.name}.old-{os.getpid()}")
+        _remove(old)
+        os.replace(final, old)
+    try:
+        os.replace(tmp, final)
+    except BaseException:
+        if old is not None:
+            os.replace(old, final)
+        raise
+    if old is not None:
+        _remove(old)
+
+
+def write_mosaic(
+    path: str | os.PathLike,
+    grid: Grid,
+    tiles: Iterable[Tile],
+    *,
+    wavelengths: Sequence[float] | None = None,
+    band_indices: Sequence[int],
+    variable: str = "radiance",
+    overwrite: bool = False,
+    quicklook: str | os.PathLike | None = None,
+    attrs: dict | None = None,
+) -> Output:
+    """Write chunk-aligned tiles (in this process) into an output of any format, atomically.
+
+    tiles: :class:`Tile` objects, each covering whole 1024 px chunks of ``grid`` (edge tiles smaller).
+    If the iterable or a writer raises, nothing is left at ``path``.
+    """
+    out = Output(Path(path), overwrite=overwrite, quicklook=quicklook)
+    try:
+        store = MosaicStore.create(out.store_path, grid, wavelengths, band_indices, variable, attrs)
+        for tile in tiles:
+            store.write_tile(tile)
+        out.finalize(store)
+    finally:
+        out.cleanup()
+    return out
