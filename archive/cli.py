@@ -71,7 +71,9 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
             "intermediate files)."
         ),
     )
-    p.add_argument("sources", nargs="+", metavar="SOURCE", help="raw flight directory")
+    p.add_argument("sources", nargs="+", metavar="SOURCE",
+                   help="raw flight directory, or a collection id of --archive")
+    p.add_argument("--archive", metavar="ARCHIVE", help="archive holding the collections named as SOURCE")
     p.add_argument("--out", required=True, metavar="PATH", help="output path ending in .zarr, .tif or .hdr")
     p.add_argument("--gsd", required=True, type=float, metavar="M", help="output pixel size, metres")
     p.add_argument("--fov", type=float, metavar="DEG",
@@ -82,14 +84,18 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
                    help="height of the flat ground, metres above the ellipsoid, or 'auto' (default auto)")
     bands = p.add_mutually_exclusive_group()
     bands.add_argument("--wavelengths", metavar="NM,NM,...", help="render the bands nearest to these wavelengths")
-    bands.add_argument("--bands", metavar="all", default="all", help="render all bands (default)")
-    p.add_argument("--mode", choices=["raw", "relative", "radiance", "reflectance"], default="radiance",
-                   help="radiometric mode (default radiance; raw when there is no calibration)")
-    p.add_argument("--white-reference", metavar="FILE", help="white reference spectrum for --mode reflectance")
+    bands.add_argument("--bands", metavar="all|I,J,...", default="all",
+                       help="'all' bands (default) or 0-based band indices")
+    p.add_argument("--mode", choices=["raw", "relative", "radiance", "reflectance"], default=None,
+                   help="radiometric mode (default radiance; raw DN, with a note, when the flight has no calibration)")
+    p.add_argument("--white-reference", metavar="FILE",
+                   help="white reference for --mode reflectance: text file of two columns, wavelength (nm) and radiance")
     p.add_argument("--sync-offset", type=float, default=0.0, metavar="S", help="camera-to-navigation time offset, seconds (default 0)")
     p.add_argument("--overlap", choices=["last", "mean"], default="last", help="where flights overlap: the later line wins (default) or the mean")
     p.add_argument("--quicklook", metavar="PNG", help="also write an RGB preview (2%%/98%% stretch)")
-    p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler address (default: a local cluster)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="Dask scheduler address, e.g. tcp://host:8786 (default: a local cluster). Workers need "
+                        "--nthreads 1 --resources GPU=1 and the same file paths (shared file system); see docs/deploy.md")
     p.add_argument("--workers", type=_positive_int, metavar="N", help="local cluster worker processes (default: 1)")
     p.add_argument("--overwrite", action="store_true", help="replace PATH if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -101,7 +101,8 @@ def resolve_ground_height(value: str | float | None, sources: Sequence) -> float
         header = getattr(source, "header", None)
         for i, info in enumerate(source.cubes):
             meta = header(i).metadata if header is not None else {}
-            raw = meta.get(GROUND_KEY)
+            # a collection keeps the ground height it was ingested with
+            raw = meta.get(GROUND_KEY, getattr(source, "ground_height", None))
             try:
                 h = float(raw)  # type: ignore[arg-type]
             except (TypeError, ValueError):
@@ -179,12 +180,17 @@ def _check_args(args: argparse.Namespace) -> tuple[Output, NavigationParams]:
     output = Output(Path(args.out).absolute(), overwrite=bool(args.overwrite),
                     quicklook=None if not args.quicklook else Path(args.quicklook).absolute())
     output.check()
-    for src in args.sources:
-        if not Path(src).exists():
-            raise MissingInputError(src, "flight directory", "give a raw flight directory")
-    if args.fov is None:
+    archive = getattr(args, "archive", None)
+    collections = [src for src in args.sources if not Path(src).is_dir()]
+    for src in collections:
+        if archive is None:
+            raise MissingInputError(src, "flight directory",
+                                    "give a raw flight directory, or a collection id together with --archive ARCHIVE")
+    if args.fov is None and len(collections) < len(args.sources):
         raise InputError("--fov", "the field of view is required for raw flight directories",
                          "pass --fov DEG (47.5 for a Pika L and for 'archive simulate' flights)")
+    if args.fov is None:
+        args.fov = _collection_fov(archive, collections)
     if not (0 < args.fov < 180):
         raise InputError("--fov", f"must be between 0 and 180 degrees, got {args.fov:g}")
     if not math.isfinite(args.sync_offset):
@@ -192,6 +198,17 @@ def _check_args(args: argparse.Namespace) -> tuple[Output, NavigationParams]:
     if args.mode == "reflectance" and not getattr(args, "white_reference", None):
         raise InputError("--mode", "reflectance needs a white reference spectrum", "pass --white-reference FILE")
     return output, NavigationParams(fov_deg=float(args.fov), sync_offset=float(args.sync_offset))
+
+
+def _collection_fov(archive, ids: Sequence[str]) -> float:
+    """The field of view the collections were ingested with (they must agree)."""
+    from archive.ingest.collection import CollectionSource
+
+    fovs = {CollectionSource(archive, i, NavigationParams(fov_deg=1.0)).fov_deg for i in ids}
+    if len(fovs) != 1:
+        raise InputError("--fov", f"the collections were ingested with different fields of view {sorted(fovs)}",
+                         "pass --fov DEG")
+    return fovs.pop()
 
 
 def _check_same_bands(sources: Sequence, bands: Sequence[Sequence[int]]) -> None:
@@ -218,7 +235,9 @@ def _open_inputs(args: argparse.Namespace, nav: NavigationParams, say) -> _Input
     from archive.source import open_source
 
     # absolute paths: workers (maybe on another machine sharing the file system) open them again
-    sources = [open_source(Path(src).absolute(), nav, calibration=args.calibration) for src in args.sources]
+    archive = getattr(args, "archive", None)
+    sources = [open_source(Path(src).absolute() if Path(src).is_dir() else src, nav,
+                           calibration=args.calibration, archive=archive) for src in args.sources]
     wavelengths = _parse_floats(args.wavelengths, "--wavelengths") if args.wavelengths else None
     bands = [select_bands(s, wavelengths, getattr(args, "bands", "all")) for s in sources]
     _check_same_bands(sources, bands)

@@ -419,12 +419,25 @@ class MemoryFlightSource:
 
 def open_source(path_or_id: str | os.PathLike, params: NavigationParams,
                 calibration: str | os.PathLike | None = None,
-                white_reference: np.ndarray | None = None) -> FlightSource:
-    """A flight source for a raw flight directory (collection ids are not supported yet)."""
+                white_reference: np.ndarray | None = None,
+                archive: str | os.PathLike | None = None) -> FlightSource:
+    """A flight source: a raw flight directory, or a collection id in ``archive``.
+
+    A directory wins over a collection of the same name. A collection carries its own calibration,
+    so ``calibration`` must be None for one.
+    """
     path = Path(path_or_id)
     if path.is_dir():
         return RawFlightSource(path, params, calibration=calibration, white_reference=white_reference)
+    if archive is not None and not path.exists():
+        if calibration is not None:
+            raise InputError("--calibration", f"collection {path_or_id} carries the calibration it was "
+                             "ingested with", "leave out --calibration, or re-ingest with another .icp")
+        from archive.ingest.collection import CollectionSource
+
+        return CollectionSource(archive, str(path_or_id), params, white_reference=white_reference)
     if path.exists():
-        raise InputError(path, "is not a directory", "give a raw flight directory")
-    raise MissingInputError(path, "flight directory", "give a raw flight directory")
+        raise InputError(path, "is not a directory", "give a raw flight directory or a collection id with --archive")
+    raise MissingInputError(path, "flight directory",
+                            "give a raw flight directory, or a collection id together with --archive ARCHIVE")
 
