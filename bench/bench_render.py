@@ -1,0 +1,667 @@
+"""Benchmark of `archive render` (issue 4): ours vs GDAL's direct method vs the bare I/O floor.
+
+    python bench/bench_render.py [--cubes N] [--bands B] [--samples S] [--lines L] [--gsd 0.04]
+                                 [--workdir DIR] [--keep] [--gdal-group G] [--json FILE]
+
+Defaults are the paper shape: 2 cubes of 900 samples x 1000 lines x 300 bands (uint16 BIL,
+540 MB each), rendered at 4 cm with all bands, radiance mode. One run measures, on the same
+simulated flight (simulated once into --workdir and reused while its marker file exists):
+
+1. ours, end-to-end: ``python -m archive render FLIGHT --out X.zarr`` in a subprocess (Dask local
+   cluster, Zarr writer included); peak memory = max over time of the summed RSS of the whole
+   process tree (Dask nanny + worker included), polled every 0.1 s with psutil, and the
+   largest single process (``/usr/bin/time -v``).
+2. ours, render core: in-process, per cube and group of 4 bands: read bands + radiometry,
+   ``render_cube`` on the cube's window of the output grid, write into a .npy memmap (flushed).
+3. GDAL direct method: ``rasterio.warp.reproject(src_geoloc_array=(X, Y), nearest)`` per cube
+   and group of ``--gdal-group`` bands, same grid windows, same radiometry applied in numpy first,
+   same memmap writing. Geolocation arrays: see :func:`geolocation`.
+4. I/O floor: read every input .bil once (np.fromfile) + write the mosaic's float32 byte count once,
+   fsync'ed.
+
+Every method runs with the input already in the page cache (dropping caches needs root): the
+script reads the .bil files once before timing anything. Prints a Markdown table and ratios.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+FOV = 47.5
+MODE = "radiance"
+MB = 1e6
+
+
+# ---------------------------------------------------------------------------------------------
+# Machine, load and memory
+# ---------------------------------------------------------------------------------------------
+def machine() -> dict:
+    cpu = "?"
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("model name"):
+            cpu = line.split(":", 1)[1].strip()
+            break
+    mem = 0
+    for line in Path("/proc/meminfo").read_text().splitlines():
+        if line.startswith("MemTotal"):
+            mem = int(line.split()[1]) * 1024
+    return {"cpu": cpu, "cores": os.cpu_count(), "ram_gb": round(mem / 1e9, 1),
+            "python": platform.python_version(), "kernel": platform.release()}
+
+
+def load() -> str:
+    return " ".join(f"{v:.2f}" for v in os.getloadavg())
+
+
+class MemoryPoll:
+    """Polls the summed RSS of a process tree (pid and all descendants) in a thread.
+
+    peak_rss: max over time of sum(rss); peak_anon: same for rss - shared (file-backed pages, e.g.
+    memory-mapped input, excluded), bytes.
+    """
+
+    def __init__(self, pid: int | None = None, interval: float = 0.1):
+        import psutil
+
+        self.proc = psutil.Process(pid or os.getpid())
+        self.interval = interval
+        self.peak_rss = 0
+        self.peak_anon = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _sample(self) -> None:
+        import psutil
+
+        rss = anon = 0
+        try:
+            procs = [self.proc, *self.proc.children(recursive=True)]
+        except psutil.Error:
+            return
+        for p in procs:
+            try:
+                m = p.memory_info()
+            except psutil.Error:
+                continue
+            rss += m.rss
+            anon += m.rss - m.shared
+        self.peak_rss = max(self.peak_rss, rss)
+        self.peak_anon = max(self.peak_anon, anon)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._sample()
+            self._stop.wait(self.interval)
+
+    def __enter__(self) -> MemoryPoll:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+# ---------------------------------------------------------------------------------------------
+# Data
+# ---------------------------------------------------------------------------------------------
+def flight_dir(args) -> Path:
+    """Simulate the flight into --workdir once; reuse it while its completion marker exists."""
+    d = Path(args.workdir) / f"flight_c{args.cubes}_b{args.bands}_s{args.samples}_l{args.lines}"
+    marker = d / ".bench-complete"
+    if marker.exists():
+        print(f"reusing simulated flight {d} (marker {marker.name})", flush=True)
+        return d
+    from archive.simulator.command import simulate_flight
+
+    if d.exists():
+        shutil.rmtree(d)
+    print(f"simulating {args.cubes} cube(s) of {args.samples} x {args.lines} x {args.bands} into {d}", flush=True)
+    t = time.perf_counter()
+    simulate_flight(d, cubes=args.cubes, bands=args.bands, samples=args.samples, lines=args.lines,
+                    cubes_per_pass=2, seed=1, progress=True)
+    marker.write_text(f"{time.perf_counter() - t:.1f} s\n")
+    return d
+
+
+def bil_files(flight: Path) -> list[Path]:
+    return sorted(flight.glob("*.bil"))
+
+
+def warm(flight: Path) -> float:
+    """Read every .bil once so that all methods start from a warm page cache; seconds."""
+    t = time.perf_counter()
+    for f in bil_files(flight):
+        with open(f, "rb") as fh:
+            while fh.read(64 << 20):
+                pass
+    return time.perf_counter() - t
+
+
+# ---------------------------------------------------------------------------------------------
+# 4. I/O floor
+# ---------------------------------------------------------------------------------------------
+def io_floor(flight: Path, out_bytes: int, work: Path) -> dict:
+    t0 = time.perf_counter()
+    nread = 0
+    for f in bil_files(flight):
+        nread += np.fromfile(f, dtype=np.uint8).nbytes
+    t1 = time.perf_counter()
+    block = np.zeros(64 << 20, np.uint8)  # 64 MiB
+    path = work / "floor.bin"
+    with open(path, "wb") as fh:
+        left = out_bytes
+        while left > 0:
+            n = min(left, block.nbytes)
+            fh.write(memoryview(block)[:n])
+            left -= n
+        fh.flush()
+        os.fsync(fh.fileno())
+    t2 = time.perf_counter()
+    path.unlink()
+    return {"read_s": t1 - t0, "write_s": t2 - t1, "wall_s": t2 - t0, "read_mb": nread / MB,
+            "write_mb": out_bytes / MB}
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. End-to-end
+# ---------------------------------------------------------------------------------------------
+def end_to_end(flight: Path, args, work: Path, ground: float, tag: str = "e2e") -> dict:
+    out = work / f"{tag}.zarr"
+    cmd = [sys.executable, "-m", "archive", "render", str(flight), "--out", str(out), "--gsd", str(args.gsd),
+           "--fov", str(FOV), "--ground-height", str(ground), "--mode", MODE, "--overwrite"]
+    timev = shutil.which("time") or ("/usr/bin/time" if Path("/usr/bin/time").exists() else None)
+    full = ([timev, "-v"] if timev else []) + cmd
+    print("$ " + " ".join(cmd), flush=True)
+    env = dict(os.environ)
+    t = time.perf_counter()
+    proc = subprocess.Popen(full, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    with MemoryPoll(proc.pid) as poll:
+        stdout, stderr = proc.communicate()
+    wall = time.perf_counter() - t
+    if proc.returncode != 0:
+        print(stderr[-4000:], file=sys.stderr)
+        raise SystemExit(f"archive render failed with exit code {proc.returncode}")
+    largest = None
+    for line in stderr.splitlines():
+        if "Maximum resident set size" in line:
+            largest = int(line.split(":")[1]) * 1024
+    summary = stdout.strip().splitlines()[-1] if stdout.strip() else ""
+    size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
+    return {"cmd": " ".join(cmd), "wall_s": wall, "peak_tree_rss": poll.peak_rss,
+            "peak_tree_anon": poll.peak_anon, "largest_process_rss": largest, "zarr_mb": size / MB,
+            "summary": summary, "out": str(out)}
+
+
+def one_cube_flight(flight: Path, work: Path) -> Path:
+    """A flight directory holding only the first cube (symlinks), for memory-vs-length scaling."""
+    d = work / "flight_first_cube"
+    if d.exists():
+        shutil.rmtree(d)
+    d.mkdir()
+    first = bil_files(flight)[0]
+    base = first.name[: -len(".bil")]
+    for f in flight.iterdir():
+        if f.name.startswith(base + ".") or f.suffix == ".icp":
+            (d / f.name).symlink_to(f)
+    return d
+
+
+# ---------------------------------------------------------------------------------------------
+# Plan (shared by 2 and 3): the same grid and cube windows as the pipeline
+# ---------------------------------------------------------------------------------------------
+def make_plan(flight: Path, gsd: float, ground: float):
+    from archive.graph.plan import cube_meshes, plan_render
+    from archive.params import NavigationParams
+    from archive.source import RawFlightSource
+
+    source = RawFlightSource(flight, NavigationParams(fov_deg=FOV))
+    t = time.perf_counter()
+    meshes = cube_meshes(source, FOV, ground)
+    mesh_s = time.perf_counter() - t
+    bands = list(range(source.cubes[0].bands))
+    plan = plan_render([source], [meshes], [bands], gsd)
+    return source, plan, mesh_s
+
+
+def out_memmap(path: Path, shape) -> np.ndarray:
+    return np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=shape)
+
+
+# ---------------------------------------------------------------------------------------------
+# 2. Render core
+# ---------------------------------------------------------------------------------------------
+def render_core(source, plan, mesh_s: float, work: Path, group: int = 4) -> dict:
+    from tqdm import tqdm
+
+    from archive.render.context import get_context
+    from archive.render.renderer import render_cube
+
+    get_context()  # context creation is not part of the per-cube cost
+    per_cube = []
+    with MemoryPoll() as poll:
+        for job in plan.jobs:
+            c, win = job.cube, job.window
+            nb = source.cubes[c].bands
+            out = out_memmap(work / f"core_cube{c}.npy", (nb, win.height, win.width))
+            t_read = t_render = t_write = 0.0
+            t0 = time.perf_counter()
+            for b0 in tqdm(range(0, nb, group), desc=f"core cube {c}", unit="group", leave=False):
+                idx = list(range(b0, min(b0 + group, nb)))
+                t = time.perf_counter()
+                dn = source.read_bands(c, idx)
+                rad = source.radiometry(c, idx, MODE)
+                t_read += time.perf_counter() - t
+                t = time.perf_counter()
+                res = render_cube(job.mesh, dn, rad, win, bands_per_pass=min(4, len(idx)))
+                t_render += time.perf_counter() - t
+                t = time.perf_counter()
+                out[b0:b0 + len(idx)] = res.values
+                t_write += time.perf_counter() - t
+            t = time.perf_counter()
+            out.flush()
+            del out
+            t_write += time.perf_counter() - t
+            wall = time.perf_counter() - t0 + mesh_s / len(plan.jobs)
+            per_cube.append({"cube": c, "window": [win.height, win.width], "bands": nb, "wall_s": wall,
+                             "read_s": t_read, "render_s": t_render, "write_s": t_write,
+                             "mesh_s": mesh_s / len(plan.jobs),
+                             "mpx_band_per_s": win.height * win.width * nb / 1e6 / wall})
+    return {"per_cube": per_cube, "wall_s": sum(p["wall_s"] for p in per_cube),
+            "peak_rss": poll.peak_rss, "peak_anon": poll.peak_anon}
+
+
+def profile_render(source, plan, bands: int = 16) -> str:
+    """cProfile of render_cube on the first cube, ``bands`` bands in groups of 4: where time goes."""
+    import cProfile
+    import io
+    import pstats
+
+    from archive.render.renderer import render_cube
+
+    job = plan.jobs[0]
+    nb = min(bands, source.cubes[job.cube].bands)
+    groups = [list(range(b, min(b + 4, nb))) for b in range(0, nb, 4)]
+    data = [(source.read_bands(job.cube, g), source.radiometry(job.cube, g, MODE)) for g in groups]
+    prof = cProfile.Profile()
+    prof.enable()
+    for dn, rad in data:
+        render_cube(job.mesh, dn, rad, job.window, bands_per_pass=4)
+    prof.disable()
+    s = io.StringIO()
+    pstats.Stats(prof, stream=s).sort_stats("tottime").print_stats(14)
+    return s.getvalue()
+
+
+def gl_breakdown(source, plan, repeats: int = 5) -> dict:
+    """Seconds per 4-band pass of the pieces of render_cube, timed standalone on cube 0's window:
+    DN texture upload (RGBA16UI, lines x samples), read-back of the RGBA32F value target and of the
+    RG8 flag target (nothing pending: pure copy-out), and the numpy work around them (np.full of
+    the output, moveaxis copy-in, NaN masking). The draw itself is what render_cube's time leaves."""
+    from archive.render.context import get_context
+
+    ctx = get_context()
+    job = plan.jobs[0]
+    win, info = job.window, source.cubes[job.cube]
+    dn = source.read_bands(job.cube, [0, 1, 2, 3])
+    out: dict = {}
+
+    def timed(name, fn):
+        ts = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            fn()
+            ctx.finish()
+            ts.append(time.perf_counter() - t)
+        out[name] = float(np.median(ts))
+
+    def upload():
+        tex = ctx.texture((info.samples, info.lines), 4, np.moveaxis(dn, 0, -1).tobytes(), dtype="u2",
+                          alignment=1)
+        tex.release()
+
+    vrb = ctx.renderbuffer((win.width, win.height), 4, dtype="f4")
+    frb = ctx.renderbuffer((win.width, win.height), 2, dtype="f1")
+    fbo = ctx.framebuffer(color_attachments=[vrb, frb])
+    fbo.use()
+    fbo.clear(0.0, 0.0, 0.0, 0.0)
+    vp = (0, 0, win.width, win.height)
+    timed("upload_dn_s", upload)
+    timed("clear_s", lambda: fbo.clear(0.0, 0.0, 0.0, 0.0))
+    timed("read_values_s", lambda: fbo.read(viewport=vp, components=4, attachment=0, dtype="f4"))
+    timed("read_flags_s", lambda: fbo.read(viewport=vp, components=2, attachment=1, dtype="f1"))
+    raw = fbo.read(viewport=vp, components=4, attachment=0, dtype="f4")
+
+    def numpy_side():
+        values = np.full((4, win.height, win.width), np.nan, np.float32)
+        val = np.frombuffer(raw, np.float32).reshape(win.height, win.width, 4)
+        values[:] = np.moveaxis(val, -1, 0)
+        covered = val[..., 0] != 0
+        values[:, ~covered] = np.nan
+
+    timed("numpy_s", numpy_side)
+    from archive.render.context import park_framebuffer
+
+    park_framebuffer()
+    for o in (fbo, vrb, frb):
+        o.release()
+    out["window"] = [win.height, win.width]
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# 3. GDAL direct method
+# ---------------------------------------------------------------------------------------------
+def geolocation(source, cube: int, ground: float) -> tuple[np.ndarray, np.ndarray]:
+    """UTM (X easting, Y northing), each (lines, samples) float64, for GDAL's geolocation arrays.
+
+    GDAL's geolocation transformer takes the value at index (i, j) as the position of source pixel
+    coordinate (j, i), i.e. the TOP-LEFT CORNER of pixel (line i, sample j) (checked: a 4 x 4
+    affine test warps sample j onto x in [j, j + 1)). So we pass the corner of each pixel as the
+    mesh defines it: sample j's left edge is the ray u = -t + 2t j / N (t = tan(fov / 2)), and line
+    i's span starts half-way between the mid-exposure poses of lines i - 1 and i (the mesh centres
+    line i's span on its mid-exposure row: L in [i - 0.5, i + 0.5)). The ray is intersected with
+    the flat ground exactly, at every row (so the perspective spacing of samples on the ground is
+    exact); the corner of line i is the mean of the ground points of rows i - 1 and i (the mesh
+    interpolates linearly between rows too). Line 0's start comes from the previous cube's last
+    line when it joins this one, else it is extrapolated from rows 0 and 1.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from archive.graph.plan import strip_links
+    from archive.render.mesh import mid_exposure
+
+    info = source.cubes[cube]
+    poses = [source.poses(i) for i in range(len(source.cubes))]
+    links = strip_links(source, poses)
+    p = poses[cube]
+    times, pos, att = [np.asarray(p.time, float)], [np.asarray(p.position, float)], [p.attitude]
+    opening = cube > 0 and links[cube - 1]
+    if opening:
+        q = poses[cube - 1]
+        times.insert(0, np.asarray(q.time, float)[-1:])
+        pos.insert(0, np.asarray(q.position, float)[-1:])
+        att.insert(0, q.attitude[-1:])
+    if cube < len(links) and links[cube]:  # mid-exposure of the last line interpolates towards the next cube
+        q = poses[cube + 1]
+        times.append(np.asarray(q.time, float)[:1])
+        pos.append(np.asarray(q.position, float)[:1])
+        att.append(q.attitude[:1])
+    mid_pos, mid_att = mid_exposure(np.concatenate(times), np.concatenate(pos), Rotation.concatenate(att),
+                                    info.shutter_ms or 0.0)
+    rows = slice(0, info.lines + (1 if opening else 0))
+    mid_pos, mat = mid_pos[rows], mid_att.as_matrix()[rows]         # (r, 3), (r, 3, 3)
+    n = info.samples
+    t = np.tan(np.radians(FOV) / 2)
+    u = -t + 2 * t * np.arange(n) / n                                # left edges
+    d = mat[:, None, :, 1] * u[None, :, None] + mat[:, None, :, 2]   # (r, n, 3) NED ray directions
+    d_ground = float(source.frame.origin_alt) - float(ground)
+    lam = (d_ground - mid_pos[:, None, 2]) / d[..., 2]
+    g = mid_pos[:, None, :2] + lam[..., None] * d[..., :2]           # (r, n, 2) N, E
+    if opening:
+        corner = 0.5 * (g[:-1] + g[1:])
+    else:
+        corner = np.empty_like(g)
+        corner[1:] = 0.5 * (g[:-1] + g[1:])
+        corner[0] = 1.5 * g[0] - 0.5 * g[1]
+    x = corner[..., 1] + source.frame.origin_e
+    y = corner[..., 0] + source.frame.origin_n
+    return np.ascontiguousarray(x), np.ascontiguousarray(y)
+
+
+def gdal_direct(source, plan, ground: float, work: Path, group: int, threads: int = 2,
+                bands: int | None = None, write: bool = True) -> dict:
+    from rasterio.warp import Resampling, reproject
+    from tqdm import tqdm
+
+    crs = plan.grid.crs
+    per_cube = []
+    with MemoryPoll() as poll:
+        for job in plan.jobs:
+            c, win = job.cube, job.window
+            nb = bands or source.cubes[c].bands
+            t0 = time.perf_counter()
+            x, y = geolocation(source, c, ground)
+            t_geo = time.perf_counter() - t0
+            out = out_memmap(work / f"gdal_cube{c}.npy", (nb, win.height, win.width)) if write else None
+            t_read = t_rad = t_warp = t_write = 0.0
+            for b0 in tqdm(range(0, nb, group), desc=f"gdal cube {c}", unit="group", leave=False):
+                idx = list(range(b0, min(b0 + group, nb)))
+                t = time.perf_counter()
+                dn = source.read_bands(c, idx)
+                rad = source.radiometry(c, idx, MODE)
+                t_read += time.perf_counter() - t
+                t = time.perf_counter()
+                src = (dn.astype(np.float32) - rad.dark[:, None, :]) * rad.gain[:, None, :]
+                src /= rad.response[None, :, None]
+                t_rad += time.perf_counter() - t
+                t = time.perf_counter()
+                dst = np.full((len(idx), win.height, win.width), np.nan, np.float32)
+                reproject(src, dst, src_geoloc_array=(x, y), src_crs=crs, dst_transform=win.transform,
+                          dst_crs=crs, resampling=Resampling.nearest, dst_nodata=np.nan,
+                          num_threads=threads, warp_mem_limit=512)
+                t_warp += time.perf_counter() - t
+                t = time.perf_counter()
+                if out is not None:
+                    out[b0:b0 + len(idx)] = dst
+                t_write += time.perf_counter() - t
+            t = time.perf_counter()
+            if out is not None:
+                out.flush()
+                del out
+            t_write += time.perf_counter() - t
+            wall = time.perf_counter() - t0
+            per_cube.append({"cube": c, "bands": nb, "wall_s": wall, "geoloc_s": t_geo, "read_s": t_read,
+                             "radiometry_s": t_rad, "warp_s": t_warp, "write_s": t_write,
+                             "mpx_band_per_s": win.height * win.width * nb / 1e6 / wall})
+    return {"per_cube": per_cube, "wall_s": sum(p["wall_s"] for p in per_cube), "group": group,
+            "threads": threads, "peak_rss": poll.peak_rss, "peak_anon": poll.peak_anon}
+
+
+def gdal_group_probe(source, plan, ground: float, work: Path, bands: int) -> dict:
+    """Seconds per band of one reproject call on cube 0 for a few bands-per-call choices (one call each)."""
+    import dataclasses
+
+    one = dataclasses.replace(plan, jobs=plan.jobs[:1])
+    out = {}
+    for group in sorted({min(g, bands) for g in (4, 16, 64, bands)}):
+        r = gdal_direct(source, one, ground, work, group, bands=group, write=False)
+        pc = r["per_cube"][0]
+        out[group] = {"call_s": pc["warp_s"], "s_per_band": (pc["wall_s"] - pc["geoloc_s"]) / group,
+                      "peak_anon": r["peak_anon"]}
+        print(f"  gdal probe: {group} bands/call: one call {pc['warp_s']:.2f} s, "
+              f"{out[group]['s_per_band']:.3f} s/band, peak anon {fmt_gb(r['peak_anon'])} GB", flush=True)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Agreement of GDAL with ours
+# ---------------------------------------------------------------------------------------------
+def compare(plan, work: Path, step: int) -> dict:
+    """Per-pixel agreement over every ``step``-th band of each cube window (ours vs GDAL)."""
+    both = equal = close = ours_only = gdal_only = covered = 0
+    for job in plan.jobs:
+        a = np.load(work / f"core_cube{job.cube}.npy", mmap_mode="r")
+        b = np.load(work / f"gdal_cube{job.cube}.npy", mmap_mode="r")
+        for k in range(0, a.shape[0], step):
+            x, y = np.asarray(a[k]), np.asarray(b[k])
+            fx, fy = np.isfinite(x), np.isfinite(y)
+            m = fx & fy
+            covered += int(fx.sum())
+            both += int(m.sum())
+            ours_only += int((fx & ~fy).sum())
+            gdal_only += int((fy & ~fx).sum())
+            diff = np.abs(x[m] - y[m])
+            scale = np.abs(x[m])
+            equal += int((diff <= 1e-5 * scale + 1e-6).sum())
+            close += int((diff <= 0.05 * scale + 1e-6).sum())
+    return {"bands_step": step, "ours_covered": covered, "both": both,
+            "equal_frac": equal / max(both, 1), "close5_frac": close / max(both, 1),
+            "ours_not_gdal_frac": ours_only / max(covered, 1),
+            "gdal_not_ours_frac": gdal_only / max(covered, 1)}
+
+
+# ---------------------------------------------------------------------------------------------
+# Main
+# ---------------------------------------------------------------------------------------------
+def fmt_gb(b: float | None) -> str:
+    return "-" if b is None else f"{b / 1e9:.2f}"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--cubes", type=int, default=2)
+    ap.add_argument("--bands", type=int, default=300)
+    ap.add_argument("--samples", type=int, default=900)
+    ap.add_argument("--lines", type=int, default=1000)
+    ap.add_argument("--gsd", type=float, default=0.04)
+    ap.add_argument("--workdir", default="/tmp/archive-bench")
+    ap.add_argument("--keep", action="store_true", help="keep the outputs (the simulated flight is always kept)")
+    ap.add_argument("--gdal-group", type=int, default=0,
+                    help="bands per reproject call (default: probe 4/16/64 on cube 0 and take the fastest)")
+    ap.add_argument("--no-scaling", action="store_true", help="skip the end-to-end run on the first cube alone")
+    ap.add_argument("--profile", action="store_true", help="also cProfile render_cube on 16 bands of cube 0")
+    ap.add_argument("--json", help="write all figures to this JSON file")
+    args = ap.parse_args(argv)
+
+    os.environ.setdefault("LP_NUM_THREADS", str(os.cpu_count() or 1))
+    work = Path(args.workdir)
+    work.mkdir(parents=True, exist_ok=True)
+    runs = work / f"run_c{args.cubes}_b{args.bands}_s{args.samples}_l{args.lines}_g{args.gsd:g}"
+    if runs.exists():
+        shutil.rmtree(runs)
+    runs.mkdir()
+    R: dict = {"machine": machine(), "args": vars(args), "load": {}}
+    R["load"]["start"] = load()
+    flight = flight_dir(args)
+    from archive.simulator.truth import load_truth
+
+    ground = float(load_truth(flight).ground_height)
+    R["warm_read_s"] = warm(flight)
+    print(f"input warmed in the page cache ({R['warm_read_s']:.1f} s); load {load()}", flush=True)
+
+    # Metadata-only plan (no GL): output size for the I/O floor.
+    source, plan, mesh_s = make_plan(flight, args.gsd, ground)
+    g = plan.grid
+    out_bytes = g.width * g.height * plan.nbands * 4
+    R["grid"] = {"width": g.width, "height": g.height, "bands": plan.nbands, "epsg": g.epsg, "gsd": g.gsd,
+                 "mosaic_mb": out_bytes / MB,
+                 "windows": [[j.window.height, j.window.width] for j in plan.jobs]}
+    print(f"grid {g.width} x {g.height} px x {plan.nbands} bands ({out_bytes / MB:.0f} MB float32); "
+          f"windows {R['grid']['windows']}", flush=True)
+
+    print("[4] I/O floor", flush=True)
+    R["floor"] = io_floor(flight, out_bytes, runs)
+    R["load"]["floor"] = load()
+
+    # Subprocesses first: no GL context may exist in this process when it forks.
+    print("[1] end-to-end (archive render)", flush=True)
+    R["e2e"] = end_to_end(flight, args, runs, ground)
+    R["load"]["e2e"] = load()
+    print(f"    {R['e2e']['wall_s']:.1f} s, peak tree RSS {fmt_gb(R['e2e']['peak_tree_rss'])} GB", flush=True)
+    if args.cubes >= 2 and not args.no_scaling:
+        one = one_cube_flight(flight, runs)
+        R["e2e_1cube"] = end_to_end(one, args, runs, ground, tag="e2e_1cube")
+        R["load"]["e2e_1cube"] = load()
+        shutil.rmtree(Path(R["e2e_1cube"]["out"]), ignore_errors=True)
+
+    print("[2] render core (in-process)", flush=True)
+    R["core"] = render_core(source, plan, mesh_s, runs)
+    R["load"]["core"] = load()
+    from archive.render.context import gl_info
+
+    R["gl"] = {k: v for k, v in gl_info().items() if k in ("renderer", "version", "max_texture_size")}
+    R["gl_breakdown"] = gl_breakdown(source, plan)
+    print("    per 4-band pass, standalone: " + ", ".join(
+        f"{k} {v * 1000:.0f} ms" for k, v in R["gl_breakdown"].items() if k.endswith("_s")), flush=True)
+    if args.profile:
+        R["profile"] = profile_render(source, plan)
+        print(R["profile"])
+
+    print("[3] GDAL direct method", flush=True)
+    group = args.gdal_group
+    if not group:
+        R["gdal_probe_s_per_band"] = gdal_group_probe(source, plan, ground, runs, plan.nbands)
+        probe = R["gdal_probe_s_per_band"]
+        group = min(probe, key=lambda k: probe[k]["s_per_band"])
+    R["gdal"] = gdal_direct(source, plan, ground, runs, group)
+    R["load"]["gdal"] = load()
+
+    R["agreement"] = compare(plan, runs, step=max(1, plan.nbands // 30))
+    report(R)
+    if args.json:
+        Path(args.json).write_text(json.dumps(R, indent=1, default=str))
+    if not args.keep:
+        shutil.rmtree(runs, ignore_errors=True)
+    return 0
+
+
+def report(R: dict) -> None:
+    e, c, gd, f = R["e2e"], R["core"], R["gdal"], R["floor"]
+    n = len(c["per_cube"])
+    m = R["machine"]
+    print()
+    print(f"machine: {m['cpu']}, {m['cores']} cores, {m['ram_gb']} GB RAM; GL: {R['gl']['renderer']}")
+    print(f"grid: {R['grid']['width']} x {R['grid']['height']} px x {R['grid']['bands']} bands at "
+          f"{R['grid']['gsd']:g} m; {n} cube(s); warm page cache")
+    print()
+    print("| method | wall s | s / cube | Mpx·band/s | peak memory GB | output MB | split |")
+    print("|---|---|---|---|---|---|---|")
+    mpxb = R["grid"]["width"] * R["grid"]["height"] * R["grid"]["bands"] / 1e6
+    print(f"| ours end-to-end (`archive render` → Zarr) | {e['wall_s']:.1f} | {e['wall_s'] / n:.1f} | "
+          f"{mpxb / e['wall_s']:.0f} (mosaic) | tree {fmt_gb(e['peak_tree_rss'])} (anon "
+          f"{fmt_gb(e['peak_tree_anon'])}); largest proc {fmt_gb(e['largest_process_rss'])} | "
+          f"{e['zarr_mb']:.0f} (zarr on disk) | incl. cluster start-up |")
+    if "e2e_1cube" in R:
+        e1 = R["e2e_1cube"]
+        print(f"| ours end-to-end, first cube alone | {e1['wall_s']:.1f} | {e1['wall_s']:.1f} | - | tree "
+              f"{fmt_gb(e1['peak_tree_rss'])} (anon {fmt_gb(e1['peak_tree_anon'])}); largest proc "
+              f"{fmt_gb(e1['largest_process_rss'])} | {e1['zarr_mb']:.0f} | |")
+    split = lambda p, keys: ", ".join(f"{k[:-2]} {p[k]:.1f}" for k in keys)  # noqa: E731
+    for p in c["per_cube"]:
+        print(f"| ours render core, cube {p['cube']} ({p['window'][0]} x {p['window'][1]} px) | {p['wall_s']:.1f} | "
+              f"{p['wall_s']:.1f} | {p['mpx_band_per_s']:.0f} | proc {fmt_gb(c['peak_rss'])} (anon "
+              f"{fmt_gb(c['peak_anon'])}) | {p['window'][0] * p['window'][1] * p['bands'] * 4 / MB:.0f} (.npy) | "
+              f"{split(p, ['read_s', 'mesh_s', 'render_s', 'write_s'])} |")
+    for p in gd["per_cube"]:
+        print(f"| GDAL geoloc warp ({gd['group']} bands/call, {gd['threads']} threads), cube {p['cube']} | "
+              f"{p['wall_s']:.1f} | {p['wall_s']:.1f} | {p['mpx_band_per_s']:.0f} | proc {fmt_gb(gd['peak_rss'])} "
+              f"(anon {fmt_gb(gd['peak_anon'])}) | same | "
+              f"{split(p, ['geoloc_s', 'read_s', 'radiometry_s', 'warp_s', 'write_s'])} |")
+    print(f"| I/O floor (read .bil + write mosaic bytes, fsync) | {f['wall_s']:.1f} | {f['wall_s'] / n:.1f} | - | - | "
+          f"{f['write_mb']:.0f} | read {f['read_s']:.1f} ({f['read_mb']:.0f} MB), write {f['write_s']:.1f} |")
+    print()
+    a = R["agreement"]
+    print(f"GDAL / ours (render core): {gd['wall_s'] / c['wall_s']:.2f}x")
+    print(f"GDAL / ours (end-to-end):  {gd['wall_s'] / e['wall_s']:.2f}x")
+    print(f"ours end-to-end / I/O floor: {e['wall_s'] / f['wall_s']:.2f}x; render core / I/O floor: "
+          f"{c['wall_s'] / f['wall_s']:.2f}x")
+    print(f"peak memory per cube (end-to-end tree RSS / cubes): {fmt_gb(e['peak_tree_rss'] / n)} GB")
+    print(f"agreement (every {a['bands_step']}th band): of pixels covered by both, {100 * a['equal_frac']:.2f} % equal, "
+          f"{100 * a['close5_frac']:.2f} % within 5 %; covered by ours but NaN in GDAL: "
+          f"{100 * a['ours_not_gdal_frac']:.3f} %; by GDAL but not ours: {100 * a['gdal_not_ours_frac']:.3f} %")
+    p0 = c["per_cube"][0]
+    passes = -(-p0["bands"] // 4)
+    gb = R["gl_breakdown"]
+    print(f"render core, cube 0, per 4-band pass: render_cube {1000 * p0['render_s'] / passes:.0f} ms; standalone "
+          + ", ".join(f"{k[:-2]} {1000 * v:.0f} ms" for k, v in gb.items() if k.endswith("_s")))
+    if "gdal_probe_s_per_band" in R:
+        print("GDAL probe (cube 0, one call each): " + "; ".join(
+            f"{k} bands/call {v['call_s']:.1f} s ({v['s_per_band']:.3f} s/band, anon {fmt_gb(v['peak_anon'])} GB)"
+            for k, v in R["gdal_probe_s_per_band"].items()))
+    print("load average (1/5/15 min): " + "; ".join(f"{k} {v}" for k, v in R["load"].items()))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
