@@ -162,6 +162,47 @@ def _white(white_reference, bands: list[int], nbands: int, where: str) -> np.nda
     return sel
 
 
+def radiometry_for(header: EnviHeader, bands: list[int], mode: str, calibration, white_reference,
+                   where: str, no_calibration: tuple[str, str]) -> Radiometry:
+    """Radiometric terms of ``bands`` (checked indices) of the cube described by ``header``.
+
+    ``calibration`` is None (no calibration) or a callable returning (dark, gain, shutter_cal,
+    gain_cal) for those bands: dark and gain (len(bands), samples) matched to the cube. Modes:
+
+    - raw: dark 0, gain 1, response 1 (values are DN);
+    - relative: dark from the calibration if there is one (else 0), gain 1, response = exposure
+      against 1 ms at 0 dB (DN per ms at 0 dB);
+    - radiance: dark and gain of the calibration, response = (shutter / shutter_cal) x
+      10**((gain - gain_cal) / 20);
+    - reflectance: radiance divided by ``white_reference`` (bands of the cube), per band.
+
+    ``no_calibration`` is the (problem, fix) said when a mode needs a calibration and there is none.
+    """
+    h = header
+    shape = (len(bands), h.samples)
+    saturation = _saturation(h.bit_depth, h.dtype)
+    if mode == "raw":
+        return Radiometry(np.zeros(shape, np.float32), np.ones(shape, np.float32),
+                          np.ones(h.lines, np.float32), saturation)
+    if mode == "relative":
+        dark = np.zeros(shape, np.float32) if calibration is None else np.asarray(calibration()[0], np.float32)
+        exposure = _exposure(h.shutter, h.gain, RELATIVE_SHUTTER_MS, RELATIVE_GAIN_DB)
+        return Radiometry(dark, np.ones(shape, np.float32), np.full(h.lines, exposure, np.float32), saturation)
+    if calibration is None:
+        raise InputError(where, f"mode '{mode}' {no_calibration[0]}", no_calibration[1])
+    for key, value in (("shutter", h.shutter), ("gain", h.gain)):
+        if value is None:
+            raise InputError(h.path, f"no '{key}' key: cannot scale the calibration to this cube",
+                             "add it to the header, or use --mode raw")
+    dark, gain, shutter_cal, gain_cal = calibration()
+    gain = np.asarray(gain, np.float64)
+    if mode == "reflectance":
+        gain = gain / _white(white_reference, bands, h.bands, where)[:, None]
+    resp = response(h.shutter, h.gain, shutter_cal, gain_cal)
+    return Radiometry(np.asarray(dark, np.float64).astype(np.float32), gain.astype(np.float32),
+                      np.full(h.lines, resp, np.float32), saturation)
+
+
 def _saturation(bit_depth: int | None, dtype: np.dtype) -> float | None:
     if bit_depth is None or dtype.kind not in "ui":
         return None
@@ -311,32 +352,16 @@ class RawFlightSource:
         c = self._raw[cube]
         h = c.header
         idx = _band_list(bands, h.bands, str(c.files.data))
-        shape = (len(idx), h.samples)
-        saturation = _saturation(h.bit_depth, h.dtype)
-        if mode == "raw":
-            return Radiometry(np.zeros(shape, np.float32), np.ones(shape, np.float32),
-                              np.ones(h.lines, np.float32), saturation)
-        cal = self.calibration()
-        if mode == "relative":
-            dark = np.zeros(shape, np.float32) if cal is None else cal.for_cube(h)[0][idx].astype(np.float32)
-            exposure = _exposure(h.shutter, h.gain, RELATIVE_SHUTTER_MS, RELATIVE_GAIN_DB)
-            return Radiometry(dark, np.ones(shape, np.float32), np.full(h.lines, exposure, np.float32), saturation)
-        if cal is None:
-            raise InputError(self.directory, f"mode '{mode}' needs a radiometric calibration (*.icp) and there is none",
-                             "pass --calibration FILE.icp, or use --mode raw")
-        for key, value in (("shutter", h.shutter), ("gain", h.gain)):
-            if value is None:
-                raise InputError(h.path, f"no '{key}' key: cannot scale the calibration to this cube",
-                                 "add it to the header, or use --mode raw")
-        dark, gain = cal.for_cube(h)
-        dark = np.asarray(dark, np.float64)[idx]
-        gain = np.asarray(gain, np.float64)[idx]
-        if mode == "reflectance":
-            white = white_reference if white_reference is not None else self.white_reference
-            gain = gain / _white(white, idx, h.bands, str(self.directory))[:, None]
-        resp = response(h.shutter, h.gain, cal.shutter_cal, cal.gain_cal)
-        return Radiometry(dark.astype(np.float32), gain.astype(np.float32),
-                          np.full(h.lines, resp, np.float32), saturation)
+        cal = self.calibration() if mode != "raw" else None
+
+        def calibration():
+            dark, gain = cal.for_cube(h)
+            return np.asarray(dark)[idx], np.asarray(gain)[idx], cal.shutter_cal, cal.gain_cal
+
+        white = white_reference if white_reference is not None else self.white_reference
+        return radiometry_for(h, idx, mode, None if cal is None else calibration, white, str(self.directory),
+                              ("needs a radiometric calibration (*.icp) and there is none",
+                               "pass --calibration FILE.icp, or use --mode raw"))
 
 
 class MemoryFlightSource:

@@ -54,10 +54,9 @@ from archive.ingest.envi import EnviCube, EnviHeader, header_from_metadata
 from archive.ingest.lcf import LcfData
 from archive.ingest.navigation import (LocalFrame, Poses, Track, boresight_rotation, check_coverage,
                                        interpolate_poses, line_times, track_from_lcf)
-from archive.ingest.icp import response as exposure_response
 from archive.params import NavigationParams
-from archive.source import (NAV_TOLERANCE, RELATIVE_GAIN_DB, RELATIVE_SHUTTER_MS, CubeInfo, Radiometry,
-                            _band_list, _check_cube, _check_mode, _exposure, _saturation, _white)
+from archive.source import (NAV_TOLERANCE, CubeInfo, Radiometry, _band_list, _check_cube, _check_mode,
+                            radiometry_for)
 
 FORMAT = "archive-collection"
 FORMAT_VERSION = 1
@@ -483,32 +482,16 @@ class CollectionSource:
         cube = _check_cube(cube, self.cubes, str(self.store))
         h = self._headers[cube]
         idx = _band_list(bands, h.bands, self._where(cube))
-        shape = (len(idx), h.samples)
-        saturation = _saturation(h.bit_depth, h.dtype)
-        if mode == "raw":
-            return Radiometry(np.zeros(shape, np.float32), np.ones(shape, np.float32),
-                              np.ones(h.lines, np.float32), saturation)
         cal = self._calibration
-        if mode == "relative":
-            dark = np.zeros(shape, np.float32) if cal is None else self._stored_calibration(cube, idx)[0].astype(np.float32)
-            exposure = _exposure(h.shutter, h.gain, RELATIVE_SHUTTER_MS, RELATIVE_GAIN_DB)
-            return Radiometry(dark, np.ones(shape, np.float32), np.full(h.lines, exposure, np.float32), saturation)
-        if cal is None:
-            raise InputError(self.store, f"mode '{mode}' needs a radiometric calibration and none was ingested",
-                             "re-ingest with --calibration FILE.icp, or use --mode raw")
-        for key, value in (("shutter", h.shutter), ("gain", h.gain)):
-            if value is None:
-                raise InputError(self._where(cube), f"no '{key}' header key: cannot scale the calibration",
-                                 "use --mode raw")
-        dark, gain = self._stored_calibration(cube, idx)
-        dark = np.asarray(dark, np.float64)
-        gain = np.asarray(gain, np.float64)
-        if mode == "reflectance":
-            white = white_reference if white_reference is not None else self.white_reference
-            gain = gain / _white(white, idx, h.bands, str(self.store))[:, None]
-        resp = exposure_response(h.shutter, h.gain, float(cal["shutter_cal"]), float(cal["gain_cal"]))
-        return Radiometry(dark.astype(np.float32), gain.astype(np.float32),
-                          np.full(h.lines, resp, np.float32), saturation)
+
+        def calibration():
+            dark, gain = self._stored_calibration(cube, idx)
+            return dark, gain, float(cal["shutter_cal"]), float(cal["gain_cal"])
+
+        white = white_reference if white_reference is not None else self.white_reference
+        return radiometry_for(h, idx, mode, None if cal is None else calibration, white, str(self.store),
+                              ("needs a radiometric calibration and none was ingested",
+                               "re-ingest with --calibration FILE.icp, or use --mode raw"))
 
     def stored_poses(self) -> tuple[np.ndarray, Rotation]:
         """The poses recorded at ingest (sync 0, no boresight): (lines, 3) N, E, D m and attitudes."""
