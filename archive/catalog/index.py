@@ -1,11 +1,13 @@
 """SQLite index of an archive's STAC Items: bbox (R*Tree), time range and wavelength range.
 
 The index is a cache of ``<ARCHIVE>/catalog/items/*.json``: :func:`rebuild_index` recreates it from
-those files. Every statement is parameterised. The schema is :data:`SCHEMA` (kept identical to
-``catalogs/schema.sql`` by a test).
+those files. Every statement is parameterised. The schema is :data:`SCHEMA`, read from
+``catalogs/schema.sql`` (shipped as the package ``archive.catalogs``).
 """
 
 from __future__ import annotations
+
+import importlib.resources
 
 import json
 import os
@@ -22,45 +24,8 @@ from archive.errors import FormatError, InputError
 
 SCHEMA_VERSION = "1"
 
-SCHEMA = """-- Catalog index of an archive: <ARCHIVE>/catalog/index.sqlite (SQLite 3, standard library).
--- Rebuildable at any time from the STAC Items in <ARCHIVE>/catalog/items/ ('archive catalog rebuild').
--- Loaded by archive/catalog/index.py (tests check that the two copies agree).
--- Times are Unix epoch seconds (UTC, leap seconds already removed); bbox in degrees (WGS 84).
-
-CREATE TABLE IF NOT EXISTS meta (
-    key   TEXT PRIMARY KEY,
-    value TEXT NOT NULL
-);
-
-CREATE TABLE IF NOT EXISTS items (
-    rowid          INTEGER PRIMARY KEY,   -- also the R*Tree id
-    id             TEXT NOT NULL UNIQUE,  -- collection id = STAC Item id
-    start_time     REAL NOT NULL,         -- epoch s, first line
-    end_time       REAL NOT NULL,         -- epoch s, last line
-    start_iso      TEXT NOT NULL,
-    end_iso        TEXT NOT NULL,
-    bands          INTEGER NOT NULL,
-    min_wavelength REAL,                  -- nm; NULL when the flight has no wavelengths
-    max_wavelength REAL,
-    west           REAL NOT NULL,         -- exact bbox (the R*Tree holds it as float32, rounded outward)
-    south          REAL NOT NULL,
-    east           REAL NOT NULL,
-    north          REAL NOT NULL,
-    sensor         TEXT,
-    gsd            REAL,                  -- m, nominal
-    item_path      TEXT NOT NULL          -- relative to the archive root
-);
-
-CREATE INDEX IF NOT EXISTS items_start ON items (start_time);
-CREATE INDEX IF NOT EXISTS items_end ON items (end_time);
-CREATE INDEX IF NOT EXISTS items_wavelength ON items (min_wavelength, max_wavelength);
-
-CREATE VIRTUAL TABLE IF NOT EXISTS items_bbox USING rtree (
-    id,
-    west, east,     -- longitude range
-    south, north    -- latitude range
-);
-"""
+# The schema lives in catalogs/schema.sql (the agreed place for it), shipped as archive.catalogs.
+SCHEMA = (importlib.resources.files("archive.catalogs") / "schema.sql").read_text(encoding="utf-8")
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,1 @@
+"""Catalog schema (schema.sql) and an example STAC Item, shipped as archive.catalogs."""
