@@ -11,8 +11,9 @@ simulated flight (simulated once into --workdir and reused while its marker file
    cluster, Zarr writer included); peak memory = max over time of the summed RSS of the whole
    process tree (Dask nanny + worker included), polled every 0.1 s with psutil, and the
    largest single process (``/usr/bin/time -v``).
-2. ours, render core: in-process, per cube and group of 4 bands: read bands + radiometry,
-   ``render_cube`` on the cube's window of the output grid, write into a .npy memmap (flushed).
+2. ours, render core: in-process, per cube: ``rasterize_lookup`` once on the cube's window of the
+   output grid, then per group of 32 bands (the pipeline's task size): read bands + radiometry,
+   ``render_lookup`` (8 bands per GL pass), write into a .npy memmap (flushed).
 3. GDAL direct method: ``rasterio.warp.reproject(src_geoloc_array=(X, Y), nearest)`` per cube
    and group of ``--gdal-group`` bands, same grid windows, same radiometry applied in numpy first,
    same memmap writing. Geolocation arrays: see :func:`geolocation`.
@@ -242,11 +243,11 @@ def out_memmap(path: Path, shape) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # 2. Render core
 # ---------------------------------------------------------------------------------------------
-def render_core(source, plan, mesh_s: float, work: Path, group: int = 4) -> dict:
+def render_core(source, plan, mesh_s: float, work: Path, group: int = 32) -> dict:
     from tqdm import tqdm
 
     from archive.render.context import get_context
-    from archive.render.renderer import render_cube
+    from archive.render.renderer import rasterize_lookup, render_lookup
 
     get_context()  # context creation is not part of the per-cube cost
     per_cube = []
@@ -257,6 +258,8 @@ def render_core(source, plan, mesh_s: float, work: Path, group: int = 4) -> dict
             out = out_memmap(work / f"core_cube{c}.npy", (nb, win.height, win.width))
             t_read = t_render = t_write = 0.0
             t0 = time.perf_counter()
+            lookup = rasterize_lookup(job.mesh, win, source.cubes[c].samples)
+            t_lookup = time.perf_counter() - t0
             for b0 in tqdm(range(0, nb, group), desc=f"core cube {c}", unit="group", leave=False):
                 idx = list(range(b0, min(b0 + group, nb)))
                 t = time.perf_counter()
@@ -264,7 +267,7 @@ def render_core(source, plan, mesh_s: float, work: Path, group: int = 4) -> dict
                 rad = source.radiometry(c, idx, MODE)
                 t_read += time.perf_counter() - t
                 t = time.perf_counter()
-                res = render_cube(job.mesh, dn, rad, win, bands_per_pass=min(4, len(idx)))
+                res = render_lookup(lookup, dn, rad, bands_per_pass=min(8, len(idx)))
                 t_render += time.perf_counter() - t
                 t = time.perf_counter()
                 out[b0:b0 + len(idx)] = res.values
@@ -275,29 +278,29 @@ def render_core(source, plan, mesh_s: float, work: Path, group: int = 4) -> dict
             t_write += time.perf_counter() - t
             wall = time.perf_counter() - t0 + mesh_s / len(plan.jobs)
             per_cube.append({"cube": c, "window": [win.height, win.width], "bands": nb, "wall_s": wall,
-                             "read_s": t_read, "render_s": t_render, "write_s": t_write,
+                             "read_s": t_read, "lookup_s": t_lookup, "render_s": t_render, "write_s": t_write,
                              "mesh_s": mesh_s / len(plan.jobs),
                              "mpx_band_per_s": win.height * win.width * nb / 1e6 / wall})
     return {"per_cube": per_cube, "wall_s": sum(p["wall_s"] for p in per_cube),
             "peak_rss": poll.peak_rss, "peak_anon": poll.peak_anon}
 
 
-def profile_render(source, plan, bands: int = 16) -> str:
-    """cProfile of render_cube on the first cube, ``bands`` bands in groups of 4: where time goes."""
+def profile_render(source, plan, bands: int = 32) -> str:
+    """cProfile of render_lookup on the first cube, ``bands`` bands, 8 per pass: where time goes."""
     import cProfile
     import io
     import pstats
 
-    from archive.render.renderer import render_cube
+    from archive.render.renderer import rasterize_lookup, render_lookup
 
     job = plan.jobs[0]
     nb = min(bands, source.cubes[job.cube].bands)
-    groups = [list(range(b, min(b + 4, nb))) for b in range(0, nb, 4)]
-    data = [(source.read_bands(job.cube, g), source.radiometry(job.cube, g, MODE)) for g in groups]
+    idx = list(range(nb))
+    dn, rad = source.read_bands(job.cube, idx), source.radiometry(job.cube, idx, MODE)
+    lookup = rasterize_lookup(job.mesh, job.window, source.cubes[job.cube].samples)
     prof = cProfile.Profile()
     prof.enable()
-    for dn, rad in data:
-        render_cube(job.mesh, dn, rad, job.window, bands_per_pass=4)
+    render_lookup(lookup, dn, rad, 8)
     prof.disable()
     s = io.StringIO()
     pstats.Stats(prof, stream=s).sort_stats("tottime").print_stats(14)
@@ -305,16 +308,16 @@ def profile_render(source, plan, bands: int = 16) -> str:
 
 
 def gl_breakdown(source, plan, repeats: int = 5) -> dict:
-    """Seconds per 4-band pass of the pieces of render_cube, timed standalone on cube 0's window:
-    DN texture upload (RGBA16UI, lines x samples), read-back of the RGBA32F value target and of the
-    RG8 flag target (nothing pending: pure copy-out), and the numpy work around them (np.full of
-    the output, moveaxis copy-in, NaN masking). The draw itself is what render_cube's time leaves."""
-    from archive.render.context import get_context
+    """Seconds per 8-band pass of the pieces of render_lookup, timed standalone on cube 0's window:
+    DN interleave (one strided copy per band into (lines, samples, 4)) and upload of the two
+    RGBA16UI textures, and the read-back of the eight R32F targets straight into the output array
+    (nothing pending: pure copy-out). The draw itself is what render_lookup's time leaves."""
+    from archive.render.context import get_context, park_framebuffer
 
     ctx = get_context()
     job = plan.jobs[0]
     win, info = job.window, source.cubes[job.cube]
-    dn = source.read_bands(job.cube, [0, 1, 2, 3])
+    dn = source.read_bands(job.cube, list(range(8)))
     out: dict = {}
 
     def timed(name, fn):
@@ -326,35 +329,30 @@ def gl_breakdown(source, plan, repeats: int = 5) -> dict:
             ts.append(time.perf_counter() - t)
         out[name] = float(np.median(ts))
 
-    def upload():
-        tex = ctx.texture((info.samples, info.lines), 4, np.moveaxis(dn, 0, -1).tobytes(), dtype="u2",
-                          alignment=1)
-        tex.release()
+    block = np.empty((info.lines, info.samples, 4), np.uint16)
 
-    vrb = ctx.renderbuffer((win.width, win.height), 4, dtype="f4")
-    frb = ctx.renderbuffer((win.width, win.height), 2, dtype="f1")
-    fbo = ctx.framebuffer(color_attachments=[vrb, frb])
+    def upload():
+        for g in (0, 4):
+            for c in range(4):
+                block[..., c] = dn[g + c]
+            ctx.texture((info.samples, info.lines), 4, block, dtype="u2", alignment=1).release()
+
+    rbs = [ctx.renderbuffer((win.width, win.height), 1, dtype="f4") for _ in range(8)]
+    fbo = ctx.framebuffer(color_attachments=rbs)
     fbo.use()
     fbo.clear(0.0, 0.0, 0.0, 0.0)
     vp = (0, 0, win.width, win.height)
+    values = np.empty((8, win.height, win.width), np.float32)
+
+    def read():
+        for i in range(8):
+            fbo.read_into(values, viewport=vp, components=1, attachment=i, dtype="f4",
+                          write_offset=i * values[0].nbytes)
+
     timed("upload_dn_s", upload)
-    timed("clear_s", lambda: fbo.clear(0.0, 0.0, 0.0, 0.0))
-    timed("read_values_s", lambda: fbo.read(viewport=vp, components=4, attachment=0, dtype="f4"))
-    timed("read_flags_s", lambda: fbo.read(viewport=vp, components=2, attachment=1, dtype="f1"))
-    raw = fbo.read(viewport=vp, components=4, attachment=0, dtype="f4")
-
-    def numpy_side():
-        values = np.full((4, win.height, win.width), np.nan, np.float32)
-        val = np.frombuffer(raw, np.float32).reshape(win.height, win.width, 4)
-        values[:] = np.moveaxis(val, -1, 0)
-        covered = val[..., 0] != 0
-        values[:, ~covered] = np.nan
-
-    timed("numpy_s", numpy_side)
-    from archive.render.context import park_framebuffer
-
+    timed("read_values_s", read)
     park_framebuffer()
-    for o in (fbo, vrb, frb):
+    for o in (fbo, *rbs):
         o.release()
     out["window"] = [win.height, win.width]
     return out
@@ -531,7 +529,7 @@ def main(argv=None) -> int:
     ap.add_argument("--gdal-group", type=int, default=0,
                     help="bands per reproject call (default: probe 4/16/64 on cube 0 and take the fastest)")
     ap.add_argument("--no-scaling", action="store_true", help="skip the end-to-end run on the first cube alone")
-    ap.add_argument("--profile", action="store_true", help="also cProfile render_cube on 16 bands of cube 0")
+    ap.add_argument("--profile", action="store_true", help="also cProfile render_lookup on 32 bands of cube 0")
     ap.add_argument("--json", help="write all figures to this JSON file")
     args = ap.parse_args(argv)
 
@@ -583,7 +581,7 @@ def main(argv=None) -> int:
 
     R["gl"] = {k: v for k, v in gl_info().items() if k in ("renderer", "version", "max_texture_size")}
     R["gl_breakdown"] = gl_breakdown(source, plan)
-    print("    per 4-band pass, standalone: " + ", ".join(
+    print("    per 8-band pass, standalone: " + ", ".join(
         f"{k} {v * 1000:.0f} ms" for k, v in R["gl_breakdown"].items() if k.endswith("_s")), flush=True)
     if args.profile:
         R["profile"] = profile_render(source, plan)
@@ -633,7 +631,7 @@ def report(R: dict) -> None:
         print(f"| ours render core, cube {p['cube']} ({p['window'][0]} x {p['window'][1]} px) | {p['wall_s']:.1f} | "
               f"{p['wall_s']:.1f} | {p['mpx_band_per_s']:.0f} | proc {fmt_gb(c['peak_rss'])} (anon "
               f"{fmt_gb(c['peak_anon'])}) | {p['window'][0] * p['window'][1] * p['bands'] * 4 / MB:.0f} (.npy) | "
-              f"{split(p, ['read_s', 'mesh_s', 'render_s', 'write_s'])} |")
+              f"{split(p, ['read_s', 'mesh_s', 'lookup_s', 'render_s', 'write_s'])} |")
     for p in gd["per_cube"]:
         print(f"| GDAL geoloc warp ({gd['group']} bands/call, {gd['threads']} threads), cube {p['cube']} | "
               f"{p['wall_s']:.1f} | {p['wall_s']:.1f} | {p['mpx_band_per_s']:.0f} | proc {fmt_gb(gd['peak_rss'])} "
@@ -652,9 +650,9 @@ def report(R: dict) -> None:
           f"{100 * a['close5_frac']:.2f} % within 5 %; covered by ours but NaN in GDAL: "
           f"{100 * a['ours_not_gdal_frac']:.3f} %; by GDAL but not ours: {100 * a['gdal_not_ours_frac']:.3f} %")
     p0 = c["per_cube"][0]
-    passes = -(-p0["bands"] // 4)
+    passes = -(-p0["bands"] // 8)
     gb = R["gl_breakdown"]
-    print(f"render core, cube 0, per 4-band pass: render_cube {1000 * p0['render_s'] / passes:.0f} ms; standalone "
+    print(f"render core, cube 0, per 8-band pass: render_lookup {1000 * p0['render_s'] / passes:.0f} ms; standalone "
           + ", ".join(f"{k[:-2]} {1000 * v:.0f} ms" for k, v in gb.items() if k.endswith("_s")))
     if "gdal_probe_s_per_band" in R:
         print("GDAL probe (cube 0, one call each): " + "; ".join(

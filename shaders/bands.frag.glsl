@@ -1,65 +1,52 @@
 #version 330
-// Pass 2 of the renderer: value = (DN - dark) * gain / response for up to 4 bands (8 with
-// BANDS8: two RGBA fetches, two render targets) at the (line, sample) the lookup texture holds for
-// this output pixel. Window pixel (col, row) = gl_FragCoord.xy - 0.5; row 0 = north edge.
-// Uncovered pixels (line -1) get u_nan (a NaN set from the CPU, so that no compiler folds it);
-// pixels whose line belongs to another line chunk are discarded.
+// Pass 2 of the renderer: value = (DN - dark) * gain / response for NOUT bands (1..8, one R32F
+// render target each) at the (line, sample) the lookup texture holds for this output pixel.
+// DN come from up to two RGBA textures, 4 bands per texel fetch (u_dn0: bands 1-4, u_dn1: bands
+// 5-8 of the pass); dark and gain likewise. Window pixel (col, row) = gl_FragCoord.xy - 0.5;
+// row 0 = north edge. Uncovered pixels (line -1) get u_nan (a NaN set from the CPU, so that no
+// compiler folds it); pixels whose line belongs to another line chunk are discarded.
+// Saturation is flagged on the CPU from the same lookup (archive/render/renderer.py).
+#ifndef NOUT
+#define NOUT 8
+#endif
 #ifdef DN_FLOAT
-uniform sampler2D u_dn;    // (lines, samples) texels of up to 4 bands, float
-uniform sampler2D u_dn2;   // bands 5..8 (BANDS8)
-#define DN_VEC vec4
+uniform sampler2D u_dn0;   // (samples, lines) texels of 4 bands, RGBA32F
+uniform sampler2D u_dn1;
 #else
-uniform usampler2D u_dn;   // (lines, samples) texels of up to 4 bands, R16UI..RGBA16UI
-uniform usampler2D u_dn2;  // bands 5..8 (BANDS8)
-#define DN_VEC uvec4
+uniform usampler2D u_dn0;  // (samples, lines) texels of 4 bands, RGBA16UI
+uniform usampler2D u_dn1;
 #endif
-uniform isampler2D u_lookup;  // (window rows, window cols) texels (line, sample), RG32I
-uniform sampler2D u_dark;  // (1, samples) float texels, one component per band
-uniform sampler2D u_gain;  // (1, samples)
-uniform sampler2D u_dark2; // bands 5..8 (BANDS8)
-uniform sampler2D u_gain2;
-uniform sampler2D u_resp;  // (1, u_hi - u_lo) response of each line, R32F
-uniform int u_lo;          // first line held in u_dn (cube line index)
-uniform int u_hi;          // one past the last line held in u_dn
-uniform int u_bands;       // bands in this pass (1..4, or 1..8 with BANDS8)
-uniform float u_sat;       // DN at or above this is saturated (use a huge value for none)
-uniform float u_nan;       // NaN
-layout(location = 0) out vec4 f_value;
-#ifdef BANDS8
-layout(location = 1) out vec4 f_value2;
-layout(location = 2) out float f_sat;
-#else
-layout(location = 1) out float f_sat;
-#endif
-
-bool any_high(vec4 dnf, int first) {
-    bvec4 used = lessThan(ivec4(first, first + 1, first + 2, first + 3), ivec4(u_bands));
-    bvec4 high = greaterThanEqual(dnf, vec4(u_sat));
-    return (used.x && high.x) || (used.y && high.y) || (used.z && high.z) || (used.w && high.w);
-}
+uniform isampler2D u_lookup;  // (window cols, window rows) texels (line, sample), RG32I
+uniform sampler2D u_dark0;    // (samples, 1) RGBA32F, bands 1-4 of the pass
+uniform sampler2D u_gain0;
+uniform sampler2D u_dark1;    // bands 5-8
+uniform sampler2D u_gain1;
+uniform sampler2D u_resp;     // (u_hi - u_lo, 1) response of each line, R32F
+uniform int u_lo;             // first line held in the DN textures (cube line index)
+uniform int u_hi;             // one past the last line held
+uniform float u_nan;          // NaN
+layout(location = 0) out float f_value[NOUT];
 
 void main() {
     ivec2 index = texelFetch(u_lookup, ivec2(gl_FragCoord.xy), 0).xy;
     int line = index.x;
     if (line < 0) {
-        f_value = vec4(u_nan);
-#ifdef BANDS8
-        f_value2 = vec4(u_nan);
-#endif
-        f_sat = 0.0;
+        for (int b = 0; b < NOUT; ++b) f_value[b] = u_nan;
         return;
     }
     if (line < u_lo || line >= u_hi) discard;
-    int smp = index.y;
-    int row = line - u_lo;
-    float resp = texelFetch(u_resp, ivec2(row, 0), 0).r;
-    vec4 dnf = vec4(texelFetch(u_dn, ivec2(smp, row), 0));
-    f_value = (dnf - texelFetch(u_dark, ivec2(smp, 0), 0)) * texelFetch(u_gain, ivec2(smp, 0), 0) / resp;
-    bool sat = any_high(dnf, 0);
-#ifdef BANDS8
-    vec4 dnf2 = vec4(texelFetch(u_dn2, ivec2(smp, row), 0));
-    f_value2 = (dnf2 - texelFetch(u_dark2, ivec2(smp, 0), 0)) * texelFetch(u_gain2, ivec2(smp, 0), 0) / resp;
-    sat = sat || any_high(dnf2, 4);
+    ivec2 at = ivec2(index.y, line - u_lo);
+    ivec2 col = ivec2(index.y, 0);
+    float resp = texelFetch(u_resp, ivec2(at.y, 0), 0).r;
+    vec4 v0 = (vec4(texelFetch(u_dn0, at, 0)) - texelFetch(u_dark0, col, 0)) * texelFetch(u_gain0, col, 0) / resp;
+#if NOUT > 4
+    vec4 v1 = (vec4(texelFetch(u_dn1, at, 0)) - texelFetch(u_dark1, col, 0)) * texelFetch(u_gain1, col, 0) / resp;
 #endif
-    f_sat = sat ? 1.0 : 0.0;
+    for (int b = 0; b < NOUT; ++b) {
+#if NOUT > 4
+        f_value[b] = b < 4 ? v0[b] : v1[b - 4];
+#else
+        f_value[b] = v0[b];
+#endif
+    }
 }

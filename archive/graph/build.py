@@ -1,14 +1,17 @@
 """Build (never compute) the Dask graph of a render: render -> assemble -> write.
 
-Per cube and band group, one render task (annotated ``resources={"GPU": 1}``) draws the group's
-bands on the cube's window. Per output tile (1024 x 1024, the Zarr chunks) and band group, one
-assembly task mosaics the renders that touch the tile in capture order and one writer task writes
-the result into the tile's own chunks (chunk-aligned: no two tasks write into one chunk). Each
-writer also ORs its saturation mask into the previous group's (a chain per tile); one last task per
-tile writes it. Tiles no cube touches get no task: their chunks read back as NaN.
+Per cube, one lookup task (GL pass 1, annotated ``resources={"GPU": 1}``) records which (line,
+sample) each pixel of the cube's window sees; per cube and band group, one render task (GPU too)
+draws the group's bands through that lookup, 8 bands per GL pass. Per output tile (1024 x 1024, the
+Zarr chunks) and band group, one assembly task mosaics the renders that touch the tile in capture
+order and one writer task writes the result into the tile's own chunks (chunk-aligned: no two tasks
+write into one chunk). Each writer also ORs its saturation mask into the previous group's (a chain
+per tile); one last task per tile writes it. Tiles no cube touches get no task: their chunks read
+back as NaN.
 
 Memory: priorities make one band group finish (render, assemble, write) before the next starts,
-so at most one group's cube renders (cube window x 4 bands x float32 each) are held at a time.
+so about one group's cube renders (cube window x group x float32 each) are held at a time.
+:func:`with_task_groups` sizes the groups so that one render holds at most ``TASK_VALUES_BYTES``.
 
 Keys are ``<kind>-<dask.base.tokenize(inputs)>``, so the same inputs give the same graph.
 """
@@ -18,15 +21,40 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import dataclasses
+
 import dask
 from dask.base import tokenize
 from dask.delayed import Delayed, delayed
 
-from archive.graph.plan import RenderPlan
-from archive.graph.tasks import assemble_task, render_task, write_saturated_task, write_values_task
+from archive.graph.plan import GROUP, RenderPlan, band_groups
+from archive.graph.tasks import (assemble_task, lookup_task, render_task, write_saturated_task,
+                                 write_values_task)
 from archive.outputs import CHUNK, MosaicStore
 
-__all__ = ["RenderGraph", "build_render_graph", "source_token"]
+__all__ = ["RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "source_token", "task_group_size",
+           "with_task_groups"]
+
+#: Rendered values one render task may hold, bytes (window px x bands x 4 B): 32 bands of a 1.4 Mpx
+#: cube window. Larger groups mean fewer GL set-ups and reads per band; smaller ones less memory.
+TASK_VALUES_BYTES = 192 * 1024**2
+#: Most bands per render task (and per assembly / writer task).
+MAX_GROUP = 64
+#: Bands per GL pass in render tasks (8 = the renderer's most per pass).
+BANDS_PER_PASS = 8
+
+
+def task_group_size(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> int:
+    """Bands per render task for ``plan``: as many whole 8-band GL passes as fit ``budget`` bytes of
+    values for the largest cube window (at most MAX_GROUP), but never fewer than GROUP (4) bands."""
+    biggest = max((job.window.width * job.window.height for job in plan.jobs), default=1)
+    fit = budget // (4 * max(biggest, 1))
+    return max(GROUP, min(MAX_GROUP, fit // BANDS_PER_PASS * BANDS_PER_PASS))
+
+
+def with_task_groups(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> RenderPlan:
+    """``plan`` with its band groups resized by :func:`task_group_size` (the groups the graph uses)."""
+    return dataclasses.replace(plan, groups=band_groups(plan.nbands, task_group_size(plan, budget)))
 
 
 def source_token(source) -> str:
@@ -69,17 +97,22 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, store: MosaicStore, 
     def priority(g: int, stage: int) -> int:
         return 2 * (ngroups - g) + stage
 
-    # renders[(job index, group index)]
+    # renders[(job index, group index)]; one lookup (GL pass 1) per cube, shared by its groups
     renders: dict[tuple[int, int], Delayed] = {}
     for j, job in enumerate(plan.jobs):
         mesh_key = f"mesh-{tokenize(tokens[job.source], job.cube, mesh_spec)}"
         mesh = delayed(job.mesh, name=mesh_key, traverse=False)
+        samples = int(sources[job.source].cubes[job.cube].samples)
+        lkey = f"lookup-{tokenize(mesh_key, job.window, samples)}"
+        with dask.annotate(resources={"GPU": 1}, priority=priority(0, 0)):
+            lookup = delayed(lookup_task, pure=True)(mesh, job.window, samples, dask_key_name=lkey)
         for g, (b0, b1) in enumerate(plan.groups):
             bands = plan.bands[job.source][b0:b1]
-            key = f"render-{tokenize(tokens[job.source], job.cube, bands, mesh_key, job.window, mode)}"
+            key = f"render-{tokenize(tokens[job.source], job.cube, bands, lkey, mode, BANDS_PER_PASS)}"
             with dask.annotate(resources={"GPU": 1}, priority=priority(g, 0)):
                 renders[j, g] = delayed(render_task, pure=True)(
-                    source_nodes[job.source], job.cube, bands, mesh, job.window, mode, dask_key_name=key
+                    source_nodes[job.source], job.cube, bands, lookup, mode, BANDS_PER_PASS,
+                    dask_key_name=key
                 )
 
     writes: list[Delayed] = []

@@ -11,30 +11,42 @@ from collections.abc import Sequence
 import numpy as np
 
 from archive.errors import InputError, RenderError
-from archive.graph.mosaic import make_rule
+from archive.graph.mosaic import LastRule, make_rule
 from archive.grid import Grid
 from archive.outputs import MosaicStore
 
 Box = tuple[int, int, int, int]
 
-__all__ = ["Box", "assemble_task", "render_task", "write_saturated_task", "write_values_task"]
+__all__ = ["Box", "assemble_task", "lookup_task", "render_task", "write_saturated_task", "write_values_task"]
 
 
-def render_task(source, cube: int, bands: Sequence[int], mesh, window: Grid, mode: str,
-                bands_per_pass: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """Render ``bands`` of ``cube`` of ``source`` on ``window`` (the cube's part of the output grid).
+def lookup_task(mesh, window: Grid, samples: int):
+    """Pass 1 of the renderer for one cube: which (line, sample) each pixel centre of ``window`` sees.
 
-    Reads the bands and radiometry here, on the worker, then draws with this thread's GL context.
-    Returns values (len(bands), window.height, window.width) float32 (NaN where not covered) and
-    saturated (window.height, window.width) bool.
+    Runs once per cube (GL, on a worker); returns a picklable :class:`archive.render.renderer.Lookup`
+    ((height, width) int32 line and sample, -1 where not covered) that every band group reuses.
     """
-    from archive.render.renderer import render_cube  # GL only on workers
+    from archive.render.renderer import rasterize_lookup  # GL only on workers
+
+    return rasterize_lookup(mesh, window, samples)
+
+
+def render_task(source, cube: int, bands: Sequence[int], lookup, mode: str,
+                bands_per_pass: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Render ``bands`` of ``cube`` of ``source`` through the cube's ``lookup`` (from :func:`lookup_task`).
+
+    Reads the bands and radiometry here, on the worker, then draws with this thread's GL context,
+    ``bands_per_pass`` (1..8) bands per full-screen pass.
+    Returns values (len(bands), window height, window width) float32 (NaN where not covered) and
+    saturated (window height, window width) bool.
+    """
+    from archive.render.renderer import render_lookup  # GL only on workers
 
     bands = list(bands)
     try:
         dn = source.read_bands(cube, bands)
         radiometry = source.radiometry(cube, bands, mode)
-        result = render_cube(mesh, dn, radiometry, window, bands_per_pass=min(bands_per_pass, len(bands)))
+        result = render_lookup(lookup, dn, radiometry, bands_per_pass=min(bands_per_pass, len(bands)))
     except (InputError, RenderError) as exc:  # say which cube: the renderer cannot know
         where = f"{getattr(source, 'directory', source.id)} cube {source.cubes[cube].base}"
         if isinstance(exc, InputError):
@@ -65,13 +77,43 @@ def assemble_task(rule: str, tile: Box, nbands: int, boxes: Sequence[Box],
     """
     if len(boxes) != len(renders):
         raise ValueError(f"{len(boxes)} boxes for {len(renders)} renders")
-    mosaic = make_rule(rule, nbands, tile[2], tile[3])
+    parts = []
     for box, (values, saturated) in zip(boxes, renders):
         shared = _overlap(tile, box)
-        if shared is None:
-            continue
-        (tr, tc), (br, bc) = shared
-        mosaic.feed(values[:, br, bc], saturated[br, bc], tr, tc)
+        if shared is not None:
+            (tr, tc), (br, bc) = shared
+            parts.append((values[:, br, bc], saturated[br, bc], tr, tc))
+    if rule == "last" and parts:
+        return _assemble_last(tile, nbands, parts)
+    mosaic = make_rule(rule, nbands, tile[2], tile[3])
+    for values, saturated, tr, tc in parts:
+        mosaic.feed(values, saturated, tr, tc)
+    return mosaic.result()
+
+
+def _assemble_last(tile: Box, nbands: int, parts) -> tuple[np.ndarray, np.ndarray]:
+    """The 'last' rule, with the first render copied in directly (same result as LastRule.feed on an
+    empty tile, in fewer passes over the band group): NaN only outside it, non-finite values back
+    to NaN, its saturation kept where some band is finite. Later renders go through LastRule.feed.
+    """
+    first, first_sat, tr, tc = parts[0]
+    values = np.empty((nbands, tile[2], tile[3]), np.float32)
+    for region in ((slice(None), slice(0, tr.start)), (slice(None), slice(tr.stop, None)),
+                   (slice(None), tr, slice(0, tc.start)), (slice(None), tr, slice(tc.stop, None))):
+        values[region] = np.nan
+    target = values[:, tr, tc]
+    np.copyto(target, first)
+    infinite = np.isinf(target)
+    if infinite.any():
+        target[infinite] = np.nan
+    saturated = np.zeros((tile[2], tile[3]), bool)
+    rows, cols = np.nonzero(first_sat)
+    if rows.size:  # flagged only where the render covers the pixel (some band finite)
+        saturated[tr, tc][rows, cols] = np.isfinite(target[:, rows, cols]).any(axis=0)
+    mosaic = LastRule.__new__(LastRule)  # a LastRule over the arrays filled above
+    mosaic.values, mosaic.saturated = values, saturated
+    for part_values, part_sat, prow, pcol in parts[1:]:
+        mosaic.feed(part_values, part_sat, prow, pcol)
     return mosaic.result()
 
 

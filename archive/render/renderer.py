@@ -6,10 +6,11 @@
    (floor(samples * s), perspective-correct s, clamped) it sees. Later lines are drawn later and win
    where the mesh folds over itself. The result, a :class:`Lookup`, is a small picklable value:
    compute it once per cube and reuse it for every group of bands.
-2. :func:`render_lookup` runs one full-screen pass per group of up to 4 bands (8 with two render
-   targets) over the covered part of the grid: the fragment shader reads the pixel's (line, sample)
-   from the lookup texture and fetches its DN from an integer texture, 4 bands per RGBA fetch, then
-   applies ``value = (DN - dark) * gain / response``, and flags saturated DN.
+2. :func:`render_lookup` runs one full-screen pass per group of up to 8 bands (one R32F render
+   target per band) over the covered rows of the grid: the fragment shader reads the pixel's
+   (line, sample) from the lookup texture and fetches its DN from integer textures, 4 bands per
+   RGBA texel fetch, then applies ``value = (DN - dark) * gain / response``; each target is read
+   back straight into the output. Saturated DN are flagged from the same lookup on the CPU.
 
 :func:`render_cube` = both. Rendering goes window by window (no side larger than the GL size
 limit); cubes with more lines than the texture limit are uploaded in line chunks.
@@ -27,8 +28,6 @@ from archive.render.context import get_context, get_program, park_framebuffer
 from archive.render.context import max_size as gl_max_size
 from archive.render.mesh import Mesh
 
-# No saturation threshold: larger than any DN.
-_NO_SATURATION = 3.0e38
 # Largest framebuffer side by default (pixels): 4096^2 RGBA32F is 256 MiB, the GL limit (16384^2 on
 # llvmpipe) would be 4 GiB. Bigger renders go window by window.
 _WINDOW = 4096
@@ -113,15 +112,6 @@ def _radiometry_arrays(radiometry, nb: int, lines: int, samples: int):
         raise InputError("radiometry", "response must be finite and > 0 on every line",
                          "check shutter and gain of the cube")
     return dark, gain, resp, radiometry.saturation
-
-
-def _pad(a: np.ndarray, comps: int) -> np.ndarray:
-    """(n, ..., k) -> (n, ..., comps) with zeros appended on the last axis."""
-    if a.shape[-1] == comps:
-        return np.ascontiguousarray(a)
-    out = np.zeros(a.shape[:-1] + (comps,), a.dtype)
-    out[..., : a.shape[-1]] = a
-    return out
 
 
 def _limits(max_size: int | None) -> tuple[int, int]:
@@ -238,7 +228,7 @@ def render_lookup(
     lookup: Lookup,
     dn: np.ndarray,
     radiometry,
-    bands_per_pass: int = 4,
+    bands_per_pass: int = 8,
     *,
     max_size: int | None = None,
 ) -> RenderResult:
@@ -248,10 +238,16 @@ def render_lookup(
     dn: (bands, lines, samples) DN, uint16 (other integer types in 0..65535, or float32, accepted).
     radiometry: object with dark (bands, samples), gain (bands, samples), response (lines,),
         saturation (DN threshold or None), e.g. :class:`archive.source.Radiometry`; None = raw DN.
-    bands_per_pass: 1..8 bands per full-screen pass (up to 4 per texel fetch and render target).
+    bands_per_pass: 1..8 bands per full-screen pass (one R32F render target each; 8 is fastest).
     max_size: largest texture and framebuffer side in pixels (default: the GL texture limit for the
         DN textures, min(4096, GL limit) for framebuffer windows); for tests.
     Returns a :class:`RenderResult` with values (bands, height, width) float32, north row first.
+
+    Each pass uploads its bands as up to two RGBA16UI (RGBA32F for float DN) textures, 4 bands per
+    texel (interleaved by one strided copy per band: 4 fetches per pixel and pass instead of 8 one-band
+    fetches, which llvmpipe runs at half the speed), and reads each band's R32F target straight into
+    ``values`` when the window spans whole output rows (else through one scratch block). The
+    saturation flag is the lookup applied to the per-(line, sample) maximum DN over the bands (CPU).
     """
     dn = np.asarray(dn)
     if dn.ndim != 3:
@@ -267,20 +263,31 @@ def render_lookup(
 
     grid = lookup.grid
     covered = lookup.covered
-    values = np.full((nb, grid.height, grid.width), np.nan, np.float32)
-    saturated = np.zeros(grid.shape, bool)
-    result = RenderResult(grid, values, saturated, covered)
     box = lookup.box() if nb > 0 else None
     if box is None:
-        return result
-    row0, col0, sub = box[0], box[1], grid.window(*box)
+        values = np.full((nb, grid.height, grid.width), np.nan, np.float32)
+        return RenderResult(grid, values, np.zeros(grid.shape, bool), covered)
 
     ctx = get_context()
     limit, window = _limits(max_size)
     if samples > limit:
         raise RenderError(f"cube has {samples} samples, more than the GL texture limit {limit}")
+    # Rendered region: the covered rows; all columns when one window spans the grid's width (then
+    # each window is whole output rows, contiguous in ``values``: read back in place), else the
+    # covered columns. Only pixels outside it are filled with NaN here; the shader writes the rest.
+    row0, col0, height, width = box
+    if grid.width <= window:
+        col0, width = 0, grid.width
+    sub = grid.window(row0, col0, height, width)
+    values = np.empty((nb, grid.height, grid.width), np.float32)
+    values[:, :row0] = np.nan
+    values[:, row0 + height:] = np.nan
+    values[:, row0:row0 + height, :col0] = np.nan
+    values[:, row0:row0 + height, col0 + width:] = np.nan
+    result = RenderResult(grid, values, np.zeros(grid.shape, bool), covered)
+
     chunks = [(lo, min(lo + limit, lines)) for lo in range(0, lines, limit)]
-    # Windows with covered pixels, and the line chunks each of them needs.
+    # Windows, and the line chunks each of them needs (windows without covered pixels: NaN only).
     windows = []
     for wr, wc, win in sub.tiles(window):
         rs = slice(row0 + wr, row0 + wr + win.height)
@@ -291,72 +298,70 @@ def render_lookup(
             lo, hi = int(seen.min()), int(seen.max())
             need = [i for i, (a, b) in enumerate(chunks) if a <= hi and b > lo]
             windows.append((rs, cs, win, need))
+        else:
+            values[:, rs, cs] = np.nan
     fbw = max(w.width for _, _, w, _ in windows)
     fbh = max(w.height for _, _, w, _ in windows)
-    flag = saturation is not None
+    outs = min(bands_per_pass, nb)
 
     keep = _Owned()
     try:
         import moderngl
 
-        def texture(size, comps, data, dtype, objs):
-            tex = objs(ctx.texture(size, comps, data, dtype=dtype, alignment=1))
+        def nearest(tex):
             tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
             tex.repeat_x = tex.repeat_y = False
             return tex
+
+        def texture(size, comps, data, dtype, objs):
+            return nearest(objs(ctx.texture(size, comps, data, dtype=dtype, alignment=1)))
 
         ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST | moderngl.CULL_FACE)
         # Per call: lookup textures (one per window), response textures (one per chunk), targets.
         lookup_tex = [
             texture((win.width, win.height), 2,
-                    np.stack([lookup.line[rs, cs], lookup.sample[rs, cs]], axis=-1).tobytes(), "i4", keep)
+                    np.stack([lookup.line[rs, cs], lookup.sample[rs, cs]], axis=-1), "i4", keep)
             for rs, cs, win, _ in windows
         ]
-        resp_tex = [texture((hi - lo, 1), 1, np.ascontiguousarray(resp[lo:hi]).tobytes(), "f4", keep)
+        resp_tex = [texture((hi - lo, 1), 1, np.ascontiguousarray(resp[lo:hi]), "f4", keep)
                     for lo, hi in chunks]
-        targets = 2 if bands_per_pass > 4 else 1
-        value_rb = [keep(ctx.renderbuffer((fbw, fbh), 4, dtype="f4")) for _ in range(targets)]
-        flag_rb = [keep(ctx.renderbuffer((fbw, fbh), 1, dtype="f1"))] if flag else []
-        fbos = {4: keep(ctx.framebuffer(color_attachments=[value_rb[0], *flag_rb]))}
-        if bands_per_pass > 4:
-            fbos[8] = keep(ctx.framebuffer(color_attachments=[*value_rb, *flag_rb]))
-        programs = {4: get_program("fullscreen.vert.glsl", "bands.frag.glsl", defines)}
-        if bands_per_pass > 4:
-            programs[8] = get_program("fullscreen.vert.glsl", "bands.frag.glsl", (*defines, "BANDS8"))
-        vaos = {m: keep(ctx.vertex_array(p, [])) for m, p in programs.items()}
-        units = {"u_lookup": 0, "u_resp": 1, "u_dn": 2, "u_dark": 3, "u_gain": 4,
-                 "u_dn2": 5, "u_dark2": 6, "u_gain2": 7}
-        for p in programs.values():
-            p["u_sat"].value = _NO_SATURATION if saturation is None else float(saturation)
-            p["u_nan"].value = float("nan")
-            for name, unit in units.items():
-                if p.get(name, None) is not None:
-                    p[name].value = unit
+        targets = [keep(ctx.renderbuffer((fbw, fbh), 1, dtype="f4")) for _ in range(outs)]
+        fbo = keep(ctx.framebuffer(color_attachments=targets))
+        program = get_program("fullscreen.vert.glsl", "bands.frag.glsl", (*defines, f"NOUT {outs}"))
+        vao = keep(ctx.vertex_array(program, []))
+        program["u_nan"].value = float("nan")
+        units = {"u_lookup": 0, "u_resp": 1, "u_dn0": 2, "u_dark0": 3, "u_gain0": 4,
+                 "u_dn1": 5, "u_dark1": 6, "u_gain1": 7}
+        for name, unit in units.items():
+            if program.get(name, None) is not None:
+                program[name].value = unit
+        scratch = None
+        if any(cs.stop - cs.start != grid.width for _, cs, _, _ in windows):
+            scratch = np.empty(fbh * fbw, np.float32)
+        row_bytes = grid.width * 4
+        # 4 bands per texel: (lines, samples, 4) DN, interleaved by one strided copy per band.
+        interleaved = np.empty((max(hi - lo for lo, hi in chunks), samples, 4), dn_up.dtype)
+        per_sample = np.zeros((2, samples, 4), np.float32)  # dark, gain of one group
 
-        for b0 in range(0, nb, bands_per_pass):
-            b1 = min(b0 + bands_per_pass, nb)
+        for b0 in range(0, nb, outs):
+            b1 = min(b0 + outs, nb)
             k = b1 - b0
-            mode = 8 if k > 4 else 4
-            program, vao, fbo = programs[mode], vaos[mode], fbos[mode]
-            program["u_bands"].value = k
-            groups = [(b0, min(b0 + 4, b1)), *([(b0 + 4, b1)] if k > 4 else [])]
             pass_objs = _Owned()
             try:
-                band_tex = []       # per group: dark, gain, [DN texture per chunk]
-                for g0, g1 in groups:
-                    gk = g1 - g0
-                    comps = 4 if gk == 3 else gk
-                    band_tex.append((
-                        texture((samples, 1), comps, _pad(dark[g0:g1].T, comps).tobytes(), "f4", pass_objs),
-                        texture((samples, 1), comps, _pad(gain[g0:g1].T, comps).tobytes(), "f4", pass_objs),
-                        [texture((samples, hi - lo), comps,
-                                 _pad(np.moveaxis(dn_up[g0:g1, lo:hi], 0, -1), comps).tobytes(),
-                                 dn_dtype, pass_objs)
-                         for lo, hi in chunks],
-                    ))
-                for g, (dark_tex, gain_tex, _) in enumerate(band_tex):
-                    dark_tex.use(3 + 3 * g)
-                    gain_tex.use(4 + 3 * g)
+                dn_tex = []  # per group of 4 bands: [texture per line chunk]
+                for g, g0 in enumerate(range(b0, b1, 4)):
+                    g1 = min(g0 + 4, b1)
+                    per_sample[0, :, : g1 - g0] = dark[g0:g1].T
+                    per_sample[1, :, : g1 - g0] = gain[g0:g1].T
+                    texture((samples, 1), 4, per_sample[0], "f4", pass_objs).use(3 + 3 * g)
+                    texture((samples, 1), 4, per_sample[1], "f4", pass_objs).use(4 + 3 * g)
+                    group_tex = []
+                    for lo, hi in chunks:
+                        block = interleaved[: hi - lo]
+                        for c in range(g1 - g0):  # per band: contiguous reads (6x a transpose copy)
+                            block[..., c] = dn_up[g0 + c, lo:hi]
+                        group_tex.append(texture((samples, hi - lo), 4, block, dn_dtype, pass_objs))
+                    dn_tex.append(group_tex)
                 fbo.use()
                 for (rs, cs, win, need), lk_tex in zip(windows, lookup_tex):
                     vp = (0, 0, win.width, win.height)
@@ -367,24 +372,28 @@ def render_lookup(
                         program["u_lo"].value = lo
                         program["u_hi"].value = hi
                         resp_tex[c].use(1)
-                        for g, (_, _, dn_tex) in enumerate(band_tex):
-                            dn_tex[c].use(2 + 3 * g)
+                        for g, group_tex in enumerate(dn_tex):
+                            group_tex[c].use(2 + 3 * g)
                         vao.render(moderngl.TRIANGLES, vertices=3)
-                    for g, (g0, g1) in enumerate(groups):
-                        val = np.frombuffer(fbo.read(viewport=vp, components=4, attachment=g, dtype="f4"),
-                                            np.float32).reshape(win.height, win.width, 4)
-                        values[g0:g1, rs, cs] = np.moveaxis(val[..., : g1 - g0], -1, 0)
-                    if flag:
-                        sat = np.frombuffer(fbo.read(viewport=vp, components=1, attachment=len(groups),
-                                                     dtype="f1"), np.uint8).reshape(win.height, win.width)
-                        saturated[rs, cs] |= sat > 127
+                    for i in range(k):
+                        if scratch is None:  # whole rows: straight into values[b0 + i, rs, :]
+                            offset = ((b0 + i) * grid.height + rs.start) * row_bytes
+                            fbo.read_into(values, viewport=vp, components=1, attachment=i, dtype="f4",
+                                          write_offset=offset)
+                        else:
+                            block = scratch[: win.height * win.width].reshape(win.height, win.width)
+                            fbo.read_into(block, viewport=vp, components=1, attachment=i, dtype="f4")
+                            values[b0 + i, rs, cs] = block
             finally:
                 pass_objs.release()
         _check_gl(ctx, f"rendering a {nb}-band cube")
     finally:
         keep.release()
-    # Uncovered pixels of the rendered windows hold the shader's NaN: no pass over all bands here.
-    saturated &= covered
+    if saturation is not None:  # any band's DN at or above the threshold at the pixel's (line, sample)
+        sat_src = dn.max(axis=0) >= float(saturation)
+        if sat_src.any():
+            rows, cols = np.nonzero(covered)
+            result.saturated[rows, cols] = sat_src[lookup.line[rows, cols], lookup.sample[rows, cols]]
     return result
 
 
@@ -393,7 +402,7 @@ def render_cube(
     dn: np.ndarray,
     radiometry,
     grid: Grid,
-    bands_per_pass: int = 4,
+    bands_per_pass: int = 8,
     *,
     max_size: int | None = None,
 ) -> RenderResult:
