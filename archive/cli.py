@@ -71,8 +71,8 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
             "intermediate files)."
         ),
     )
-    p.add_argument("sources", nargs="+", metavar="SOURCE",
-                   help="raw flight directory, or a collection id of --archive")
+    p.add_argument("sources", nargs="*", metavar="SOURCE",
+                   help="raw flight directory, or a collection id of --archive (optional with --query-*)")
     p.add_argument("--archive", metavar="ARCHIVE", help="archive holding the collections named as SOURCE")
     p.add_argument("--out", required=True, metavar="PATH", help="output path ending in .zarr, .tif or .hdr")
     p.add_argument("--gsd", required=True, type=float, metavar="M", help="output pixel size, metres")
@@ -97,6 +97,17 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
                    help="Dask scheduler address, e.g. tcp://host:8786 (default: a local cluster). Workers need "
                         "--nthreads 1 --resources GPU=1 and the same file paths (shared file system); see docs/deploy.md")
     p.add_argument("--workers", type=_positive_int, metavar="N", help="local cluster worker processes (default: 1)")
+    # Batch jobs over the catalog: every flight of --archive that matches, rendered in one graph.
+    p._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-[\d.]+(,\s*-?[\d.]+)+$")
+    q = p.add_argument_group("batch jobs over the catalog of --archive (every given filter must match)")
+    q.add_argument("--query-bbox", metavar="W,S,E,N", help="flights whose footprint meets this lon/lat box, degrees")
+    q.add_argument("--query-datetime", metavar="A/B", help="flights flown in this ISO 8601 range ('..': open end)")
+    q.add_argument("--query-wavelength", type=float, metavar="NM", help="flights whose bands cover this wavelength, nm")
+    q.add_argument("--mosaic", action="store_true",
+                   help="one mosaic of all matching flights at --out (default: one output per flight, "
+                        "--out DIR/<id>.<format>)")
+    q.add_argument("--format", choices=["zarr", "tif", "hdr"], default="zarr",
+                   help="format of the per-flight outputs in --out DIR (default zarr)")
     p.add_argument("--overwrite", action="store_true", help="replace PATH if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 

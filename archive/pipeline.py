@@ -2,9 +2,14 @@
 
 Steps: check every input early (clear one-line errors); open the sources; build the cube meshes and
 the output grid (metadata only); build the Dask graph (:mod:`archive.graph`); run it on a local
-cluster (one worker process, one thread: GL contexts are per thread) or on ``--scheduler``; then
+cluster (one worker process, two threads, GL tasks one at a time: GL contexts are per thread) or on ``--scheduler``; then
 convert the Zarr the workers wrote into the requested format and move it into place. Nothing is
 left at ``--out`` when anything fails.
+
+Batch jobs: ``--archive A --query-bbox/--query-datetime/--query-wavelength`` adds every matching
+collection of A's catalog to the sources; without ``--mosaic`` each flight gets its own output
+``--out DIR/<id>.<format>``, with ``--mosaic`` all go into one. Either way one graph runs them all
+(one progress bar). Band groups are sized from the workers' memory limits (:func:`_task_budget`).
 """
 
 from __future__ import annotations
@@ -170,16 +175,24 @@ class _Inputs:
     sources: list
     bands: list[list[int]]
     params: RenderParams
+    grounds: list[float]   # ground height (m) per source
 
 
-def _check_args(args: argparse.Namespace) -> tuple[Output, NavigationParams]:
-    """Checks that need no file reading (fast, before anything starts)."""
+def _check_args(args: argparse.Namespace) -> tuple[Output | None, NavigationParams]:
+    """Checks that need no file reading (fast, before anything starts); the one Output (None in
+    per-flight batch mode)."""
     gsd = args.gsd
     if not (isinstance(gsd, (int, float)) and math.isfinite(gsd) and gsd > 0):
         raise InputError("--gsd", f"must be a positive number of metres, got {gsd!r}", "e.g. --gsd 0.25")
-    output = Output(Path(args.out).absolute(), overwrite=bool(args.overwrite),
-                    quicklook=None if not args.quicklook else Path(args.quicklook).absolute())
-    output.check()
+    output = None
+    if not getattr(args, "per_flight", False):
+        output = Output(Path(args.out).absolute(), overwrite=bool(args.overwrite),
+                        quicklook=None if not args.quicklook else Path(args.quicklook).absolute())
+        output.check()
+    if not args.sources:
+        raise InputError("SOURCE", "nothing to render",
+                         "give flight directories or collection ids, or --archive A with --query-bbox/"
+                         "--query-datetime/--query-wavelength")
     archive = getattr(args, "archive", None)
     collections = [src for src in args.sources if not Path(src).is_dir()]
     for src in collections:
@@ -231,7 +244,7 @@ def _check_same_bands(sources: Sequence, bands: Sequence[Sequence[int]]) -> None
                              "first source", "render sensors with different bands separately")
 
 
-def _open_inputs(args: argparse.Namespace, nav: NavigationParams, say) -> _Inputs:
+def _open_inputs(args: argparse.Namespace, nav: NavigationParams, say, mosaic: bool = True) -> _Inputs:
     from archive.source import open_source
 
     # absolute paths: workers (maybe on another machine sharing the file system) open them again
@@ -240,7 +253,8 @@ def _open_inputs(args: argparse.Namespace, nav: NavigationParams, say) -> _Input
                            calibration=args.calibration, archive=archive) for src in args.sources]
     wavelengths = _parse_floats(args.wavelengths, "--wavelengths") if args.wavelengths else None
     bands = [select_bands(s, wavelengths, getattr(args, "bands", "all")) for s in sources]
-    _check_same_bands(sources, bands)
+    if mosaic:
+        _check_same_bands(sources, bands)
     if getattr(args, "white_reference", None):
         for s in sources:
             s.white_reference = _read_white_reference(args.white_reference, s.wavelengths)
@@ -252,10 +266,13 @@ def _open_inputs(args: argparse.Namespace, nav: NavigationParams, say) -> _Input
         mode = "raw"
     for s, b in zip(sources, bands):
         s.radiometry(0, b[:1], mode)  # mode problems (calibration, white reference) surface now
-    ground = resolve_ground_height(args.ground_height, sources)
-    params = RenderParams(gsd=float(args.gsd), ground_height=ground, mode=mode,
+    if mosaic:
+        grounds = [resolve_ground_height(args.ground_height, sources)] * len(sources)
+    else:
+        grounds = [resolve_ground_height(args.ground_height, [s]) for s in sources]
+    params = RenderParams(gsd=float(args.gsd), ground_height=grounds[0], mode=mode,
                           bands=tuple(bands[0]), overlap=args.overlap, navigation=nav)
-    return _Inputs(sources, bands, params)
+    return _Inputs(sources, bands, params, grounds)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -284,8 +301,10 @@ def _cluster(args: argparse.Namespace, say):
         return client, None
     workers = int(getattr(args, "workers", None) or 1)
     cores = max(1, (os.cpu_count() or 1) // workers)
-    # Spawned worker processes (never forked after GL), one thread each: GL contexts are per thread.
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+    # Spawned worker processes (never forked after GL). Two threads each: the GPU=1 resource keeps
+    # GL tasks one at a time per worker (each thread has its own context) while the other thread
+    # assembles and compresses the previous band group.
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=2, processes=True,
                            resources={"GPU": 1}, env={"LP_NUM_THREADS": str(cores)},
                            dashboard_address=":0", silence_logs=logging.CRITICAL)  # errors come back here
     return Client(cluster), cluster
@@ -338,9 +357,86 @@ def _execute(client, graph, quiet: bool, shared: bool) -> None:
 # ---------------------------------------------------------------------------------------------
 # The command
 # ---------------------------------------------------------------------------------------------
+def _resolve_query(args: argparse.Namespace) -> list[str] | None:
+    """Collection ids of --archive matching the --query-* filters, appended to ``args.sources``
+    (None, and nothing changed, when no filter is given). Sets ``args.per_flight``."""
+    bbox, when = getattr(args, "query_bbox", None), getattr(args, "query_datetime", None)
+    wavelength = getattr(args, "query_wavelength", None)
+    args.per_flight = False
+    if bbox is None and when is None and wavelength is None:
+        return None
+    if not getattr(args, "archive", None):
+        raise InputError("--query-*", "a catalog query needs the archive to search", "pass --archive ARCHIVE")
+    from archive.catalog.index import ensure_index, parse_bbox, parse_datetime_range, search
+    from archive.catalog.root import open_archive
+
+    box = parse_bbox(bbox) if bbox is not None else None
+    start, end = parse_datetime_range(when) if when is not None else (None, None)
+    if wavelength is not None and not (math.isfinite(wavelength) and wavelength > 0):
+        raise InputError("--query-wavelength", f"{wavelength} is not a positive wavelength in nm")
+    rows = search(ensure_index(open_archive(args.archive)), bbox=box, start=start, end=end,
+                  wavelength=wavelength)
+    if not rows:
+        asked = ", ".join(f"{k} {v}" for k, v in (("--query-bbox", bbox), ("--query-datetime", when),
+                                                   ("--query-wavelength", wavelength)) if v is not None)
+        raise InputError(args.archive, f"no flight in the catalog matches {asked}",
+                         "check the filters with 'archive catalog search'")
+    ids = [r.id for r in rows]
+    args.sources = list(args.sources or []) + [i for i in ids if i not in (args.sources or [])]
+    args.per_flight = not getattr(args, "mosaic", False)
+    return ids
+
+
+def _flight_outputs(args: argparse.Namespace) -> list[Output]:
+    """Per-flight batch mode: ``--out DIR/<name>.<format>`` for each source (checked now)."""
+    directory = Path(args.out).absolute()
+    if directory.exists() and not directory.is_dir():
+        raise InputError(directory, "is a file, but a batch job writes one output per flight into a directory",
+                         "give --out DIR, or --mosaic for one output")
+    if directory.suffix.lower() in (".zarr", ".tif", ".tiff", ".hdr"):
+        raise InputError(directory, "looks like one output file, but a batch job writes one output per flight",
+                         "give --out DIR (outputs DIR/<id>.<format>), or add --mosaic")
+    if args.quicklook:
+        raise InputError("--quicklook", "only one quicklook per command", "add --mosaic, or leave it out")
+    outputs = []
+    for src in args.sources:
+        name = Path(src).name if Path(src).is_dir() else str(src)
+        out = Output(directory / f"{name}.{getattr(args, 'format', 'zarr')}", overwrite=bool(args.overwrite))
+        out.check()
+        outputs.append(out)
+    return outputs
+
+
+def _task_budget(client) -> int:
+    """Bytes of rendered values one render task may hold: TASK_VALUES_BYTES, or a tenth of the
+    smallest worker memory limit when that is less (small workers get smaller band groups)."""
+    from archive.graph.build import TASK_VALUES_BYTES
+
+    limits = [int(w.get("memory_limit") or 0) for w in client.scheduler_info().get("workers", {}).values()]
+    limits = [m for m in limits if m > 0]
+    return min([TASK_VALUES_BYTES] + [m // 10 for m in limits])
+
+
+@dataclass
+class _Job:
+    """One output of a command: its Output, plan, store and graph."""
+
+    output: Output
+    sources: list
+    plan: object = None
+    store: object = None
+    graph: object = None
+    wavelengths: list | None = None
+
+
 def render(args: argparse.Namespace) -> dict:
-    """Run ``archive render`` for parsed ``args``; returns a summary dict. Raises ArchiveError."""
-    from archive.graph.build import build_render_graph
+    """Run ``archive render`` for parsed ``args``; returns a summary dict. Raises ArchiveError.
+
+    One output (``--out PATH``), or in batch mode (``--query-*`` without ``--mosaic``) one output
+    per flight (``--out DIR``): then the summary holds ``outputs``, one summary per flight. Every
+    output's tasks run in one graph.
+    """
+    from archive.graph.build import RenderGraph, build_render_graph, with_task_groups
     from archive.graph.plan import cube_meshes, plan_render
     from archive.outputs import MosaicStore
 
@@ -351,52 +447,82 @@ def render(args: argparse.Namespace) -> dict:
         if not quiet:
             print(text, file=sys.stderr)
 
+    _resolve_query(args)
     output, nav = _check_args(args)
+    mosaic = output is not None
+    outputs = [output] if mosaic else _flight_outputs(args)
     client = cluster = None
+    jobs: list[_Job] = []
     try:
-        inputs = _open_inputs(args, nav, say)
+        inputs = _open_inputs(args, nav, say, mosaic=mosaic)
         p = inputs.params
-        meshes = [cube_meshes(s, nav.fov_deg, p.ground_height) for s in inputs.sources]
-        plan = plan_render(inputs.sources, meshes, inputs.bands, p.gsd)
-        check_size(plan, p.gsd)
-        wavelengths = inputs.sources[0].wavelengths
-        out_wl = None if wavelengths is None else [wavelengths[b] for b in inputs.bands[0]]
-        attrs = {
-            "mode": p.mode, "gsd_m": p.gsd, "fov_deg": nav.fov_deg, "ground_height_m": p.ground_height,
-            "sync_offset_s": nav.sync_offset, "overlap": p.overlap,
-            "sources": [str(getattr(s, "directory", s.id)) for s in inputs.sources],
-        }
-        store = MosaicStore.create(output.store_path, plan.grid, out_wl, inputs.bands[0],
-                                   variable_for_mode(p.mode), attrs)
-        graph = build_render_graph(plan, inputs.sources, store, mode=p.mode, overlap=p.overlap,
-                                   mesh_spec=(nav, p.ground_height))
+        members = [list(range(len(inputs.sources)))] if mosaic else [[i] for i in range(len(inputs.sources))]
+        client, cluster = _cluster(args, say)
+        budget = _task_budget(client)
+        for out, idx in zip(outputs, members):
+            sources = [inputs.sources[i] for i in idx]
+            bands = [inputs.bands[i] for i in idx]
+            ground = inputs.grounds[idx[0]]
+            meshes = [cube_meshes(s, nav.fov_deg, ground) for s in sources]
+            plan = with_task_groups(plan_render(sources, meshes, bands, p.gsd), budget)
+            check_size(plan, p.gsd)
+            wavelengths = sources[0].wavelengths
+            out_wl = None if wavelengths is None else [wavelengths[b] for b in bands[0]]
+            attrs = {
+                "mode": p.mode, "gsd_m": p.gsd, "fov_deg": nav.fov_deg, "ground_height_m": ground,
+                "sync_offset_s": nav.sync_offset, "overlap": p.overlap,
+                "sources": [str(getattr(s, "directory", s.id)) for s in sources],
+            }
+            store = MosaicStore.create(out.store_path, plan.grid, out_wl, bands[0], variable_for_mode(p.mode), attrs)
+            graph = build_render_graph(plan, sources, store, mode=p.mode, overlap=p.overlap,
+                                       mesh_spec=(nav, ground))
+            jobs.append(_Job(out, sources, plan, store, graph, out_wl))
+        graph = RenderGraph(tuple(w for j in jobs for w in j.graph.writes), sum(j.graph.renders for j in jobs),
+                            sum(j.graph.assemblies for j in jobs))
         if len(graph):
-            client, cluster = _cluster(args, say)
             _execute(client, graph, quiet, shared=cluster is None)
-        output.finalize(store)
+        for job in jobs:
+            job.output.finalize(job.store)
     finally:
         if client is not None:
             client.close()
         if cluster is not None:
             cluster.close()  # stops the worker processes, with any task still writing
-        output.cleanup()
-    g = plan.grid
-    return {
-        "out": str(args.out), "width": g.width, "height": g.height, "gsd": g.gsd, "epsg": g.epsg,
-        "bands": plan.nbands, "wavelengths": out_wl, "mode": p.mode, "cubes": len(plan.jobs),
-        "sources": len(inputs.sources), "renders": graph.renders, "seconds": time.perf_counter() - started,
-    }
+        for out in outputs:
+            out.cleanup()
+    seconds = time.perf_counter() - started
+    summaries = []
+    for job in jobs:
+        g = job.plan.grid
+        summaries.append({
+            "out": str(job.output.path) if not mosaic else str(args.out), "width": g.width, "height": g.height,
+            "gsd": g.gsd, "epsg": g.epsg, "bands": job.plan.nbands, "wavelengths": job.wavelengths,
+            "mode": p.mode, "cubes": len(job.plan.jobs), "sources": len(job.sources),
+            "renders": job.graph.renders, "seconds": seconds,
+        })
+    if mosaic:
+        return summaries[0]
+    return {"outputs": summaries, "seconds": seconds, "renders": graph.renders}
+
+
+def _describe(s: dict) -> str:
+    wl = s["wavelengths"]
+    span = f" ({min(wl):.1f}-{max(wl):.1f} nm)" if wl else ""
+    return (f"{s['out']}: {s['width']} x {s['height']} px at {s['gsd']:g} m, "
+            f"EPSG:{s['epsg']}, {s['bands']} band{'s' if s['bands'] != 1 else ''}{span}, {s['mode']}, "
+            f"{s['cubes']} cube{'s' if s['cubes'] != 1 else ''} from {s['sources']} source"
+            f"{'s' if s['sources'] != 1 else ''}")
 
 
 def run(args: argparse.Namespace) -> int:
-    """CLI entry point of ``archive render`` (see :func:`render`); prints a one-paragraph summary."""
+    """CLI entry point of ``archive render`` (see :func:`render`); prints a one-paragraph summary
+    (batch mode: one line per output, then the total)."""
     s = render(args)
-    wl = s["wavelengths"]
-    span = f" ({min(wl):.1f}-{max(wl):.1f} nm)" if wl else ""
-    print(
-        f"archive render: wrote {s['out']}: {s['width']} x {s['height']} px at {s['gsd']:g} m, "
-        f"EPSG:{s['epsg']}, {s['bands']} band{'s' if s['bands'] != 1 else ''}{span}, {s['mode']}, "
-        f"{s['cubes']} cube{'s' if s['cubes'] != 1 else ''} from {s['sources']} source"
-        f"{'s' if s['sources'] != 1 else ''} in {s['seconds']:.1f} s."
-    )
+    if "outputs" in s:
+        for one in s["outputs"]:
+            print(f"archive render: wrote {_describe(one)}.")
+        n = len(s["outputs"])
+        print(f"archive render: {n} output{'s' if n != 1 else ''} in {s['seconds']:.1f} s.")
+        return 0
+    print(f"archive render: wrote {_describe(s)} in {s['seconds']:.1f} s.")
     return 0
