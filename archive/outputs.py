@@ -405,6 +405,31 @@ def write_quicklook(store: MosaicStore, path: str | os.PathLike, max_size: int =
 # ---------------------------------------------------------------------------------------------
 # Output paths: temporary siblings, refusal of existing outputs, publication
 # ---------------------------------------------------------------------------------------------
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def _remove_stale_temps(final: Path) -> None:
+    """Remove ``.<name>.partial-<pid>...`` siblings of ``final`` whose process is gone."""
+    if not final.parent.is_dir():
+        return
+    prefix = f".{final.name}.partial-"
+    for tmp in final.parent.glob(f"{prefix}*"):
+        digits = ""
+        for ch in tmp.name[len(prefix):]:
+            if not ch.isdigit():
+                break
+            digits += ch
+        if digits and int(digits) != os.getpid() and not _pid_alive(int(digits)):
+            _remove(tmp)
+
+
 @dataclass
 class Output:
     """One requested output (plus an optional quicklook) and the temporary files that build it.
@@ -438,8 +463,13 @@ class Output:
         return paths + ([self.quicklook] if self.quicklook is not None else [])
 
     def check(self) -> None:
-        """OutputExistsError if a final path exists and overwrite is off; InputError for a bad parent."""
+        """OutputExistsError if a final path exists and overwrite is off; InputError for a bad parent.
+
+        Also removes the temporaries a killed earlier run left beside a final path (their process,
+        named in the temporary's name, no longer runs on this machine).
+        """
         for final in self.finals:
+            _remove_stale_temps(final)
             if final.parent.exists() and not final.parent.is_dir():
                 raise InputError(final.parent, "is not a directory", "choose another output path")
             if _exists(final) and not self.overwrite:

@@ -324,6 +324,8 @@ def test_interrupted_job_leaves_no_output_and_rerun_completes(flights, cluster, 
     got_values, got_saturated, _ = _load(out)
     _same(got_values, values)
     assert np.array_equal(got_saturated, saturated)
+    # the rerun removed what the killed run left behind
+    assert [p.name for p in tmp_path.iterdir()] == ["interrupted.zarr"]
 
 
 # ---------------------------------------------------------------------------------------------
