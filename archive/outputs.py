@@ -14,10 +14,14 @@ once the new one is complete.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import shutil
+import sys
+import threading
+import uuid
 import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -30,6 +34,7 @@ from archive.grid import Grid
 
 __all__ = [
     "CHUNK",
+    "ChunkWriter",
     "FORMATS",
     "MosaicStore",
     "Output",
@@ -102,6 +107,75 @@ def _values_codecs() -> tuple:
     from zarr.codecs import BloscCodec
 
     return (BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"),)
+
+
+class ChunkWriter:
+    """Writes whole (1, CHUNK, CHUNK) float32 chunks of one local Zarr v3 array, one call per chunk.
+
+    The bytes are those zarr itself writes (little-endian, then the array's Blosc codec, in a
+    temporary file renamed into place), without zarr's per-chunk pipeline, which costs about as
+    much again as the compression (measured: 540-630 MB/s direct vs 255 MB/s through
+    ``zarr.Array.__setitem__``, one thread). A chunk that is all NaN (the fill value) is not
+    written, and an older file of it is removed, as zarr does. Arrays of any other layout (codecs,
+    dtype, chunk shape, store) go through zarr's ``__setitem__``. Checked byte for byte against zarr
+    (bench/RESULTS.md "Render (issue 4)").
+    """
+
+    _local = threading.local()
+
+    def __init__(self, array, directory: str):
+        from zarr.codecs import BloscCodec, BytesCodec
+
+        meta = array.metadata
+        codecs = getattr(meta, "codecs", ())
+        self.array, self.directory, self.meta = array, directory, meta
+        self.codec = None
+        self._made: set[str] = set()  # chunk directories known to exist
+        if (getattr(meta, "zarr_format", 2) == 3 and sys.byteorder == "little" and len(codecs) == 2
+                and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
+                and array.dtype == np.float32 and tuple(array.chunks[1:]) == (CHUNK, CHUNK)
+                and array.chunks[0] == 1 and np.isnan(array.fill_value)
+                and os.path.isdir(directory) and type(array.store).__name__ == "LocalStore"):
+            self.codec = codecs[1]._blosc_codec  # numcodecs Blosc, configured as zarr uses it
+
+    @classmethod
+    def buffer(cls) -> np.ndarray:
+        """This thread's reusable (CHUNK, CHUNK) float32 chunk buffer (contents undefined)."""
+        buffer = getattr(cls._local, "buffer", None)
+        if buffer is None:
+            buffer = cls._local.buffer = np.empty((CHUNK, CHUNK), np.float32)
+        return buffer
+
+    def write(self, band: int, row: int, col: int, chunk: np.ndarray) -> None:
+        """Write chunk (band, row, col) (chunk indices): ``chunk`` (CHUNK, CHUNK) float32 C-contiguous,
+        the grid's outside part NaN (zarr's padding of edge chunks)."""
+        if self.codec is None:
+            h = min(CHUNK, self.array.shape[1] - row * CHUNK)
+            w = min(CHUNK, self.array.shape[2] - col * CHUNK)
+            self.array[band, row * CHUNK:row * CHUNK + h, col * CHUNK:col * CHUNK + w] = chunk[:h, :w]
+            return
+        path = os.path.join(self.directory, self.meta.encode_chunk_key((band, row, col)))
+        middle = chunk[CHUNK // 2]
+        if np.isnan(middle).all() and np.isnan(chunk).all():
+            try:
+                os.remove(path)
+            except FileNotFoundError:
+                pass
+            return
+        data = self.codec.encode(chunk)
+        parent = os.path.dirname(path)
+        if parent not in self._made:
+            os.makedirs(parent, exist_ok=True)
+            self._made.add(parent)
+        tmp = f"{path}.{uuid.uuid4().hex}.partial"
+        try:
+            with open(tmp, "wb") as f:
+                f.write(data)
+            os.replace(tmp, path)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.remove(tmp)
+            raise
 
 
 @dataclass(frozen=True)
@@ -228,7 +302,22 @@ class MosaicStore:
         values = np.asarray(values, dtype=np.float32)
         self._check_aligned(values.shape, row0, col0)
         nb, h, w = values.shape
-        self._array(self.variable, "r+")[band0:band0 + nb, row0:row0 + h, col0:col0 + w] = values
+        writer = self.chunk_writer()
+        for b in range(nb):
+            for r in range(0, h, CHUNK):
+                for c in range(0, w, CHUNK):
+                    part = values[b, r:r + CHUNK, c:c + CHUNK]
+                    if part.shape != (CHUNK, CHUNK) or not part.flags.c_contiguous:
+                        buffer = writer.buffer()
+                        buffer[:part.shape[0], :part.shape[1]] = part
+                        buffer[part.shape[0]:] = np.nan  # zarr pads edge chunks with the fill value
+                        buffer[:part.shape[0], part.shape[1]:] = np.nan
+                        part = buffer
+                    writer.write(band0 + b, (row0 + r) // CHUNK, (col0 + c) // CHUNK, part)
+
+    def chunk_writer(self) -> ChunkWriter:
+        """A :class:`ChunkWriter` on the values array (it checks no tile alignment: see write_values)."""
+        return ChunkWriter(self._array(self.variable, "r+"), os.path.join(self.path, self.variable))
 
     def write_saturated(self, row0: int, col0: int, mask: np.ndarray) -> None:
         """Write whole chunks of the saturation flags: mask (h, w) bool."""

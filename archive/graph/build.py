@@ -1,16 +1,16 @@
-"""Build (never compute) the Dask graph of a render: render -> assemble -> write.
+"""Build (never compute) the Dask graph of a render: render -> assemble and write.
 
 Per cube, one lookup task (GL pass 1, annotated ``resources={"GPU": 1}``) records which (line,
 sample) each pixel of the cube's window sees; per cube and band group, one render task (GPU too)
 draws the group's bands through that lookup, 8 bands per GL pass. Per output tile (1024 x 1024, the
-Zarr chunks) and band group, one assembly task mosaics the renders that touch the tile in capture
-order and one writer task writes the result into the tile's own chunks (chunk-aligned: no two tasks
-write into one chunk). Each writer also ORs its saturation mask into the previous group's (a chain
-per tile); one last task per tile writes it. Tiles no cube touches get no task: their chunks read
-back as NaN.
+Zarr chunks) and band group, one writer task mosaics the renders that touch the tile in capture
+order and writes the result into the tile's own chunks (chunk-aligned: no two tasks write into one
+chunk), band by band through one reused chunk buffer. Each writer also ORs its saturation mask into
+the previous group's (a chain per tile); one last task per tile writes it. Tiles no cube touches
+get no task: their chunks read back as NaN.
 
-Memory: priorities make one band group finish (render, assemble, write) before the next starts,
-so about one group's cube renders (cube window x group x float32 each) are held at a time.
+Memory: priorities make one band group finish (render, then assemble and write) before the next
+starts, so about one group's cube renders (cube window x group x float32 each) are held at a time.
 :func:`with_task_groups` sizes the groups so that one render holds at most ``TASK_VALUES_BYTES``.
 
 Keys are ``<kind>-<dask.base.tokenize(inputs)>``, so the same inputs give the same graph.
@@ -28,8 +28,7 @@ from dask.base import tokenize
 from dask.delayed import Delayed, delayed
 
 from archive.graph.plan import GROUP, RenderPlan, band_groups
-from archive.graph.tasks import (assemble_task, lookup_task, render_task, write_saturated_task,
-                                 write_values_task)
+from archive.graph.tasks import assemble_write_task, lookup_task, render_task, write_saturated_task
 from archive.outputs import CHUNK, MosaicStore
 
 __all__ = ["RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "source_token", "task_group_size",
@@ -71,7 +70,8 @@ def source_token(source) -> str:
 
 @dataclass(frozen=True)
 class RenderGraph:
-    """The built graph: ``writes`` are the final tasks (values writers, then saturation writers)."""
+    """The built graph: ``writes`` are the final tasks (values writers, then saturation writers);
+    ``assemblies`` counts the values writers (one per tile and band group, each assembling its tile)."""
 
     writes: tuple[Delayed, ...]
     renders: int
@@ -127,12 +127,11 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, store: MosaicStore, 
         mask = None  # saturation so far: each group's writer ORs in its own (one small mask per tile)
         for g, (b0, b1) in enumerate(plan.groups):
             parts = [renders[j, g] for j in touching]
-            akey = f"assemble-{tokenize(overlap, tile, b1 - b0, boxes, [p.key for p in parts])}"
-            wkey = f"write-{tokenize(store, b0, tile, akey)}"
+            akey = tokenize(overlap, tile, b1 - b0, boxes, [p.key for p in parts])
+            wkey = f"write-{tokenize(store, b0, tile, akey, None if mask is None else mask.key)}"
             with dask.annotate(priority=priority(g, 1)):
-                assembled = delayed(assemble_task, pure=True)(overlap, tile, b1 - b0, boxes, *parts,
-                                                              dask_key_name=akey)
-                mask = delayed(write_values_task)(store, b0, tile, assembled, mask, dask_key_name=wkey)
+                mask = delayed(assemble_write_task)(store, overlap, b0, tile, b1 - b0, boxes, mask, *parts,
+                                                    dask_key_name=wkey)
             writes.append(mask)
             assemblies += 1
         skey = f"saturated-{tokenize(store, tile, mask.key)}"

@@ -13,11 +13,12 @@ import numpy as np
 from archive.errors import InputError, RenderError
 from archive.graph.mosaic import LastRule, make_rule
 from archive.grid import Grid
-from archive.outputs import MosaicStore
+from archive.outputs import CHUNK, MosaicStore
 
 Box = tuple[int, int, int, int]
 
-__all__ = ["Box", "assemble_task", "lookup_task", "render_task", "write_saturated_task", "write_values_task"]
+__all__ = ["Box", "assemble_task", "assemble_write_task", "lookup_task", "render_task", "write_saturated_task",
+           "write_values_task"]
 
 
 def lookup_task(mesh, window: Grid, samples: int):
@@ -126,6 +127,76 @@ def write_values_task(store: MosaicStore, band0: int, tile: Box, assembled: tupl
     values, saturated = assembled
     store.write_values(band0, tile[0], tile[1], values)
     return saturated if saturated_before is None else saturated | saturated_before
+
+
+def assemble_write_task(store: MosaicStore, rule: str, band0: int, tile: Box, nbands: int,
+                        boxes: Sequence[Box], saturated_before: np.ndarray | None,
+                        *renders: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """:func:`assemble_task` and :func:`write_values_task` in one: mosaic the renders of one band
+    group onto one output tile (one chunk wide) and write its chunks, band by band.
+
+    For the 'last' rule no tile is built: each band is mosaicked into this thread's reusable chunk
+    buffer (the first render copied straight in, NaN only outside it; later renders where finite)
+    and encoded from there; the other rules assemble the tile first. The written values and the
+    returned saturation mask (h, w) bool (OR ``saturated_before``) are those of
+    :func:`assemble_task` then :func:`write_values_task`.
+    """
+    if rule != "last":
+        return write_values_task(store, band0, tile, assemble_task(rule, tile, nbands, boxes, *renders),
+                                 saturated_before)
+    if len(boxes) != len(renders):
+        raise ValueError(f"{len(boxes)} boxes for {len(renders)} renders")
+    if tile[0] % CHUNK or tile[1] % CHUNK or tile[2] > CHUNK or tile[3] > CHUNK:
+        raise ValueError(f"tile {tile} is not one {CHUNK} px chunk")
+    store._check_aligned(tile[2:], tile[0], tile[1])
+    parts = []
+    for box, (values, saturated) in zip(boxes, renders):
+        shared = _overlap(tile, box)
+        if shared is not None:
+            (tr, tc), (br, bc) = shared
+            parts.append((values[:, br, bc], saturated[br, bc], tr, tc))
+    writer = store.chunk_writer()
+    buffer = writer.buffer()
+    row, col = tile[0] // CHUNK, tile[1] // CHUNK
+    for b in range(nbands):
+        if not parts:
+            buffer[...] = np.nan
+        for i, (values, _, tr, tc) in enumerate(parts):
+            target = buffer[tr, tc]
+            if i == 0:  # NaN only around the first render (and in the padding of edge chunks)
+                buffer[:tr.start] = np.nan
+                buffer[tr.stop:] = np.nan
+                buffer[tr, :tc.start] = np.nan
+                buffer[tr, tc.stop:] = np.nan
+                np.copyto(target, values[b])
+                infinite = np.isinf(target)
+                if infinite.any():
+                    target[infinite] = np.nan
+            else:
+                np.copyto(target, values[b], where=np.isfinite(values[b]))
+        writer.write(band0 + b, row, col, buffer)
+    saturated = _last_saturation(tile[2], tile[3], parts)
+    return saturated if saturated_before is None else saturated | saturated_before
+
+
+def _last_saturation(height: int, width: int, parts) -> np.ndarray:
+    """The 'last' rule's saturation mask, evaluated only where some render is flagged: there, the
+    flag of the last render covering the pixel (some band finite), else False."""
+    flagged = np.zeros((height, width), bool)
+    for _, part_sat, tr, tc in parts:
+        flagged[tr, tc] |= part_sat
+    rows, cols = np.nonzero(flagged)
+    saturated = np.zeros((height, width), bool)
+    if not rows.size:
+        return saturated
+    result = np.zeros(rows.size, bool)
+    for values, part_sat, tr, tc in parts:
+        inside = np.flatnonzero((rows >= tr.start) & (rows < tr.stop) & (cols >= tc.start) & (cols < tc.stop))
+        r, c = rows[inside] - tr.start, cols[inside] - tc.start
+        covered = np.isfinite(values[:, r, c]).any(axis=0)
+        result[inside[covered]] = part_sat[r[covered], c[covered]]
+    saturated[rows, cols] = result
+    return saturated
 
 
 def write_saturated_task(store: MosaicStore, tile: Box, *masks: np.ndarray) -> int:
