@@ -69,6 +69,17 @@ def _overlap(tile: Box, box: Box) -> tuple[tuple[slice, slice], tuple[slice, sli
     return in_tile, in_box
 
 
+def _tile_parts(tile: Box, boxes: Sequence[Box], renders) -> list:
+    """(values, saturated, tile rows, tile cols) of each render's part inside ``tile``, in order."""
+    parts = []
+    for box, (values, saturated) in zip(boxes, renders):
+        shared = _overlap(tile, box)
+        if shared is not None:
+            (tr, tc), (br, bc) = shared
+            parts.append((values[:, br, bc], saturated[br, bc], tr, tc))
+    return parts
+
+
 def assemble_task(rule: str, tile: Box, nbands: int, boxes: Sequence[Box],
                   *renders: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Mosaic cube renders onto one output tile with the overlap ``rule`` ('last' | 'mean').
@@ -78,12 +89,7 @@ def assemble_task(rule: str, tile: Box, nbands: int, boxes: Sequence[Box],
     """
     if len(boxes) != len(renders):
         raise ValueError(f"{len(boxes)} boxes for {len(renders)} renders")
-    parts = []
-    for box, (values, saturated) in zip(boxes, renders):
-        shared = _overlap(tile, box)
-        if shared is not None:
-            (tr, tc), (br, bc) = shared
-            parts.append((values[:, br, bc], saturated[br, bc], tr, tc))
+    parts = _tile_parts(tile, boxes, renders)
     if rule == "last" and parts:
         return _assemble_last(tile, nbands, parts)
     mosaic = make_rule(rule, nbands, tile[2], tile[3])
@@ -149,12 +155,7 @@ def assemble_write_task(store: MosaicStore, rule: str, band0: int, tile: Box, nb
     if tile[0] % CHUNK or tile[1] % CHUNK or tile[2] > CHUNK or tile[3] > CHUNK:
         raise ValueError(f"tile {tile} is not one {CHUNK} px chunk")
     store._check_aligned(tile[2:], tile[0], tile[1])
-    parts = []
-    for box, (values, saturated) in zip(boxes, renders):
-        shared = _overlap(tile, box)
-        if shared is not None:
-            (tr, tc), (br, bc) = shared
-            parts.append((values[:, br, bc], saturated[br, bc], tr, tc))
+    parts = _tile_parts(tile, boxes, renders)
     writer = store.chunk_writer()
     buffer = writer.buffer()
     row, col = tile[0] // CHUNK, tile[1] // CHUNK
