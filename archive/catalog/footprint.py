@@ -18,6 +18,7 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 from archive.errors import InputError
+from archive.ingest.navigation import ground_hits
 
 # A time step above this many median line intervals starts a new strip.
 GAP_FACTOR = 1.5
@@ -74,19 +75,16 @@ def swath_edges(position: np.ndarray, attitude: Rotation, fov_deg: float, ground
     position = np.asarray(position, float)
     out = []
     for u in (-t, t):
-        d = attitude.apply(np.array([0.0, u, 1.0]))
-        d = np.atleast_2d(d)
-        if np.any(d[:, 2] <= 1e-6):
-            bad = int(np.flatnonzero(d[:, 2] <= 1e-6)[0])
-            raise InputError(where or None, f"line {bad}: the swath edge looks at or above the horizon",
+        points, _, bad = ground_hits(position, attitude, u, ground_down)
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            if position[row, 2] >= ground_down:
+                raise InputError(where or None, f"line {row}: the camera is at or below the ground "
+                                 f"(camera D {position[row, 2]:.2f} m, ground D {ground_down:.2f} m)",
+                                 "check the ground height")
+            raise InputError(where or None, f"line {row}: the swath edge looks at or above the horizon",
                              "check the attitude (roll/pitch) and --fov")
-        s = (ground_down - position[:, 2]) / d[:, 2]
-        if np.any(s <= 0):
-            bad = int(np.flatnonzero(s <= 0)[0])
-            raise InputError(where or None, f"line {bad}: the camera is at or below the ground "
-                             f"(camera D {position[bad, 2]:.2f} m, ground D {ground_down:.2f} m)",
-                             "check the ground height")
-        out.append(position[:, :2] + s[:, None] * d[:, :2])
+        out.append(points)
     return out[0], out[1]
 
 

@@ -46,10 +46,9 @@ from pathlib import Path
 
 import numpy as np
 import zarr
-from scipy.spatial.transform import Rotation
 from zarr.codecs import BloscCodec
 
-from archive.errors import FormatError, InputError
+from archive.errors import FormatError
 from archive.ingest.envi import EnviCube, EnviHeader, header_from_metadata
 from archive.ingest.lcf import LcfData
 from archive.ingest.navigation import (LocalFrame, Poses, Track, boresight_rotation, check_coverage,
@@ -493,10 +492,6 @@ class CollectionSource:
                               ("needs a radiometric calibration and none was ingested",
                                "re-ingest with --calibration FILE.icp, or use --mode raw"))
 
-    def stored_poses(self) -> tuple[np.ndarray, Rotation]:
-        """The poses recorded at ingest (sync 0, no boresight): (lines, 3) N, E, D m and attitudes."""
-        group = zarr.open_group(self.store, mode="r")
-        return group["position"][...], Rotation.from_quat(group["attitude"][...])
 
 
 __all__ = ["CollectionSource", "FORMAT", "FORMAT_VERSION", "StorePlan", "chunk_tasks", "is_complete",

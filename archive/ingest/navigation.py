@@ -235,6 +235,23 @@ def boresight_rotation(boresight_deg: Sequence[float] = (0.0, 0.0, 0.0)) -> Rota
     return Rotation.from_euler("ZYX", [yaw, pitch, roll], degrees=True)
 
 
+def ground_hits(position: np.ndarray, attitude: Rotation, u: float, ground_down: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the ray of focal-plane coordinate ``u`` (camera vector (0, u, 1)) meets the flat ground.
+
+    position: (n, 3) camera N, E, D metres; attitude: (n,) camera -> NED; ground_down: the ground
+    plane's D coordinate, metres. Returns the ground points (n, 2) N, E metres, the ray depth lambda
+    (n,) (point = position + lambda * R (0, u, 1)) and a bad (n,) bool mask of rays that do not
+    reach the ground (pointing at or above the horizon, or a camera at or below the ground).
+    """
+    position = np.asarray(position, dtype=np.float64)
+    d = np.atleast_2d(attitude.apply(np.array([0.0, u, 1.0])))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = (ground_down - position[:, 2]) / d[:, 2]
+    bad = ~(np.isfinite(lam) & (lam > 0) & (d[:, 2] > 1e-6))
+    return position[:, :2] + lam[:, None] * d[:, :2], lam, bad
+
+
 def span_text(t: np.ndarray) -> str:
     return f"{float(np.min(t)):.3f}\u2013{float(np.max(t)):.3f} s"
 

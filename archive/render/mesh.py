@@ -38,6 +38,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from archive.errors import InputError, RenderError
+from archive.ingest.navigation import ground_hits
 
 if TYPE_CHECKING:  # pragma: no cover
     from archive.ingest.navigation import LocalFrame, Poses
@@ -82,12 +83,6 @@ class Mesh:
         """(west, south, east, north) UTM metres of all vertices (opening/closing rows included)."""
         g = self.ground_utm().reshape(-1, 2)
         return (float(g[:, 0].min()), float(g[:, 1].min()), float(g[:, 0].max()), float(g[:, 1].max()))
-
-    def footprint_utm(self) -> np.ndarray:
-        """(2 * rows + 1, 2) closed ring of UTM (E, N): left edge forwards, right edge backwards."""
-        g = self.ground_utm()
-        ring = np.concatenate([g[:, 0], g[::-1, 1], g[:1, 0]])
-        return ring
 
     def triangles(self) -> np.ndarray:
         """(2 * (rows - 1), 3) int32 vertex indices, two per quad, in line order.
@@ -201,25 +196,20 @@ def build_mesh(
     line = np.arange(stop, dtype=np.float64) - first
 
     t = math.tan(math.radians(fov_deg) / 2)
-    rays = np.array([[0.0, -t, 1.0], [0.0, t, 1.0]])
     d_ground = float(frame.origin_alt) - float(ground_height)
     ground = np.empty((stop, 2, 2))
     depth = np.empty((stop, 2))
-    for end in range(2):
-        d = mid_att.apply(rays[end])                # (rows, 3) NED directions
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lam = (d_ground - mid_pos[:, 2]) / d[:, 2]
-        bad = ~(np.isfinite(lam) & (lam > 0) & (d[:, 2] > 0))
+    for end, u in enumerate((-t, t)):
+        points, lam, bad = ground_hits(mid_pos, mid_att, u, d_ground)
         if bad.any():
             row = int(np.argmax(bad))
+            down = float(mid_att[row].apply(np.array([0.0, u, 1.0]))[2])
             raise RenderError(
                 f"line {int(line[row])}: the {'left' if end == 0 else 'right'} field-of-view ray "
                 f"does not reach the ground at {ground_height} m (camera at "
                 f"{float(frame.origin_alt) - mid_pos[row, 2]:.1f} m, ray down component "
-                f"{d[row, 2]:.3f}); check attitude, altitude and ground height"
+                f"{down:.3f}); check attitude, altitude and ground height"
             )
-        p = mid_pos + lam[:, None] * d
-        ground[:, end, 0] = p[:, 0]
-        ground[:, end, 1] = p[:, 1]
+        ground[:, end] = points
         depth[:, end] = lam
     return Mesh(frame, ground, depth, line, lines, float(fov_deg), float(ground_height))

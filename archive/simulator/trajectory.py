@@ -42,10 +42,6 @@ class Wobble:
             out += amp * np.sin(2.0 * np.pi * freq * tau + phase)
         return out
 
-    def peak_second_derivative(self) -> float:
-        """Upper bound of |d^2/dtau^2| (unit / s^2)."""
-        return float(sum(abs(a) * (2.0 * np.pi * f) ** 2 for a, f, _ in self.terms))
-
     @classmethod
     def from_dict(cls, d: dict) -> Wobble:
         return cls(float(d["offset"]), tuple(tuple(float(v) for v in t) for t in d["terms"]))
