@@ -214,10 +214,13 @@ def _check_args(args: argparse.Namespace) -> tuple[Output | None, NavigationPara
 
 
 def _collection_fov(archive, ids: Sequence[str]) -> float:
-    """The field of view the collections were ingested with (they must agree)."""
-    from archive.ingest.collection import CollectionSource
+    """The field of view the collections were ingested with (they must agree); reads attributes only."""
+    import zarr
 
-    fovs = {CollectionSource(archive, i, NavigationParams(fov_deg=1.0)).fov_deg for i in ids}
+    from archive.catalog.root import open_archive
+
+    root = open_archive(archive)
+    fovs = {float(zarr.open_group(root.require_collection(i), mode="r").attrs["fov_deg"]) for i in ids}
     if len(fovs) != 1:
         raise InputError("--fov", f"the collections were ingested with different fields of view {sorted(fovs)}",
                          "pass --fov DEG")
