@@ -248,7 +248,7 @@ def _check_same_bands(sources: Sequence, bands: Sequence[Sequence[int]]) -> None
 
 
 def _open_inputs(args: argparse.Namespace, nav: NavigationParams, say, mosaic: bool = True) -> _Inputs:
-    from archive.source import open_source
+    from archive.sources import open_source
 
     # absolute paths: workers (maybe on another machine sharing the file system) open them again
     archive = getattr(args, "archive", None)

@@ -68,7 +68,7 @@ def _plan(directory: Path, ground: float, gsd: float, nbands: int | None = None)
     """(sources, plan) for a raw flight: metadata and geometry only."""
     from archive.graph.plan import cube_meshes, plan_render
     from archive.params import NavigationParams
-    from archive.source import open_source
+    from archive.sources import open_source
 
     source = open_source(directory.absolute(), NavigationParams(fov_deg=FOV))
     bands = list(range(nbands if nbands is not None else source.cubes[0].bands))

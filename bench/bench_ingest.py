@@ -36,8 +36,8 @@ def _flight(args, tmp: Path) -> Path:
 def bench_codecs(args) -> None:
     import numcodecs
 
-    from archive.ingest.envi import EnviCube
-    from archive.ingest.flight import discover_flight
+    from archive.formats.envi import EnviCube
+    from archive.formats.flight import discover_flight
 
     with tempfile.TemporaryDirectory() as tmp:
         flight = discover_flight(_flight(args, Path(tmp)))

@@ -225,7 +225,7 @@ def one_cube_flight(flight: Path, work: Path) -> Path:
 def make_plan(flight: Path, gsd: float, ground: float):
     from archive.graph.plan import cube_meshes, plan_render
     from archive.params import NavigationParams
-    from archive.source import RawFlightSource
+    from archive.sources import RawFlightSource
 
     source = RawFlightSource(flight, NavigationParams(fov_deg=FOV))
     t = time.perf_counter()

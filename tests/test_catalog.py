@@ -21,8 +21,8 @@ from archive.catalog.stac import item_summary
 from archive.cli import main
 from archive.errors import InputError
 from archive.ingest.command import ingest
-from archive.ingest.flight import discover_flight
-from archive.ingest.lcf import read_lcf, write_lcf
+from archive.formats.flight import discover_flight
+from archive.formats.lcf import read_lcf, write_lcf
 from archive.simulator.command import simulate_flight
 
 REPO = Path(__file__).resolve().parents[1]

@@ -22,16 +22,17 @@ import archive
 from archive.catalog.index import search
 from archive.cli import main
 from archive.errors import ArchiveError, FormatError, InputError, MissingInputError
-from archive.ingest.collection import CollectionSource, chunk_lines_for, chunk_tasks
+from archive.collection import chunk_lines_for, chunk_tasks
+from archive.sources import CollectionSource, open_source
 from archive.ingest.command import ingest
-from archive.ingest.envi import EnviCube, read_header, write_envi
-from archive.ingest.flight import discover_flight
-from archive.ingest.icp import read_icp
-from archive.ingest.lcf import read_lcf
-from archive.ingest.times import read_times, write_times
+from archive.formats.envi import EnviCube, read_header, write_envi
+from archive.formats.flight import discover_flight
+from archive.formats.icp import read_icp
+from archive.formats.lcf import read_lcf
+from archive.formats.times import read_times, write_times
 from archive.params import NavigationParams
 from archive.simulator.command import simulate_flight
-from archive.source import MODES, RawFlightSource
+from archive.sources import MODES, RawFlightSource
 
 FOV = 47.5
 PARAMS = [NavigationParams(FOV),
@@ -122,7 +123,7 @@ def test_collection_source_equals_raw(flight, ingested, params):
     d, _ = flight
     archive_dir, cid = ingested
     raw = RawFlightSource(d, params)
-    col = pickle.loads(pickle.dumps(CollectionSource(archive_dir, cid, params)))
+    col = pickle.loads(pickle.dumps(open_source(cid, params, archive=archive_dir)))
     assert col.cubes == raw.cubes and col.frame == raw.frame and col.wavelengths == raw.wavelengths
     white = np.linspace(1.0, 2.0, 6)
     for i in range(len(raw.cubes)):
@@ -207,7 +208,7 @@ def test_verify_detects_corruption(flight, tmp_path, capsys):
 def test_resume_from_damaged_partial(flight, ingested, tmp_path):
     """What a kill can leave: some chunks written, one damaged, a temporary file; the rerun repairs."""
     from archive.catalog.root import create_archive
-    from archive.ingest.collection import open_partial, write_chunk
+    from archive.collection import open_partial, write_chunk
     from archive.ingest.command import prepare_flight
 
     d, truth = flight
@@ -292,7 +293,7 @@ def test_unequal_cubes(tmp_path):
     assert chunk_lines_for([60, 37, 60, 60]) == 60
     (r,) = ingest([str(d)], tmp_path / "a", FOV, ground_height=truth.ground_height, progress=False)
     raw = RawFlightSource(d, PARAMS[1])
-    col = CollectionSource(tmp_path / "a", r.cid, PARAMS[1])
+    col = open_source(r.cid, PARAMS[1], archive=tmp_path / "a")
     assert [c.lines for c in col.cubes] == [60, 37, 60, 60]
     for i in range(4):
         assert np.array_equal(col.read_bands(i, [0, 2]), raw.read_bands(i, [0, 2]))
@@ -344,7 +345,7 @@ def test_archive_and_argument_errors(flight, ingested, tmp_path, capsys):
     assert main(["verify", "--archive", str(archive_dir), "Pika_19990101T000000"]) == 2
     assert f"known ids: {cid}" in capsys.readouterr().err
     with pytest.raises(MissingInputError):
-        CollectionSource(archive_dir, "nope", PARAMS[0])
+        open_source("nope", PARAMS[0], archive=archive_dir)
     # ground height: the headers' 'ground elevation', else --ground-height, else a clear error
     copy = tmp_path / "copy"
     shutil.copytree(d, copy, ignore=shutil.ignore_patterns("truth"))
@@ -366,7 +367,7 @@ def test_archive_and_argument_errors(flight, ingested, tmp_path, capsys):
 def test_real_headers_survive_the_store_attributes(resonon_samples, tmp_path):
     """Header metadata goes through JSON (Zarr attributes): tuples become lists, booleans stay."""
     from archive.ingest.command import _jsonable
-    from archive.ingest.envi import header_from_metadata
+    from archive.formats.envi import header_from_metadata
 
     headers = sorted(resonon_samples.rglob("*.hdr"))
     assert headers

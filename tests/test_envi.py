@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from archive.errors import FormatError, InputError, MissingInputError
-from archive.ingest.envi import (EnviCube, data_path_for, parse_header_text, read_header,
+from archive.formats.envi import (EnviCube, data_path_for, parse_header_text, read_header,
                                  write_envi)
 
 AVSTJOHN = "avstjohn__hyperspectral_analysis/20160228_17h18m_pika_L_1.bil.hdr"

@@ -7,15 +7,15 @@ from pathlib import Path
 import pytest
 
 from archive.errors import FormatError, InputError, MissingInputError
-from archive.ingest.flight import discover_flight, natural_key
+from archive.formats.flight import discover_flight, natural_key
 
 
 def _cube(directory: Path, base: str, first_time: float, suffix: str = ".bil",
-          skip: tuple[str, ...] = ()) -> None:
+          skip: tuple[str, ...] = (), step: float = 0.01) -> None:
     files = {"data": directory / f"{base}{suffix}", "header": directory / f"{base}{suffix}.hdr",
              "lcf": directory / f"{base}.lcf", "times": directory / f"{base}{suffix}.times"}
     contents = {"data": "", "header": "ENVI\n", "lcf": "",
-                "times": f"{first_time:.6f}\n{first_time + 0.01:.6f}\n"}
+                "times": f"{first_time:.6f}\n{first_time + step:.6f}\n"}
     for kind, path in files.items():
         if kind not in skip:
             path.write_text(contents[kind])
@@ -25,7 +25,7 @@ def test_capture_order_and_tie_break(tmp_path):
     _cube(tmp_path, "flight_Pika_L_10", 50.0)
     _cube(tmp_path, "flight_Pika_L_2", 20.0)
     _cube(tmp_path, "flight_Pika_L_9", 10.0, suffix=".bip")
-    _cube(tmp_path, "flight_Pika_L_3", 20.0)  # same first time as _2: natural sort decides
+    _cube(tmp_path, "flight_Pika_L_3", 20.0, step=0.02)  # same first time as _2: natural sort decides
     (tmp_path / "notes.txt").write_text("x")
     (tmp_path / "white.hdr").write_text("ENVI\n")  # unrelated header: ignored
     flight = discover_flight(tmp_path)
@@ -91,4 +91,11 @@ def test_bad_times_named(tmp_path):
     _cube(tmp_path, "c_1", 1.0)
     (tmp_path / "c_1.bil.times").write_text("abc\n")
     with pytest.raises(FormatError, match=r"c_1\.bil\.times: line 1"):
+        discover_flight(tmp_path)
+
+
+def test_duplicated_cube_is_refused(tmp_path):
+    _cube(tmp_path, "flight_Pika_L_1", 20.0)
+    _cube(tmp_path, "flight_Pika_L_1_copy", 20.0)  # the same capture under another name
+    with pytest.raises(InputError, match="flight_Pika_L_1 and flight_Pika_L_1_copy hold the same capture"):
         discover_flight(tmp_path)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from archive.errors import FormatError, MissingInputError
-from archive.ingest.envi import read_header, write_envi
-from archive.ingest.icp import Calibration, DarkFrame, read_icp, response, write_icp
+from archive.formats.envi import read_header, write_envi
+from archive.formats.icp import Calibration, DarkFrame, read_icp, response, write_icp
 
 BANDS, SAMPLES = 8, 12
 WAVELENGTHS = tuple(400.0 + 10.0 * k for k in range(BANDS))

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from archive.errors import FormatError, MissingInputError
-from archive.ingest.lcf import (LcfData, fix_gps_week, gps_seconds_to_datetime, read_lcf,
+from archive.formats.lcf import (LcfData, fix_gps_week, gps_seconds_to_datetime, read_lcf,
                                 write_lcf)
-from archive.ingest.times import first_time, read_times, write_times
+from archive.formats.times import first_time, read_times, write_times
 
 AVSTJOHN = "avstjohn__hyperspectral_analysis/20160228_17h18m_pika_L_1"
 MASSIMAL = "mh-skjelvareid__massimal/Juvika_June2022_Pika_L_"

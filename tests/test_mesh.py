@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from archive.errors import RenderError
-from archive.ingest.navigation import LocalFrame, Poses
+from archive.navigation import LocalFrame, Poses
 from archive.render.mesh import build_mesh, mid_exposure
 
 FOV = 47.5

@@ -8,8 +8,8 @@ from pyproj import Proj
 from scipy.spatial.transform import Rotation
 
 from archive.errors import NavigationError
-from archive.ingest.lcf import LcfData
-from archive.ingest.navigation import (
+from archive.formats.lcf import LcfData
+from archive.navigation import (
     LocalFrame,
     Track,
     boresight_rotation,
@@ -286,7 +286,7 @@ def simulated(tmp_path_factory):
 
 def _source(directory, truth, **kw):
     from archive.params import NavigationParams
-    from archive.source import RawFlightSource
+    from archive.sources import RawFlightSource
 
     return RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg, **kw))
 
@@ -330,9 +330,9 @@ def test_sync_offset_matches_shifted_truth(simulated, offset):
 def test_real_lcf_ends_before_the_last_line(resonon_samples):
     """The Juvika .lcf stops 4.4 ms before the last image line: a strict check would reject it,
     the source's tolerance (NAV_TOLERANCE) extrapolates those lines."""
-    from archive.ingest.lcf import read_lcf
-    from archive.ingest.times import read_times
-    from archive.source import NAV_TOLERANCE
+    from archive.formats.lcf import read_lcf
+    from archive.formats.times import read_times
+    from archive.sources import NAV_TOLERANCE
 
     folder = resonon_samples / "mh-skjelvareid__massimal"
     lcf = read_lcf(folder / "Juvika_June2022_Pika_L_12.lcf")

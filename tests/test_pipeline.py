@@ -64,7 +64,7 @@ def _direct_renders(flight, grid: Grid, bands):
     """Each cube rendered in this process with render_cube on the whole grid, in capture order."""
     from archive.render.mesh import build_mesh
     from archive.render.renderer import render_cube
-    from archive.source import RawFlightSource
+    from archive.sources import RawFlightSource
 
     directory, truth = flight
     src = RawFlightSource(directory, NavigationParams(fov_deg=FOV))
@@ -271,7 +271,7 @@ def test_scheduler_without_gpu_workers_is_refused(flight, tmp_path, capsys):
 
 def test_ground_height_auto_reads_headers(flight, tmp_path):
     from archive.pipeline import resolve_ground_height
-    from archive.source import RawFlightSource
+    from archive.sources import RawFlightSource
 
     directory, truth = flight
     nav = NavigationParams(fov_deg=FOV)
@@ -284,7 +284,7 @@ def test_ground_height_auto_reads_headers(flight, tmp_path):
 
 def test_select_bands(flight):
     from archive.pipeline import select_bands
-    from archive.source import RawFlightSource
+    from archive.sources import RawFlightSource
 
     src = RawFlightSource(flight[0], NavigationParams(fov_deg=FOV))
     assert select_bands(src) == list(range(6))
@@ -301,7 +301,7 @@ def test_graph_is_deterministic_and_annotated(flight, tmp_path):
     from archive.graph.build import build_render_graph
     from archive.graph.plan import cube_meshes, plan_render
     from archive.outputs import MosaicStore
-    from archive.source import RawFlightSource
+    from archive.sources import RawFlightSource
 
     directory, truth = flight
     store = MosaicStore(str(tmp_path / "never-written.zarr"), "radiance")

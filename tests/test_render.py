@@ -11,12 +11,12 @@ from scipy.spatial.transform import Rotation
 
 from archive.errors import InputError
 from archive.grid import Grid
-from archive.ingest.navigation import LocalFrame, Poses
+from archive.navigation import LocalFrame, Poses
 from archive.render.context import get_context, gl_info
 from archive.render.mesh import build_mesh
 from archive.render.reference import reference_lookup, reference_values
 from archive.render.renderer import Lookup, rasterize_lookup, render_cube, render_lookup
-from archive.source import Radiometry
+from archive.sources import Radiometry
 
 FOV = 47.5
 T = math.tan(math.radians(FOV / 2))

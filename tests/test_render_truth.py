@@ -18,7 +18,7 @@ from archive.render.mesh import build_mesh
 from archive.render.reference import reference_values
 from archive.render.renderer import render_cube
 from archive.simulator.command import simulate_flight
-from archive.source import RawFlightSource
+from archive.sources import RawFlightSource
 
 BANDS = 6
 

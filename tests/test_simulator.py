@@ -11,11 +11,11 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from archive.cli import main
 from archive.errors import InputError, OutputExistsError
-from archive.ingest.envi import EnviCube, read_header
-from archive.ingest.flight import discover_flight
-from archive.ingest.icp import read_icp, response
-from archive.ingest.lcf import read_lcf
-from archive.ingest.times import read_times
+from archive.formats.envi import EnviCube, read_header
+from archive.formats.flight import discover_flight
+from archive.formats.icp import read_icp, response
+from archive.formats.lcf import read_lcf
+from archive.formats.times import read_times
 from archive.simulator.command import simulate_flight
 from archive.simulator.scene import MATERIALS
 from archive.simulator.truth import load_truth

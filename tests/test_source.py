@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from archive.errors import InputError, MissingInputError, NavigationError
-from archive.ingest.envi import EnviCube
-from archive.ingest.icp import read_icp, response
+from archive.formats.envi import EnviCube
+from archive.formats.icp import read_icp, response
 from archive.params import NavigationParams
-from archive.source import (
+from archive.sources import (
     MODES,
     CubeInfo,
     FlightSource,

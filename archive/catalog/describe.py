@@ -12,21 +12,21 @@ from archive.catalog.footprint import flight_footprint
 from archive.catalog.index import add_rows, rebuild_index, row_from_item
 from archive.catalog.root import ArchiveRoot
 from archive.catalog.stac import make_item, write_item
+from archive.collection import read_info
 from archive.errors import FormatError
-from archive.ingest.navigation import LocalFrame
 
 
 def item_for_collection(root: ArchiveRoot, cid: str) -> dict:
     """The STAC Item of collection ``cid``: footprint from the stored per-line poses (sync offset 0,
     no boresight) at the stored ground height, times, wavelengths, sensor, nominal GSD."""
     store = root.require_collection(cid)
-    group = zarr.open_group(store, mode="r")
-    attrs = dict(group.attrs)
-    if attrs.get("ground_height") is None:
+    info = read_info(store, navigation=False)
+    attrs = info.attrs
+    if info.ground_height is None:
         raise FormatError(store, "no ground height recorded: cannot compute the footprint",
                           "re-ingest with --ground-height M")
-    f = attrs["frame"]
-    frame = LocalFrame(int(f["epsg"]), float(f["origin_e"]), float(f["origin_n"]), float(f["origin_alt"]))
+    frame = info.frame
+    group = zarr.open_group(store, mode="r")
     time = group["time"][...]
     position = group["position"][...]
     attitude = Rotation.from_quat(group["attitude"][...])

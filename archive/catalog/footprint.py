@@ -18,7 +18,7 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 from archive.errors import InputError
-from archive.ingest.navigation import ground_hits
+from archive.navigation import ground_hits
 
 # A time step above this many median line intervals starts a new strip.
 GAP_FACTOR = 1.5

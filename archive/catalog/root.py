@@ -17,6 +17,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+from archive.collection import is_complete
 from archive.errors import InputError, MissingInputError
 
 MARKER = "archive.json"
@@ -66,8 +67,6 @@ class ArchiveRoot:
 
     def collection_ids(self) -> list[str]:
         """Ids of the completed stores on disk (a ``.zarr`` directory whose group says complete)."""
-        from archive.ingest.collection import is_complete
-
         if not self.collections.is_dir():
             return []
         ids = [p.name[: -len(".zarr")] for p in self.collections.iterdir()
@@ -76,8 +75,6 @@ class ArchiveRoot:
 
     def require_collection(self, cid: str) -> Path:
         """Path of a completed collection, or MissingInputError naming the id and the archive."""
-        from archive.ingest.collection import is_complete
-
         store = self.store(cid)
         if not is_complete(store):
             known = self.collection_ids()

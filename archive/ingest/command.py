@@ -22,14 +22,13 @@ import numpy as np
 import archive
 from archive.catalog.root import ArchiveRoot, check_collection_id, create_archive, open_archive
 from archive.errors import InputError
-from archive.ingest.collection import (FORMAT, FORMAT_VERSION, NAV_COLUMNS, StorePlan, chunk_tasks,
-                                       finish_store, hash_file_task, is_complete, open_partial, publish,
-                                       verify_store, write_chunk)
-from archive.ingest.icp import response as exposure_response
-from archive.ingest.lcf import gps_seconds_to_datetime, read_lcf
-from archive.ingest.navigation import line_times
-from archive.ingest.times import read_times
+from archive.collection import (FORMAT, FORMAT_VERSION, NAV_COLUMNS, StorePlan, chunk_tasks, finish_store,
+                                frame_to_attrs, hash_file_task, is_complete, open_partial, publish, read_attrs,
+                                sha256_file, verify_store, write_chunk)
+from archive.formats.icp import response as exposure_response
+from archive.formats.lcf import gps_seconds_to_datetime
 from archive.params import NavigationParams
+from archive.sources.raw import RawFlightSource
 
 
 def sensor_name(metadata: dict) -> str | None:
@@ -73,8 +72,6 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
                    ground_height: float | None = None) -> StorePlan:
     """Read and check a raw flight (everything but the pixels) and return what its store will hold.
     Raises a clear ArchiveError naming the cube or file for a broken flight; writes nothing."""
-    from archive.source import RawFlightSource
-
     if not (np.isfinite(fov_deg) and 0 < fov_deg < 180):
         raise InputError("--fov", f"field of view {fov_deg} deg is not in (0, 180)", "47.5 for a Pika L")
     src = RawFlightSource(directory, NavigationParams(fov_deg=float(fov_deg)), calibration=calibration)
@@ -86,8 +83,8 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
         if h.samples != first.samples or h.dtype.newbyteorder("=") != first.dtype.newbyteorder("="):
             raise InputError(h.path, f"{h.samples} samples of {h.dtype}, but {first.path.name} has "
                              f"{first.samples} of {first.dtype}", "a flight's cubes must share samples and data type")
-    times = [read_times(f.times, expected_lines=h.lines) for f, h in zip(files, headers, strict=True)]
-    lcfs = [read_lcf(f.lcf) for f in files]
+    times = [c.camera_time for c in src.navigation.cubes]  # as read and checked by the source
+    lcfs = [c.lcf for c in src.navigation.cubes]
     poses = [src.poses(i) for i in range(n)]
     cal = src.calibration()
     darks, gains, gain_index = [], [], []
@@ -114,7 +111,7 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
     line_offset = np.concatenate([[0], np.cumsum([h.lines for h in headers])]).astype(int)
     nav_offset = np.concatenate([[0], np.cumsum([len(lcf.time) for lcf in lcfs])]).astype(np.int64)
     arrays: dict[str, np.ndarray] = {
-        "time": np.concatenate([line_times(t, lcf.time[0], 0.0) for t, lcf in zip(times, lcfs, strict=True)]),
+        "time": np.concatenate([src.line_times(i) for i in range(n)]),  # sync offset 0
         "camera_time": np.concatenate(times).astype(np.float64),
         "cube": np.concatenate([np.full(h.lines, i, np.uint16) for i, h in enumerate(headers)]),
         "position": np.concatenate([p.position for p in poses]),
@@ -166,8 +163,7 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
         "fov_deg": float(fov_deg),
         "ground_height": ground,
         "ground_height_source": ground_source,
-        "frame": {"epsg": int(frame.epsg), "origin_e": float(frame.origin_e), "origin_n": float(frame.origin_n),
-                  "origin_alt": float(frame.origin_alt)},
+        "frame": frame_to_attrs(frame),
         "poses": "position/attitude at exposure start, sync offset 0, no boresight or lever arm",
         "navigation_columns": list(NAV_COLUMNS),
         "response_reference": "calibration" if cal is not None else "1 ms at 0 dB",
@@ -231,11 +227,7 @@ def _same_sources(store: Path, plan: StorePlan) -> bool:
     """Whether ``store`` was ingested from the same files as ``plan``: same names and sizes, and
     the same sha256 for the small files (headers, times, navigation, calibration); data files are
     not re-hashed, so that a repeated ingest stays a quick no-op."""
-    import zarr
-
-    from archive.ingest.collection import sha256_file
-
-    recorded = zarr.open_group(store, mode="r").attrs.get("sources", [])
+    recorded = read_attrs(store).get("sources", [])
     if [(s["name"], s["size"]) for s in recorded] != [(plan.attrs["source_names"][p], n) for p, n in plan.sources]:
         return False
     data = set(plan.data_files)

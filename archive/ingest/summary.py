@@ -1,6 +1,6 @@
 """``archive info DIR``: check a raw flight directory completely and print its summary.
 
-Checks (through :class:`archive.source.RawFlightSource`): every cube's header and data file size,
+Checks (through :class:`archive.sources.RawFlightSource`): every cube's header and data file size,
 ``.times`` line count and order, ``.lcf`` parse, navigation coverage of every line (with the given
 sync offset), and the calibration if there is one (its bands and samples must fit every cube).
 """
@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from archive.ingest.lcf import gps_seconds_to_datetime
+from archive.formats.lcf import gps_seconds_to_datetime
 from archive.params import NavigationParams
-from archive.source import RawFlightSource
+from archive.sources import RawFlightSource
 
 # A gap between cubes longer than this many frame intervals ends a strip (DESIGN 3).
 STRIP_GAP_FRAMES = 1.5

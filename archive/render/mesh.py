@@ -38,10 +38,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from archive.errors import InputError, RenderError
-from archive.ingest.navigation import ground_hits
+from archive.navigation import ground_hits
 
 if TYPE_CHECKING:  # pragma: no cover
-    from archive.ingest.navigation import LocalFrame, Poses
+    from archive.navigation import LocalFrame, Poses
 
 
 @dataclass(frozen=True, eq=False)

@@ -237,7 +237,7 @@ def render_lookup(
     lookup: from :func:`rasterize_lookup` for this cube.
     dn: (bands, lines, samples) DN, uint16 (other integer types in 0..65535, or float32, accepted).
     radiometry: object with dark (bands, samples), gain (bands, samples), response (lines,),
-        saturation (DN threshold or None), e.g. :class:`archive.source.Radiometry`; None = raw DN.
+        saturation (DN threshold or None), e.g. :class:`archive.sources.Radiometry`; None = raw DN.
     bands_per_pass: 1..8 bands per full-screen pass (one R32F render target each; 8 is fastest).
     max_size: largest texture and framebuffer side in pixels (default: the GL texture limit for the
         DN textures, min(4096, GL limit) for framebuffer windows); for tests.
@@ -411,7 +411,7 @@ def render_cube(
     mesh: the cube's ground mesh (:func:`archive.render.mesh.build_mesh`), same EPSG as ``grid``.
     dn: (bands, lines, samples) DN, uint16 (other integer types in 0..65535, or float32, accepted).
     radiometry: object with dark (bands, samples), gain (bands, samples), response (lines,),
-        saturation (DN threshold or None), e.g. :class:`archive.source.Radiometry`; None = raw DN.
+        saturation (DN threshold or None), e.g. :class:`archive.sources.Radiometry`; None = raw DN.
     bands_per_pass: 1..8 bands per pass (up to 4 per texel fetch and render target).
     max_size: largest texture and framebuffer side in pixels (default: the GL texture limit for the
         DN textures, min(4096, GL limit) for framebuffer windows); small values force

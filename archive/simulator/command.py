@@ -22,9 +22,9 @@ import numpy as np
 from tqdm import tqdm
 
 from archive.errors import InputError, OutputExistsError
-from archive.ingest.icp import Calibration, DarkFrame, write_icp
-from archive.ingest.lcf import LcfData, write_lcf
-from archive.ingest.times import write_times
+from archive.formats.icp import Calibration, DarkFrame, write_icp
+from archive.formats.lcf import LcfData, write_lcf
+from archive.formats.times import write_times
 from archive.simulator.layout import layout
 from archive.simulator.scene import MATERIALS, Scene, material_spectra, random_waves
 from archive.simulator.sensor import (EXPOSURES, GAIN_CAL, SHUTTER_CAL, Radiometry,

@@ -188,7 +188,7 @@ class Trajectory:
         return cls(**d)
 
 
-# --- projection helpers (pyproj directly, independent of archive.ingest.navigation) ----------------------
+# --- projection helpers (pyproj directly, independent of archive.navigation) ----------------------
 def utm_epsg(lon: float, lat: float) -> int:
     """EPSG code of the WGS 84 / UTM zone holding (lon, lat) degrees (no Norway/Svalbard rules)."""
     zone = int(math.floor((lon + 180.0) / 6.0)) % 60 + 1

@@ -14,7 +14,7 @@ from types import TracebackType
 
 import numpy as np
 
-from archive.ingest.lcf import GPS_EPOCH
+from archive.formats.lcf import GPS_EPOCH
 
 __all__ = ["BilWriter", "header_text"]
 

@@ -7,13 +7,14 @@ ordered by capture: the first ``.times`` value, ties broken by natural sort of t
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
 from archive.errors import FormatError, InputError, MissingInputError
-from archive.ingest.times import first_time
+from archive.formats.times import first_time
 
 __all__ = ["CubeFiles", "Flight", "discover_flight", "natural_key"]
 
@@ -61,6 +62,21 @@ def _cube_files(data: Path) -> tuple[CubeFiles | None, list[tuple[str, Path]]]:
     if missing:
         return None, missing
     return CubeFiles(base, data, header, files["lcf"], files["times"]), []
+
+
+def _check_distinct(cubes: list[CubeFiles]) -> None:
+    """InputError naming both cubes when two cubes hold the same capture (byte-identical
+    ``.times``: the same lines recorded twice, e.g. a cube copied under another name)."""
+    seen: dict[tuple[int, bytes], CubeFiles] = {}
+    for cube in cubes:
+        content = cube.times.read_bytes()
+        key = (len(content), hashlib.sha256(content).digest())
+        if key in seen:
+            other = seen[key]
+            raise InputError(cube.data.parent, f"cubes {other.base} and {cube.base} hold the same capture "
+                             f"(identical line times in {other.times.name} and {cube.times.name})",
+                             "remove the duplicated cube (a copy under another name) from the directory")
+        seen[key] = cube
 
 
 def discover_flight(directory: str | os.PathLike) -> Flight:
@@ -114,6 +130,7 @@ def discover_flight(directory: str | os.PathLike) -> Flight:
         raise InputError(directory, "no cubes found (no *.bil, *.bip or *.bsq data files)",
                          "pass a raw flight directory")
     cubes.sort(key=lambda c: (first_time(c.times), natural_key(c.base)))
+    _check_distinct(cubes)
     icps = [p for p in entries if p.suffix.lower() == ".icp"]
     if len(icps) > 1:
         raise InputError(directory, f"{len(icps)} calibration files: "

@@ -1,4 +1,7 @@
-"""Collection stores: one raw flight ingested into a chunked, compressed Zarr v3 group, and read back.
+"""The collection format, owned here alone: one raw flight ingested into a chunked, compressed
+Zarr v3 group — attribute names, codecs, completion marker, chunk paths, digests, the local frame
+to and from attributes — written (ingest), verified (verify) and read back (the collection source,
+the catalog). No other module knows this layout.
 
 Layout of ``<ARCHIVE>/collections/<id>.zarr`` (axis orders in brackets)::
 
@@ -48,14 +51,10 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec
 
-from archive.errors import FormatError
-from archive.ingest.envi import EnviCube, EnviHeader, header_from_metadata
-from archive.ingest.lcf import LcfData
-from archive.ingest.navigation import (LocalFrame, Poses, Track, boresight_rotation, check_coverage,
-                                       interpolate_poses, line_times, track_from_lcf)
-from archive.params import NavigationParams
-from archive.source import (NAV_TOLERANCE, CubeInfo, Radiometry, _band_list, _check_cube, _check_mode,
-                            radiometry_for)
+from archive.errors import FormatError, MissingInputError
+from archive.formats.envi import EnviCube, EnviHeader, header_from_metadata
+from archive.formats.lcf import LcfData
+from archive.navigation import LocalFrame
 
 FORMAT = "archive-collection"
 FORMAT_VERSION = 1
@@ -353,146 +352,113 @@ def verify_store(store: str | os.PathLike, progress: bool = False) -> list[str]:
 # reading
 
 
-class CollectionSource:
-    """A :class:`archive.source.FlightSource` over an ingested collection.
+def frame_to_attrs(frame: LocalFrame) -> dict:
+    """The ``frame`` group attribute of a local frame."""
+    return {"epsg": int(frame.epsg), "origin_e": float(frame.origin_e), "origin_n": float(frame.origin_n),
+            "origin_alt": float(frame.origin_alt)}
 
-    Poses are recomputed from the stored raw navigation with ``params`` (sync offset, boresight,
-    lever arm), exactly as :class:`archive.source.RawFlightSource` does from the raw files, so both
-    give bit-identical poses, DN and radiometry. ``read_bands`` reads only the chunks of the cube's
-    lines. ``params.fov_deg`` is the caller's; the ingested one is ``self.fov_deg``. Picklable.
+
+def frame_from_attrs(f: dict) -> LocalFrame:
+    """The local frame recorded in a ``frame`` group attribute."""
+    return LocalFrame(int(f["epsg"]), float(f["origin_e"]), float(f["origin_n"]), float(f["origin_alt"]))
+
+
+@dataclass(frozen=True, eq=False)
+class StoredCube:
+    """One cube as recorded: index, base name, shape, first line in ``dn``, its header (path names
+    the store), its camera clock (lines,) s and its raw navigation."""
+
+    index: int
+    base: str
+    lines: int
+    samples: int
+    bands: int
+    line_offset: int
+    header: EnviHeader
+    camera_time: np.ndarray
+    lcf: LcfData
+
+
+@dataclass(frozen=True, eq=False)
+class CollectionInfo:
+    """What a completed collection records, read from its attributes and small arrays (no DN).
+
+    store: the store path; attrs: every group attribute; fov_deg, ground_height (m, .lcf datum):
+    as ingested; frame: the local frame; cubes: per cube; calibration: None, or {name,
+    shutter_cal, gain_cal}; plan: the plan token (identifies the stored content).
     """
 
-    def __init__(self, archive: str | os.PathLike, id: str, params: NavigationParams,
-                 white_reference: np.ndarray | None = None):
-        from archive.catalog.root import open_archive
+    store: Path
+    attrs: dict
+    fov_deg: float
+    ground_height: float | None
+    frame: LocalFrame
+    cubes: tuple[StoredCube, ...]
+    calibration: dict | None
+    plan: str | None
 
-        self.store = open_archive(archive).require_collection(id)
-        self.id = id
-        self.params = params
-        self.white_reference = None if white_reference is None else np.asarray(white_reference, float)
-        group = zarr.open_group(self.store, mode="r")
-        attrs = dict(group.attrs)
-        if attrs.get("archive:format") != FORMAT or int(attrs.get("archive:format_version", 0)) > FORMAT_VERSION:
-            raise FormatError(self.store, "not a collection store this software can read",
-                              "re-ingest the flight or upgrade archive")
-        self.attrs = attrs
-        self.fov_deg = float(attrs["fov_deg"])
-        self.ground_height = attrs.get("ground_height")
-        f = attrs["frame"]
-        self.frame = LocalFrame(int(f["epsg"]), float(f["origin_e"]), float(f["origin_n"]), float(f["origin_alt"]))
-        nav = group["navigation"][...]
-        offsets = group["navigation_offset"][...]
-        camera_time = group["camera_time"][...]
-        self._headers = [header_from_metadata(c["header"], self.store / f"{c['base']}.hdr") for c in attrs["cubes"]]
-        self._line_offset = [int(c["line_offset"]) for c in attrs["cubes"]]
-        self._lcf: list[LcfData] = []
-        self._times: list[np.ndarray] = []
-        for k, c in enumerate(attrs["cubes"]):
+    @property
+    def sources(self) -> list[dict]:
+        """Recorded source files: [{name, size, sha256}, ...]."""
+        return list(self.attrs.get("sources", []))
+
+
+def read_attrs(store: str | os.PathLike) -> dict:
+    """Group attributes of a collection store; FormatError unless it is a complete collection this
+    software can read."""
+    store = Path(store)
+    if not (store / "zarr.json").is_file():
+        raise MissingInputError(store, "collection store")
+    attrs = dict(zarr.open_group(store, mode="r").attrs)
+    if attrs.get("archive:format") != FORMAT or int(attrs.get("archive:format_version", 0)) > FORMAT_VERSION:
+        raise FormatError(store, "not a collection store this software can read",
+                          "re-ingest the flight or upgrade archive")
+    if attrs.get(COMPLETE) is not True:
+        raise FormatError(store, "incomplete collection (no completion marker)", "re-run the ingest")
+    return attrs
+
+
+def read_info(store: str | os.PathLike, navigation: bool = True) -> CollectionInfo:
+    """The recorded description of a collection (see :class:`CollectionInfo`); with ``navigation``
+    also every cube's camera clock and raw navigation."""
+    store = Path(store)
+    attrs = read_attrs(store)
+    group = zarr.open_group(store, mode="r")
+    nav = group["navigation"][...] if navigation else None
+    offsets = group["navigation_offset"][...] if navigation else None
+    camera_time = group["camera_time"][...] if navigation else None
+    cubes = []
+    for k, c in enumerate(attrs["cubes"]):
+        header = header_from_metadata(c["header"], store / f"{c['base']}.hdr")
+        l0 = int(c["line_offset"])
+        if navigation:
             rows = nav[int(offsets[k]):int(offsets[k + 1])]
-            self._lcf.append(LcfData(None, *(np.ascontiguousarray(rows[:, j]) for j in range(7))))
-            self._times.append(np.ascontiguousarray(camera_time[c["line_offset"]:c["line_offset"] + c["lines"]]))
-        self._tracks = [track_from_lcf(lcf, self.frame) for lcf in self._lcf]
-        self._boresight = boresight_rotation(params.boresight_deg)
-        self.wavelengths = self._headers[0].wavelengths
-        self.cubes = tuple(
-            CubeInfo(index=i, base=c["base"], lines=h.lines, samples=h.samples, bands=h.bands,
-                     wavelengths=h.wavelengths, shutter_ms=h.shutter, gain_db=h.gain, framerate=h.framerate,
-                     bit_depth=h.bit_depth, first_time=float(lcf.time[0]) + float(params.sync_offset))
-            for i, (c, h, lcf) in enumerate(zip(attrs["cubes"], self._headers, self._lcf, strict=True)))
-        self._calibration = attrs.get("calibration")
-        # As RawFlightSource.calibration_path, None when ingested without calibration; otherwise the
-        # ingested .icp's file name only (its arrays are in the store, the file is not needed).
-        self.calibration_path: Path | None = None if self._calibration is None else Path(self._calibration["name"])
-        self._dn = None
-        for i in range(len(self.cubes)):
-            self.check_navigation(i)
-
-    def __repr__(self) -> str:
-        return f"CollectionSource({str(self.store)!r}, cubes={len(self.cubes)})"
-
-    def __getstate__(self) -> dict:
-        state = self.__dict__.copy()
-        state["_dn"] = None
-        return state
-
-    def __dask_tokenize__(self):
-        # What renders depend on: the stored content (its plan token covers sources and layout),
-        # the navigation parameters and the white reference; never the pixels.
-        white = None if self.white_reference is None else self.white_reference.tobytes()
-        return ("CollectionSource", str(self.store), self.id, self.attrs.get("archive:plan"), self.params, white)
-
-    def _where(self, cube: int) -> str:
-        return f"{self.store} cube {cube} ({self.cubes[cube].base})"
-
-    def _tolerance(self) -> float:
-        return NAV_TOLERANCE + abs(float(self.params.sync_offset))
-
-    def line_times(self, cube: int) -> np.ndarray:
-        """(lines,) exposure-start times of ``cube`` on the .lcf scale (sync offset included), s."""
-        cube = _check_cube(cube, self.cubes, str(self.store))
-        return line_times(self._times[cube], self._lcf[cube].time[0], self.params.sync_offset)
-
-    def check_navigation(self, cube: int) -> None:
-        """NavigationError unless the cube's navigation covers its lines (as RawFlightSource)."""
-        t = self.line_times(cube)
-        shutter = self._headers[cube].shutter
-        half = 0.0 if shutter is None else shutter / 2000.0
-        check_coverage(self._tracks[cube].time, np.array([t[0], t[-1] + half]), self._where(cube), self._tolerance())
-
-    def track(self, cube: int) -> Track:
-        return self._tracks[_check_cube(cube, self.cubes, str(self.store))]
-
-    def header(self, cube: int) -> EnviHeader:
-        """The cube's ENVI header as ingested (its path names the store, not a file)."""
-        return self._headers[_check_cube(cube, self.cubes, str(self.store))]
-
-    def poses(self, cube: int, delay: float = 0.0) -> Poses:
-        """Camera poses of every line of ``cube`` at exposure start + ``delay`` s (see RawFlightSource)."""
-        cube = _check_cube(cube, self.cubes, str(self.store))
-        t = self.line_times(cube) + float(delay)
-        return interpolate_poses(self._tracks[cube], t, self.frame, boresight=self._boresight,
-                                 lever_arm=self.params.lever_arm_m, where=self._where(cube),
-                                 tolerance=self._tolerance() + abs(float(delay)))
-
-    def read_bands(self, cube: int, bands: Sequence[int]) -> np.ndarray:
-        """(len(bands), lines, samples) DN of ``cube`` in the stored (native) dtype; reads only the
-        chunks holding those bands and the cube's lines."""
-        cube = _check_cube(cube, self.cubes, str(self.store))
-        idx = _band_list(bands, self.cubes[cube].bands, self._where(cube))
-        if self._dn is None:
-            self._dn = zarr.open_array(self.store, path="dn", mode="r")
-        l0 = self._line_offset[cube]
-        out = np.empty((len(idx), self.cubes[cube].lines, self.cubes[cube].samples), self._dn.dtype)
-        for k, b in enumerate(idx):
-            out[k] = self._dn[b, l0:l0 + self.cubes[cube].lines]
-        return out
-
-    def _stored_calibration(self, cube: int, idx: list[int]) -> tuple[np.ndarray, np.ndarray]:
-        group = zarr.open_group(self.store, mode="r")
-        dark = group["dark"][cube]
-        gain = group["gain"][int(group["gain_index"][cube])]
-        return dark[idx], gain[idx]
-
-    def radiometry(self, cube: int, bands: Sequence[int], mode: str,
-                   white_reference: np.ndarray | None = None) -> Radiometry:
-        """Radiometric terms of ``bands`` of ``cube`` in ``mode``, as RawFlightSource.radiometry,
-        from the calibration stored at ingest."""
-        _check_mode(mode)
-        cube = _check_cube(cube, self.cubes, str(self.store))
-        h = self._headers[cube]
-        idx = _band_list(bands, h.bands, self._where(cube))
-        cal = self._calibration
-
-        def calibration():
-            dark, gain = self._stored_calibration(cube, idx)
-            return dark, gain, float(cal["shutter_cal"]), float(cal["gain_cal"])
-
-        white = white_reference if white_reference is not None else self.white_reference
-        return radiometry_for(h, idx, mode, None if cal is None else calibration, white, str(self.store),
-                              ("needs a radiometric calibration and none was ingested",
-                               "re-ingest with --calibration FILE.icp, or use --mode raw"))
+            lcf = LcfData(None, *(np.ascontiguousarray(rows[:, j]) for j in range(len(NAV_COLUMNS))))
+            times = np.ascontiguousarray(camera_time[l0:l0 + int(c["lines"])])
+        else:
+            lcf = times = None
+        cubes.append(StoredCube(k, c["base"], int(c["lines"]), int(c["samples"]), int(c["bands"]), l0, header,
+                                times, lcf))
+    ground = attrs.get("ground_height")
+    return CollectionInfo(store, attrs, float(attrs["fov_deg"]), None if ground is None else float(ground),
+                          frame_from_attrs(attrs["frame"]), tuple(cubes), attrs.get("calibration"),
+                          attrs.get("archive:plan"))
 
 
+def read_calibration(store: str | os.PathLike, cube: int, bands: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Stored dark and gain of ``bands`` of ``cube``: each (len(bands), samples) float32."""
+    group = zarr.open_group(store, mode="r")
+    dark = group["dark"][cube]
+    gain = group["gain"][int(group["gain_index"][cube])]
+    return dark[list(bands)], gain[list(bands)]
 
-__all__ = ["CollectionSource", "FORMAT", "FORMAT_VERSION", "StorePlan", "chunk_tasks", "is_complete",
-           "verify_store", "write_chunk"]
+
+def open_dn(store: str | os.PathLike):
+    """The stored ``dn`` array (band, line, sample), read-only."""
+    return zarr.open_array(store, path="dn", mode="r")
+
+
+__all__ = ["COMPLETE", "CollectionInfo", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS", "StorePlan", "StoredCube",
+           "chunk_tasks", "finish_store", "frame_from_attrs", "frame_to_attrs", "is_complete", "open_dn",
+           "open_partial", "publish", "read_attrs", "read_calibration", "read_info", "verify_store",
+           "write_chunk"]

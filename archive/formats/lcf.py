@@ -70,6 +70,7 @@ def read_lcf(path: str | os.PathLike) -> LcfData:
         raise MissingInputError(path, "navigation file (.lcf)")
     text = path.read_bytes().decode("utf-8-sig", errors="replace")
     rows: list[list[float]] = []
+    numbers: list[int] = []  # file line number of each row
     previous = -math.inf
     for number, line in enumerate(text.splitlines(), start=1):
         fields = line.split()
@@ -94,9 +95,18 @@ def read_lcf(path: str | os.PathLike) -> LcfData:
                               f"{previous!r})", "lcf rows must be in time order without repeats")
         previous = values[0]
         rows.append(values[:7])
+        numbers.append(number)
     if not rows:
         raise FormatError(path, "no navigation rows (empty file)")
     table = np.array(rows, dtype=np.float64)
+    for column, name, limit in ((5, "longitude", 180.0), (6, "latitude", 90.0)):
+        bad = np.flatnonzero(np.abs(table[:, column - 1]) > limit)
+        if bad.size:
+            row = int(bad[0])
+            raise FormatError(path, f"line {numbers[row]}, column {column} ({name}): {table[row, column - 1]:g} "
+                              f"is outside [-{limit:g}, {limit:g}] degrees ({bad.size} such rows)",
+                              "columns are: time roll pitch yaw longitude latitude altitude, angles of "
+                              "position in degrees")
     return LcfData(path, *(np.ascontiguousarray(table[:, k]) for k in range(7)))
 
 

@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from archive.errors import InputError, NavigationError
 
 if TYPE_CHECKING:
-    from archive.ingest.lcf import LcfData
+    from archive.formats.lcf import LcfData
 
 # Track times must increase by at least this much (s); .lcf files carry 3 decimals (1 ms).
 _MIN_STEP = 1e-6
@@ -201,12 +201,14 @@ class Poses:
     position: (lines, 3) N, E, D metres of the camera (lever arm applied).
     attitude: (lines,) camera -> NED (boresight applied).
     frame: the local frame of ``position``.
+    valid: (lines,) bool, False where a line has no navigation (left out of the mesh); None: all valid.
     """
 
     time: np.ndarray
     position: np.ndarray
     attitude: Rotation
     frame: LocalFrame
+    valid: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.time)

@@ -19,7 +19,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from archive.errors import FormatError, InputError, MissingInputError
-from archive.ingest.envi import (EnviHeader, array_from_bytes, header_from_metadata,
+from archive.formats.envi import (EnviHeader, array_from_bytes, header_from_metadata,
                                  parse_header_text, write_envi)
 
 __all__ = ["Calibration", "DarkFrame", "read_icp", "response", "write_icp"]

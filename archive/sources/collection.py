@@ -1,0 +1,127 @@
+"""An ingested collection (a Zarr store of an archive) as a :class:`~archive.sources.base.FlightSource`."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from archive.collection import open_dn, read_calibration, read_info
+from archive.formats.envi import EnviHeader
+from archive.navigation import Poses, Track
+from archive.params import NavigationParams
+from archive.sources.base import CubeInfo, Radiometry, band_list, check_cube, check_mode, radiometry_for
+from archive.sources.navigation import CubeNavigation, FlightNavigation
+
+__all__ = ["CollectionSource"]
+
+
+class CollectionSource:
+    """A collection store (``<archive>/collections/<id>.zarr``) read as a flight.
+
+    Poses are recomputed from the stored raw navigation with ``params`` (sync offset, boresight,
+    lever arm) by the same :class:`~archive.sources.navigation.FlightNavigation` as the raw
+    source, so both give identical poses, DN and radiometry. ``read_bands`` reads only the chunks
+    of the cube's lines. ``fov_deg`` and ``ground_height`` are the ones ingested; ``params.fov_deg``
+    is the caller's. Picklable. Use :func:`archive.sources.open_source` to open one by id.
+    """
+
+    def __init__(self, store: str | os.PathLike, id: str, params: NavigationParams,
+                 white_reference: np.ndarray | None = None):
+        info = read_info(store)
+        self.store = Path(store)
+        self.label = str(self.store)
+        self.id = id
+        self.params = params
+        self.white_reference = None if white_reference is None else np.asarray(white_reference, float)
+        self.info = info
+        self.fov_deg: float | None = info.fov_deg
+        self.ground_height: float | None = info.ground_height
+        self.frame = info.frame
+        self._headers = [c.header for c in info.cubes]
+        self._line_offset = [c.line_offset for c in info.cubes]
+        self.navigation = FlightNavigation(
+            [CubeNavigation(c.camera_time, c.lcf, c.header.shutter, self._where(c.index, c.base))
+             for c in info.cubes], self.frame, params)
+        self.wavelengths = self._headers[0].wavelengths
+        self.cubes = tuple(
+            CubeInfo(index=i, base=c.base, lines=h.lines, samples=h.samples, bands=h.bands,
+                     wavelengths=h.wavelengths, shutter_ms=h.shutter, gain_db=h.gain, framerate=h.framerate,
+                     bit_depth=h.bit_depth, first_time=self.navigation.first_time(i))
+            for i, (c, h) in enumerate(zip(info.cubes, self._headers, strict=True)))
+        self._calibration = info.calibration
+        self.has_calibration = self._calibration is not None
+        self._dn = None
+
+    def __repr__(self) -> str:
+        return f"CollectionSource({str(self.store)!r}, cubes={len(self.cubes)})"
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_dn"] = None
+        return state
+
+    def __dask_tokenize__(self):
+        # What renders depend on: the stored content (its plan token covers sources and layout),
+        # the navigation parameters and the white reference; never the pixels.
+        white = None if self.white_reference is None else self.white_reference.tobytes()
+        return ("CollectionSource", str(self.store), self.id, self.info.plan, self.params, white)
+
+    def _where(self, cube: int, base: str | None = None) -> str:
+        return f"{self.store} cube {cube} ({base if base is not None else self.cubes[cube].base})"
+
+    def _check(self, cube: int) -> int:
+        return check_cube(cube, self.cubes, self.label)
+
+    def line_times(self, cube: int) -> np.ndarray:
+        """(lines,) exposure-start times of ``cube`` on the .lcf scale (sync offset included), s."""
+        return self.navigation.line_times(self._check(cube))
+
+    def check_navigation(self, cube: int) -> None:
+        """NavigationError unless navigation covers the cube's lines (as the raw source)."""
+        self.navigation.check(self._check(cube))
+
+    def track(self, cube: int) -> Track:
+        return self.navigation.cube_track(self._check(cube))
+
+    def header(self, cube: int) -> EnviHeader:
+        """The cube's ENVI header as ingested (its path names the store, not a file)."""
+        return self._headers[self._check(cube)]
+
+    def poses(self, cube: int, delay: float = 0.0) -> Poses:
+        """Camera poses of every line of ``cube`` at exposure start + ``delay`` s (as the raw source)."""
+        return self.navigation.poses(self._check(cube), delay)
+
+    def read_bands(self, cube: int, bands: Sequence[int]) -> np.ndarray:
+        """(len(bands), lines, samples) DN of ``cube`` in the stored (native) dtype; reads only the
+        chunks holding those bands and the cube's lines."""
+        cube = self._check(cube)
+        idx = band_list(bands, self.cubes[cube].bands, self._where(cube))
+        if self._dn is None:
+            self._dn = open_dn(self.store)
+        l0 = self._line_offset[cube]
+        out = np.empty((len(idx), self.cubes[cube].lines, self.cubes[cube].samples), self._dn.dtype)
+        for k, b in enumerate(idx):
+            out[k] = self._dn[b, l0:l0 + self.cubes[cube].lines]
+        return out
+
+    def radiometry(self, cube: int, bands: Sequence[int], mode: str,
+                   white_reference: np.ndarray | None = None) -> Radiometry:
+        """Radiometric terms of ``bands`` of ``cube`` in ``mode``, as the raw source's, from the
+        calibration stored at ingest."""
+        check_mode(mode)
+        cube = self._check(cube)
+        h = self._headers[cube]
+        idx = band_list(bands, h.bands, self._where(cube))
+        cal = self._calibration
+
+        def calibration():
+            dark, gain = read_calibration(self.store, cube, idx)
+            return dark, gain, float(cal["shutter_cal"]), float(cal["gain_cal"])
+
+        white = white_reference if white_reference is not None else self.white_reference
+        return radiometry_for(h, idx, mode, None if cal is None else calibration, white, self.label,
+                              ("needs a radiometric calibration and none was ingested",
+                               "re-ingest with --calibration FILE.icp, or use --mode raw"))

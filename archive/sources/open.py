@@ -1,0 +1,42 @@
+"""``open_source``: the one place that turns what a user names (a raw flight directory, or a
+collection id of an archive) into a flight source."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from archive.catalog.root import open_archive  # resolves collection ids: only here among sources
+from archive.errors import InputError, MissingInputError
+from archive.params import NavigationParams
+from archive.sources.base import FlightSource
+from archive.sources.collection import CollectionSource
+from archive.sources.raw import RawFlightSource
+
+__all__ = ["open_source"]
+
+
+def open_source(path_or_id: str | os.PathLike, params: NavigationParams,
+                calibration: str | os.PathLike | None = None,
+                white_reference: np.ndarray | None = None,
+                archive: str | os.PathLike | None = None) -> FlightSource:
+    """A flight source: a raw flight directory, or a collection id in ``archive``.
+
+    A directory wins over a collection of the same name. A collection carries its own calibration,
+    so ``calibration`` must be None for one.
+    """
+    path = Path(path_or_id)
+    if path.is_dir():
+        return RawFlightSource(path.absolute(), params, calibration=calibration, white_reference=white_reference)
+    if archive is not None and not path.exists():
+        if calibration is not None:
+            raise InputError("--calibration", f"collection {path_or_id} carries the calibration it was "
+                             "ingested with", "leave out --calibration, or re-ingest with another .icp")
+        store = open_archive(archive).require_collection(str(path_or_id))
+        return CollectionSource(store, str(path_or_id), params, white_reference=white_reference)
+    if path.exists():
+        raise InputError(path, "is not a directory", "give a raw flight directory or a collection id with --archive")
+    raise MissingInputError(path, "flight directory",
+                            "give a raw flight directory, or a collection id together with --archive ARCHIVE")

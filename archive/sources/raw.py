@@ -1,0 +1,175 @@
+"""A raw Resonon flight directory as a :class:`~archive.sources.base.FlightSource`."""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from archive.errors import InputError, MissingInputError
+from archive.formats.envi import EnviCube, EnviHeader
+from archive.formats.flight import CubeFiles, discover_flight
+from archive.formats.icp import Calibration, read_icp
+from archive.formats.lcf import read_lcf
+from archive.formats.times import read_times
+from archive.navigation import LocalFrame, Poses, Track, local_frame_for
+from archive.params import NavigationParams
+from archive.sources.base import CubeInfo, Radiometry, band_list, check_cube, check_mode, radiometry_for
+from archive.sources.navigation import CubeNavigation, FlightNavigation
+
+__all__ = ["RawFlightSource", "flight_id"]
+
+
+def flight_id(name: str, t0: float) -> str:
+    """Id of a raw flight: its directory name made file-safe, and its first .lcf time (s)."""
+    name = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "flight"
+    return f"{name}-{t0:.3f}"
+
+
+@dataclass(frozen=True, eq=False)
+class _RawCube:
+    files: CubeFiles
+    header: EnviHeader
+
+
+class RawFlightSource:
+    """A raw Resonon flight directory (``<base>.bil`` + ``.bil.hdr`` + ``.lcf`` + ``.bil.times``
+    per cube, optional ``*.icp``).
+
+    The constructor reads and checks the small files only: every header (and the data file size),
+    every ``.times`` (count = lines), every ``.lcf``, and navigation coverage of every line
+    (:class:`~archive.sources.navigation.FlightNavigation`). Pixels are read per call; the
+    calibration is parsed on first use. ``white_reference``: (bands,) radiance of a white
+    reference, for 'reflectance'.
+    """
+
+    fov_deg: float | None = None       # a raw flight does not record its field of view
+    ground_height: float | None = None  # nor a ground height it was processed with
+
+    def __init__(self, directory: str | os.PathLike, params: NavigationParams,
+                 calibration: str | os.PathLike | None = None, white_reference: np.ndarray | None = None):
+        flight = discover_flight(directory)
+        self.directory = Path(flight.directory)
+        self.label = str(self.directory)
+        self.params = params
+        if calibration is not None:
+            calibration = Path(calibration)
+            if not calibration.is_file():
+                raise MissingInputError(calibration, "calibration file", "check the --calibration path")
+        self.calibration_path: Path | None = calibration if calibration is not None else flight.calibration
+        self.has_calibration = self.calibration_path is not None
+        self.white_reference = None if white_reference is None else np.asarray(white_reference, float)
+        self._calibration: Calibration | None = None
+
+        raw: list[_RawCube] = []
+        nav: list[CubeNavigation] = []
+        frame: LocalFrame | None = None
+        for files in flight.cubes:
+            header = EnviCube(files.data).header  # checks the data file size against the header
+            times = read_times(files.times, expected_lines=header.lines)
+            lcf = read_lcf(files.lcf)
+            if frame is None:
+                frame = local_frame_for(lcf)
+            raw.append(_RawCube(files, header))
+            nav.append(CubeNavigation(times, lcf, header.shutter, str(files.lcf)))
+        if frame is None:
+            raise InputError(self.directory, "no cubes found", "a flight directory holds <base>.bil cubes")
+        self.frame: LocalFrame = frame
+        self._raw: tuple[_RawCube, ...] = tuple(raw)
+
+        first = raw[0].header
+        for c in raw[1:]:
+            if c.header.bands != first.bands:
+                raise InputError(c.header.path, f"{c.header.bands} bands, but {first.path.name} has {first.bands}",
+                                 "a flight's cubes must share their bands")
+        self.wavelengths: tuple[float, ...] | None = first.wavelengths
+        self.navigation = FlightNavigation(nav, frame, params)
+        self.cubes: tuple[CubeInfo, ...] = tuple(
+            CubeInfo(index=i, base=c.files.base, lines=c.header.lines, samples=c.header.samples,
+                     bands=c.header.bands, wavelengths=c.header.wavelengths, shutter_ms=c.header.shutter,
+                     gain_db=c.header.gain, framerate=c.header.framerate, bit_depth=c.header.bit_depth,
+                     first_time=self.navigation.first_time(i))
+            for i, c in enumerate(raw))
+        self.id: str = flight_id(self.directory.name, float(nav[0].lcf.time[0]))
+
+    def __repr__(self) -> str:
+        return f"RawFlightSource({str(self.directory)!r}, cubes={len(self.cubes)})"
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_calibration"] = None  # re-read on demand: keeps pickles small
+        return state
+
+    def __dask_tokenize__(self):
+        # The files (by name, size and modification time), the parameters, the calibration file
+        # and the white reference: what renders depend on.
+        files = tuple((str(c.files.data), c.files.data.stat().st_size, c.files.data.stat().st_mtime_ns)
+                      for c in self._raw)
+        white = None if self.white_reference is None else self.white_reference.tobytes()
+        return ("RawFlightSource", str(self.directory), self.id, files, self.params,
+                str(self.calibration_path), white)
+
+    def _check(self, cube: int) -> int:
+        return check_cube(cube, self.cubes, self.label)
+
+    # --- navigation ---------------------------------------------------------------------------
+
+    def line_times(self, cube: int) -> np.ndarray:
+        """(lines,) exposure-start times of ``cube`` on the .lcf scale (sync offset included), s."""
+        return self.navigation.line_times(self._check(cube))
+
+    def check_navigation(self, cube: int) -> None:
+        """NavigationError naming the cube's .lcf unless navigation covers its lines."""
+        self.navigation.check(self._check(cube))
+
+    def track(self, cube: int) -> Track:
+        """INS samples of ``cube``'s .lcf in the flight's frame."""
+        return self.navigation.cube_track(self._check(cube))
+
+    def poses(self, cube: int, delay: float = 0.0) -> Poses:
+        """Camera poses of every line of ``cube`` at exposure start + ``delay`` seconds:
+        (lines, 3) NED positions, (lines,) camera -> NED attitudes."""
+        return self.navigation.poses(self._check(cube), delay)
+
+    # --- pixels and radiometry ----------------------------------------------------------------
+
+    def header(self, cube: int) -> EnviHeader:
+        return self._raw[self._check(cube)].header
+
+    def files(self, cube: int) -> CubeFiles:
+        return self._raw[self._check(cube)].files
+
+    def read_bands(self, cube: int, bands: Sequence[int]) -> np.ndarray:
+        """(len(bands), lines, samples) DN of ``cube``, native dtype (memory-mapped read)."""
+        c = self._raw[self._check(cube)]
+        return EnviCube(c.files.data).bands(band_list(bands, c.header.bands, str(c.files.data)))
+
+    def calibration(self) -> Calibration | None:
+        """The parsed calibration (``--calibration`` or the directory's ``*.icp``), or None."""
+        if self._calibration is None and self.calibration_path is not None:
+            self._calibration = read_icp(self.calibration_path)
+        return self._calibration
+
+    def radiometry(self, cube: int, bands: Sequence[int], mode: str,
+                   white_reference: np.ndarray | None = None) -> Radiometry:
+        """Radiometric terms of ``bands`` of ``cube`` in ``mode`` (see
+        :func:`~archive.sources.base.radiometry_for`); reflectance divides by ``white_reference``
+        (or the source's)."""
+        check_mode(mode)
+        c = self._raw[self._check(cube)]
+        h = c.header
+        idx = band_list(bands, h.bands, str(c.files.data))
+        cal = self.calibration() if mode != "raw" else None
+
+        def calibration():
+            dark, gain = cal.for_cube(h)
+            return np.asarray(dark)[idx], np.asarray(gain)[idx], cal.shutter_cal, cal.gain_cal
+
+        white = white_reference if white_reference is not None else self.white_reference
+        return radiometry_for(h, idx, mode, None if cal is None else calibration, white, self.label,
+                              ("needs a radiometric calibration (*.icp) and there is none",
+                               "pass --calibration FILE.icp, or use --mode raw"))
