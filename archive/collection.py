@@ -16,6 +16,7 @@ Layout of ``<ARCHIVE>/collections/<id>.zarr`` (axis orders in brackets)::
     response      [line]                exposure factor vs the calibration (1 ms at 0 dB if none)
     navigation    [sample, 7]           raw .lcf samples of all cubes: time, roll, pitch, yaw, lon, lat, alt
     navigation_offset [cube + 1]        rows of cube k are navigation[offset[k]:offset[k+1]]
+    navigation_use [sample]             1 = use, 0 = flagged 'do not use' (.lcf column 10); only when some row is
     wavelength    [band]                nm (NaN when the header has none)
     dark          [cube, band, sample]  calibration dark of each cube, float32 (only with a calibration)
     gain          [set, band, sample]   calibration gain, float32; cube k uses gain[gain_index[k]]
@@ -427,13 +428,16 @@ def read_info(store: str | os.PathLike, navigation: bool = True) -> CollectionIn
     nav = group["navigation"][...] if navigation else None
     offsets = group["navigation_offset"][...] if navigation else None
     camera_time = group["camera_time"][...] if navigation else None
+    use = group["navigation_use"][...].astype(bool) if navigation and "navigation_use" in group else None
     cubes = []
     for k, c in enumerate(attrs["cubes"]):
         header = header_from_metadata(c["header"], store / f"{c['base']}.hdr")
         l0 = int(c["line_offset"])
         if navigation:
             rows = nav[int(offsets[k]):int(offsets[k + 1])]
-            lcf = LcfData(None, *(np.ascontiguousarray(rows[:, j]) for j in range(len(NAV_COLUMNS))))
+            used = None if use is None else use[int(offsets[k]):int(offsets[k + 1])]
+            lcf = LcfData(None, *(np.ascontiguousarray(rows[:, j]) for j in range(len(NAV_COLUMNS))),
+                          use=None if used is None or used.all() else used)
             times = np.ascontiguousarray(camera_time[l0:l0 + int(c["lines"])])
         else:
             lcf = times = None

@@ -106,6 +106,46 @@ def project(lon, lat, epsg: int) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(e, float), np.asarray(n, float)
 
 
+@lru_cache(maxsize=16)
+def _inverse(epsg: int) -> Transformer:
+    return Transformer.from_crs(int(epsg), 4326, always_xy=True)
+
+
+def to_lonlat(e, n, epsg: int) -> tuple[np.ndarray, np.ndarray]:
+    """Easting, northing (m, any shape) in ``epsg`` -> longitude, latitude (degrees)."""
+    e, n = np.broadcast_arrays(np.asarray(e, float), np.asarray(n, float))
+    lon, lat = _inverse(int(epsg)).transform(e, n)
+    return np.asarray(lon, float), np.asarray(lat, float)
+
+
+def reproject(e, n, src_epsg: int, dst_epsg: int) -> tuple[np.ndarray, np.ndarray]:
+    """Easting, northing (m) from ``src_epsg`` to ``dst_epsg`` (both projected, metres)."""
+    if int(src_epsg) == int(dst_epsg):
+        return np.asarray(e, float), np.asarray(n, float)
+    lon, lat = to_lonlat(e, n, src_epsg)
+    return project(lon, lat, dst_epsg)
+
+
+def projected_epsg(crs) -> int:
+    """The EPSG code of ``crs`` (an int, 'EPSG:XXXX' or any pyproj-readable text), refused with an
+    InputError unless it is a projected CRS in metres (the output grid is square metres)."""
+    from pyproj import CRS
+    from pyproj.exceptions import CRSError
+
+    try:
+        c = CRS.from_user_input(crs)
+    except CRSError as exc:
+        raise InputError("--crs", f"unknown CRS {crs!r} ({exc})", "give e.g. EPSG:32616") from None
+    epsg = c.to_epsg()
+    unit = c.axis_info[0].unit_name if c.axis_info else ""
+    if not c.is_projected or unit not in ("metre", "meter"):
+        raise InputError("--crs", f"{crs!r} is not a projected CRS in metres",
+                         "give a projected CRS such as a UTM zone, e.g. EPSG:32616")
+    if epsg is None:
+        raise InputError("--crs", f"{crs!r} has no EPSG code", "give the CRS as EPSG:XXXX")
+    return int(epsg)
+
+
 def grid_convergence(lon, lat, epsg: int) -> np.ndarray:
     """Grid bearing of TRUE north at (lon, lat) degrees in the UTM zone ``epsg``, radians.
 
@@ -124,12 +164,14 @@ def grid_convergence(lon, lat, epsg: int) -> np.ndarray:
 
 
 def local_frame_for(lcf: LcfData) -> LocalFrame:
-    """Local frame for a flight: the UTM zone of the first .lcf sample; origin at that sample's
+    """Local frame for a flight: the UTM zone of the first used .lcf sample; origin at that sample's
     easting and northing rounded to 1 m, and at height 0 (the ellipsoid)."""
     if len(lcf.time) == 0:
         raise NavigationError(lcf.path, "no navigation samples", "the .lcf file is empty")
-    epsg = utm_epsg_for(lcf.lon[0], lcf.lat[0])
-    e, n = project(lcf.lon[0], lcf.lat[0], epsg)
+    use = getattr(lcf, "use", None)
+    k = 0 if use is None else int(np.argmax(use))  # the first row to use
+    epsg = utm_epsg_for(lcf.lon[k], lcf.lat[k])
+    e, n = project(lcf.lon[k], lcf.lat[k], epsg)
     return LocalFrame(epsg=epsg, origin_e=float(np.round(e)), origin_n=float(np.round(n)), origin_alt=0.0)
 
 
@@ -168,28 +210,32 @@ def _check_times(time: np.ndarray, where: str | None) -> None:
 
 def track_from_lcf(lcf: LcfData, frame: LocalFrame) -> Track:
     """INS samples of an .lcf in ``frame``: positions projected to the frame's UTM zone, heading
-    corrected by the grid convergence, roll sign changed to aerospace. Raises NavigationError for
+    corrected by the grid convergence, roll sign changed to aerospace; rows flagged 'do not use'
+    (``lcf.use``) left out. Raises NavigationError for
     fewer than 2 samples, non-finite values or times that do not strictly increase."""
     where = None if lcf.path is None else str(lcf.path)
-    time = np.asarray(lcf.time, float)
+    use = getattr(lcf, "use", None)
+    keep = slice(None) if use is None else np.asarray(use, bool)  # column 10: rows not to use
+    time = np.asarray(lcf.time, float)[keep]
     _check_times(time, where)
     columns = {"roll": lcf.roll, "pitch": lcf.pitch, "yaw": lcf.yaw, "longitude": lcf.lon,
                "latitude": lcf.lat, "altitude": lcf.alt}
+    columns = {name: np.asarray(values, float)[keep] for name, values in columns.items()}
     for name, values in columns.items():
         values = np.asarray(values, float)
         if values.shape != time.shape:
             raise NavigationError(where, f"{name} has {values.size} values for {time.size} times")
         if not np.all(np.isfinite(values)):
             raise NavigationError(where, f"{name} contains NaN or infinity", "repair or remove those rows")
-    lon = np.asarray(lcf.lon, float)
-    lat = np.asarray(lcf.lat, float)
+    lon = columns["longitude"]
+    lat = columns["latitude"]
     e, n = project(lon, lat, frame.epsg)
     if not (np.all(np.isfinite(e)) and np.all(np.isfinite(n))):
         raise NavigationError(where, f"positions cannot be projected to EPSG:{frame.epsg}",
                               "check longitude (column 5) and latitude (column 6)")
-    position = frame.to_ned(e, n, np.asarray(lcf.alt, float))
-    yaw = np.asarray(lcf.yaw, float) + grid_convergence(lon, lat, frame.epsg)
-    euler = np.stack([yaw, np.asarray(lcf.pitch, float), -np.asarray(lcf.roll, float)], axis=-1)
+    position = frame.to_ned(e, n, columns["altitude"])
+    yaw = columns["yaw"] + grid_convergence(lon, lat, frame.epsg)
+    euler = np.stack([yaw, columns["pitch"], -columns["roll"]], axis=-1)
     return Track(time=time, position=position, attitude=Rotation.from_euler("ZYX", euler))
 
 
@@ -317,3 +363,58 @@ def interpolate_poses(track: Track, t: np.ndarray, frame: LocalFrame, boresight:
     if boresight is not None:
         attitude = attitude * boresight
     return Poses(time=t, position=position, attitude=attitude, frame=frame)
+
+
+# ---------------------------------------------------------------------------------------------
+# Strips: which consecutive lines are joined, and which lines are seen well enough to use
+# ---------------------------------------------------------------------------------------------
+#: Consecutive lines further apart than this many frame intervals are not joined (the strip ends):
+#: a pause or a turn is a gap, while a recorder's cube switch, which drops a frame or two (the real
+#: Juvika pair _12 -> _13: 1.7 intervals on the .lcf scale, 1.9 on the camera clock), is a seam.
+#: The one strip rule of the project: meshes, the catalog footprint and 'archive info' use it.
+MAX_JOIN_FRAMES = 3.5
+#: Lines whose field-of-view edge looks further than this from nadir (degrees) are left out of the
+#: mesh (turns). 23.75 deg is the edge of a level Pika L (47.5 deg field of view); 40 leaves room
+#: for wobble and a boresight in straight flight while a banked turn's lines (which would stretch
+#: one line over tens of metres to kilometres) are dropped.
+DEFAULT_MAX_VIEW_ANGLE = 40.0
+
+
+def frame_interval(framerate: float | None, times: np.ndarray | None = None) -> float:
+    """A cube's frame interval, s: 1 / framerate (Hz) when known, else the median step of its line
+    times (s); inf for a single line without a framerate."""
+    if framerate:
+        return 1.0 / float(framerate)
+    times = np.asarray(times if times is not None else [], float)
+    return float(np.median(np.diff(times))) if times.size > 1 else float("inf")
+
+
+def joined(gap_s, interval_s: float):
+    """Whether lines ``gap_s`` seconds apart (scalar or array) belong to one strip, for a frame
+    interval of ``interval_s`` seconds (see :data:`MAX_JOIN_FRAMES`)."""
+    gap = np.asarray(gap_s, float)
+    return (gap > 0.0) & (gap <= MAX_JOIN_FRAMES * float(interval_s))
+
+
+def strip_slices(time: np.ndarray, interval_s: float | None = None) -> list[slice]:
+    """Line index ranges of the strips of consecutive lines ``time`` (s), cut wherever two lines are
+    not :func:`joined`; ``interval_s`` defaults to the median line step."""
+    time = np.asarray(time, float)
+    if time.size < 2:
+        return [slice(0, time.size)]
+    interval = frame_interval(None, time) if interval_s is None else interval_s
+    cuts = np.flatnonzero(~joined(np.diff(time), interval)) + 1
+    edges = [0, *cuts.tolist(), time.size]
+    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def view_angles(attitude: Rotation, fov_deg: float) -> np.ndarray:
+    """(n,) degrees off nadir of the more oblique field-of-view edge ray of each line (camera ->
+    NED ``attitude``); 90 or more means the ray does not look down."""
+    t = np.tan(np.radians(fov_deg) / 2.0)
+    worst = np.zeros(len(attitude))
+    for u in (-t, t):
+        d = np.atleast_2d(attitude.apply(np.array([0.0, u, 1.0])))
+        cos = d[:, 2] / np.linalg.norm(d, axis=1)
+        worst = np.maximum(worst, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return worst

@@ -352,7 +352,7 @@ def test_archive_and_argument_errors(flight, ingested, tmp_path, capsys):
     for hdr in copy.glob("*.hdr"):
         lines = [x for x in hdr.read_text().splitlines() if not x.startswith("ground elevation")]
         hdr.write_text("\n".join(lines) + "\n")
-    with pytest.raises(InputError, match="no 'ground elevation' in the header.*--ground-height"):
+    with pytest.raises(InputError, match="no 'ground elevation' in its header.*--ground-height"):
         ingest([str(copy)], tmp_path / "a2", FOV, progress=False)
     for hdr in copy.glob("*.hdr"):
         hdr.write_text(hdr.read_text() + "ground elevation = 80.5\n")

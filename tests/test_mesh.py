@@ -97,9 +97,12 @@ def test_mid_exposure_interpolates_and_extrapolates():
     np.testing.assert_allclose(matt.as_euler("ZYX")[:, 0], expected, atol=1e-12)
 
 
-def test_ray_above_horizon_is_a_render_error():
+def test_ray_above_horizon_is_a_render_error_without_a_view_limit():
     att = Rotation.from_euler("x", [[math.radians(80.0)]] * 5)
     with pytest.raises(RenderError, match="does not reach the ground"):
-        build_mesh(flight(lines=5, attitude=att), FOV, 110.0, 0.0, 250.0)
+        build_mesh(flight(lines=5, attitude=att), FOV, 110.0, 0.0, 250.0, max_view_angle=None)
+    # with the view-angle limit (the default) such lines are left out and counted
+    mesh = build_mesh(flight(lines=5, attitude=att), FOV, 110.0, 0.0, 250.0)
+    assert mesh.rows == 0 and mesh.dropped["view angle"] == 5
     with pytest.raises(RenderError, match="does not reach the ground"):   # ground above the camera
         build_mesh(flight(lines=5), FOV, 200.0, 0.0, 250.0)

@@ -75,7 +75,9 @@ def _direct_renders(flight, grid: Grid, bands):
             info = src.cubes[i]
             mesh = build_mesh(poses[i], FOV, truth.ground_height, info.shutter_ms, info.framerate,
                               closing=poses[strip[k + 1]] if k + 1 < len(strip) else None,
-                              opening=poses[strip[k - 1]] if k > 0 else None)
+                              opening=poses[strip[k - 1]] if k > 0 else None,
+                              closing_shutter_ms=src.cubes[strip[k + 1]].shutter_ms if k + 1 < len(strip) else None,
+                              opening_shutter_ms=src.cubes[strip[k - 1]].shutter_ms if k > 0 else None)
             out[i] = render_cube(mesh, src.read_bands(i, bands), src.radiometry(i, bands, "radiance"), grid)
     return [out[i] for i in sorted(out)]
 

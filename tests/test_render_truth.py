@@ -28,15 +28,9 @@ def flight(tmp_path_factory):
     directory = tmp_path_factory.mktemp("truth") / "flight"
     truth = simulate_flight(directory, cubes=4, bands=BANDS, samples=128, lines=200, seed=0)
     source = RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg))
-    meshes = {}
-    for strip in truth.strips:
-        for j, k in enumerate(strip):
-            info = source.cubes[k]
-            meshes[k] = build_mesh(
-                source.poses(k), truth.fov_deg, truth.ground_height, info.shutter_ms, info.framerate,
-                closing=source.poses(strip[j + 1]) if j + 1 < len(strip) else None,
-                opening=source.poses(strip[j - 1]) if j > 0 else None,
-            )
+    from archive.graph.plan import cube_meshes
+
+    meshes = dict(enumerate(cube_meshes(source, truth.fov_deg, truth.ground_height)))
     bounds = np.array([m.bounds_utm() for m in meshes.values()])
     return truth, source, meshes, (bounds[:, 0].min(), bounds[:, 1].min(), bounds[:, 2].max(), bounds[:, 3].max())
 

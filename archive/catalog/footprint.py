@@ -18,10 +18,8 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 from archive.errors import InputError
-from archive.navigation import ground_hits
+from archive.navigation import DEFAULT_MAX_VIEW_ANGLE, ground_hits, strip_slices, view_angles
 
-# A time step above this many median line intervals starts a new strip.
-GAP_FACTOR = 1.5
 # Outline growth beyond the hull, metres, on top of two along-track line steps.
 MARGIN_M = 0.5
 
@@ -89,15 +87,8 @@ def swath_edges(position: np.ndarray, attitude: Rotation, fov_deg: float, ground
 
 
 def strips(time: np.ndarray) -> list[slice]:
-    """Split line indices into strips wherever the time step exceeds GAP_FACTOR median steps."""
-    time = np.asarray(time, float)
-    if time.size < 2:
-        return [slice(0, time.size)]
-    step = np.diff(time)
-    interval = float(np.median(step))
-    cuts = np.flatnonzero(step > GAP_FACTOR * interval) + 1
-    edges = [0, *cuts.tolist(), time.size]
-    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    """Split line indices into strips (the project's one strip rule, :func:`archive.navigation.strip_slices`)."""
+    return strip_slices(time)
 
 
 def _grown_hull(points: np.ndarray, margin: float) -> np.ndarray:
@@ -116,6 +107,12 @@ def flight_footprint(time: np.ndarray, position: np.ndarray, attitude: Rotation,
     """Footprint of a flight: time (lines,) s; position (lines, 3) N, E, D m; attitude (lines,)
     camera -> NED; frame: the navigation LocalFrame; ground_height: m above the ellipsoid."""
     ground_down = frame.origin_alt - float(ground_height)
+    # Lines the renderer leaves out (turns: too far off nadir) are left out of the footprint too.
+    seen = view_angles(attitude, fov_deg) <= DEFAULT_MAX_VIEW_ANGLE
+    if not seen.any():
+        raise InputError(where or None, f"every line looks more than {DEFAULT_MAX_VIEW_ANGLE:g} degrees off nadir",
+                         "check the attitude (roll/pitch) and --fov")
+    time, position, attitude = np.asarray(time)[seen], np.asarray(position)[seen], attitude[seen]
     left, right = swath_edges(position, attitude, fov_deg, ground_down, where)
     width = np.linalg.norm(right - left, axis=1)
     gsd = float(np.median(width) / max(int(samples), 1))

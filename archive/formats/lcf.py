@@ -4,6 +4,11 @@ Columns (whitespace separated, usually tabs, >= 10 of them; extra columns ignore
 1 time (s, GPS time scale), 2 roll (rad, positive = right wing up), 3 pitch (rad, positive = nose
 up), 4 yaw (rad from true North, clockwise), 5 longitude (deg), 6 latitude (deg), 7 altitude (m
 above the WGS-84 ellipsoid), 8-9 unused, 10 use flag, 11+ vendor columns.
+
+Column 10 is Resonon's "message to GeoReg" (lcf_spec.txt): 5 = use this row for
+georectification, 0 = do not use (every real file here has 5). Rows flagged 0 are kept in
+:class:`LcfData` (the first row's time still anchors the line times) but marked in ``use``;
+navigation leaves them out and interpolates over them, and their positions are not range-checked.
 """
 
 from __future__ import annotations
@@ -53,6 +58,7 @@ class LcfData:
     lon: np.ndarray
     lat: np.ndarray
     alt: np.ndarray
+    use: np.ndarray | None = None  #: (n,) bool, False for rows flagged 'do not use'; None: all used
 
     def __len__(self) -> int:
         return len(self.time)
@@ -94,20 +100,23 @@ def read_lcf(path: str | os.PathLike) -> LcfData:
             raise FormatError(path, f"line {number}: time {fields[0]} does not increase (previous "
                               f"{previous!r})", "lcf rows must be in time order without repeats")
         previous = values[0]
-        rows.append(values[:7])
+        rows.append(values[:7] + [0.0 if values[9] == 0.0 else 1.0])  # column 10: 0 = do not use
         numbers.append(number)
     if not rows:
         raise FormatError(path, "no navigation rows (empty file)")
     table = np.array(rows, dtype=np.float64)
+    use = table[:, 7] != 0.0
+    if not use.any():
+        raise FormatError(path, f"every one of the {len(use)} navigation rows is flagged 'do not use' (column 10 = 0)")
     for column, name, limit in ((5, "longitude", 180.0), (6, "latitude", 90.0)):
-        bad = np.flatnonzero(np.abs(table[:, column - 1]) > limit)
+        bad = np.flatnonzero(use & (np.abs(table[:, column - 1]) > limit))
         if bad.size:
             row = int(bad[0])
             raise FormatError(path, f"line {numbers[row]}, column {column} ({name}): {table[row, column - 1]:g} "
                               f"is outside [-{limit:g}, {limit:g}] degrees ({bad.size} such rows)",
                               "columns are: time roll pitch yaw longitude latitude altitude, angles of "
                               "position in degrees")
-    return LcfData(path, *(np.ascontiguousarray(table[:, k]) for k in range(7)))
+    return LcfData(path, *(np.ascontiguousarray(table[:, k]) for k in range(7)), use=None if use.all() else use)
 
 
 def write_lcf(path: str | os.PathLike, data: LcfData) -> None:

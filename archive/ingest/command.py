@@ -11,6 +11,7 @@ after success is a no-op.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import re
 import sys
@@ -28,6 +29,7 @@ from archive.collection import (FORMAT, FORMAT_VERSION, NAV_COLUMNS, StorePlan, 
 from archive.formats.icp import response as exposure_response
 from archive.formats.lcf import gps_seconds_to_datetime
 from archive.params import NavigationParams
+from archive.sources.ground import auto_ground_height, camera_altitudes, check_ground_height
 from archive.sources.raw import RawFlightSource
 
 
@@ -46,16 +48,15 @@ def collection_id(sensor: str | None, start) -> str:
     return check_collection_id(f"{name}_{start.strftime('%Y%m%dT%H%M%S')}")
 
 
-def _ground_height(metadata: dict, given: float | None, where) -> tuple[float, str]:
-    value = metadata.get("ground elevation")
-    if isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value):
-        if given is not None and float(given) != float(value):
-            return float(given), "argument"
-        return float(value), "header 'ground elevation'"
+def _ground_height(source: RawFlightSource, given: float | None) -> tuple[float, str]:
+    """Ground height for the catalog footprint (m) and where it came from: ``given``, else the
+    headers' ``ground elevation`` (as ``--ground-height auto``); checked for plausibility."""
     if given is not None:
-        return float(given), "argument"
-    raise InputError(where, "no 'ground elevation' in the header: the footprint needs the ground height",
-                     "pass --ground-height M (metres above the ellipsoid, the .lcf altitude datum)")
+        if not math.isfinite(given):
+            raise InputError("--ground-height", f"must be a finite number of metres, got {given!r}")
+        return check_ground_height(float(given), camera_altitudes(source), source.label, "--ground-height"), \
+            "argument"
+    return auto_ground_height([source]), "header 'ground elevation'"
 
 
 def _jsonable(value):
@@ -124,6 +125,10 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
     dims = {"time": ("line",), "camera_time": ("line",), "cube": ("line",), "position": ("line", "ned"),
             "attitude": ("line", "xyzw"), "response": ("line",), "navigation": ("sample", "column"),
             "navigation_offset": ("cube_edge",), "wavelength": ("band",)}
+    if any(lcf.use is not None for lcf in lcfs):  # rows flagged 'do not use' (.lcf column 10 = 0)
+        arrays["navigation_use"] = np.concatenate([np.ones(len(lcf.time), np.uint8) if lcf.use is None
+                                                   else lcf.use.astype(np.uint8) for lcf in lcfs])
+        dims["navigation_use"] = ("sample",)
     if cal is not None:
         arrays["dark"] = np.stack(darks).astype(np.float32)
         arrays["gain"] = np.stack(gains).astype(np.float32)
@@ -134,7 +139,7 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
     start = gps_seconds_to_datetime(float(arrays["time"][0]))
     end = gps_seconds_to_datetime(float(arrays["time"][-1]))
     cid = collection_id(sensor, start)
-    ground, ground_source = _ground_height(first.metadata, ground_height, first.path)
+    ground, ground_source = _ground_height(src, ground_height)
 
     sources: list[tuple[str, int]] = []
     names: dict[str, str] = {}

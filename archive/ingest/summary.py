@@ -15,11 +15,10 @@ from typing import Any
 import numpy as np
 
 from archive.formats.lcf import gps_seconds_to_datetime
+from archive.navigation import frame_interval, joined, strip_slices
 from archive.params import NavigationParams
 from archive.sources import RawFlightSource
 
-# A gap between cubes longer than this many frame intervals ends a strip (DESIGN 3).
-STRIP_GAP_FRAMES = 1.5
 
 
 def _number(x: float | None, digits: int = 3) -> float | None:
@@ -46,8 +45,9 @@ def summarize(source: RawFlightSource, fov_deg: float) -> dict[str, Any]:
         track_time += float(track.time[-1] - track.time[0])
         duration = float(t[-1] - t[0]) if len(t) > 1 else 0.0
         interval = duration / (len(t) - 1) if len(t) > 1 else float("nan")
-        if previous_end is not None and np.isfinite(interval) and t[0] - previous_end > STRIP_GAP_FRAMES * interval:
+        if previous_end is not None and not joined(t[0] - previous_end, frame_interval(info.framerate, t)):
             strips += 1
+        strips += len(strip_slices(t, frame_interval(info.framerate, t))) - 1  # pauses inside the cube
         previous_end = float(t[-1])
         if cal is not None:
             # check the calibration fits this cube (bands, samples, binning, exposure keys)

@@ -81,16 +81,20 @@ class Lookup:
 
 
 def _dn_texture_format(dn: np.ndarray) -> tuple[np.ndarray, str, tuple[str, ...]]:
-    """DN as uploaded: (array, moderngl dtype, shader defines). Integer DN must fit uint16."""
+    """DN as uploaded: (array, moderngl dtype, shader defines). Integer DN in 0..65535 go up as
+    uint16, other integers (negative DN of signed cubes) as exact float32."""
     if dn.dtype == np.uint16:
         return dn, "u2", ()
     if np.issubdtype(dn.dtype, np.integer):
         lo = int(dn.min()) if dn.size else 0
         hi = int(dn.max()) if dn.size else 0
-        if lo < 0 or hi > 65535:
-            raise InputError("dn", f"integer DN must lie in 0..65535, found {lo}..{hi}",
-                             "convert the cube to uint16 or float32")
-        return dn.astype(np.uint16), "u2", ()
+        if 0 <= lo and hi <= 65535:
+            return dn.astype(np.uint16), "u2", ()
+        if max(-lo, hi) > 2**24:  # float32 holds every integer up to 2^24 exactly
+            raise InputError("dn", f"integer DN must lie in -2^24..2^24, found {lo}..{hi}",
+                             "convert the cube to float32")
+        # signed cubes (int16 with negative DN, e.g. dark-subtracted data): exact as float32
+        return dn.astype(np.float32), "f4", ("DN_FLOAT",)
     if np.issubdtype(dn.dtype, np.floating):
         return dn.astype(np.float32, copy=False), "f4", ("DN_FLOAT",)
     raise InputError("dn", f"unsupported DN dtype {dn.dtype}", "use uint16, an integer type or float32")
