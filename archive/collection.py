@@ -8,11 +8,11 @@ Layout of ``<ARCHIVE>/collections/<id>.zarr`` (axis orders in brackets)::
     dn            [band, line, sample]  raw DN, all cubes' lines in capture order, native dtype
                   (uint16 for Resonon), one chunk = one band x CHUNK_LINES lines (see below)
     dn_sha256     [band, chunk, 32]     sha256 of each decoded dn chunk (C order, little endian)
-    time          [line]                line exposure start on the .lcf scale, sync offset 0 (s)
+    time          [line]                line exposure start on the .lcf scale, ingest's sync offset (s)
     camera_time   [line]                the raw .bil.times values (camera clock, s)
     cube          [line]                cube index of each line
-    position      [line, 3]             camera N, E, D (m) in the collection frame, sync 0, no lever arm
-    attitude      [line, 4]             camera -> NED quaternion (x, y, z, w), sync 0, no boresight
+    position      [line, 3]             camera N, E, D (m) in the collection frame (ingest's navigation_params)
+    attitude      [line, 4]             camera -> NED quaternion (x, y, z, w) (ingest's navigation_params)
     response      [line]                exposure factor vs the calibration (1 ms at 0 dB if none)
     navigation    [sample, 7]           raw .lcf samples of all cubes: time, roll, pitch, yaw, lon, lat, alt
     navigation_offset [cube + 1]        rows of cube k are navigation[offset[k]:offset[k+1]]
@@ -224,7 +224,8 @@ class StorePlan:
     def token(self) -> str:
         """Identifies what is being written (sources, shapes, parameters), to resume safely."""
         text = json.dumps([self.cid, self.sources, self.cube_lines, self.bands, self.samples, self.dtype.str,
-                           self.attrs.get("fov_deg"), self.attrs.get("ground_height"), DN_CODEC], default=str)
+                           self.attrs.get("fov_deg"), self.attrs.get("ground_height"), DN_CODEC,
+                           self.attrs.get("navigation_params")], default=str)
         return hashlib.sha256(text.encode()).hexdigest()
 
 

@@ -14,12 +14,33 @@ class NavigationParams:
     boresight_deg: camera -> body rotation as (roll, pitch, yaw) degrees, aerospace sign, applied
         intrinsically Z-Y-X like the body attitude.
     lever_arm_m: camera position in the body frame (x forward, y right, z down), metres.
+    None (sync_offset, boresight_deg, lever_arm_m): not given: what the source recorded, else 0
+    (see :meth:`resolved`; sources resolve their parameters when opened).
     """
 
     fov_deg: float
-    sync_offset: float = 0.0
-    boresight_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    sync_offset: float | None = 0.0
+    boresight_deg: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
+    lever_arm_m: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
+
+    def resolved(self, recorded: dict | None = None) -> NavigationParams:
+        """These parameters with every None (not given) replaced by the value a source ``recorded``
+        (a collection records what it was ingested with: keys 'sync_offset', 'boresight_deg',
+        'lever_arm_m'), else 0."""
+        recorded = recorded or {}
+
+        def pick(value, key, default):
+            if value is not None:
+                return value
+            got = recorded.get(key)
+            return default if got is None else (tuple(float(v) for v in got) if isinstance(got, list | tuple)
+                                                else float(got))
+
+        return NavigationParams(
+            fov_deg=self.fov_deg,
+            sync_offset=float(pick(self.sync_offset, "sync_offset", 0.0)),
+            boresight_deg=tuple(float(v) for v in pick(self.boresight_deg, "boresight_deg", (0.0, 0.0, 0.0))),
+            lever_arm_m=tuple(float(v) for v in pick(self.lever_arm_m, "lever_arm_m", (0.0, 0.0, 0.0))))
 
 
 @dataclass(frozen=True)

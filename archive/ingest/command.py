@@ -70,12 +70,20 @@ def _jsonable(value):
 
 
 def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: str | os.PathLike | None = None,
-                   ground_height: float | None = None) -> StorePlan:
+                   ground_height: float | None = None, sync_offset: float = 0.0,
+                   boresight: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                   lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> StorePlan:
     """Read and check a raw flight (everything but the pixels) and return what its store will hold.
+    ``sync_offset`` (s), ``boresight`` (roll, pitch, yaw degrees) and ``lever_arm`` (x, y, z metres,
+    body frame) are recorded as the collection's navigation parameters (renders use them unless
+    given others) and shape the stored poses and the catalog footprint.
     Raises a clear ArchiveError naming the cube or file for a broken flight; writes nothing."""
     if not (np.isfinite(fov_deg) and 0 < fov_deg < 180):
         raise InputError("--fov", f"field of view {fov_deg} deg is not in (0, 180)", "47.5 for a Pika L")
-    src = RawFlightSource(directory, NavigationParams(fov_deg=float(fov_deg)), calibration=calibration)
+    nav = NavigationParams(fov_deg=float(fov_deg), sync_offset=float(sync_offset),
+                           boresight_deg=tuple(float(v) for v in boresight),
+                           lever_arm_m=tuple(float(v) for v in lever_arm))
+    src = RawFlightSource(directory, nav, calibration=calibration)
     n = len(src.cubes)
     headers = [src.header(i) for i in range(n)]
     files = [src.files(i) for i in range(n)]
@@ -112,7 +120,7 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
     line_offset = np.concatenate([[0], np.cumsum([h.lines for h in headers])]).astype(int)
     nav_offset = np.concatenate([[0], np.cumsum([len(lcf.time) for lcf in lcfs])]).astype(np.int64)
     arrays: dict[str, np.ndarray] = {
-        "time": np.concatenate([src.line_times(i) for i in range(n)]),  # sync offset 0
+        "time": np.concatenate([src.line_times(i) for i in range(n)]),  # with the sync offset
         "camera_time": np.concatenate(times).astype(np.float64),
         "cube": np.concatenate([np.full(h.lines, i, np.uint16) for i, h in enumerate(headers)]),
         "position": np.concatenate([p.position for p in poses]),
@@ -169,7 +177,9 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
         "ground_height": ground,
         "ground_height_source": ground_source,
         "frame": frame_to_attrs(frame),
-        "poses": "position/attitude at exposure start, sync offset 0, no boresight or lever arm",
+        "poses": "position/attitude at exposure start with navigation_params",
+        "navigation_params": {"sync_offset": nav.sync_offset, "boresight_deg": list(nav.boresight_deg),
+                              "lever_arm_m": list(nav.lever_arm_m)},
         "navigation_columns": list(NAV_COLUMNS),
         "response_reference": "calibration" if cal is not None else "1 ms at 0 dB",
         "calibration": None if cal is None else {
@@ -257,12 +267,15 @@ class IngestResult:
 
 def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: float,
            calibration: str | os.PathLike | None = None, ground_height: float | None = None,
-           overwrite: bool = False, workers: int | None = None, progress: bool = True) -> list[IngestResult]:
+           overwrite: bool = False, workers: int | None = None, progress: bool = True,
+           sync_offset: float = 0.0, boresight: tuple[float, float, float] = (0.0, 0.0, 0.0),
+           lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> list[IngestResult]:
     """Ingest raw flight ``directories`` into the archive (created when absent). Every flight is
     checked before anything is written; see the module docstring."""
     from archive.catalog.describe import catalog_collection
 
-    plans = [prepare_flight(d, fov_deg, calibration, ground_height) for d in directories]
+    plans = [prepare_flight(d, fov_deg, calibration, ground_height, sync_offset, boresight, lever_arm)
+             for d in directories]
     root = create_archive(archive_path)
     results = []
     for plan in plans:
@@ -270,6 +283,11 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
         if final.exists() and not overwrite:
             if not is_complete(final):
                 raise InputError(final, "exists but has no completion marker", "pass --overwrite to re-ingest")
+            recorded = read_attrs(final).get("navigation_params") or {}
+            wanted = plan.attrs["navigation_params"]
+            if any(recorded.get(k, 0.0 if k == "sync_offset" else [0.0] * 3) != v for k, v in wanted.items()):
+                raise InputError(final, f"was ingested with other navigation parameters ({recorded or 'none'}, "
+                                 f"now {wanted})", "pass --overwrite to re-ingest with the new ones")
             if not _same_sources(final, plan):
                 raise InputError(final, f"holds a different flight than {directories[plans.index(plan)]} under the "
                                  f"same id {plan.cid} (same sensor, same start second)",
@@ -288,7 +306,8 @@ def run(args: argparse.Namespace) -> int:
     """CLI handler of ``archive ingest``."""
     results = ingest(args.directories, args.archive, args.fov, calibration=args.calibration,
                      ground_height=args.ground_height, overwrite=args.overwrite, workers=args.workers,
-                     progress=not args.quiet)
+                     progress=not args.quiet, sync_offset=args.sync_offset,
+                     boresight=args.boresight or (0.0, 0.0, 0.0), lever_arm=args.lever_arm or (0.0, 0.0, 0.0))
     for r in results:
         print(f"{r.cid}: {r.status} ({r.store})")
     return 0

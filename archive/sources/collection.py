@@ -25,7 +25,8 @@ class CollectionSource:
     lever arm) by the same :class:`~archive.sources.navigation.FlightNavigation` as the raw
     source, so both give identical poses, DN and radiometry. ``read_bands`` reads only the chunks
     of the cube's lines. ``fov_deg`` and ``ground_height`` are the ones ingested; ``params.fov_deg``
-    is the caller's. Picklable. Use :func:`archive.sources.open_source` to open one by id.
+    is the caller's; parameters left None (sync offset, boresight, lever arm) take the values
+    given at ingest (attribute ``navigation_params``), else 0. Picklable. Use :func:`archive.sources.open_source` to open one by id.
     """
 
     def __init__(self, store: str | os.PathLike, id: str, params: NavigationParams,
@@ -34,6 +35,7 @@ class CollectionSource:
         self.store = Path(store)
         self.label = str(self.store)
         self.id = id
+        params = params.resolved(info.attrs.get("navigation_params"))  # the mounting given at ingest
         self.params = params
         self.white_reference = None if white_reference is None else np.asarray(white_reference, float)
         self.info = info

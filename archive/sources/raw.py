@@ -55,6 +55,7 @@ class RawFlightSource:
         flight = discover_flight(directory)
         self.directory = Path(flight.directory)
         self.label = str(self.directory)
+        params = params.resolved()
         self.params = params
         if calibration is not None:
             calibration = Path(calibration)
