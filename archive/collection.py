@@ -450,6 +450,31 @@ def read_info(store: str | os.PathLike, navigation: bool = True) -> CollectionIn
                           attrs.get("archive:plan"))
 
 
+@dataclass(frozen=True, eq=False)
+class StoredPoses:
+    """The per-line record of a collection: time (lines,) s on the .lcf scale; position (lines, 3)
+    camera N, E, D metres and attitude (lines,) camera -> NED, both at exposure start with the
+    ingest's navigation parameters; shape (bands, lines, samples) of ``dn``; wavelengths (bands,)
+    nm or None."""
+
+    time: np.ndarray
+    position: np.ndarray
+    attitude: object
+    shape: tuple[int, int, int]
+    wavelengths: list[float] | None
+
+
+def read_poses(store: str | os.PathLike) -> StoredPoses:
+    """The stored per-line times and poses, the dn shape and the wavelengths (no DN read)."""
+    from scipy.spatial.transform import Rotation
+
+    group = zarr.open_group(store, mode="r")
+    wl = group["wavelength"][...]
+    return StoredPoses(group["time"][...], group["position"][...], Rotation.from_quat(group["attitude"][...]),
+                       tuple(int(v) for v in group["dn"].shape),
+                       None if np.all(np.isnan(wl)) else [float(w) for w in wl])
+
+
 def read_calibration(store: str | os.PathLike, cube: int, bands: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
     """Stored dark and gain of ``bands`` of ``cube``: each (len(bands), samples) float32."""
     group = zarr.open_group(store, mode="r")
@@ -463,7 +488,7 @@ def open_dn(store: str | os.PathLike):
     return zarr.open_array(store, path="dn", mode="r")
 
 
-__all__ = ["COMPLETE", "CollectionInfo", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS", "StorePlan", "StoredCube",
+__all__ = ["COMPLETE", "CollectionInfo", "StoredPoses", "read_poses", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS", "StorePlan", "StoredCube",
            "chunk_tasks", "finish_store", "frame_from_attrs", "frame_to_attrs", "is_complete", "open_dn",
            "open_partial", "publish", "read_attrs", "read_calibration", "read_info", "verify_store",
            "write_chunk"]

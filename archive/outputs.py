@@ -109,6 +109,39 @@ def _values_codecs() -> tuple:
     return (BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"),)
 
 
+def _direct_codec(array, directory: str):
+    """The numcodecs Blosc that encodes a chunk of ``array`` exactly as zarr does, or None when
+    ``array`` is not the layout :class:`ChunkWriter` writes directly: a local Zarr v3 float32 array
+    with NaN fill, (1, CHUNK, CHUNK) chunks and the codecs little-endian bytes + Blosc, on a
+    little-endian machine.
+
+    Built from the codec's public description (``BloscCodec.to_dict()``, the same configuration
+    zarr gives numcodecs, typesize included), not from zarr's internals.
+    """
+    import inspect
+
+    import numcodecs
+    import zarr
+    from zarr.codecs import BloscCodec, BytesCodec
+
+    meta = array.metadata
+    codecs = tuple(getattr(meta, "codecs", ()))
+    if not (meta.zarr_format == 3 and sys.byteorder == "little" and len(codecs) == 2
+            and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
+            and array.dtype == np.float32 and tuple(array.chunks) == (1, CHUNK, CHUNK)
+            and np.isnan(array.fill_value) and isinstance(array.store, zarr.storage.LocalStore)
+            and os.path.isdir(directory)):
+        return None
+    endian = codecs[0].to_dict().get("configuration", {}).get("endian", "little")
+    if endian != "little" or "typesize" not in inspect.signature(numcodecs.Blosc).parameters:
+        return None  # numcodecs < 0.16: zarr compresses with typesize 1 there; let zarr write
+    config = codecs[1].to_dict()["configuration"]
+    shuffle = {"noshuffle": numcodecs.Blosc.NOSHUFFLE, "shuffle": numcodecs.Blosc.SHUFFLE,
+               "bitshuffle": numcodecs.Blosc.BITSHUFFLE}[config["shuffle"]]
+    return numcodecs.Blosc(cname=config["cname"], clevel=config["clevel"], shuffle=shuffle,
+                           blocksize=config["blocksize"], typesize=config["typesize"])
+
+
 class ChunkWriter:
     """Writes whole (1, CHUNK, CHUNK) float32 chunks of one local Zarr v3 array, one call per chunk.
 
@@ -124,19 +157,9 @@ class ChunkWriter:
     _local = threading.local()
 
     def __init__(self, array, directory: str):
-        from zarr.codecs import BloscCodec, BytesCodec
-
-        meta = array.metadata
-        codecs = getattr(meta, "codecs", ())
-        self.array, self.directory, self.meta = array, directory, meta
-        self.codec = None
+        self.array, self.directory, self.meta = array, directory, array.metadata
+        self.codec = _direct_codec(array, directory)
         self._made: set[str] = set()  # chunk directories known to exist
-        if (getattr(meta, "zarr_format", 2) == 3 and sys.byteorder == "little" and len(codecs) == 2
-                and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
-                and array.dtype == np.float32 and tuple(array.chunks[1:]) == (CHUNK, CHUNK)
-                and array.chunks[0] == 1 and np.isnan(array.fill_value)
-                and os.path.isdir(directory) and type(array.store).__name__ == "LocalStore"):
-            self.codec = codecs[1]._blosc_codec  # numcodecs Blosc, configured as zarr uses it
 
     @classmethod
     def buffer(cls) -> np.ndarray:
@@ -287,7 +310,9 @@ class MosaicStore:
         return np.asarray(self._array("band")[:])
 
     # ---- writing tiles -----------------------------------------------------------------------
-    def _check_aligned(self, shape: tuple[int, ...], row0: int, col0: int) -> None:
+    def check_aligned(self, shape: tuple[int, ...], row0: int, col0: int) -> None:
+        """ValueError unless a (..., height, width) tile at pixel (row0, col0) covers whole chunks
+        (edge chunks: up to the mosaic's edge)."""
         height, width = shape[-2:]
         full_h, full_w = self._array(self.variable).shape[1:]
         for start, size, full in ((row0, height, full_h), (col0, width, full_w)):
@@ -300,7 +325,7 @@ class MosaicStore:
     def write_values(self, band0: int, row0: int, col0: int, values: np.ndarray) -> None:
         """Write whole chunks: values (nb, h, w) float32 at bands band0.., rows row0.., cols col0.."""
         values = np.asarray(values, dtype=np.float32)
-        self._check_aligned(values.shape, row0, col0)
+        self.check_aligned(values.shape, row0, col0)
         nb, h, w = values.shape
         writer = self.chunk_writer()
         for b in range(nb):
@@ -322,7 +347,7 @@ class MosaicStore:
     def write_saturated(self, row0: int, col0: int, mask: np.ndarray) -> None:
         """Write whole chunks of the saturation flags: mask (h, w) bool."""
         mask = np.asarray(mask)
-        self._check_aligned(mask.shape, row0, col0)
+        self.check_aligned(mask.shape, row0, col0)
         h, w = mask.shape
         self._array("saturated", "r+")[row0:row0 + h, col0:col0 + w] = mask.astype(np.uint8)
 

@@ -23,7 +23,7 @@ from archive.catalog.index import search
 from archive.cli import main
 from archive.errors import ArchiveError, FormatError, InputError, MissingInputError
 from archive.collection import chunk_lines_for, chunk_tasks
-from archive.sources import CollectionSource, open_source
+from archive.sources import open_source
 from archive.ingest.command import ingest
 from archive.formats.envi import EnviCube, read_header, write_envi
 from archive.formats.flight import discover_flight

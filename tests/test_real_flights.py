@@ -4,7 +4,6 @@ samples (skipped where they are absent) and on flights the simulator makes with 
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from scipy.spatial.transform import Rotation
 
 from archive.formats.lcf import read_lcf

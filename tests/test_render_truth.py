@@ -14,7 +14,6 @@ from scipy import ndimage
 
 from archive.grid import Grid
 from archive.params import NavigationParams
-from archive.render.mesh import build_mesh
 from archive.render.reference import reference_values
 from archive.render.renderer import render_cube
 from archive.simulator.command import simulate_flight

@@ -13,8 +13,10 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from archive.errors import FormatError, InputError, MissingInputError
-from archive.formats.times import first_time
+from archive.formats.times import first_time, read_times
 
 __all__ = ["CubeFiles", "Flight", "discover_flight", "natural_key"]
 
@@ -65,12 +67,12 @@ def _cube_files(data: Path) -> tuple[CubeFiles | None, list[tuple[str, Path]]]:
 
 
 def _check_distinct(cubes: list[CubeFiles]) -> None:
-    """InputError naming both cubes when two cubes hold the same capture (byte-identical
-    ``.times``: the same lines recorded twice, e.g. a cube copied under another name)."""
+    """InputError naming both cubes when two cubes hold the same capture (the same ``.times``
+    values: the same lines recorded twice, e.g. a cube copied under another name)."""
     seen: dict[tuple[int, bytes], CubeFiles] = {}
     for cube in cubes:
-        content = cube.times.read_bytes()
-        key = (len(content), hashlib.sha256(content).digest())
+        times = read_times(cube.times)  # parsed values: a reformatted copy is still the same capture
+        key = (len(times), hashlib.sha256(np.ascontiguousarray(times, "<f8").tobytes()).digest())
         if key in seen:
             other = seen[key]
             raise InputError(cube.data.parent, f"cubes {other.base} and {cube.base} hold the same capture "

@@ -18,10 +18,8 @@ Keys are ``<kind>-<dask.base.tokenize(inputs)>``, so the same inputs give the sa
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
-
 import dataclasses
+from collections.abc import Sequence
 
 import dask
 from dask.base import tokenize
@@ -31,8 +29,7 @@ from archive.graph.plan import GROUP, RenderPlan, band_groups
 from archive.graph.tasks import assemble_write_task, lookup_task, render_task, write_saturated_task
 from archive.outputs import CHUNK, MosaicStore
 
-__all__ = ["RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "source_token", "task_group_size",
-           "with_task_groups"]
+__all__ = ["RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "task_group_size", "with_task_groups"]
 
 #: Rendered values one render task may hold, bytes (window px x bands x 4 B): 32 bands of a 1.4 Mpx
 #: cube window. Larger groups mean fewer GL set-ups and reads per band; smaller ones less memory.
@@ -56,19 +53,7 @@ def with_task_groups(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> Rende
     return dataclasses.replace(plan, groups=band_groups(plan.nbands, task_group_size(plan, budget)))
 
 
-def source_token(source) -> str:
-    """Deterministic token of a flight source (what its renders depend on), without reading pixels."""
-    if hasattr(source, "__dask_tokenize__"):
-        return tokenize(source)
-    directory = getattr(source, "directory", None)
-    if directory is not None:  # a raw flight directory: its files, parameters and calibration
-        return tokenize(type(source).__qualname__, str(directory), source.id, source.cubes,
-                        getattr(source, "params", None), str(getattr(source, "calibration_path", None)),
-                        getattr(source, "white_reference", None))
-    return tokenize(source)
-
-
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class RenderGraph:
     """The built graph: ``writes`` are the final tasks (values writers, then saturation writers);
     ``assemblies`` counts the values writers (one per tile and band group, each assembling its tile)."""
@@ -87,7 +72,9 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, store: MosaicStore, 
 
     mesh_spec: the parameters the meshes were built from (fov, ground height...), only for keys.
     """
-    tokens = [source_token(s) for s in sources]
+    # every source's __dask_tokenize__ says what its renders depend on (files or stored content,
+    # parameters), never its pixels
+    tokens = [tokenize(s) for s in sources]
     source_nodes = [delayed(s, name=f"source-{t}", traverse=False) for s, t in zip(sources, tokens)]
 
     # Priorities (higher runs first) finish one band group before starting the next, and assemble

@@ -3,32 +3,99 @@
 A rule is a small strategy object: ``feed`` it the cubes' renders in capture order (source order,
 then cube order), then take ``result()``. Arrays are ``(band, y, x)`` float32 with NaN where a cube
 does not cover a pixel; ``saturated`` is ``(y, x)`` bool (some band of the group was saturated there).
+
+The 'last' rule is written once, as two functions the chunk writer also uses band by band:
+:func:`last_values` and :func:`last_saturation`; :class:`LastRule` is their strategy object.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
-__all__ = ["LastRule", "MeanRule", "RULES", "make_rule"]
+from archive.errors import InputError
+
+__all__ = ["LastRule", "MeanRule", "RULES", "last_saturation", "last_values", "make_rule"]
+
+
+def last_values(out: np.ndarray, parts: Sequence[tuple[np.ndarray, slice, slice]]) -> np.ndarray:
+    """The 'last' rule's values, written into ``out`` (..., H, W) float32 and returned: per value, the
+    latest finite value of the ``parts`` covering it, NaN where none is finite.
+
+    parts: (values (..., h, w), rows, cols) in capture order, ``values`` landing at
+    ``out[..., rows, cols]``. The first part is copied straight in (NaN only around it, non-finite
+    values turned to NaN): one pass instead of a fill and a masked copy.
+    """
+    if not parts:
+        out[...] = np.nan
+        return out
+    first, rows, cols = parts[0]
+    out[..., :rows.start, :] = np.nan
+    out[..., rows.stop:, :] = np.nan
+    out[..., rows, :cols.start] = np.nan
+    out[..., rows, cols.stop:] = np.nan
+    target = out[..., rows, cols]
+    np.copyto(target, first)
+    infinite = np.isinf(target)
+    if infinite.any():
+        target[infinite] = np.nan
+    for values, rows, cols in parts[1:]:
+        np.copyto(out[..., rows, cols], values, where=np.isfinite(values))
+    return out
+
+
+def last_saturation(height: int, width: int,
+                    parts: Sequence[tuple[np.ndarray, np.ndarray, slice, slice]]) -> np.ndarray:
+    """The 'last' rule's saturation mask (height, width) bool: the flag of the last part covering
+    the pixel (some band finite there), False where none does.
+
+    parts: (values (band, h, w), saturated (h, w), rows, cols) in capture order. Evaluated only
+    where some part is flagged (saturation is rare).
+    """
+    flagged = np.zeros((height, width), bool)
+    for _, part_sat, rows, cols in parts:
+        flagged[rows, cols] |= part_sat
+    ys, xs = np.nonzero(flagged)
+    saturated = np.zeros((height, width), bool)
+    if not ys.size:
+        return saturated
+    result = np.zeros(ys.size, bool)
+    for values, part_sat, rows, cols in parts:
+        inside = np.flatnonzero((ys >= rows.start) & (ys < rows.stop) & (xs >= cols.start) & (xs < cols.stop))
+        r, c = ys[inside] - rows.start, xs[inside] - cols.start
+        covered = np.isfinite(values[:, r, c]).any(axis=0)
+        result[inside[covered]] = part_sat[r[covered], c[covered]]
+    saturated[ys, xs] = result
+    return saturated
 
 
 class LastRule:
-    """The later capture wins wherever it covers the pixel (per band: later non-NaN wins)."""
+    """The later capture wins wherever it covers the pixel (per band: the later finite value wins).
+
+    Renders are only collected by ``feed``; ``result`` combines them with :func:`last_values` and
+    :func:`last_saturation`.
+    """
 
     def __init__(self, nbands: int, height: int, width: int):
-        self.values = np.full((nbands, height, width), np.nan, np.float32)
-        self.saturated = np.zeros((height, width), bool)
+        self.shape = (nbands, height, width)
+        self.parts: list[tuple[np.ndarray, np.ndarray, slice, slice]] = []
 
     def feed(self, values: np.ndarray, saturated: np.ndarray, rows: slice, cols: slice) -> None:
-        """Combine one render covering ``values[:, rows, cols]`` of the tile."""
-        ok = np.isfinite(values)
-        target = self.values[:, rows, cols]
-        np.copyto(target, values, where=ok)
-        covered = ok.any(axis=0)
-        self.saturated[rows, cols] = np.where(covered, saturated, self.saturated[rows, cols])
+        """Add one render covering ``values[:, rows, cols]`` of the tile (later ones win)."""
+        self.parts.append((values, saturated, _bounded(rows, self.shape[1]), _bounded(cols, self.shape[2])))
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.values, self.saturated
+        values = last_values(np.empty(self.shape, np.float32), [(v, r, c) for v, _, r, c in self.parts])
+        return values, last_saturation(self.shape[1], self.shape[2], self.parts)
+
+
+def _bounded(s: slice, size: int) -> slice:
+    """``s`` with explicit start and stop within 0..size (step 1)."""
+    start, stop, step = s.indices(size)
+    if step != 1:
+        raise ValueError(f"mosaic parts need contiguous slices, got step {step}")
+    return slice(start, max(start, stop))
 
 
 class MeanRule:
@@ -71,6 +138,4 @@ def make_rule(name: str, nbands: int, height: int, width: int):
     try:
         return RULES[name](nbands, height, width)
     except KeyError:
-        from archive.errors import InputError
-
         raise InputError("--overlap", f"unknown overlap rule {name!r}", f"use one of {', '.join(RULES)}") from None

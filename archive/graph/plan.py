@@ -6,7 +6,6 @@ mesh's bounding box (``grid.crop(mesh bounds)``, whole pixels): its render task 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 

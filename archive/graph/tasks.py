@@ -11,7 +11,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from archive.errors import InputError, RenderError
-from archive.graph.mosaic import LastRule, make_rule
+from archive.graph.mosaic import last_saturation, last_values, make_rule
 from archive.grid import Grid
 from archive.outputs import CHUNK, MosaicStore
 
@@ -49,9 +49,11 @@ def render_task(source, cube: int, bands: Sequence[int], lookup, mode: str,
         radiometry = source.radiometry(cube, bands, mode)
         result = render_lookup(lookup, dn, radiometry, bands_per_pass=min(bands_per_pass, len(bands)))
     except (InputError, RenderError) as exc:  # say which cube: the renderer cannot know
-        where = f"{getattr(source, 'directory', source.id)} cube {source.cubes[cube].base}"
+        where = f"{source.label} cube {source.cubes[cube].base}"
         if isinstance(exc, InputError):
-            raise InputError(where, str(exc)) from exc
+            # keep the kind, problem and fix; name the file too when it is more than the source
+            named = exc.where if exc.where not in (None, source.label) else None
+            raise type(exc)(where if named is None else f"{where} ({named})", exc.problem, exc.fix) from exc
         raise RenderError(f"{where}: {exc}") from exc
     return result.values, result.saturated
 
@@ -89,38 +91,9 @@ def assemble_task(rule: str, tile: Box, nbands: int, boxes: Sequence[Box],
     """
     if len(boxes) != len(renders):
         raise ValueError(f"{len(boxes)} boxes for {len(renders)} renders")
-    parts = _tile_parts(tile, boxes, renders)
-    if rule == "last" and parts:
-        return _assemble_last(tile, nbands, parts)
     mosaic = make_rule(rule, nbands, tile[2], tile[3])
-    for values, saturated, tr, tc in parts:
+    for values, saturated, tr, tc in _tile_parts(tile, boxes, renders):
         mosaic.feed(values, saturated, tr, tc)
-    return mosaic.result()
-
-
-def _assemble_last(tile: Box, nbands: int, parts) -> tuple[np.ndarray, np.ndarray]:
-    """The 'last' rule, with the first render copied in directly (same result as LastRule.feed on an
-    empty tile, in fewer passes over the band group): NaN only outside it, non-finite values back
-    to NaN, its saturation kept where some band is finite. Later renders go through LastRule.feed.
-    """
-    first, first_sat, tr, tc = parts[0]
-    values = np.empty((nbands, tile[2], tile[3]), np.float32)
-    for region in ((slice(None), slice(0, tr.start)), (slice(None), slice(tr.stop, None)),
-                   (slice(None), tr, slice(0, tc.start)), (slice(None), tr, slice(tc.stop, None))):
-        values[region] = np.nan
-    target = values[:, tr, tc]
-    np.copyto(target, first)
-    infinite = np.isinf(target)
-    if infinite.any():
-        target[infinite] = np.nan
-    saturated = np.zeros((tile[2], tile[3]), bool)
-    rows, cols = np.nonzero(first_sat)
-    if rows.size:  # flagged only where the render covers the pixel (some band finite)
-        saturated[tr, tc][rows, cols] = np.isfinite(target[:, rows, cols]).any(axis=0)
-    mosaic = LastRule.__new__(LastRule)  # a LastRule over the arrays filled above
-    mosaic.values, mosaic.saturated = values, saturated
-    for part_values, part_sat, prow, pcol in parts[1:]:
-        mosaic.feed(part_values, part_sat, prow, pcol)
     return mosaic.result()
 
 
@@ -141,11 +114,11 @@ def assemble_write_task(store: MosaicStore, rule: str, band0: int, tile: Box, nb
     """:func:`assemble_task` and :func:`write_values_task` in one: mosaic the renders of one band
     group onto one output tile (one chunk wide) and write its chunks, band by band.
 
-    For the 'last' rule no tile is built: each band is mosaicked into this thread's reusable chunk
-    buffer (the first render copied straight in, NaN only outside it; later renders where finite)
-    and encoded from there; the other rules assemble the tile first. The written values and the
-    returned saturation mask (h, w) bool (OR ``saturated_before``) are those of
-    :func:`assemble_task` then :func:`write_values_task`.
+    For the 'last' rule no tile is built: each band is mosaicked by
+    :func:`~archive.graph.mosaic.last_values` straight into this thread's reusable chunk buffer (the
+    grid's outside part, zarr's padding of edge chunks, left NaN) and encoded from there; the other
+    rules assemble the tile first. The written values and the returned saturation mask (h, w) bool
+    (OR ``saturated_before``) are those of :func:`assemble_task` then :func:`write_values_task`.
     """
     if rule != "last":
         return write_values_task(store, band0, tile, assemble_task(rule, tile, nbands, boxes, *renders),
@@ -154,50 +127,16 @@ def assemble_write_task(store: MosaicStore, rule: str, band0: int, tile: Box, nb
         raise ValueError(f"{len(boxes)} boxes for {len(renders)} renders")
     if tile[0] % CHUNK or tile[1] % CHUNK or tile[2] > CHUNK or tile[3] > CHUNK:
         raise ValueError(f"tile {tile} is not one {CHUNK} px chunk")
-    store._check_aligned(tile[2:], tile[0], tile[1])
+    store.check_aligned(tile[2:], tile[0], tile[1])
     parts = _tile_parts(tile, boxes, renders)
     writer = store.chunk_writer()
     buffer = writer.buffer()
     row, col = tile[0] // CHUNK, tile[1] // CHUNK
     for b in range(nbands):
-        if not parts:
-            buffer[...] = np.nan
-        for i, (values, _, tr, tc) in enumerate(parts):
-            target = buffer[tr, tc]
-            if i == 0:  # NaN only around the first render (and in the padding of edge chunks)
-                buffer[:tr.start] = np.nan
-                buffer[tr.stop:] = np.nan
-                buffer[tr, :tc.start] = np.nan
-                buffer[tr, tc.stop:] = np.nan
-                np.copyto(target, values[b])
-                infinite = np.isinf(target)
-                if infinite.any():
-                    target[infinite] = np.nan
-            else:
-                np.copyto(target, values[b], where=np.isfinite(values[b]))
+        last_values(buffer, [(values[b], tr, tc) for values, _, tr, tc in parts])
         writer.write(band0 + b, row, col, buffer)
-    saturated = _last_saturation(tile[2], tile[3], parts)
+    saturated = last_saturation(tile[2], tile[3], parts)
     return saturated if saturated_before is None else saturated | saturated_before
-
-
-def _last_saturation(height: int, width: int, parts) -> np.ndarray:
-    """The 'last' rule's saturation mask, evaluated only where some render is flagged: there, the
-    flag of the last render covering the pixel (some band finite), else False."""
-    flagged = np.zeros((height, width), bool)
-    for _, part_sat, tr, tc in parts:
-        flagged[tr, tc] |= part_sat
-    rows, cols = np.nonzero(flagged)
-    saturated = np.zeros((height, width), bool)
-    if not rows.size:
-        return saturated
-    result = np.zeros(rows.size, bool)
-    for values, part_sat, tr, tc in parts:
-        inside = np.flatnonzero((rows >= tr.start) & (rows < tr.stop) & (cols >= tc.start) & (cols < tc.stop))
-        r, c = rows[inside] - tr.start, cols[inside] - tc.start
-        covered = np.isfinite(values[:, r, c]).any(axis=0)
-        result[inside[covered]] = part_sat[r[covered], c[covered]]
-    saturated[rows, cols] = result
-    return saturated
 
 
 def write_saturated_task(store: MosaicStore, tile: Box, *masks: np.ndarray) -> int:

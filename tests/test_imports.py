@@ -1,0 +1,372 @@
+"""The package's structure (DESIGN 1), read from the source: no import cycles among archive
+modules, no private (``_name``) import from another archive module, no private member of another
+archive module used, dependencies pointing down the layers, moderngl only in ``render/`` (and the
+light entry points importing without it), and ``graph/`` never computing.
+
+The import graph is read from the source with ``ast`` (no module is imported), every ``import`` and
+``from ... import`` counted, those inside functions included:
+
+- ``import a.b.c`` (and ``importlib.import_module("a.b.c")`` with a literal name) imports ``a.b.c``;
+  ``from a.b import c`` imports ``a.b.c`` when ``c`` is a submodule, else ``a.b`` itself; relative
+  imports are resolved against the importer's package.
+- Importing ``a.b.c`` first runs the ``__init__`` of the packages ``a`` and ``a.b``: those count as
+  edges too, except for packages that enclose the importer (Python has already started them before
+  the importer runs). ``from a.b import name`` needs ``a.b`` fully initialised, so it counts even
+  from inside ``a.b``: that is how a package's ``__init__`` and its submodules end up in a cycle.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "archive"
+
+
+@dataclass(frozen=True)
+class Edge:
+    """``source`` imports ``target`` at ``path:line``; ``names`` the names a ``from`` import takes."""
+
+    source: str
+    target: str
+    path: Path
+    line: int
+    names: tuple[str, ...] = ()
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def modules() -> dict[str, Path]:
+    """Every module of the package (``archive.x.y`` -> file); packages by their ``__init__``."""
+    return {module_name(p): p for p in sorted(PACKAGE.rglob("*.py")) if "__pycache__" not in p.parts}
+
+
+def _parents(name: str) -> list[str]:
+    """Enclosing packages of a dotted name, outermost first: a.b.c -> [a, a.b]."""
+    parts = name.split(".")
+    return [".".join(parts[:i]) for i in range(1, len(parts))]
+
+
+def _package_of(name: str, path: Path) -> str:
+    return name if path.name == "__init__.py" else name.rpartition(".")[0]
+
+
+def _resolve(node: ast.ImportFrom, name: str, path: Path) -> str:
+    if not node.level:
+        return node.module or ""
+    base = _package_of(name, path).split(".")
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def import_edges(mods: dict[str, Path] | None = None) -> list[Edge]:
+    """Every import of every archive module that names an archive module (see the module docstring)."""
+    mods = modules() if mods is None else mods
+    edges: list[Edge] = []
+    for name, path in mods.items():
+        enclosing = set(_parents(name)) | ({name} if path.name == "__init__.py" else set())
+
+        def add(target: str, line: int, names: tuple[str, ...] = (), explicit: bool = True) -> None:
+            for parent in _parents(target):
+                if parent in mods and parent not in enclosing:
+                    edges.append(Edge(name, parent, path, line))
+            if target in mods and target != name and (explicit or target not in enclosing):
+                edges.append(Edge(name, target, path, line, names))
+
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                for alias in node.names:
+                    add(alias.name, node.lineno, explicit=False)
+            elif (isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.Constant)
+                  and isinstance(node.args[0].value, str) and not node.args[0].value.startswith(".")
+                  and (node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", ""))
+                  == "import_module"):
+                add(node.args[0].value, node.lineno, explicit=False)  # importlib.import_module("archive.x")
+            elif isinstance(node, ast.ImportFrom):
+                target = _resolve(node, name, path)
+                if not (target == "archive" or target.startswith("archive.")):
+                    continue
+                names = tuple(alias.name for alias in node.names)
+                attributes = tuple(n for n in names if f"{target}.{n}" not in mods)
+                for n in names:
+                    if f"{target}.{n}" in mods:
+                        add(f"{target}.{n}", node.lineno, (), explicit=False)
+                if attributes:
+                    add(target, node.lineno, attributes)
+                else:  # ``from pkg import submodule``: pkg is started, not needed whole
+                    add(target, node.lineno, (), explicit=False)
+    return edges
+
+
+def find_cycles(edges: list[Edge]) -> list[list[Edge]]:
+    """One cycle (as its edges, in order) per strongly connected component with a cycle."""
+    graph: dict[str, list[Edge]] = {}
+    for e in edges:
+        graph.setdefault(e.source, []).append(e)
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    components: list[set[str]] = []
+
+    def strongconnect(v: str) -> None:  # Tarjan
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for e in graph.get(v, []):
+            if e.target not in index:
+                strongconnect(e.target)
+                low[v] = min(low[v], low[e.target])
+            elif e.target in on_stack:
+                low[v] = min(low[v], index[e.target])
+        if low[v] == index[v]:
+            component = set()
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.add(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                components.append(component)
+
+    sys.setrecursionlimit(max(sys.getrecursionlimit(), 10_000))
+    for v in sorted(graph):
+        if v not in index:
+            strongconnect(v)
+
+    cycles = []
+    for component in components:
+        start = min(component)
+        # breadth-first from start back to start inside the component: a shortest cycle
+        previous: dict[str, Edge] = {}
+        frontier = [start]
+        found = None
+        while frontier and found is None:
+            nxt = []
+            for v in frontier:
+                for e in graph.get(v, []):
+                    if e.target not in component:
+                        continue
+                    if e.target == start:
+                        found = e
+                        break
+                    if e.target not in previous:
+                        previous[e.target] = e
+                        nxt.append(e.target)
+                if found is not None:
+                    break
+            frontier = nxt
+        path = [found]
+        while path[-1].source != start:
+            path.append(previous[path[-1].source])
+        cycles.append(path[::-1])
+    return cycles
+
+
+def _where(e: Edge) -> str:
+    return f"{e.path.relative_to(ROOT)}:{e.line}"
+
+
+def test_graph_of_the_package():
+    """Every module parses; the package __init__ re-exporting its submodules is seen (DESIGN's
+    sources package); edges stay inside archive and never loop on one module."""
+    edges = import_edges()
+    pairs = {(e.source, e.target) for e in edges}
+    assert ("archive.sources", "archive.sources.raw") in pairs
+    assert ("archive.sources.open", "archive.catalog.root") in pairs  # the one way from sources to the catalog
+    assert not any(e.source == e.target for e in edges)
+    assert all(e.source.startswith("archive") and e.target.startswith("archive") for e in edges)
+
+
+def test_graph_rules_on_a_made_up_package(tmp_path):
+    files = {
+        "archive/__init__.py": "",
+        "archive/p/__init__.py": "from archive.p.a import f\n",
+        "archive/p/a.py": "from archive.p import g\n",          # needs p whole: a cycle with p's __init__
+        "archive/p/b.py": "from . import a\n",                  # a submodule: p is only started
+        "archive/q.py": "def f():\n    from .p import b\n",   # relative, inside a function
+        "archive/r.py": "import archive.p.a as x\nfrom archive.q import _private, public\n",
+        "archive/s.py": "import importlib\nM = importlib.import_module('archive.q')\n",
+    }
+    for name, text in files.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    mods = {".".join(Path(n).with_suffix("").parts[:-1] if n.endswith("__init__.py")
+                     else Path(n).with_suffix("").parts): tmp_path / n for n in files}
+    edges = import_edges(mods)
+    assert {(e.source, e.target, e.names) for e in edges} == {
+        ("archive.p", "archive.p.a", ("f",)), ("archive.p.a", "archive.p", ("g",)),
+        ("archive.p.b", "archive.p.a", ()), ("archive.q", "archive.p", ()), ("archive.q", "archive.p.b", ()),
+        ("archive.r", "archive.p", ()), ("archive.r", "archive.p.a", ()),
+        ("archive.r", "archive.q", ("_private", "public")), ("archive.s", "archive.q", ())}
+    (cycle,) = find_cycles(edges)
+    assert {e.source for e in cycle} == {"archive.p", "archive.p.a"}
+
+
+def test_cycle_finder_reports_the_path(tmp_path):
+    a, b, c = (Edge("archive.a", "archive.b", tmp_path / "a.py", 1), Edge("archive.b", "archive.c", tmp_path / "b.py", 2),
+               Edge("archive.c", "archive.a", tmp_path / "c.py", 3))
+    (cycle,) = find_cycles([a, b, c, Edge("archive.a", "archive.d", tmp_path / "a.py", 4)])
+    assert [e.source for e in cycle] == ["archive.a", "archive.b", "archive.c"]
+    assert find_cycles([a, b]) == []
+
+
+def test_no_import_cycles():
+    cycles = find_cycles(import_edges())
+    text = "\n".join(" -> ".join(f"{e.source} ({_where(e)})" for e in cycle) + f" -> {cycle[0].source}"
+                     for cycle in cycles)
+    assert not cycles, f"import cycles among archive modules:\n{text}"
+
+
+def test_no_private_names_imported_across_modules():
+    bad = [f"{_where(e)}: {e.source} imports {n} from {e.target}"
+           for e in import_edges() for n in e.names
+           if n.startswith("_") and not (n.startswith("__") and n.endswith("__"))]
+    # ``import archive.x._y`` / ``from archive.x import _y`` where _y is a module: only from inside archive.x
+    for e in import_edges():
+        parts = e.target.split(".")
+        for i, part in enumerate(parts):
+            owner = ".".join(parts[:i])
+            if (part.startswith("_") and not part.startswith("__")
+                    and not (e.source == owner or e.source.startswith(owner + "."))):
+                bad.append(f"{_where(e)}: {e.source} imports the private module {e.target}")
+    assert not bad, "private names imported from another archive module:\n" + "\n".join(bad)
+
+
+# DESIGN 1: "formats know nothing of sources, sources nothing of the catalog (only the open_source
+# function resolves an archive id), the catalog nothing of rendering".
+LAYERS = [
+    ("archive.formats.", ("archive.",), ("archive.errors", "archive.formats.")),
+    ("archive.sources.", ("archive.catalog", "archive.pipeline", "archive.graph", "archive.render", "archive.ingest"),
+     ()),
+    ("archive.catalog", ("archive.render", "archive.graph", "archive.pipeline", "archive.sources", "archive.ingest"),
+     ()),
+    ("archive.collection", ("archive.sources", "archive.catalog", "archive.render", "archive.graph"), ()),
+    ("archive.navigation", ("archive.sources", "archive.catalog", "archive.render", "archive.graph",
+                            "archive.collection"), ()),
+]
+#: The one module of sources/ that resolves collection ids through the archive (and the package
+#: __init__ that re-exports it).
+OPENS = ("archive.sources.open", "archive.sources")
+
+
+def test_dependencies_point_down():
+    bad = []
+    for e in import_edges():
+        for prefix, forbidden, allowed in LAYERS:
+            if not (e.source == prefix or e.source.startswith(prefix)) or e.source in OPENS:
+                continue
+            if any(e.target.startswith(f) for f in forbidden) and not any(e.target.startswith(a) for a in allowed):
+                bad.append(f"{_where(e)}: {e.source} imports {e.target}")
+    assert not bad, "imports against the layering of DESIGN 1:\n" + "\n".join(bad)
+
+
+def test_only_render_imports_gl():
+    """Statically, imports inside functions included: moderngl only under archive/render/."""
+    bad = []
+    for name, path in modules().items():
+        if name.startswith("archive.render"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            targets = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                       else [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else [])
+            bad += [f"{path.relative_to(ROOT)}:{node.lineno}: imports {t}" for t in targets
+                    if t.split(".")[0] in GL_MODULES]
+    assert not bad, "\n".join(bad)
+
+
+def test_graph_package_never_computes():
+    """DESIGN 1: ``graph/`` builds Dask collections and never computes them: no ``.compute(...)``
+    or ``.persist(...)`` call (``dask.compute`` included)."""
+    bad = []
+    for name, path in modules().items():
+        if not name.startswith("archive.graph"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                    and node.func.attr in ("compute", "persist", "compute_chunk_sizes")):
+                bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: .{node.func.attr}(...)")
+    assert not bad, "\n".join(bad)
+
+
+def _private_definitions(tree: ast.AST) -> set[str]:
+    """``_names`` a module defines: functions, classes, methods, module/class variables, ``self._x``."""
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+            out.add(node.name)
+        elif isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
+            out.add(node.id)
+        elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store):
+            out.add(node.attr)
+        elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            out.add(node.target.id)
+    return {n for n in out if n.startswith("_") and not n.startswith("__")}
+
+
+def _private_uses(tree: ast.AST) -> Iterator[tuple[str, int]]:
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")
+                and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"))):
+            yield node.attr, node.lineno
+
+
+def test_no_private_members_of_other_modules_used():
+    """``obj._name`` where ``_name`` is defined by ANOTHER archive module and not by this one (e.g. a
+    private method of a class of another module)."""
+    trees = {name: ast.parse(path.read_text(), str(path)) for name, path in modules().items()}
+    defined = {name: _private_definitions(tree) for name, tree in trees.items()}
+    bad = []
+    for name, tree in trees.items():
+        for attr, line in _private_uses(tree):
+            if attr in defined[name]:
+                continue
+            owners = sorted(m for m, names in defined.items() if attr in names and m != name)
+            if owners:
+                where = modules()[name].relative_to(ROOT)
+                bad.append(f"{where}:{line}: {name} uses {attr} of {', '.join(owners)}")
+    assert not bad, "private members of other archive modules used:\n" + "\n".join(bad)
+
+
+LIGHT = ["archive", "archive.cli", "archive.ingest.command", "archive.sources",
+         *sorted(m for m in modules() if m.startswith("archive.catalog."))]
+GL_MODULES = ("moderngl", "glcontext")
+
+
+def _loaded_gl(module: str) -> tuple[str, subprocess.CompletedProcess]:
+    code = (f"import sys, importlib; importlib.import_module({module!r}); "
+            f"print(','.join(m for m in {GL_MODULES!r} if m in sys.modules))")
+    return module, subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                                  cwd=ROOT)
+
+
+def test_light_modules_do_not_import_moderngl():
+    """Each in a fresh interpreter: importing it leaves moderngl (and its GL backend) out of sys.modules."""
+    assert "archive.catalog.root" in LIGHT
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        results = list(pool.map(_loaded_gl, LIGHT))
+    failed = [f"{m}: import failed: {done.stderr.strip().splitlines()[-1:]}" for m, done in results
+              if done.returncode != 0]
+    assert not failed, "\n".join(failed)
+    heavy = [f"{m} imports {done.stdout.strip()}" for m, done in results if done.stdout.strip()]
+    assert not heavy, "\n".join(heavy)
+
+
+@pytest.mark.parametrize("module", ["archive.graph.build", "archive.graph.tasks", "archive.graph.plan"])
+def test_graph_modules_import_without_gl(module):
+    """The graph only builds: its modules reach GL inside task bodies, never at import."""
+    _, done = _loaded_gl(module)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "", f"{module} imports {done.stdout.strip()}"
