@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 import re
 import sys
 from collections.abc import Sequence
@@ -18,7 +19,7 @@ from archive.errors import ArchiveError
 # command name -> "module:function" taking the parsed argparse.Namespace and returning an exit code
 HANDLERS = {
     "simulate": "archive.simulator.command:run",
-    "render": "archive.pipeline:run",
+    "render": "archive.api:run_render",
     "info": "archive.ingest.summary:run",
     "ingest": "archive.ingest.command:run",
     "verify": "archive.ingest.command:run_verify",
@@ -31,6 +32,27 @@ def _positive_int(text: str) -> int:
     if value <= 0:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
     return value
+
+
+def _triple(text: str) -> tuple[float, float, float]:
+    """'A,B,C' -> three finite floats (for --boresight and --lever-arm)."""
+    try:
+        values = tuple(float(v) for v in text.replace(" ", "").split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected three comma-separated numbers, got {text!r}")
+    return values  # type: ignore[return-value]
+
+
+def _add_mounting(p: argparse.ArgumentParser, recorded: bool) -> None:
+    """--boresight and --lever-arm (and --sync-offset for ingest)."""
+    default = "default: as ingested for a collection, else 0" if recorded else "default 0"
+    p.add_argument("--boresight", type=_triple, metavar="ROLL,PITCH,YAW",
+                   help="camera mounting angles in the body frame, degrees, aerospace signs (+roll: right wing "
+                        f"down, +pitch: looks forward) ({default})")
+    p.add_argument("--lever-arm", type=_triple, metavar="X,Y,Z",
+                   help=f"camera position from the INS in the body frame (x forward, y right, z down), metres ({default})")
 
 
 def _add_simulate(sub: argparse._SubParsersAction) -> None:
@@ -91,6 +113,7 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--white-reference", metavar="FILE",
                    help="white reference for --mode reflectance: text file of two columns, wavelength (nm) and radiance")
     p.add_argument("--sync-offset", type=float, default=0.0, metavar="S", help="camera-to-navigation time offset, seconds (default 0)")
+    _add_mounting(p, recorded=True)
     p.add_argument("--overlap", choices=["last", "mean"], default="last", help="where flights overlap: the later line wins (default) or the mean")
     p.add_argument("--quicklook", metavar="PNG", help="also write an RGB preview (2%%/98%% stretch)")
     p.add_argument("--scheduler", metavar="ADDRESS",
@@ -148,6 +171,9 @@ def _add_ingest(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ground-height", type=float, metavar="M",
                    help="ground height, metres above the ellipsoid, for the catalog footprint "
                         "(default: the header's 'ground elevation')")
+    p.add_argument("--sync-offset", type=float, default=0.0, metavar="S",
+                   help="camera-to-navigation time offset, seconds (default 0); recorded, used by renders of the collection")
+    _add_mounting(p, recorded=False)
     p.add_argument("--workers", type=_positive_int, metavar="N", help="threads writing chunks (default: CPU count)")
     p.add_argument("--overwrite", action="store_true", help="re-ingest flights that are already in the archive")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -1,20 +1,25 @@
-"""``archive render``: georectify flights into one mosaic (Zarr, COG or ENVI) on a Dask cluster.
+"""``archive render`` and ``archive.mosaic``: georectify flights into one mosaic on Dask.
 
-Steps: check every input early (clear one-line errors); open the sources; build the cube meshes and
-the output grid (metadata only); build the Dask graph (:mod:`archive.graph`); run it on a local
-cluster (one worker process, two threads, GL tasks one at a time: GL contexts are per thread) or on ``--scheduler``; then
-convert the Zarr the workers wrote into the requested format and move it into place. Nothing is
-left at ``--out`` when anything fails.
+One request (:class:`RenderRequest`: the options of ``archive render``, the keywords of
+:func:`archive.render` and :func:`archive.mosaic`) goes through the same steps whatever comes out:
 
-Batch jobs: ``--archive A --query-bbox/--query-datetime/--query-wavelength`` adds every matching
-collection of A's catalog to the sources; without ``--mosaic`` each flight gets its own output
-``--out DIR/<id>.<format>``, with ``--mosaic`` all go into one. Either way one graph runs them all
-(one progress bar). Band groups are sized from the workers' memory limits (:func:`_task_budget`).
+1. :func:`check_request`: checks that read no pixels (clear one-line errors, before anything starts);
+2. :func:`open_inputs`: open the sources (:func:`archive.sources.open_source`), select the bands,
+   settle the radiometric mode and the ground height;
+3. :func:`plan_output`: cube meshes, output grid and cube windows (metadata only, no GL);
+4. either :func:`render`: build the render graph (:mod:`archive.graph.build`) into a Zarr store,
+   run it on a local cluster (one worker process, two threads, GL tasks one at a time: GL contexts
+   are per thread) or on ``scheduler``, then convert the store into the requested format and move
+   it into place (nothing is left at ``out`` when anything fails); or :func:`mosaic`: the same plan
+   as a lazy ``xarray.Dataset`` (:mod:`archive.graph.lazy`) computed on demand.
+
+Batch jobs (``per_flight``): one output per source, ``out/<name>.<format>``, all in one graph (one
+progress bar). Band groups are sized from the workers' memory limits (:func:`_task_budget`).
 """
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import math
 import os
 import sys
@@ -22,15 +27,22 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from archive.errors import ArchiveError, InputError, MissingInputError, RenderError
+from archive.graph.mosaic import RULES
 from archive.outputs import Output, variable_for_mode
 from archive.params import NavigationParams, RenderParams
+from archive.sources.base import MODES
 
-__all__ = ["run", "render", "select_bands", "resolve_ground_height", "check_size",
-           "TASK_BUDGET_BYTES", "OUTPUT_BUDGET"]
+if TYPE_CHECKING:
+    from archive.graph.plan import RenderPlan
+
+__all__ = ["OUTPUT_BUDGET", "TASK_BUDGET_BYTES", "Inputs", "OutputPlan", "RenderRequest", "build_output",
+           "check_request", "check_size", "describe", "mosaic", "open_inputs", "plan", "plan_output", "render",
+           "resolve_ground_height", "select_bands"]
 
 #: Largest render task: cube window x 4 bands x float32 (plus its flags), bytes.
 TASK_BUDGET_BYTES = 2 * 1024**3
@@ -42,7 +54,7 @@ GROUND_KEY = "ground elevation"
 
 
 # ---------------------------------------------------------------------------------------------
-# Input checks
+# The request
 # ---------------------------------------------------------------------------------------------
 def _parse_floats(text: str, option: str) -> list[float]:
     try:
@@ -54,14 +66,131 @@ def _parse_floats(text: str, option: str) -> list[float]:
     return values
 
 
-def select_bands(source, wavelengths: Sequence[float] | None = None, bands: str | None = "all") -> list[int]:
+def _wavelength_list(value) -> tuple[float, ...] | None:
+    """None, 'NM,NM,...' (the CLI's text), one number or a sequence of numbers -> nm tuple."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        return tuple(_parse_floats(value, "--wavelengths"))
+    items = [value] if isinstance(value, (int, float, np.number)) else list(value)
+    try:
+        values = tuple(float(v) for v in items)
+    except (TypeError, ValueError):
+        raise InputError("--wavelengths", f"expected wavelengths in nm, got {value!r}", "e.g. [650, 550, 450]") from None
+    if not values or not all(math.isfinite(v) for v in values):
+        raise InputError("--wavelengths", f"expected finite wavelengths in nm, got {value!r}", "e.g. [650, 550, 450]")
+    return values
+
+
+def _band_list(value) -> str | tuple[int, ...]:
+    """'all' (or None), '2,4' (the CLI's text), one index or a sequence of 0-based indices."""
+    if value is None or (isinstance(value, str) and value.strip().lower() == "all"):
+        return "all"
+    if isinstance(value, str):
+        try:
+            out = tuple(int(b) for b in value.split(",") if b.strip())
+        except ValueError:
+            raise InputError("--bands", f"expected 'all' or 0-based band indices, got {value!r}") from None
+        if not out:
+            raise InputError("--bands", f"expected 'all' or 0-based band indices, got {value!r}")
+        return out
+    items = [value] if isinstance(value, (int, np.integer)) else list(value)
+    if not items or not all(isinstance(b, (int, np.integer)) and not isinstance(b, bool) for b in items):
+        raise InputError("--bands", f"expected 'all' or 0-based band indices, got {value!r}")
+    return tuple(int(b) for b in items)
+
+
+def _number(value, option: str, what: str) -> float | None:
+    if value is None:
+        return None
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise InputError(option, f"expected {what}, got {value!r}") from None
+
+
+def _triple(value, option: str) -> tuple[float, float, float] | None:
+    if value is None:
+        return None
+    try:
+        out = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        out = ()
+    if len(out) != 3 or not all(math.isfinite(v) for v in out):
+        raise InputError(option, f"expected three numbers, got {value!r}")
+    return out  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class RenderRequest:
+    """What to render: the options of ``archive render`` (keyword names as in :func:`archive.render`).
+
+    sources: raw flight directories and/or collection ids of ``archive``; gsd: output pixel size,
+    m; fov: across-track field of view, degrees (None: the one the collections were ingested with;
+    required for raw directories); calibration: a .icp file for raw sources; ground_height: metres
+    above the ellipsoid, or 'auto' (the headers' 'ground elevation', a collection's ingest value);
+    wavelengths: nm, the nearest bands are rendered (else ``bands``: 'all' or 0-based indices);
+    mode: 'raw' | 'relative' | 'radiance' | 'reflectance' (None: radiance, raw DN when a source has no
+    calibration); white_reference: the (nm, radiance) text file for 'reflectance'; sync_offset (s),
+    boresight (roll, pitch, yaw deg), lever_arm (x, y, z m): None means as ingested for a collection,
+    else 0; overlap: 'last' | 'mean'.
+
+    Build one with :meth:`create`, which normalises what callers give (a single source, CLI text
+    such as ``'550,650'``, paths); checks that need files are :func:`check_request`'s.
+    """
+
+    sources: tuple[str, ...]
+    gsd: float
+    archive: str | None = None
+    fov: float | None = None
+    calibration: str | None = None
+    ground_height: float | str = "auto"
+    wavelengths: tuple[float, ...] | None = None
+    bands: str | tuple[int, ...] = "all"
+    mode: str | None = None
+    white_reference: str | None = None
+    sync_offset: float | None = 0.0
+    boresight: tuple[float, float, float] | None = None
+    lever_arm: tuple[float, float, float] | None = None
+    overlap: str = "last"
+
+    @classmethod
+    def create(cls, sources, *, gsd, archive=None, fov=None, calibration=None, ground_height="auto",
+               wavelengths=None, bands="all", mode=None, white_reference=None, sync_offset=0.0,
+               boresight=None, lever_arm=None, overlap="last") -> RenderRequest:
+        """A request from API keywords (or CLI values); InputError for malformed values."""
+        if isinstance(sources, (str, os.PathLike)):
+            sources = [sources]
+        def fspath(p):
+            return None if p is None else os.fspath(p)
+
+        return cls(
+            sources=tuple(os.fspath(s) for s in (sources or ())), gsd=gsd, archive=fspath(archive),
+            fov=_number(fov, "--fov", "degrees"), calibration=fspath(calibration),
+            ground_height="auto" if ground_height is None else ground_height,
+            wavelengths=_wavelength_list(wavelengths), bands=_band_list(bands), mode=mode,
+            white_reference=fspath(white_reference),
+            sync_offset=_number(sync_offset, "--sync-offset", "seconds"),
+            boresight=_triple(boresight, "--boresight"), lever_arm=_triple(lever_arm, "--lever-arm"),
+            overlap=overlap)
+
+    def with_sources(self, sources: Sequence[str]) -> RenderRequest:
+        """This request for other sources."""
+        return dataclasses.replace(self, sources=tuple(os.fspath(s) for s in sources))
+
+
+# ---------------------------------------------------------------------------------------------
+# Checks
+# ---------------------------------------------------------------------------------------------
+def select_bands(source, wavelengths: Sequence[float] | None = None,
+                 bands: str | Sequence[int] | None = "all") -> list[int]:
     """Source band indices to render: nearest bands to ``wavelengths`` (nm), else ``bands``.
 
-    bands: 'all' or comma-separated 0-based indices. A wavelength farther than 1.5 band widths
-    from every band is an InputError naming the source's range.
+    bands: 'all', comma-separated 0-based indices, or a sequence of them. A wavelength farther than
+    1.5 band widths from every band is an InputError naming the source's range.
     """
     nbands = source.cubes[0].bands
-    where = getattr(source, "directory", source.id)
+    where = source.label
     if wavelengths is not None:
         wl = None if source.wavelengths is None else np.asarray(source.wavelengths, float)
         if wl is None or len(wl) == 0:
@@ -79,20 +208,18 @@ def select_bands(source, wavelengths: Sequence[float] | None = None, bands: str 
             if i not in out:
                 out.append(i)
         return out
-    if bands is None or str(bands).strip().lower() == "all":
+    chosen = _band_list(bands)
+    if chosen == "all":
         return list(range(nbands))
-    try:
-        out = [int(b) for b in str(bands).split(",") if b.strip()]
-    except ValueError:
-        raise InputError("--bands", f"expected 'all' or 0-based band indices, got {bands!r}") from None
-    bad = [b for b in out if not 0 <= b < nbands]
-    if bad or not out:
-        raise InputError("--bands", f"band {bad[0] if bad else bands} out of range 0..{nbands - 1}")
-    return list(dict.fromkeys(out))
+    bad = [b for b in chosen if not 0 <= b < nbands]
+    if bad:
+        raise InputError("--bands", f"band {bad[0]} out of range 0..{nbands - 1}")
+    return list(dict.fromkeys(chosen))
 
 
 def resolve_ground_height(value: str | float | None, sources: Sequence) -> float:
-    """A number (metres above the ellipsoid), or 'auto': every cube header's 'ground elevation'."""
+    """A number (metres above the ellipsoid), or 'auto': every cube header's 'ground elevation', else
+    the height the source records (a collection's, as ingested); they must agree."""
     if value is not None and str(value).strip().lower() != "auto":
         try:
             h = float(value)
@@ -103,16 +230,13 @@ def resolve_ground_height(value: str | float | None, sources: Sequence) -> float
         return h
     found: dict[float, str] = {}
     for source in sources:
-        header = getattr(source, "header", None)
         for i, info in enumerate(source.cubes):
-            meta = header(i).metadata if header is not None else {}
-            # a collection keeps the ground height it was ingested with
-            raw = meta.get(GROUND_KEY, getattr(source, "ground_height", None))
+            raw = source.header(i).metadata.get(GROUND_KEY, source.ground_height)
             try:
                 h = float(raw)  # type: ignore[arg-type]
             except (TypeError, ValueError):
                 raise InputError(
-                    getattr(source, "directory", source.id),
+                    source.label,
                     f"cube {info.base} has no usable '{GROUND_KEY}' header key for --ground-height auto",
                     "pass --ground-height M (metres above the ellipsoid, the .lcf altitude datum)",
                 ) from None
@@ -170,57 +294,52 @@ def _read_white_reference(path: str, wavelengths) -> np.ndarray:
     return np.interp(np.asarray(wavelengths, float), table[order, 0], table[order, 1])
 
 
-@dataclass
-class _Inputs:
-    sources: list
-    bands: list[list[int]]
-    params: RenderParams
-    grounds: list[float]   # ground height (m) per source
-
-
-def _check_args(args: argparse.Namespace) -> tuple[Output | None, NavigationParams]:
-    """Checks that need no file reading (fast, before anything starts); the one Output (None in
-    per-flight batch mode)."""
-    gsd = args.gsd
-    if not (isinstance(gsd, (int, float)) and math.isfinite(gsd) and gsd > 0):
+def _check_gsd(gsd) -> None:
+    if not (isinstance(gsd, (int, float)) and not isinstance(gsd, bool) and math.isfinite(gsd) and gsd > 0):
         raise InputError("--gsd", f"must be a positive number of metres, got {gsd!r}", "e.g. --gsd 0.25")
-    output = None
-    if not getattr(args, "per_flight", False):
-        output = Output(Path(args.out).absolute(), overwrite=bool(args.overwrite),
-                        quicklook=None if not args.quicklook else Path(args.quicklook).absolute())
-        output.check()
-    if not args.sources:
+
+
+def check_request(request: RenderRequest) -> NavigationParams:
+    """Checks that read no pixels (fast, before anything starts); the navigation parameters the
+    sources are opened with (the field of view of collections read from their records)."""
+    _check_gsd(request.gsd)
+    if not request.sources:
         raise InputError("SOURCE", "nothing to render",
                          "give flight directories or collection ids, or --archive A with --query-bbox/"
                          "--query-datetime/--query-wavelength")
-    archive = getattr(args, "archive", None)
-    collections = [src for src in args.sources if not Path(src).is_dir()]
-    for src in collections:
-        if archive is None:
-            raise MissingInputError(src, "flight directory",
-                                    "give a raw flight directory, or a collection id together with --archive ARCHIVE")
-    if args.fov is None and len(collections) < len(args.sources):
+    collections = [src for src in request.sources if not Path(src).is_dir()]
+    if collections and request.archive is None:
+        raise MissingInputError(collections[0], "flight directory",
+                                "give a raw flight directory, or a collection id together with --archive ARCHIVE")
+    fov = request.fov
+    if fov is None and len(collections) < len(request.sources):
         raise InputError("--fov", "the field of view is required for raw flight directories",
                          "pass --fov DEG (47.5 for a Pika L and for 'archive simulate' flights)")
-    if args.fov is None:
-        args.fov = _collection_fov(archive, collections)
-    if not (0 < args.fov < 180):
-        raise InputError("--fov", f"must be between 0 and 180 degrees, got {args.fov:g}")
-    if not math.isfinite(args.sync_offset):
-        raise InputError("--sync-offset", f"must be a finite number of seconds, got {args.sync_offset!r}")
-    if args.mode == "reflectance" and not getattr(args, "white_reference", None):
+    if fov is None:
+        fov = _collection_fov(request.archive, collections)
+    if not (math.isfinite(fov) and 0 < fov < 180):
+        raise InputError("--fov", f"must be between 0 and 180 degrees, got {fov:g}")
+    if request.sync_offset is not None and not math.isfinite(request.sync_offset):
+        raise InputError("--sync-offset", f"must be a finite number of seconds, got {request.sync_offset!r}")
+    if request.mode is not None and request.mode not in MODES:
+        raise InputError("--mode", f"unknown radiometric mode {request.mode!r}", f"use one of {', '.join(MODES)}")
+    if request.overlap not in RULES:
+        raise InputError("--overlap", f"unknown overlap rule {request.overlap!r}", f"use one of {', '.join(RULES)}")
+    if request.mode == "reflectance" and not request.white_reference:
         raise InputError("--mode", "reflectance needs a white reference spectrum", "pass --white-reference FILE")
-    return output, NavigationParams(fov_deg=float(args.fov), sync_offset=float(args.sync_offset))
+    return NavigationParams(fov_deg=float(fov),
+                            sync_offset=None if request.sync_offset is None else float(request.sync_offset),
+                            boresight_deg=request.boresight, lever_arm_m=request.lever_arm)
 
 
 def _collection_fov(archive, ids: Sequence[str]) -> float:
-    """The field of view the collections were ingested with (they must agree); reads attributes only."""
-    import zarr
-
+    """The field of view the collections were ingested with (they must agree); reads their records
+    (attributes only)."""
     from archive.catalog.root import open_archive
+    from archive.collection import read_info
 
     root = open_archive(archive)
-    fovs = {float(zarr.open_group(root.require_collection(i), mode="r").attrs["fov_deg"]) for i in ids}
+    fovs = {read_info(root.require_collection(i), navigation=False).fov_deg for i in ids}
     if len(fovs) != 1:
         raise InputError("--fov", f"the collections were ingested with different fields of view {sorted(fovs)}",
                          "pass --fov DEG")
@@ -231,9 +350,8 @@ def _check_same_bands(sources: Sequence, bands: Sequence[Sequence[int]]) -> None
     """InputError unless every source renders as many bands, at the same wavelengths (to 1/2 band)."""
     first = sources[0]
     for s, b in zip(sources[1:], bands[1:]):
-        where = getattr(s, "directory", s.id)
         if len(b) != len(bands[0]):
-            raise InputError(where, f"{len(b)} bands selected, but {len(bands[0])} in the first source",
+            raise InputError(s.label, f"{len(b)} bands selected, but {len(bands[0])} in the first source",
                              "render sources with the same bands together, or pick --wavelengths")
         if first.wavelengths is None or s.wavelengths is None:
             continue
@@ -243,66 +361,171 @@ def _check_same_bands(sources: Sequence, bands: Sequence[Sequence[int]]) -> None
         wb = np.asarray(s.wavelengths, float)[list(b)]
         worst = int(np.argmax(np.abs(wa - wb)))
         if abs(wa[worst] - wb[worst]) > tol:
-            raise InputError(where, f"band at {wb[worst]:.1f} nm does not match {wa[worst]:.1f} nm of the "
+            raise InputError(s.label, f"band at {wb[worst]:.1f} nm does not match {wa[worst]:.1f} nm of the "
                              "first source", "render sensors with different bands separately")
 
 
-def _open_inputs(args: argparse.Namespace, nav: NavigationParams, say, mosaic: bool = True) -> _Inputs:
+# ---------------------------------------------------------------------------------------------
+# Sources and plans
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class Inputs:
+    """The opened sources of a request: bands (per source, the source band of each output band),
+    params (gsd, mode as settled, overlap, navigation), grounds (ground height per source, m)."""
+
+    sources: tuple
+    bands: tuple[tuple[int, ...], ...]
+    params: RenderParams
+    grounds: tuple[float, ...]
+
+
+def _quiet(text: str) -> None:
+    pass
+
+
+def open_inputs(request: RenderRequest, nav: NavigationParams, say=_quiet, mosaic: bool = True) -> Inputs:
+    """Open and check the sources of ``request`` (``nav`` from :func:`check_request`).
+
+    mosaic: all sources go into one output (same bands, one ground height); else each source is
+    an output of its own. ``say(text)`` tells notes (a source without calibration renders raw DN).
+    """
     from archive.sources import open_source
 
     # absolute paths: workers (maybe on another machine sharing the file system) open them again
-    archive = getattr(args, "archive", None)
+    archive = None if request.archive is None else Path(request.archive).absolute()
     sources = [open_source(Path(src).absolute() if Path(src).is_dir() else src, nav,
-                           calibration=args.calibration, archive=archive) for src in args.sources]
-    wavelengths = _parse_floats(args.wavelengths, "--wavelengths") if args.wavelengths else None
-    bands = [select_bands(s, wavelengths, getattr(args, "bands", "all")) for s in sources]
+                           calibration=request.calibration, archive=archive) for src in request.sources]
+    bands = [select_bands(s, request.wavelengths, request.bands) for s in sources]
     if mosaic:
         _check_same_bands(sources, bands)
-    if getattr(args, "white_reference", None):
+    if request.white_reference:
         for s in sources:
-            s.white_reference = _read_white_reference(args.white_reference, s.wavelengths)
-    mode = args.mode or "radiance"
-    uncalibrated = [s for s in sources if getattr(s, "calibration_path", True) is None]
-    if mode == "radiance" and uncalibrated and not args.calibration:
-        where = getattr(uncalibrated[0], "directory", uncalibrated[0].id)
-        say(f"archive render: {where} has no radiometric calibration (*.icp): rendering raw DN")
+            s.white_reference = _read_white_reference(request.white_reference, s.wavelengths)
+    mode = request.mode or "radiance"
+    uncalibrated = [s for s in sources if not s.has_calibration]
+    if mode == "radiance" and uncalibrated and not request.calibration:
+        say(f"archive render: {uncalibrated[0].label} has no radiometric calibration (*.icp): rendering raw DN")
         mode = "raw"
     for s, b in zip(sources, bands):
         s.radiometry(0, b[:1], mode)  # mode problems (calibration, white reference) surface now
     if mosaic:
-        grounds = [resolve_ground_height(args.ground_height, sources)] * len(sources)
+        grounds = [resolve_ground_height(request.ground_height, sources)] * len(sources)
     else:
-        grounds = [resolve_ground_height(args.ground_height, [s]) for s in sources]
-    params = RenderParams(gsd=float(args.gsd), ground_height=grounds[0], mode=mode,
-                          bands=tuple(bands[0]), overlap=args.overlap, navigation=nav)
-    return _Inputs(sources, bands, params, grounds)
+        grounds = [resolve_ground_height(request.ground_height, [s]) for s in sources]
+    params = RenderParams(gsd=float(request.gsd), ground_height=grounds[0], mode=mode,
+                          bands=tuple(bands[0]), overlap=request.overlap, navigation=nav)
+    return Inputs(tuple(sources), tuple(tuple(b) for b in bands), params, tuple(grounds))
+
+
+@dataclass(frozen=True, eq=False)
+class OutputPlan:
+    """One output, planned (metadata only): its sources, the :class:`~archive.graph.plan.RenderPlan`
+    (grid, cube jobs, band groups), the processing parameters, the ground height (m) and the
+    wavelength (nm) of each output band (None when the cubes have none)."""
+
+    sources: tuple
+    plan: RenderPlan
+    params: RenderParams
+    ground_height: float
+    wavelengths: list[float] | None
+
+    @property
+    def variable(self) -> str:
+        """Name of the data variable ('radiance', 'dn', ...)."""
+        return variable_for_mode(self.params.mode)
+
+    @property
+    def mesh_spec(self) -> tuple:
+        """What the meshes were built from (for graph keys)."""
+        return (self.params.navigation, self.ground_height)
+
+    @property
+    def attrs(self) -> dict:
+        """The output's attributes (mode, gsd, fov, ground height, sync offset, overlap, sources)."""
+        offsets = list(dict.fromkeys(float(s.params.sync_offset) for s in self.sources))
+        return {"mode": self.params.mode, "gsd_m": self.params.gsd, "fov_deg": self.params.navigation.fov_deg,
+                "ground_height_m": self.ground_height, "sync_offset_s": offsets[0] if len(offsets) == 1 else offsets,
+                "overlap": self.params.overlap, "sources": [str(s.label) for s in self.sources]}
+
+
+def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget: int | None = None,
+                band_group: int | None = None) -> OutputPlan:
+    """Plan one output of ``inputs`` (the sources at ``members``, default all): cube meshes, output
+    grid, cube windows and band groups (``band_group`` bands per render task, default sized to
+    ``budget`` bytes of values per task; see :func:`archive.graph.build.with_task_groups`).
+    InputError when the output or a task would be absurdly large."""
+    from archive.graph.build import TASK_VALUES_BYTES, with_task_groups
+    from archive.graph.plan import band_groups, cube_meshes, plan_render
+
+    idx = list(range(len(inputs.sources))) if members is None else list(members)
+    p = inputs.params
+    sources = [inputs.sources[i] for i in idx]
+    bands = [inputs.bands[i] for i in idx]
+    ground = inputs.grounds[idx[0]]
+    meshes = [cube_meshes(s, p.navigation.fov_deg, ground) for s in sources]
+    plan = plan_render(sources, meshes, bands, p.gsd)
+    if band_group is None:
+        plan = with_task_groups(plan, TASK_VALUES_BYTES if budget is None else budget)
+    else:
+        if isinstance(band_group, bool) or not isinstance(band_group, (int, np.integer)) or band_group <= 0:
+            raise InputError("band_group", f"expected a positive number of bands, got {band_group!r}")
+        plan = dataclasses.replace(plan, groups=band_groups(plan.nbands, int(band_group)))
+    check_size(plan, p.gsd)
+    wavelengths = sources[0].wavelengths
+    out_wl = None if wavelengths is None else [wavelengths[b] for b in bands[0]]
+    return OutputPlan(tuple(sources), plan, p, ground, out_wl)
+
+
+def build_output(output: OutputPlan, store_path: str | os.PathLike):
+    """(store, graph): create the Zarr store of ``output`` at ``store_path`` (metadata only) and
+    build (never compute) the render graph that fills it."""
+    from archive.graph.build import build_render_graph
+    from archive.outputs import MosaicStore
+
+    p, plan = output.params, output.plan
+    store = MosaicStore.create(store_path, plan.grid, output.wavelengths, plan.bands[0], output.variable,
+                               output.attrs)
+    graph = build_render_graph(plan, list(output.sources), store, mode=p.mode, overlap=p.overlap,
+                               mesh_spec=output.mesh_spec)
+    return store, graph
 
 
 # ---------------------------------------------------------------------------------------------
 # Running the graph
 # ---------------------------------------------------------------------------------------------
-def _cluster(args: argparse.Namespace, say):
-    """(client, cluster or None): ``--scheduler`` or a local cluster of GPU-resourced workers."""
+def _check_gpu_workers(client, where: str) -> None:
+    """InputError unless some worker of ``client`` offers the 'GPU' resource the GL tasks need."""
+    workers = client.scheduler_info().get("workers", {})
+    if not any((w.get("resources") or {}).get("GPU", 0) >= 1 for w in workers.values()):
+        raise InputError(
+            where, "no worker offers the 'GPU' resource the render tasks need",
+            "start workers with `dask worker ADDRESS --nthreads 1 --resources GPU=1`",
+        )
+
+
+def _cluster(scheduler: str | None, workers: int | None, say):
+    """(client, cluster or None): ``scheduler`` or a local cluster of GPU-resourced workers."""
     import logging
 
     from distributed import Client, LocalCluster
 
-    if args.scheduler:
+    if scheduler:
         try:
-            client = Client(args.scheduler, timeout="20s")
+            client = Client(scheduler, timeout="20s")
         except OSError as exc:
-            raise InputError("--scheduler", f"cannot connect to {args.scheduler}: {exc}",
+            raise InputError("--scheduler", f"cannot connect to {scheduler}: {exc}",
                              "start one with `dask scheduler` and workers with `--resources GPU=1`") from None
         say(f"archive render: Dask dashboard at {client.dashboard_link}")
-        workers = client.scheduler_info().get("workers", {})
-        if not any((w.get("resources") or {}).get("GPU", 0) >= 1 for w in workers.values()):
+        try:
+            _check_gpu_workers(client, f"--scheduler {scheduler}")
+        except InputError:
             client.close()
-            raise InputError(
-                "--scheduler", f"no worker of {args.scheduler} offers the 'GPU' resource the render tasks need",
-                f"start workers with `dask worker {args.scheduler} --nthreads 1 --resources GPU=1`",
-            )
+            raise
         return client, None
-    workers = int(getattr(args, "workers", None) or 1)
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer))
+                                or workers <= 0):
+        raise InputError("--workers", f"expected a positive number of worker processes, got {workers!r}")
+    workers = int(workers or 1)
     cores = max(1, (os.cpu_count() or 1) // workers)
     # Spawned worker processes (never forked after GL). Two threads each: the GPU=1 resource keeps
     # GL tasks one at a time per worker (each thread has its own context) while the other thread
@@ -357,59 +580,6 @@ def _execute(client, graph, quiet: bool, shared: bool) -> None:
         raise RenderError(f"a render task failed: {type(exc).__name__}: {exc}") from exc
 
 
-# ---------------------------------------------------------------------------------------------
-# The command
-# ---------------------------------------------------------------------------------------------
-def _resolve_query(args: argparse.Namespace) -> list[str] | None:
-    """Collection ids of --archive matching the --query-* filters, appended to ``args.sources``
-    (None, and nothing changed, when no filter is given). Sets ``args.per_flight``."""
-    bbox, when = getattr(args, "query_bbox", None), getattr(args, "query_datetime", None)
-    wavelength = getattr(args, "query_wavelength", None)
-    args.per_flight = False
-    if bbox is None and when is None and wavelength is None:
-        return None
-    if not getattr(args, "archive", None):
-        raise InputError("--query-*", "a catalog query needs the archive to search", "pass --archive ARCHIVE")
-    from archive.catalog.index import ensure_index, parse_bbox, parse_datetime_range, search
-    from archive.catalog.root import open_archive
-
-    box = parse_bbox(bbox) if bbox is not None else None
-    start, end = parse_datetime_range(when) if when is not None else (None, None)
-    if wavelength is not None and not (math.isfinite(wavelength) and wavelength > 0):
-        raise InputError("--query-wavelength", f"{wavelength} is not a positive wavelength in nm")
-    rows = search(ensure_index(open_archive(args.archive)), bbox=box, start=start, end=end,
-                  wavelength=wavelength)
-    if not rows:
-        asked = ", ".join(f"{k} {v}" for k, v in (("--query-bbox", bbox), ("--query-datetime", when),
-                                                   ("--query-wavelength", wavelength)) if v is not None)
-        raise InputError(args.archive, f"no flight in the catalog matches {asked}",
-                         "check the filters with 'archive catalog search'")
-    ids = [r.id for r in rows]
-    args.sources = list(args.sources or []) + [i for i in ids if i not in (args.sources or [])]
-    args.per_flight = not getattr(args, "mosaic", False)
-    return ids
-
-
-def _flight_outputs(args: argparse.Namespace) -> list[Output]:
-    """Per-flight batch mode: ``--out DIR/<name>.<format>`` for each source (checked now)."""
-    directory = Path(args.out).absolute()
-    if directory.exists() and not directory.is_dir():
-        raise InputError(directory, "is a file, but a batch job writes one output per flight into a directory",
-                         "give --out DIR, or --mosaic for one output")
-    if directory.suffix.lower() in (".zarr", ".tif", ".tiff", ".hdr"):
-        raise InputError(directory, "looks like one output file, but a batch job writes one output per flight",
-                         "give --out DIR (outputs DIR/<id>.<format>), or add --mosaic")
-    if args.quicklook:
-        raise InputError("--quicklook", "only one quicklook per command", "add --mosaic, or leave it out")
-    outputs = []
-    for src in args.sources:
-        name = Path(src).name if Path(src).is_dir() else str(src)
-        out = Output(directory / f"{name}.{getattr(args, 'format', 'zarr')}", overwrite=bool(args.overwrite))
-        out.check()
-        outputs.append(out)
-    return outputs
-
-
 def _task_budget(client) -> int:
     """Bytes of rendered values one render task may hold: TASK_VALUES_BYTES, or a tenth of the
     smallest worker memory limit when that is less (small workers get smaller band groups)."""
@@ -420,70 +590,90 @@ def _task_budget(client) -> int:
     return min([TASK_VALUES_BYTES] + [m // 10 for m in limits])
 
 
+# ---------------------------------------------------------------------------------------------
+# Rendering into files
+# ---------------------------------------------------------------------------------------------
+def _flight_outputs(sources: Sequence[str], out, format: str, overwrite: bool, quicklook) -> list[Output]:
+    """Per-flight batch mode: ``out/<name>.<format>`` for each source (checked now)."""
+    directory = Path(out).absolute()
+    if directory.exists() and not directory.is_dir():
+        raise InputError(directory, "is a file, but a batch job writes one output per flight into a directory",
+                         "give --out DIR, or --mosaic for one output")
+    if directory.suffix.lower() in (".zarr", ".tif", ".tiff", ".hdr"):
+        raise InputError(directory, "looks like one output file, but a batch job writes one output per flight",
+                         "give --out DIR (outputs DIR/<id>.<format>), or add --mosaic")
+    if quicklook:
+        raise InputError("--quicklook", "only one quicklook per command", "add --mosaic, or leave it out")
+    outputs = []
+    for src in sources:
+        name = Path(src).name if Path(src).is_dir() else str(src)
+        output = Output(directory / f"{name}.{format}", overwrite=bool(overwrite))
+        output.check()
+        outputs.append(output)
+    return outputs
+
+
 @dataclass
 class _Job:
     """One output of a command: its Output, plan, store and graph."""
 
     output: Output
-    sources: list
-    plan: object = None
-    store: object = None
-    graph: object = None
-    wavelengths: list | None = None
+    planned: OutputPlan
+    store: object
+    graph: object
 
 
-def render(args: argparse.Namespace) -> dict:
-    """Run ``archive render`` for parsed ``args``; returns a summary dict. Raises ArchiveError.
-
-    One output (``--out PATH``), or in batch mode (``--query-*`` without ``--mosaic``) one output
-    per flight (``--out DIR``): then the summary holds ``outputs``, one summary per flight. Every
-    output's tasks run in one graph.
-    """
-    from archive.graph.build import RenderGraph, build_render_graph, with_task_groups
-    from archive.graph.plan import cube_meshes, plan_render
-    from archive.outputs import MosaicStore
-
-    started = time.perf_counter()
-    quiet = bool(getattr(args, "quiet", False))
-
+def _say(quiet: bool):
     def say(text: str) -> None:
         if not quiet:
             print(text, file=sys.stderr)
 
-    _resolve_query(args)
-    output, nav = _check_args(args)
-    mosaic = output is not None
-    outputs = [output] if mosaic else _flight_outputs(args)
+    return say
+
+
+def render(request: RenderRequest, out: str | os.PathLike, *, quicklook: str | os.PathLike | None = None,
+           overwrite: bool = False, scheduler: str | None = None, workers: int | None = None,
+           quiet: bool = True, per_flight: bool = False, format: str = "zarr") -> dict:
+    """Render ``request`` into ``out`` (.zarr, .tif or .hdr); returns a summary dict. Raises ArchiveError.
+
+    One output at ``out``, or with ``per_flight`` one output per source, ``out/<name>.<format>``:
+    then the summary holds ``outputs``, one summary per flight. Every output's tasks run in one
+    graph, on ``scheduler`` (an address) or on a local cluster of ``workers`` processes.
+    """
+    from archive.graph.build import RenderGraph
+
+    started = time.perf_counter()
+    say = _say(quiet)
+    _check_gsd(request.gsd)
+    if per_flight:
+        nav = check_request(request)
+        if format not in ("zarr", "tif", "hdr"):
+            raise InputError("--format", f"unknown output format {format!r}", "use zarr, tif or hdr")
+        outputs = _flight_outputs(request.sources, out, format, overwrite, quicklook)
+    else:
+        output = Output(Path(out).absolute(), overwrite=bool(overwrite),
+                        quicklook=None if not quicklook else Path(quicklook).absolute())
+        output.check()
+        outputs = [output]
+        nav = check_request(request)
     client = cluster = None
     jobs: list[_Job] = []
+    graph_seconds = 0.0
     try:
-        inputs = _open_inputs(args, nav, say, mosaic=mosaic)
-        p = inputs.params
-        members = [list(range(len(inputs.sources)))] if mosaic else [[i] for i in range(len(inputs.sources))]
-        client, cluster = _cluster(args, say)
+        inputs = open_inputs(request, nav, say, mosaic=not per_flight)
+        members = [[i] for i in range(len(inputs.sources))] if per_flight else [list(range(len(inputs.sources)))]
+        client, cluster = _cluster(scheduler, workers, say)
         budget = _task_budget(client)
-        for out, idx in zip(outputs, members):
-            sources = [inputs.sources[i] for i in idx]
-            bands = [inputs.bands[i] for i in idx]
-            ground = inputs.grounds[idx[0]]
-            meshes = [cube_meshes(s, nav.fov_deg, ground) for s in sources]
-            plan = with_task_groups(plan_render(sources, meshes, bands, p.gsd), budget)
-            check_size(plan, p.gsd)
-            wavelengths = sources[0].wavelengths
-            out_wl = None if wavelengths is None else [wavelengths[b] for b in bands[0]]
-            attrs = {
-                "mode": p.mode, "gsd_m": p.gsd, "fov_deg": nav.fov_deg, "ground_height_m": ground,
-                "sync_offset_s": nav.sync_offset, "overlap": p.overlap,
-                "sources": [str(getattr(s, "directory", s.id)) for s in sources],
-            }
-            store = MosaicStore.create(out.store_path, plan.grid, out_wl, bands[0], variable_for_mode(p.mode), attrs)
-            graph = build_render_graph(plan, sources, store, mode=p.mode, overlap=p.overlap,
-                                       mesh_spec=(nav, ground))
-            jobs.append(_Job(out, sources, plan, store, graph, out_wl))
+        for output, idx in zip(outputs, members):
+            planned = plan_output(inputs, idx, budget=budget)
+            store, graph = build_output(planned, output.store_path)
+            jobs.append(_Job(output, planned, store, graph))
         graph = RenderGraph(tuple(w for j in jobs for w in j.graph.writes), sum(j.graph.renders for j in jobs),
                             sum(j.graph.assemblies for j in jobs))
+        t = time.perf_counter()
         if len(graph):
             _execute(client, graph, quiet, shared=cluster is None)
+        graph_seconds = time.perf_counter() - t
         for job in jobs:
             job.output.finalize(job.store)
     finally:
@@ -491,24 +681,26 @@ def render(args: argparse.Namespace) -> dict:
             client.close()
         if cluster is not None:
             cluster.close()  # stops the worker processes, with any task still writing
-        for out in outputs:
-            out.cleanup()
+        for output in outputs:
+            output.cleanup()
     seconds = time.perf_counter() - started
     summaries = []
     for job in jobs:
-        g = job.plan.grid
+        g, plan = job.planned.plan.grid, job.planned.plan
         summaries.append({
-            "out": str(job.output.path) if not mosaic else str(args.out), "width": g.width, "height": g.height,
-            "gsd": g.gsd, "epsg": g.epsg, "bands": job.plan.nbands, "wavelengths": job.wavelengths,
-            "mode": p.mode, "cubes": len(job.plan.jobs), "sources": len(job.sources),
-            "renders": job.graph.renders, "seconds": seconds,
+            "out": str(job.output.path) if per_flight else str(out), "width": g.width, "height": g.height,
+            "gsd": g.gsd, "epsg": g.epsg, "bands": plan.nbands, "wavelengths": job.planned.wavelengths,
+            "mode": job.planned.params.mode, "cubes": len(plan.jobs), "sources": len(job.planned.sources),
+            "renders": job.graph.renders, "assemblies": job.graph.assemblies, "seconds": seconds,
+            "graph_seconds": graph_seconds,
         })
-    if mosaic:
+    if not per_flight:
         return summaries[0]
-    return {"outputs": summaries, "seconds": seconds, "renders": graph.renders}
+    return {"outputs": summaries, "seconds": seconds, "graph_seconds": graph_seconds, "renders": graph.renders}
 
 
-def _describe(s: dict) -> str:
+def describe(s: dict) -> str:
+    """One line about an output from its :func:`render` summary."""
     wl = s["wavelengths"]
     span = f" ({min(wl):.1f}-{max(wl):.1f} nm)" if wl else ""
     return (f"{s['out']}: {s['width']} x {s['height']} px at {s['gsd']:g} m, "
@@ -517,15 +709,70 @@ def _describe(s: dict) -> str:
             f"{'s' if s['sources'] != 1 else ''}")
 
 
-def run(args: argparse.Namespace) -> int:
-    """CLI entry point of ``archive render`` (see :func:`render`); prints a one-paragraph summary
-    (batch mode: one line per output, then the total)."""
-    s = render(args)
-    if "outputs" in s:
-        for one in s["outputs"]:
-            print(f"archive render: wrote {_describe(one)}.")
-        n = len(s["outputs"])
-        print(f"archive render: {n} output{'s' if n != 1 else ''} in {s['seconds']:.1f} s.")
-        return 0
-    print(f"archive render: wrote {_describe(s)} in {s['seconds']:.1f} s.")
-    return 0
+# ---------------------------------------------------------------------------------------------
+# Lazy mosaics
+# ---------------------------------------------------------------------------------------------
+def _active_client():
+    """The default distributed Client, if one is active (distributed is never imported here)."""
+    distributed = sys.modules.get("distributed")
+    if distributed is None:
+        return None
+    try:
+        return distributed.default_client()
+    except ValueError:
+        return None
+
+
+def plan(request: RenderRequest, *, band_group: int | None = None, budget: int | None = None,
+         quiet: bool = True) -> OutputPlan:
+    """Check, open and plan ``request`` as one mosaic (metadata only: no pixel is read, no GL)."""
+    nav = check_request(request)
+    inputs = open_inputs(request, nav, _say(quiet), mosaic=True)
+    return plan_output(inputs, budget=budget, band_group=band_group)
+
+
+def mosaic(request: RenderRequest, *, band_group: int | None = None, quiet: bool = True):
+    """``request`` as a lazy ``xarray.Dataset`` (nothing rendered until computed).
+
+    The data variable (named by mode: 'dn', 'relative', 'radiance', 'reflectance') is (band, y, x)
+    float32, NaN where no line covers a pixel, a dask array chunked (band group, 1024, 1024): one
+    block per output tile and band group (``band_group`` bands, default sized to the task memory
+    budget, the active distributed Client's workers' when there is one), rendered by the render
+    graph's task bodies (:mod:`archive.graph.lazy`). ``saturated`` (y, x) uint8 is lazy too. The
+    coordinates are those of the Zarr output (x/y pixel centres in metres, ``band``: source band
+    index, ``wavelength`` in nm, indexed for ``.sel(wavelength=..., method="nearest")``), with the
+    CRS set (rioxarray ``spatial_ref``).
+    """
+    import rioxarray  # noqa: F401  (registers .rio)
+    import xarray as xr
+
+    from archive.graph.lazy import mosaic_arrays
+
+    client = _active_client()
+    budget = None
+    if client is not None:
+        _check_gpu_workers(client, f"the active Dask client ({client.scheduler.address})")
+        budget = _task_budget(client)
+    planned = plan(request, band_group=band_group, budget=budget, quiet=quiet)
+    p, grid = planned.params, planned.plan.grid
+    values, saturated = mosaic_arrays(planned.plan, list(planned.sources), mode=p.mode, overlap=p.overlap,
+                                      mesh_spec=planned.mesh_spec)
+    x, y = grid.xy_centres()
+    coords = {"band": np.asarray(planned.plan.bands[0], dtype=np.int32), "y": y, "x": x}
+    if planned.wavelengths is not None:
+        coords["wavelength"] = ("band", np.asarray(planned.wavelengths, dtype=np.float64))
+    variable = planned.variable
+    ds = xr.Dataset({variable: (("band", "y", "x"), values), "saturated": (("y", "x"), saturated)}, coords=coords)
+    ds[variable].attrs.update({"long_name": variable, "_description": "NaN where no image line covers the pixel"})
+    ds["saturated"].attrs.update({"long_name": "saturated", "flag_values": [0, 1],
+                                  "flag_meanings": "ok saturated_in_some_band"})
+    ds["band"].attrs.update({"long_name": "source band index (0-based)"})
+    ds["x"].attrs.update({"units": "m", "standard_name": "projection_x_coordinate"})
+    ds["y"].attrs.update({"units": "m", "standard_name": "projection_y_coordinate"})
+    ds.attrs.update(planned.attrs)
+    ds = ds.rio.write_crs(grid.epsg).rio.write_transform(grid.transform)
+    if planned.wavelengths is not None:
+        ds["wavelength"].attrs.update({"units": "nm", "long_name": "band centre wavelength"})
+        if len(set(planned.wavelengths)) == len(planned.wavelengths):
+            ds = ds.set_xindex("wavelength")
+    return ds

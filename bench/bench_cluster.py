@@ -5,16 +5,18 @@
     python bench/bench_cluster.py overhead [--cubes 40] [--bands 300] [--lines 1000] [--gsd 0.04]
                                            [--workers 2] [--workdir DIR] [--json FILE]
 
-scaling: one simulated flight rendered (all bands, radiance) by the real graph on a LocalCluster of
-1, then 2, ... spawned worker processes (1 thread, ``resources={"GPU": 1}``, ``LP_NUM_THREADS`` =
-cores / workers). Each cluster first renders the flight once (warm-up: imports, GL context, page
-cache), then the timed run renders it again into a fresh store. Reports seconds, output
+scaling: one simulated flight rendered (all bands, radiance) by ``archive.render`` (the library call
+under ``archive render``) on a LocalCluster of 1, then 2, ... spawned worker processes (1 thread,
+``resources={"GPU": 1}``, ``LP_NUM_THREADS`` = cores / workers). Each cluster first renders the
+flight once (warm-up: imports, GL context, page cache), then the timed run renders it again into a fresh store; the seconds are the summary's
+``graph_seconds`` (the graph's run, without planning and store conversion). Reports seconds, output
 band-pixels/s and the ratio to one worker. The GL renderer is whatever EGL gives the workers
 (Mesa llvmpipe on a CPU machine, the NVIDIA driver on a GPU machine: printed).
 
-overhead: the graph of a paper-size flight description (default 40 cubes x 1000 lines, 300 bands,
-4 cm): the flight's geometry is simulated with few samples and one band (the graph depends on the
-footprints, the grid and the number of band groups, not on the pixels); the plan asks for 300
+overhead: the graph ``archive.render`` builds (:func:`archive.pipeline.build_output` on the plan of
+:func:`archive.api.plan`) for a paper-size flight description (default 40 cubes x 1000 lines, 300
+bands, 4 cm): the flight's geometry is simulated with few samples and one band (the graph depends on
+the footprints, the grid and the number of band groups, not on the pixels); the plan asks for 300
 bands. Measures the time to build the graph, its task count, then runs a graph of exactly the same
 shape (same keys, same dependencies, render tasks still annotated GPU=1) whose task bodies do
 nothing, on a LocalCluster of ``--workers`` workers: tasks/s and scheduler time per task.
@@ -64,31 +66,30 @@ def _simulate(workdir: Path, name: str, **kw) -> tuple[Path, object]:
     return directory, truth
 
 
-def _plan(directory: Path, ground: float, gsd: float, nbands: int | None = None):
-    """(sources, plan) for a raw flight: metadata and geometry only."""
-    from archive.graph.plan import cube_meshes, plan_render
-    from archive.params import NavigationParams
-    from archive.sources import open_source
+def _plan(directory: Path, ground: float, gsd: float, nbands: int | None = None, mode: str = "radiance"):
+    """The library's plan of a raw flight (:func:`archive.api.plan`: metadata and geometry only).
 
-    source = open_source(directory.absolute(), NavigationParams(fov_deg=FOV))
-    bands = list(range(nbands if nbands is not None else source.cubes[0].bands))
-    meshes = [cube_meshes(source, FOV, ground)]
-    plan = plan_render([source], meshes, [bands], gsd)
-    try:  # band groups sized as the pipeline sizes them, where the graph module does that
-        from archive.graph.build import with_task_groups
-    except ImportError:
-        return [source], plan
-    return [source], with_task_groups(plan)
+    nbands: plan that many output bands whatever the flight holds (the overhead bench's hollow
+    graph never reads them), in band groups sized as ``archive.render`` sizes them.
+    """
+    import dataclasses
+
+    from archive.api import plan
+    from archive.graph.build import with_task_groups
+
+    planned = plan([directory], gsd=gsd, fov=FOV, ground_height=ground, mode=mode,
+                   bands=None if nbands is None else "0")
+    if nbands is None:
+        return planned
+    wide = with_task_groups(dataclasses.replace(planned.plan, bands=(tuple(range(nbands)),)))
+    return dataclasses.replace(planned, plan=wide, wavelengths=None)
 
 
-def _graph(sources, plan, store_path: Path, mode: str):
-    from archive.graph.build import build_render_graph
-    from archive.outputs import MosaicStore
+def _graph(planned, store_path: Path):
+    """The render graph ``archive.render`` builds for ``planned``, into a new store at ``store_path``."""
+    from archive.pipeline import build_output
 
-    wl = sources[0].wavelengths
-    out_wl = None if wl is None or len(wl) < plan.nbands else [wl[b] for b in plan.bands[0]]
-    store = MosaicStore.create(store_path, plan.grid, out_wl, plan.bands[0], "radiance")
-    return build_render_graph(plan, sources, store, mode=mode, overlap="last")
+    return build_output(planned, store_path)[1]
 
 
 def _cluster(workers: int):
@@ -99,19 +100,6 @@ def _cluster(workers: int):
                            env={"LP_NUM_THREADS": str(cores)}, dashboard_address=":0",
                            silence_logs=logging.ERROR)
     return cluster, Client(cluster)
-
-
-def _run(client, graph) -> float:
-    from distributed import wait
-
-    t0 = time.perf_counter()
-    futures = client.compute(list(graph.writes))
-    wait(futures)
-    bad = [f for f in futures if f.status != "finished"]
-    if bad:
-        bad[0].result()
-    del futures
-    return time.perf_counter() - t0
 
 
 def _gl_renderer(client) -> str:
@@ -130,7 +118,9 @@ def scaling(args) -> dict:
     directory, truth = _simulate(workdir, f"scaling_{args.cubes}x{args.lines}x{args.samples}x{args.bands}",
                                  cubes=args.cubes, bands=args.bands, samples=args.samples, lines=args.lines,
                                  cubes_per_pass=2, seed=1)
-    sources, plan = _plan(directory, truth.ground_height, args.gsd)
+    import archive
+
+    plan = _plan(directory, truth.ground_height, args.gsd).plan
     band_pixels = plan.grid.width * plan.grid.height * plan.nbands
     rows = []
     for n in [int(w) for w in args.workers.split(",")]:
@@ -139,14 +129,17 @@ def scaling(args) -> dict:
             for attempt in ("warm-up", "timed"):
                 store = workdir / f"out-{n}-{attempt}.zarr"
                 shutil.rmtree(store, ignore_errors=True)
-                graph = _graph(sources, plan, store, "radiance")
-                seconds = _run(client, graph)
+                # what `archive render` runs; its graph_seconds time the graph alone, as before
+                summary = archive.render([directory], store, gsd=args.gsd, fov=FOV, ground_height=truth.ground_height,
+                                         scheduler=cluster.scheduler_address, overwrite=True)
+                seconds = summary["graph_seconds"]
                 shutil.rmtree(store, ignore_errors=True)
             renderer = _gl_renderer(client)
         finally:
             client.close()
             cluster.close()
-        rows.append({"workers": n, "seconds": round(seconds, 3), "tasks": graph.renders + 2 * graph.assemblies,
+        rows.append({"workers": n, "seconds": round(seconds, 3),
+                     "tasks": summary["renders"] + 2 * summary["assemblies"],
                      "mega_band_pixels_per_s": round(band_pixels / seconds / 1e6, 2), "renderer": renderer})
         print(f"{n} worker(s): {seconds:.2f} s, {band_pixels / seconds / 1e6:.1f} M band-px/s ({renderer})",
               file=sys.stderr)
@@ -200,12 +193,13 @@ def overhead(args) -> dict:
     directory, truth = _simulate(workdir, f"geometry_{args.cubes}x{args.lines}", cubes=args.cubes, bands=1,
                                  samples=32, lines=args.lines, cubes_per_pass=2, seed=2)
     t0 = time.perf_counter()
-    sources, plan = _plan(directory, truth.ground_height, args.gsd, nbands=args.bands)
+    planned = _plan(directory, truth.ground_height, args.gsd, nbands=args.bands, mode="raw")
+    plan = planned.plan
     t_plan = time.perf_counter() - t0
     store = workdir / "overhead.zarr"
     shutil.rmtree(store, ignore_errors=True)
     t0 = time.perf_counter()
-    graph = _graph(sources, plan, store, "raw")
+    graph = _graph(planned, store)
     t_build = time.perf_counter() - t0
     t0 = time.perf_counter()
     dsk = _materialize(graph)

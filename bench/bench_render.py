@@ -7,12 +7,12 @@ Defaults are the paper shape: 2 cubes of 900 samples x 1000 lines x 300 bands (u
 540 MB each), rendered at 4 cm with all bands, radiance mode. One run measures, on the same
 simulated flight (simulated once into --workdir and reused while its marker file exists):
 
-1. ours, end-to-end: ``python -m archive render FLIGHT --out X.zarr`` in a subprocess (Dask local
-   cluster, Zarr writer included); peak memory = max over time of the summed RSS of the whole
-   process tree (Dask nanny + worker included), polled every 0.1 s with psutil, and the
-   largest single process (``/usr/bin/time -v``).
-2. ours, render core: in-process, per cube: ``rasterize_lookup`` once on the cube's window of the
-   output grid, then per group of 32 bands (the pipeline's task size): read bands + radiometry,
+1. ours, end-to-end: ``archive.render([FLIGHT], "X.zarr", ...)`` (what ``archive render`` runs) in a
+   subprocess (Dask local cluster, Zarr writer included); peak memory = max over time of the summed
+   RSS of the whole process tree (Dask nanny + worker included), polled every 0.1 s with psutil,
+   and the largest single process (``/usr/bin/time -v``).
+2. ours, render core: in-process, on the plan ``archive.api.plan`` makes (the one ``archive.render``
+   renders), per cube: ``rasterize_lookup`` once on the cube's window of the output grid, then per group of 32 bands (the pipeline's task size): read bands + radiometry,
    ``render_lookup`` (8 bands per GL pass), write into a .npy memmap (flushed).
 3. GDAL direct method: ``rasterio.warp.reproject(src_geoloc_array=(X, Y), nearest)`` per cube
    and group of ``--gdal-group`` bands, same grid windows, same radiometry applied in numpy first,
@@ -180,11 +180,13 @@ def io_floor(flight: Path, out_bytes: int, work: Path) -> dict:
 # ---------------------------------------------------------------------------------------------
 def end_to_end(flight: Path, args, work: Path, ground: float, tag: str = "e2e") -> dict:
     out = work / f"{tag}.zarr"
-    cmd = [sys.executable, "-m", "archive", "render", str(flight), "--out", str(out), "--gsd", str(args.gsd),
-           "--fov", str(FOV), "--ground-height", str(ground), "--mode", MODE, "--overwrite"]
+    call = (f"archive.render([{str(flight)!r}], {str(out)!r}, gsd={args.gsd!r}, fov={FOV!r}, "
+            f"ground_height={ground!r}, mode={MODE!r}, overwrite=True)")
+    code = f"import json, archive\nprint(json.dumps({call}))"
+    cmd = [sys.executable, "-c", code]
     timev = shutil.which("time") or ("/usr/bin/time" if Path("/usr/bin/time").exists() else None)
     full = ([timev, "-v"] if timev else []) + cmd
-    print("$ " + " ".join(cmd), flush=True)
+    print(f"$ python -c '{call}'", flush=True)
     env = dict(os.environ)
     t = time.perf_counter()
     proc = subprocess.Popen(full, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
@@ -193,16 +195,16 @@ def end_to_end(flight: Path, args, work: Path, ground: float, tag: str = "e2e") 
     wall = time.perf_counter() - t
     if proc.returncode != 0:
         print(stderr[-4000:], file=sys.stderr)
-        raise SystemExit(f"archive render failed with exit code {proc.returncode}")
+        raise SystemExit(f"archive.render failed with exit code {proc.returncode}")
     largest = None
     for line in stderr.splitlines():
         if "Maximum resident set size" in line:
             largest = int(line.split(":")[1]) * 1024
-    summary = stdout.strip().splitlines()[-1] if stdout.strip() else ""
+    summary = json.loads(stdout.strip().splitlines()[-1])
     size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
-    return {"cmd": " ".join(cmd), "wall_s": wall, "peak_tree_rss": poll.peak_rss,
+    return {"cmd": call, "wall_s": wall, "peak_tree_rss": poll.peak_rss,
             "peak_tree_anon": poll.peak_anon, "largest_process_rss": largest, "zarr_mb": size / MB,
-            "summary": summary, "out": str(out)}
+            "summary": summary, "graph_s": summary["graph_seconds"], "out": str(out)}
 
 
 def one_cube_flight(flight: Path, work: Path) -> Path:
@@ -220,20 +222,17 @@ def one_cube_flight(flight: Path, work: Path) -> Path:
 
 
 # ---------------------------------------------------------------------------------------------
-# Plan (shared by 2 and 3): the same grid and cube windows as the pipeline
+# Plan (shared by 2 and 3): the library's plan, the same grid and cube windows as the pipeline
 # ---------------------------------------------------------------------------------------------
 def make_plan(flight: Path, gsd: float, ground: float):
-    from archive.graph.plan import cube_meshes, plan_render
-    from archive.params import NavigationParams
-    from archive.sources import RawFlightSource
+    """(source, plan, seconds): the plan ``archive.render`` renders (sources opened, cube meshes,
+    grid, windows; no GL), and the seconds it took (mostly the meshes)."""
+    from archive.api import plan
 
-    source = RawFlightSource(flight, NavigationParams(fov_deg=FOV))
     t = time.perf_counter()
-    meshes = cube_meshes(source, FOV, ground)
+    planned = plan([flight], gsd=gsd, fov=FOV, ground_height=ground, mode=MODE)
     mesh_s = time.perf_counter() - t
-    bands = list(range(source.cubes[0].bands))
-    plan = plan_render([source], [meshes], [bands], gsd)
-    return source, plan, mesh_s
+    return planned.sources[0], planned.plan, mesh_s
 
 
 def out_memmap(path: Path, shape) -> np.ndarray:
@@ -617,7 +616,7 @@ def report(R: dict) -> None:
     print("| method | wall s | s / cube | Mpx·band/s | peak memory GB | output MB | split |")
     print("|---|---|---|---|---|---|---|")
     mpxb = R["grid"]["width"] * R["grid"]["height"] * R["grid"]["bands"] / 1e6
-    print(f"| ours end-to-end (`archive render` → Zarr) | {e['wall_s']:.1f} | {e['wall_s'] / n:.1f} | "
+    print(f"| ours end-to-end (`archive.render` → Zarr) | {e['wall_s']:.1f} | {e['wall_s'] / n:.1f} | "
           f"{mpxb / e['wall_s']:.0f} (mosaic) | tree {fmt_gb(e['peak_tree_rss'])} (anon "
           f"{fmt_gb(e['peak_tree_anon'])}); largest proc {fmt_gb(e['largest_process_rss'])} | "
           f"{e['zarr_mb']:.0f} (zarr on disk) | incl. cluster start-up |")

@@ -1,0 +1,162 @@
+"""A render plan as lazy dask arrays (builds graphs, never computes them).
+
+:func:`mosaic_arrays` turns a :class:`~archive.graph.plan.RenderPlan` into two ``dask.array``
+collections: the mosaicked values ``(band, y, x)`` float32, one block per output tile (the 1024 px
+Zarr chunks of :mod:`archive.outputs`) and band group, and the saturation flags ``(y, x)`` uint8.
+Their blocks are computed by the render graph's own task bodies (:mod:`archive.graph.tasks`):
+one :func:`~archive.graph.tasks.lookup_task` per cube, one :func:`~archive.graph.tasks.render_task`
+per cube and band group, one :func:`~archive.graph.tasks.assemble_task` (the mosaic rules of
+:mod:`archive.graph.mosaic`) per tile and band group. Computing some bands runs only their groups'
+renders (and the lookups); tiles no cube touches are NaN without any render.
+
+Keys are ``<kind>-<dask.base.tokenize(inputs)>``; lookup and render keys are those of
+:func:`archive.graph.build.build_render_graph` for the same inputs. GL tasks (lookups and renders)
+are annotated ``resources={"GPU": 1}`` like the render graph's, and never fused with other tasks
+(``block_fusion``): they keep their keys and run as tasks of their own, in the worker thread that
+owns the GL context. Dask's array optimizer drops layer annotations when it fuses (dask/dask#7036),
+so on a distributed cluster they reach the scheduler only when computed with
+``dask.config.set({"optimization.fuse.active": False})``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from dask._task_spec import DataNode, Task, TaskRef
+
+from archive.graph.build import BANDS_PER_PASS
+from archive.graph.plan import RenderPlan
+from archive.graph.tasks import assemble_task, lookup_task, render_task
+from archive.outputs import CHUNK
+
+__all__ = ["GL_RESOURCES", "GLTask", "mosaic_arrays", "nan_tile", "tile_saturation", "tile_values", "zero_tile"]
+
+#: Annotation of the GL tasks (as in the render graph).
+GL_RESOURCES = {"GPU": 1}
+
+
+# ---------------------------------------------------------------------------------------------
+# Block bodies (plain functions of explicit inputs)
+# ---------------------------------------------------------------------------------------------
+def tile_values(assembled: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """The values (nbands, h, w) float32 of an :func:`~archive.graph.tasks.assemble_task` result."""
+    return assembled[0]
+
+
+def tile_saturation(height: int, width: int, *assembled: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """(height, width) uint8: 1 where some band group's assembled tile is flagged saturated."""
+    mask = np.zeros((height, width), bool)
+    for _, saturated in assembled:
+        mask |= saturated
+    return mask.astype(np.uint8)
+
+
+def nan_tile(nbands: int, height: int, width: int) -> np.ndarray:
+    """(nbands, height, width) float32 NaN: a tile no cube covers."""
+    return np.full((nbands, height, width), np.nan, np.float32)
+
+
+def zero_tile(height: int, width: int) -> np.ndarray:
+    """(height, width) uint8 zeros: the saturation of a tile no cube covers."""
+    return np.zeros((height, width), np.uint8)
+
+
+# ---------------------------------------------------------------------------------------------
+# Graph
+# ---------------------------------------------------------------------------------------------
+class GLTask(Task):
+    """A task dask never fuses with its neighbours (as distributed's P2P barrier tasks do): a GL task
+    keeps its key and its annotation, and runs as a task of its own."""
+
+    __slots__ = ()
+
+    @property
+    def block_fusion(self) -> bool:
+        return True
+
+
+def _sizes(total: int, size: int) -> tuple[int, ...]:
+    return tuple(min(size, total - start) for start in range(0, total, size))
+
+
+def _intersects(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
+    return a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]
+
+
+def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: str,
+                  mesh_spec: object = None):
+    """(values, saturated) lazy ``dask.array`` collections of ``plan`` rendered from ``sources``.
+
+    values: (nbands, grid height, grid width) float32, NaN where no line covers a pixel, chunked
+    (one band group, CHUNK, CHUNK); saturated: (grid height, grid width) uint8, chunked (CHUNK,
+    CHUNK). mesh_spec: the parameters the meshes were built from, only for keys (as in
+    :func:`~archive.graph.build.build_render_graph`).
+    """
+    import dask.array as da
+    from dask.base import tokenize
+    from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
+
+    tokens = [tokenize(s) for s in sources]
+    source_nodes = {f"source-{t}": DataNode(f"source-{t}", s) for s, t in zip(sources, tokens)}
+    source_keys = list(source_nodes)
+
+    lookups: dict = {}
+    renders: dict = {}
+    render_key: dict[tuple[int, int], str] = {}
+    for j, job in enumerate(plan.jobs):
+        # the mesh travels inside its lookup task (no node of its own)
+        mesh_key = f"mesh-{tokenize(tokens[job.source], job.cube, mesh_spec)}"
+        samples = int(sources[job.source].cubes[job.cube].samples)
+        lkey = f"lookup-{tokenize(mesh_key, job.window, samples)}"
+        lookups[lkey] = GLTask(lkey, lookup_task, job.mesh, job.window, samples)
+        for g, (b0, b1) in enumerate(plan.groups):
+            bands = plan.bands[job.source][b0:b1]
+            key = f"render-{tokenize(tokens[job.source], job.cube, bands, lkey, mode, BANDS_PER_PASS)}"
+            renders[key] = GLTask(key, render_task, TaskRef(source_keys[job.source]), job.cube, bands,
+                                  TaskRef(lkey), mode, BANDS_PER_PASS)
+            render_key[j, g] = key
+
+    grid = plan.grid
+    name = tokenize(grid, plan.groups, overlap, [render_key[k] for k in sorted(render_key)], mode)
+    values_name, saturated_name = f"mosaic-{name}", f"saturated-{name}"
+    assembles: dict = {}
+    values: dict = {}
+    saturated: dict = {}
+    for row0, col0, tile_grid in grid.tiles(CHUNK):
+        i, k = row0 // CHUNK, col0 // CHUNK
+        tile = (row0, col0, tile_grid.height, tile_grid.width)
+        touching = [j for j, job in enumerate(plan.jobs) if _intersects(tile, job.box)]
+        boxes = tuple(plan.jobs[j].box for j in touching)
+        group_keys = []
+        for g, (b0, b1) in enumerate(plan.groups):
+            vkey = (values_name, g, i, k)
+            if not touching:
+                values[vkey] = Task(vkey, nan_tile, b1 - b0, tile[2], tile[3])
+                continue
+            parts = [render_key[j, g] for j in touching]
+            akey = f"assemble-{tokenize(overlap, tile, b1 - b0, boxes, parts)}"
+            assembles[akey] = Task(akey, assemble_task, overlap, tile, b1 - b0, boxes, *map(TaskRef, parts))
+            values[vkey] = Task(vkey, tile_values, TaskRef(akey))
+            group_keys.append(akey)
+        skey = (saturated_name, i, k)
+        saturated[skey] = (Task(skey, tile_saturation, tile[2], tile[3], *map(TaskRef, group_keys)) if group_keys
+                           else Task(skey, zero_tile, tile[2], tile[3]))
+
+    names = {kind: f"{kind}-{name}" for kind in ("sources", "lookups", "renders", "assembles")}
+    layers = {names["sources"]: MaterializedLayer(source_nodes),
+              names["lookups"]: MaterializedLayer(lookups, annotations={"resources": dict(GL_RESOURCES)}),
+              names["renders"]: MaterializedLayer(renders, annotations={"resources": dict(GL_RESOURCES)}),
+              names["assembles"]: MaterializedLayer(assembles)}
+    deps = {names["sources"]: set(), names["lookups"]: set(),
+            names["renders"]: {names["sources"], names["lookups"]}, names["assembles"]: {names["renders"]}}
+
+    def array(layer_name: str, tasks: dict, chunks: tuple, dtype, ndim: int):
+        graph = HighLevelGraph({**layers, layer_name: MaterializedLayer(tasks)},
+                               {**deps, layer_name: {names["assembles"]}})
+        return da.Array(graph, layer_name, chunks, dtype=dtype, meta=np.empty((0,) * ndim, dtype))
+
+    rows, cols = _sizes(grid.height, CHUNK), _sizes(grid.width, CHUNK)
+    band_chunks = tuple(b1 - b0 for b0, b1 in plan.groups)
+    return (array(values_name, values, (band_chunks, rows, cols), np.float32, 3),
+            array(saturated_name, saturated, (rows, cols), np.uint8, 2))
