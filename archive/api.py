@@ -2,7 +2,7 @@
 
     import archive
     arc = archive.open_archive("demo/archive")
-    ids = arc.search(bbox=(-90, 35, -89.9, 35.2), datetime="2024-06-01/2024-07-31", wavelength=650)
+    ids = arc.search(bbox=(-90, 35, -89.9, 35.2), datetime="2024-06/2024-07", wavelength=650)
     ds = archive.mosaic(ids, archive="demo/archive", gsd=0.25, wavelengths=[650, 550, 450])  # lazy
     ds.radiance.sel(wavelength=650, method="nearest").compute()    # renders only that band's group
     archive.render(["demo/flight"], "demo/mosaic.zarr", gsd=0.25, fov=47.5)  # what the CLI does
@@ -107,7 +107,8 @@ def _request(sources, **keywords):
 def plan(sources: Source | Sequence[Source], *, gsd: float, archive: Source | None = None,
          fov: float | None = None, calibration: Source | None = None, ground_height: float | str = "auto",
          wavelengths=None, bands="all", mode: str | None = None, white_reference: Source | None = None,
-         sync_offset: float | None = 0.0, boresight=None, lever_arm=None, overlap: str = "last",
+         sync_offset: float | None = None, boresight=None, lever_arm=None, overlap: str = "last",
+           crs=None, max_view_angle: float = 40.0,
          band_group: int | None = None, quiet: bool = True):
     """The plan of a mosaic of ``sources`` (:class:`archive.pipeline.OutputPlan`: opened sources,
     grid, cube meshes and windows, band groups), from metadata only: no pixel read, no GL.
@@ -117,14 +118,16 @@ def plan(sources: Source | Sequence[Source], *, gsd: float, archive: Source | No
     request = _request(sources, gsd=gsd, archive=archive, fov=fov, calibration=calibration,
                        ground_height=ground_height, wavelengths=wavelengths, bands=bands, mode=mode,
                        white_reference=white_reference, sync_offset=sync_offset, boresight=boresight,
-                       lever_arm=lever_arm, overlap=overlap)
+                       lever_arm=lever_arm, overlap=overlap, crs=crs,
+                       max_view_angle=max_view_angle)
     return pipeline.plan(request, band_group=band_group, quiet=quiet)
 
 
 def mosaic(sources: Source | Sequence[Source], *, gsd: float, archive: Source | None = None,
            fov: float | None = None, calibration: Source | None = None, ground_height: float | str = "auto",
            wavelengths=None, bands="all", mode: str | None = None, white_reference: Source | None = None,
-           sync_offset: float | None = 0.0, boresight=None, lever_arm=None, overlap: str = "last",
+           sync_offset: float | None = None, boresight=None, lever_arm=None, overlap: str = "last",
+           crs=None, max_view_angle: float = 40.0,
            band_group: int | None = None, quiet: bool = True):
     """A lazy ``xarray.Dataset`` of the mosaic of ``sources``: nothing is rendered until computed.
 
@@ -135,7 +138,9 @@ def mosaic(sources: Source | Sequence[Source], *, gsd: float, archive: Source | 
     'relative' | 'radiance' | 'reflectance' (None: radiance, raw DN without calibration);
     white_reference: (nm, radiance) text file for reflectance; sync_offset (s), boresight (roll,
     pitch, yaw deg), lever_arm (x, y, z m): None means as ingested for a collection, else 0;
-    overlap: 'last' | 'mean'; band_group: bands per render task and per band chunk (default sized
+    overlap: 'last' | 'mean'; crs: the output's projected CRS ('EPSG:32616', an int...; default:
+    the UTM zone holding most of the flights, others rendered into it); max_view_angle: degrees
+    off nadir at the field-of-view edge beyond which lines are left out (turns); band_group: bands per render task and per band chunk (default sized
     to the task memory budget); quiet: no notes on stderr.
 
     The data variable is named by mode ('radiance', 'dn', 'relative', 'reflectance'), (band, y, x)
@@ -152,14 +157,16 @@ def mosaic(sources: Source | Sequence[Source], *, gsd: float, archive: Source | 
     request = _request(sources, gsd=gsd, archive=archive, fov=fov, calibration=calibration,
                        ground_height=ground_height, wavelengths=wavelengths, bands=bands, mode=mode,
                        white_reference=white_reference, sync_offset=sync_offset, boresight=boresight,
-                       lever_arm=lever_arm, overlap=overlap)
+                       lever_arm=lever_arm, overlap=overlap, crs=crs,
+                       max_view_angle=max_view_angle)
     return pipeline.mosaic(request, band_group=band_group, quiet=quiet)
 
 
 def render(sources: Source | Sequence[Source], out: Source, *, gsd: float, archive: Source | None = None,
            fov: float | None = None, calibration: Source | None = None, ground_height: float | str = "auto",
            wavelengths=None, bands="all", mode: str | None = None, white_reference: Source | None = None,
-           sync_offset: float | None = 0.0, boresight=None, lever_arm=None, overlap: str = "last",
+           sync_offset: float | None = None, boresight=None, lever_arm=None, overlap: str = "last",
+           crs=None, max_view_angle: float = 40.0,
            quicklook: Source | None = None, scheduler: str | None = None, workers: int | None = None,
            overwrite: bool = False, quiet: bool = True, per_flight: bool = False, format: str = "zarr") -> dict:
     """Render ``sources`` into ``out`` (.zarr, .tif or .hdr) exactly as ``archive render``; returns
@@ -177,7 +184,8 @@ def render(sources: Source | Sequence[Source], out: Source, *, gsd: float, archi
     request = _request(sources, gsd=gsd, archive=archive, fov=fov, calibration=calibration,
                        ground_height=ground_height, wavelengths=wavelengths, bands=bands, mode=mode,
                        white_reference=white_reference, sync_offset=sync_offset, boresight=boresight,
-                       lever_arm=lever_arm, overlap=overlap)
+                       lever_arm=lever_arm, overlap=overlap, crs=crs,
+                       max_view_angle=max_view_angle)
     return pipeline.render(request, out, quicklook=quicklook, overwrite=overwrite, scheduler=scheduler,
                            workers=workers, quiet=quiet, per_flight=per_flight, format=format)
 
@@ -212,7 +220,8 @@ def render_keywords(args: argparse.Namespace) -> dict:
         "fov": args.fov, "calibration": args.calibration, "ground_height": args.ground_height,
         "wavelengths": args.wavelengths, "bands": args.bands, "mode": args.mode,
         "white_reference": args.white_reference, "sync_offset": args.sync_offset, "boresight": args.boresight,
-        "lever_arm": args.lever_arm, "overlap": args.overlap, "quicklook": args.quicklook,
+        "lever_arm": args.lever_arm, "overlap": args.overlap, "crs": args.crs,
+        "max_view_angle": args.max_view_angle, "quicklook": args.quicklook,
         "scheduler": args.scheduler, "workers": args.workers, "overwrite": args.overwrite, "quiet": args.quiet,
         "format": args.format,
     }

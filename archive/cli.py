@@ -112,8 +112,15 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
                    help="radiometric mode (default radiance; raw DN, with a note, when the flight has no calibration)")
     p.add_argument("--white-reference", metavar="FILE",
                    help="white reference for --mode reflectance: text file of two columns, wavelength (nm) and radiance")
-    p.add_argument("--sync-offset", type=float, default=0.0, metavar="S", help="camera-to-navigation time offset, seconds (default 0)")
+    p.add_argument("--sync-offset", type=float, default=None, metavar="S",
+                   help="camera-to-navigation time offset, seconds (default: as ingested for a collection, else 0)")
     _add_mounting(p, recorded=True)
+    p.add_argument("--max-view-angle", type=float, default=40.0, metavar="DEG",
+                   help="leave out lines whose field-of-view edge looks further than this off nadir, degrees "
+                        "(turns; default 40; the summary says how many)")
+    p.add_argument("--crs", metavar="EPSG:XXXX",
+                   help="projected CRS of the output (default: the UTM zone holding most of the flights; "
+                        "flights of other zones are rendered into it)")
     p.add_argument("--overlap", choices=["last", "mean"], default="last", help="where flights overlap: the later line wins (default) or the mean")
     p.add_argument("--quicklook", metavar="PNG", help="also write an RGB preview (2%%/98%% stretch)")
     p.add_argument("--scheduler", metavar="ADDRESS",

@@ -34,6 +34,7 @@ import numpy as np
 from archive.errors import ArchiveError, InputError, MissingInputError, RenderError
 from archive.graph.mosaic import RULES
 from archive.outputs import Output, variable_for_mode
+from archive.navigation import DEFAULT_MAX_VIEW_ANGLE, projected_epsg
 from archive.params import NavigationParams, RenderParams
 from archive.sources.base import MODES
 
@@ -50,7 +51,6 @@ TASK_BUDGET_BYTES = 2 * 1024**3
 OUTPUT_BUDGET = 4e10
 #: A requested wavelength must lie within this many band widths of a band.
 WAVELENGTH_TOLERANCE = 1.5
-GROUND_KEY = "ground elevation"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -133,7 +133,9 @@ class RenderRequest:
     mode: 'raw' | 'relative' | 'radiance' | 'reflectance' (None: radiance, raw DN when a source has no
     calibration); white_reference: the (nm, radiance) text file for 'reflectance'; sync_offset (s),
     boresight (roll, pitch, yaw deg), lever_arm (x, y, z m): None means as ingested for a collection,
-    else 0; overlap: 'last' | 'mean'.
+    else 0; overlap: 'last' | 'mean'; crs: the output's projected CRS (None: the UTM zone holding most
+    of the flights); max_view_angle: degrees off nadir at the field-of-view edge beyond which lines
+    are left out of the meshes (turns).
 
     Build one with :meth:`create`, which normalises what callers give (a single source, CLI text
     such as ``'550,650'``, paths); checks that need files are :func:`check_request`'s.
@@ -149,15 +151,18 @@ class RenderRequest:
     bands: str | tuple[int, ...] = "all"
     mode: str | None = None
     white_reference: str | None = None
-    sync_offset: float | None = 0.0
+    sync_offset: float | None = None
     boresight: tuple[float, float, float] | None = None
     lever_arm: tuple[float, float, float] | None = None
     overlap: str = "last"
+    crs: str | None = None
+    max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE
 
     @classmethod
     def create(cls, sources, *, gsd, archive=None, fov=None, calibration=None, ground_height="auto",
-               wavelengths=None, bands="all", mode=None, white_reference=None, sync_offset=0.0,
-               boresight=None, lever_arm=None, overlap="last") -> RenderRequest:
+               wavelengths=None, bands="all", mode=None, white_reference=None, sync_offset=None,
+               boresight=None, lever_arm=None, overlap="last", crs=None,
+               max_view_angle=DEFAULT_MAX_VIEW_ANGLE) -> RenderRequest:
         """A request from API keywords (or CLI values); InputError for malformed values."""
         if isinstance(sources, (str, os.PathLike)):
             sources = [sources]
@@ -172,7 +177,8 @@ class RenderRequest:
             white_reference=fspath(white_reference),
             sync_offset=_number(sync_offset, "--sync-offset", "seconds"),
             boresight=_triple(boresight, "--boresight"), lever_arm=_triple(lever_arm, "--lever-arm"),
-            overlap=overlap)
+            overlap=overlap, crs=None if crs is None else str(crs),
+            max_view_angle=_number(max_view_angle, "--max-view-angle", "degrees"))
 
     def with_sources(self, sources: Sequence[str]) -> RenderRequest:
         """This request for other sources."""
@@ -218,8 +224,11 @@ def select_bands(source, wavelengths: Sequence[float] | None = None,
 
 
 def resolve_ground_height(value: str | float | None, sources: Sequence) -> float:
-    """A number (metres above the ellipsoid), or 'auto': every cube header's 'ground elevation', else
-    the height the source records (a collection's, as ingested); they must agree."""
+    """A number (metres above the ellipsoid), or 'auto' (:func:`archive.sources.ground.auto_ground_height`:
+    a collection's ingest record, else the headers' 'ground elevation'); refused when the camera is
+    not plausibly above it."""
+    from archive.sources.ground import auto_ground_height, camera_altitudes, check_ground_height
+
     if value is not None and str(value).strip().lower() != "auto":
         try:
             h = float(value)
@@ -227,25 +236,10 @@ def resolve_ground_height(value: str | float | None, sources: Sequence) -> float
             raise InputError("--ground-height", f"expected metres or 'auto', got {value!r}") from None
         if not math.isfinite(h):
             raise InputError("--ground-height", f"expected a finite height, got {value!r}")
+        for source in sources:
+            check_ground_height(h, camera_altitudes(source), source.label, "--ground-height")
         return h
-    found: dict[float, str] = {}
-    for source in sources:
-        for i, info in enumerate(source.cubes):
-            raw = source.header(i).metadata.get(GROUND_KEY, source.ground_height)
-            try:
-                h = float(raw)  # type: ignore[arg-type]
-            except (TypeError, ValueError):
-                raise InputError(
-                    source.label,
-                    f"cube {info.base} has no usable '{GROUND_KEY}' header key for --ground-height auto",
-                    "pass --ground-height M (metres above the ellipsoid, the .lcf altitude datum)",
-                ) from None
-            found.setdefault(h, info.base)
-    if len(found) > 1:
-        listing = ", ".join(f"{h:g} m ({base})" for h, base in found.items())
-        raise InputError("--ground-height", f"the cubes disagree on '{GROUND_KEY}': {listing}",
-                         "pass --ground-height M")
-    return next(iter(found))
+    return auto_ground_height(sources)
 
 
 def _nice(x: float) -> float:
@@ -291,7 +285,13 @@ def _read_white_reference(path: str, wavelengths) -> np.ndarray:
     if wavelengths is None:
         raise InputError(p, "the cubes have no wavelengths to interpolate the white reference to")
     order = np.argsort(table[:, 0])
-    return np.interp(np.asarray(wavelengths, float), table[order, 0], table[order, 1])
+    wl = np.asarray(wavelengths, float)
+    step = float(np.min(np.abs(np.diff(wl)))) if len(wl) > 1 else 1.0
+    lo, hi = float(table[order[0], 0]), float(table[order[-1], 0])
+    if wl.min() < lo - step / 2 or wl.max() > hi + step / 2:  # np.interp would clamp silently
+        raise InputError(p, f"the white reference spans {lo:g}-{hi:g} nm but the bands span "
+                         f"{wl.min():g}-{wl.max():g} nm", "give a white reference covering every band")
+    return np.interp(wl, table[order, 0], table[order, 1])
 
 
 def _check_gsd(gsd) -> None:
@@ -323,6 +323,11 @@ def check_request(request: RenderRequest) -> NavigationParams:
         raise InputError("--sync-offset", f"must be a finite number of seconds, got {request.sync_offset!r}")
     if request.mode is not None and request.mode not in MODES:
         raise InputError("--mode", f"unknown radiometric mode {request.mode!r}", f"use one of {', '.join(MODES)}")
+    if not (request.max_view_angle is not None and 0 < request.max_view_angle < 90):
+        raise InputError("--max-view-angle", f"must be between 0 and 90 degrees, got {request.max_view_angle!r}",
+                         f"the default is {DEFAULT_MAX_VIEW_ANGLE:g}")
+    if request.crs is not None:
+        projected_epsg(request.crs)
     if request.overlap not in RULES:
         raise InputError("--overlap", f"unknown overlap rule {request.overlap!r}", f"use one of {', '.join(RULES)}")
     if request.mode == "reflectance" and not request.white_reference:
@@ -377,6 +382,8 @@ class Inputs:
     bands: tuple[tuple[int, ...], ...]
     params: RenderParams
     grounds: tuple[float, ...]
+    crs: str | None = None
+    max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE
 
 
 def _quiet(text: str) -> None:
@@ -414,7 +421,8 @@ def open_inputs(request: RenderRequest, nav: NavigationParams, say=_quiet, mosai
         grounds = [resolve_ground_height(request.ground_height, [s]) for s in sources]
     params = RenderParams(gsd=float(request.gsd), ground_height=grounds[0], mode=mode,
                           bands=tuple(bands[0]), overlap=request.overlap, navigation=nav)
-    return Inputs(tuple(sources), tuple(tuple(b) for b in bands), params, tuple(grounds))
+    return Inputs(tuple(sources), tuple(tuple(b) for b in bands), params, tuple(grounds), request.crs,
+                  float(request.max_view_angle))
 
 
 @dataclass(frozen=True, eq=False)
@@ -428,6 +436,8 @@ class OutputPlan:
     params: RenderParams
     ground_height: float
     wavelengths: list[float] | None
+    max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE
+    left_out: dict | None = None  #: lines left out of the meshes, by reason ('no navigation', 'view angle')
 
     @property
     def variable(self) -> str:
@@ -437,7 +447,7 @@ class OutputPlan:
     @property
     def mesh_spec(self) -> tuple:
         """What the meshes were built from (for graph keys)."""
-        return (self.params.navigation, self.ground_height)
+        return (self.params.navigation, self.ground_height, self.max_view_angle, self.plan.grid.epsg)
 
     @property
     def attrs(self) -> dict:
@@ -462,8 +472,8 @@ def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget:
     sources = [inputs.sources[i] for i in idx]
     bands = [inputs.bands[i] for i in idx]
     ground = inputs.grounds[idx[0]]
-    meshes = [cube_meshes(s, p.navigation.fov_deg, ground) for s in sources]
-    plan = plan_render(sources, meshes, bands, p.gsd)
+    meshes = [cube_meshes(s, p.navigation.fov_deg, ground, inputs.max_view_angle) for s in sources]
+    plan = plan_render(sources, meshes, bands, p.gsd, crs=inputs.crs)
     if band_group is None:
         plan = with_task_groups(plan, TASK_VALUES_BYTES if budget is None else budget)
     else:
@@ -473,7 +483,12 @@ def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget:
     check_size(plan, p.gsd)
     wavelengths = sources[0].wavelengths
     out_wl = None if wavelengths is None else [wavelengths[b] for b in bands[0]]
-    return OutputPlan(tuple(sources), plan, p, ground, out_wl)
+    left_out: dict[str, int] = {}
+    for ms in meshes:
+        for m in ms:
+            for reason, n in (m.dropped or {}).items():
+                left_out[reason] = left_out.get(reason, 0) + int(n)
+    return OutputPlan(tuple(sources), plan, p, ground, out_wl, inputs.max_view_angle, left_out)
 
 
 def build_output(output: OutputPlan, store_path: str | os.PathLike):
@@ -692,7 +707,7 @@ def render(request: RenderRequest, out: str | os.PathLike, *, quicklook: str | o
             "gsd": g.gsd, "epsg": g.epsg, "bands": plan.nbands, "wavelengths": job.planned.wavelengths,
             "mode": job.planned.params.mode, "cubes": len(plan.jobs), "sources": len(job.planned.sources),
             "renders": job.graph.renders, "assemblies": job.graph.assemblies, "seconds": seconds,
-            "graph_seconds": graph_seconds,
+            "graph_seconds": graph_seconds, "left_out": dict(job.planned.left_out or {}),
         })
     if not per_flight:
         return summaries[0]
@@ -706,7 +721,18 @@ def describe(s: dict) -> str:
     return (f"{s['out']}: {s['width']} x {s['height']} px at {s['gsd']:g} m, "
             f"EPSG:{s['epsg']}, {s['bands']} band{'s' if s['bands'] != 1 else ''}{span}, {s['mode']}, "
             f"{s['cubes']} cube{'s' if s['cubes'] != 1 else ''} from {s['sources']} source"
-            f"{'s' if s['sources'] != 1 else ''}")
+            f"{'s' if s['sources'] != 1 else ''}{_left_out_text(s.get('left_out'))}")
+
+
+def _left_out_text(left_out: dict | None) -> str:
+    """'; 12 lines left out (3 without navigation, 9 beyond the view-angle limit)' or ''."""
+    left_out = {k: v for k, v in (left_out or {}).items() if v}
+    if not left_out:
+        return ""
+    names = {"no navigation": "without navigation", "view angle": "beyond the view-angle limit"}
+    parts = ", ".join(f"{n} {names.get(k, k)}" for k, n in left_out.items())
+    total = sum(left_out.values())
+    return f"; {total} line{'s' if total != 1 else ''} left out ({parts})"
 
 
 # ---------------------------------------------------------------------------------------------

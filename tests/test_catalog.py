@@ -256,3 +256,15 @@ def test_parsers():
     assert parse_datetime_range("2024-06-12T10:00:00Z/..") == (datetime(2024, 6, 12, 10, tzinfo=UTC).timestamp(), None)
     with pytest.raises(InputError):
         parse_bbox("1,2,3,inf")
+
+
+def test_datetime_months_and_years():
+    from datetime import UTC, datetime
+
+    start, end = parse_datetime_range("2024-06/2024-07")
+    assert datetime.fromtimestamp(start, UTC) == datetime(2024, 6, 1, tzinfo=UTC)
+    assert datetime.fromtimestamp(end, UTC) == datetime(2024, 7, 31, 23, 59, 59, 999999, tzinfo=UTC)
+    start, end = parse_datetime_range("2023")
+    assert datetime.fromtimestamp(end, UTC).date().isoformat() == "2023-12-31"
+    with pytest.raises(InputError, match="not a date"):
+        parse_datetime_range("2024-13")

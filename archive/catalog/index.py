@@ -240,9 +240,19 @@ def parse_bbox(text: str) -> tuple[float, float, float, float]:
 def _parse_instant(text: str, end: bool) -> float:
     from datetime import UTC, date, datetime, time, timedelta
 
-    fix = "use ISO 8601, e.g. 2023-06-26T09:00:00Z or 2023-06-26, and '..' for an open end"
+    fix = "use ISO 8601, e.g. 2023-06-26T09:00:00Z, 2023-06-26 or 2023-06, and '..' for an open end"
     text = text.strip()
     try:
+        if len(text) in (4, 7) and text[:4].isdigit():  # a year or a month alone: the whole of it
+            year, month = int(text[:4]), int(text[5:7]) if len(text) == 7 else None
+            if len(text) == 7 and text[4] != "-":
+                raise ValueError(text)
+            first = datetime(year, month or 1, 1, tzinfo=UTC)
+            if not end:
+                return first.timestamp()
+            nxt = (datetime(year + 1, 1, 1, tzinfo=UTC) if month in (None, 12)
+                   else datetime(year, month + 1, 1, tzinfo=UTC))
+            return (nxt - timedelta(microseconds=1)).timestamp()
         if len(text) == 10:  # a date alone: the whole day
             day = date.fromisoformat(text)
             moment = datetime.combine(day, time(0), tzinfo=UTC)
@@ -259,7 +269,8 @@ def _parse_instant(text: str, end: bool) -> float:
 
 def parse_datetime_range(text: str) -> tuple[float | None, float | None]:
     """``'A/B'``, ``'../B'``, ``'A/..'`` or a single instant ``'A'`` (ISO 8601; naive times are UTC;
-    a date alone means the whole day) -> (start, end) epoch seconds, None for an open end."""
+    a date alone means the whole day, a month 'YYYY-MM' or a year 'YYYY' the whole of it) ->
+    (start, end) epoch seconds, None for an open end."""
     text = str(text).strip()
     fix = "give --datetime START/END in ISO 8601 with '..' for an open end, e.g. 2023-06-01/.."
     parts = text.split("/")
