@@ -24,6 +24,7 @@ HANDLERS = {
     "ingest": "archive.ingest.command:run",
     "verify": "archive.ingest.command:run_verify",
     "catalog": "archive.catalog.command:run",
+    "view": "archive.view.server:run",
 }
 
 
@@ -78,6 +79,50 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lat", type=float, default=35.12, help="latitude of the site, degrees (default 35.12)")
     p.add_argument("--lon", type=float, default=-89.94, help="longitude of the site, degrees (default -89.94)")
     p.add_argument("--fov", type=float, default=47.5, help="across-track field of view, degrees (default 47.5)")
+
+    def numbers(count: int | None):
+        def parse(text: str) -> tuple[float, ...]:
+            try:
+                values = tuple(float(v) for v in text.replace(" ", "").split(","))
+            except ValueError:
+                values = ()
+            if not values or (count is not None and len(values) != count) \
+                    or not all(abs(v) < float("inf") for v in values):
+                what = f"{count} comma-separated numbers" if count else "comma-separated numbers"
+                raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+            return values
+        return parse
+
+    # accept negative number lists such as --boresight -0.5,1,0
+    p._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-[\d.]+(,\s*-?[\d.]+)+$")
+    r = p.add_argument_group("recorder realism (each off by default: an ideal recorder)")
+    r.add_argument("--dropped-frames", type=int, default=0, choices=range(11), metavar="N",
+                   help="frames dropped at each cube switch within a pass: the next cube starts N+1 frame "
+                        "intervals after the previous one's last line (default 0)")
+    shutter = r.add_mutually_exclusive_group()
+    shutter.add_argument("--shutters", type=numbers(None), metavar="MS,MS,...",
+                         help="shutter (ms) of each cube, cycled over cubes, gain 0 dB unless --gains "
+                              "(default: shutter and gain cycle over 3/0, 2.5/3, 3.9/0, 2.6/6 ms/dB)")
+    shutter.add_argument("--shutter-steps", action="store_true",
+                         help="shutters 3, 1.5, 3.9, 2.2 ms cycled over cubes at gain 0 dB")
+    r.add_argument("--gains", type=numbers(None), metavar="DB,DB,...", help="gain (dB) of each cube, cycled over cubes")
+    r.add_argument("--sync-offset", type=float, default=0.0, metavar="S",
+                   help="true camera-to-navigation offset, seconds: each .lcf starts S before its cube's first "
+                        "line, so 'archive render --sync-offset S' recovers the truth (default 0)")
+    r.add_argument("--bank-deg", type=float, metavar="D",
+                   help="coordinated turns between passes with a sustained bank of D degrees, 10..70 "
+                        "(default: flat half-circle turns)")
+    r.add_argument("--record-turns", action="store_true",
+                   help="keep recording into the turn after each pass (to the end of the sustained bank "
+                        "with --bank-deg): lines with huge view angles")
+    r.add_argument("--pause", type=float, default=0.0, metavar="S",
+                   help="the recorder stops S seconds before the middle line of one cube and continues in "
+                        "the same file (default 0: no pause)")
+    r.add_argument("--pause-cube", type=int, default=0, metavar="K", help="0-based cube of --pause (default 0)")
+    r.add_argument("--boresight", type=numbers(3), metavar="ROLL,PITCH,YAW",
+                   help="true camera mounting angles, degrees, aerospace signs (default 0,0,0)")
+    r.add_argument("--lever-arm", type=numbers(3), metavar="X,Y,Z",
+                   help="true camera position from the INS in the body frame, metres (default 0,0,0)")
     p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -233,6 +278,30 @@ def _add_catalog(sub: argparse._SubParsersAction) -> None:
                    help="also rewrite every Item from its collection store before indexing")
 
 
+def _add_view(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "view",
+        help="browse the archive's flights in a web browser, georectified on the fly",
+        description=(
+            "Start a local web server and print its URL: a map of the catalog's footprints; opening a "
+            "flight draws it georectified by the inverse renderer as Web-Mercator tiles (RGB or grey "
+            "bands, radiometric mode, stretch, cube range, ground height and sync offset), and a click "
+            "shows the spectrum of that pixel. Serves only the collections of --archive and the flight "
+            "directories named; binds 127.0.0.1 unless --host and --allow-remote say otherwise."
+        ),
+    )
+    p.add_argument("directories", nargs="*", metavar="FLIGHT_DIR", help="raw flight directories to serve too (need --fov)")
+    p.add_argument("--archive", metavar="ARCHIVE", help="archive whose cataloged collections are served")
+    p.add_argument("--fov", type=float, metavar="DEG",
+                   help="field of view, degrees (required for raw flight directories; default for a collection: as ingested)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1, loopback only)")
+    p.add_argument("--port", type=int, default=8000, help="port (default 8000; 0 picks a free one)")
+    p.add_argument("--allow-remote", action="store_true",
+                   help="allow a --host that is not loopback (anyone who can reach it can read the flights)")
+    p.add_argument("--cache-mb", type=int, default=512, metavar="MIB",
+                   help="memory for the tile, band and lookup caches, MiB (default 512)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="archive",
@@ -249,6 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_ingest(sub)
     _add_verify(sub)
     _add_catalog(sub)
+    _add_view(sub)
     return parser
 
 

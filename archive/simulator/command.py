@@ -3,6 +3,10 @@
 :func:`simulate_flight` is the Python entry point (tests call it); :func:`run` is the CLI handler.
 The flight is written into a hidden sibling directory and renamed into place at the end, so a
 half-written flight never appears under the requested name.
+
+Recorder realism (every option defaults to an ideal recorder, whose flight is unchanged byte for byte):
+dropped frames at cube switches, shutter steps, a camera-to-navigation sync offset, banked turns
+(optionally recorded), a pause inside a cube, a boresight and a lever arm; see :func:`simulate_flight`.
 """
 
 from __future__ import annotations
@@ -13,9 +17,9 @@ import os
 import shutil
 import sys
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -26,11 +30,13 @@ from archive.formats.icp import Calibration, DarkFrame, write_icp
 from archive.formats.lcf import LcfData, write_lcf
 from archive.formats.times import write_times
 from archive.simulator.layout import layout
+from archive.simulator.mount import Mount, camera_path
 from archive.simulator.scene import MATERIALS, Scene, material_spectra, random_waves
 from archive.simulator.sensor import (EXPOSURES, GAIN_CAL, SHUTTER_CAL, Radiometry,
                                       make_radiometry, trace_abundance)
 from archive.simulator.trajectory import (FRAMERATE, INS_RATE, Trajectory, convergence,
                                           default_wobble, to_lonlat, to_utm, utm_epsg)
+from archive.simulator.turns import RAMP_S, banked_turn
 from archive.simulator.truth import CubeTruth, Truth, save_truth
 from archive.simulator.writer import BilWriter, header_text, size_on_disk
 
@@ -48,6 +54,10 @@ KT = 3                         #: time points per exposure
 SUBSAMPLE_M = 0.03             #: target spacing (m) of the across-track sub-samples of a sample
 MAX_POINTS = 1 << 19           #: ground points traced per block (memory bound)
 MAX_VALUES = 1 << 22           #: DN values (bands x lines x samples) per block (memory bound)
+SHUTTER_STEPS = (3.0, 1.5, 3.9, 2.2)  #: ms, shutters cycled over cubes by ``shutter_steps`` (gain 0 dB)
+MAX_BANK_DEG = 70.0
+MIN_BANK_DEG = 10.0
+RECORD_TURN_FRACTION = 0.8     #: at most this fraction of a pass's recording is flown in the turn
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,10 +65,29 @@ class _CubePlan:
     index: int
     base: str
     pass_index: int
-    line_time: np.ndarray      # (lines,) GPS s, lcf scale
+    line_time: np.ndarray      # (lines,) true GPS s of exposure start
     camera_time: np.ndarray    # (lines,) s, camera clock as written in .times
     shutter_ms: float
     gain_db: float
+    lcf_t0: float              # GPS s of the first .lcf row (= line_time[0] - sync offset)
+
+
+@dataclass(frozen=True)
+class _Recorder:
+    """The recorder options of :func:`simulate_flight` (see there), checked."""
+
+    dropped_frames: int = 0
+    exposures: tuple[tuple[float, float], ...] = EXPOSURES
+    sync_offset: float = 0.0
+    bank_deg: float = 0.0
+    record_turns: bool = False
+    pause_s: float = 0.0
+    pause_cube: int = 0
+    mount: Mount = field(default_factory=Mount)
+
+    def pause_at(self, lines: int) -> tuple[int, int] | None:
+        """(cube, line) before which the recorder pauses, or None."""
+        return (self.pause_cube, lines // 2) if self.pause_s else None
 
 
 def _check(cubes: int, bands: int, samples: int, lines: int, cubes_per_pass: int, lat: float,
@@ -75,23 +104,96 @@ def _check(cubes: int, bands: int, samples: int, lines: int, cubes_per_pass: int
         raise InputError("simulate", f"field of view {fov_deg} degrees, expected 1..120")
 
 
-def _plan(cubes: int, lines: int, cubes_per_pass: int, traj: Trajectory) -> list[_CubePlan]:
+def _triple(name: str, value) -> tuple[float, float, float]:
+    try:
+        out = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        out = ()
+    if len(out) != 3 or not all(math.isfinite(v) for v in out):
+        raise InputError("simulate", f"{name} = {value!r}, expected three finite numbers")
+    return out  # type: ignore[return-value]
+
+
+def _recorder(cubes: int, lines: int, dropped_frames: int, shutters, gains, shutter_steps: bool,
+              sync_offset: float, bank_deg: float | None, record_turns: bool, pause_s: float,
+              pause_cube: int, boresight_deg, lever_arm_m) -> _Recorder:
+    def fail(message: str) -> None:
+        raise InputError("simulate", message)
+
+    if int(dropped_frames) != dropped_frames or not 0 <= dropped_frames <= 10:
+        fail(f"dropped frames = {dropped_frames}, expected an integer 0..10")
+    exposures = EXPOSURES
+    if shutters is not None or gains is not None or shutter_steps:
+        if shutters is not None and shutter_steps:
+            fail("give either shutters or shutter_steps, not both")
+        if shutter_steps:
+            shutter_list = [float(v) for v in SHUTTER_STEPS]
+        elif shutters is not None:
+            shutter_list = [float(v) for v in shutters]
+        else:
+            shutter_list = [e[0] for e in EXPOSURES]
+        gain_list = [float(v) for v in (gains if gains is not None else [0.0])]
+        if not shutter_list or not gain_list:
+            fail("shutters and gains need at least one value each")
+        for v in shutter_list:
+            if not (math.isfinite(v) and 0.01 <= v <= 1000.0 / FRAMERATE):
+                fail(f"shutter {v} ms, expected 0.01..{1000.0 / FRAMERATE:.3f} (the frame interval)")
+        for v in gain_list:
+            if not (math.isfinite(v) and 0.0 <= v <= 24.0):
+                fail(f"gain {v} dB, expected 0..24")
+        exposures = tuple((shutter_list[c % len(shutter_list)], gain_list[c % len(gain_list)])
+                          for c in range(max(len(shutter_list), len(gain_list))))
+    if not (math.isfinite(sync_offset) and abs(sync_offset) <= 10.0):
+        fail(f"sync offset {sync_offset} s, expected -10..10")
+    bank = 0.0 if bank_deg is None else float(bank_deg)
+    if bank and not MIN_BANK_DEG <= bank <= MAX_BANK_DEG:
+        fail(f"bank {bank_deg} degrees, expected {MIN_BANK_DEG:g}..{MAX_BANK_DEG:g}")
+    if not (math.isfinite(pause_s) and 0.0 <= pause_s <= 600.0):
+        fail(f"pause {pause_s} s, expected 0..600")
+    if pause_s and not (int(pause_cube) == pause_cube and 0 <= pause_cube < cubes):
+        fail(f"pause cube {pause_cube}, expected 0..{cubes - 1}")
+    if pause_s and lines < 4:
+        fail(f"a pause needs cubes of at least 4 lines, got {lines}")
+    boresight = _triple("boresight", boresight_deg)
+    lever = _triple("lever arm", lever_arm_m)
+    if max(abs(v) for v in boresight) > 90.0:
+        fail(f"boresight {boresight} degrees, expected angles within +-90")
+    if max(abs(v) for v in lever) > 20.0:
+        fail(f"lever arm {lever} m, expected components within +-20")
+    return _Recorder(int(dropped_frames), exposures, float(sync_offset), bank, bool(record_turns),
+                     float(pause_s), int(pause_cube), Mount(boresight, lever))
+
+
+def _plan(cubes: int, lines: int, cubes_per_pass: int, traj: Trajectory,
+          recorder: _Recorder = _Recorder()) -> list[_CubePlan]:
     plans = []
     t_first = traj.record_start(0)
+    pause = recorder.pause_at(lines)
     for c in range(cubes):
         k, j = divmod(c, cubes_per_pass)
-        ideal = traj.record_start(k) + (j * lines + np.arange(lines)) / FRAMERATE
+        ideal = traj.record_start(k) + (j * (lines + recorder.dropped_frames) + np.arange(lines)) / FRAMERATE
+        if pause is not None and divmod(pause[0], cubes_per_pass)[0] == k and pause[0] <= c:
+            # the recorder stops pause_s before line pause[1] of cube pause[0]; later lines follow
+            ideal = ideal + np.where(np.arange(lines) >= (pause[1] if pause[0] == c else 0),
+                                     recorder.pause_s, 0.0)
         camera = np.round(CAMERA_CLOCK_START + (ideal - t_first), 6)
-        # the first line, the first .times value and the first .lcf row are simultaneous
+        # the first line, the first .times value and the first .lcf row are simultaneous (up to the
+        # recorder's sync offset: the first .lcf row is at line_time[0] - sync_offset)
         line_time = ideal[0] + (camera - camera[0])
-        shutter, gain = EXPOSURES[c % len(EXPOSURES)]
-        plans.append(_CubePlan(c, f"sim_Pika_L_{c + 1}", k, line_time, camera, shutter, gain))
+        shutter, gain = recorder.exposures[c % len(recorder.exposures)]
+        lcf_t0 = line_time[0] - recorder.sync_offset if recorder.sync_offset else line_time[0]
+        plans.append(_CubePlan(c, f"sim_Pika_L_{c + 1}", k, line_time, camera, shutter, gain, lcf_t0))
     return plans
 
 
 def _lcf(traj: Trajectory, plan: _CubePlan, path: Path) -> None:
-    t0 = plan.line_time[0]
-    rows = int(math.ceil((plan.line_time[-1] + 2.0 / FRAMERATE - t0) * INS_RATE)) + 1
+    """The INS (body) samples at 200 Hz from the cube's first .lcf row to 2 frames past its last line,
+    on the .lcf scale (no sync offset) and in true time (with it), whichever is later."""
+    t0 = plan.lcf_t0
+    last = plan.line_time[-1]
+    if t0 != plan.line_time[0]:
+        last = max(last, t0 + (plan.line_time[-1] - plan.line_time[0]))
+    rows = int(math.ceil((last + 2.0 / FRAMERATE - t0) * INS_RATE)) + 1
     t = t0 + np.arange(rows) / INS_RATE
     pos = traj.position(t)
     yaw, pitch, roll = traj.euler(t)
@@ -104,7 +206,7 @@ def _lcf(traj: Trajectory, plan: _CubePlan, path: Path) -> None:
 @dataclass(frozen=True, eq=False)
 class _Context:
     scene: Scene
-    traj: Trajectory
+    camera: object             # camera path: the Trajectory, or a MountedCamera
     radiometry: Radiometry
     spectra_t: np.ndarray      # (bands, materials) float32
     fov_deg: float
@@ -117,7 +219,7 @@ def _cube_block(job: tuple[_CubePlan, int, np.ndarray], ctx: _Context) -> np.nda
     """DN (bands, lines, samples) uint16 of the lines ``t`` of one cube, starting at line ``i0``.
     Its noise is seeded by (seed, cube, first line), so the result does not depend on threading."""
     plan, i0, t = job
-    a = trace_abundance(ctx.scene, ctx.traj, t, plan.shutter_ms / 1000.0, ctx.fov_deg, ctx.samples,
+    a = trace_abundance(ctx.scene, ctx.camera, t, plan.shutter_ms / 1000.0, ctx.fov_deg, ctx.samples,
                         ctx.ku, KT)
     radiance = np.tensordot(ctx.spectra_t, a.astype(np.float32), axes=(1, 0))
     rng = np.random.default_rng([ctx.seed, plan.index, i0])
@@ -160,15 +262,44 @@ def _finalize(tmp: Path, directory: Path) -> None:
 def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8, samples: int = 128,
                     lines: int = 250, cubes_per_pass: int = 2, seed: int = 0, lat: float = 35.12,
                     lon: float = -89.94, fov_deg: float = 47.5, overwrite: bool = False,
-                    progress: bool = False) -> Truth:
+                    progress: bool = False, *, dropped_frames: int = 0,
+                    shutters: Sequence[float] | None = None, gains: Sequence[float] | None = None,
+                    shutter_steps: bool = False, sync_offset: float = 0.0,
+                    bank_deg: float | None = None, record_turns: bool = False, pause_s: float = 0.0,
+                    pause_cube: int = 0, boresight_deg: Sequence[float] = (0.0, 0.0, 0.0),
+                    lever_arm_m: Sequence[float] = (0.0, 0.0, 0.0)) -> Truth:
     """Write a simulated flight into ``directory`` and return its :class:`Truth`.
 
     ``cubes`` cubes of ``lines`` lines x ``samples`` samples x ``bands`` bands (400-1000 nm,
     evenly spaced), ``cubes_per_pass`` of them back to back on each lawn-mower pass; site at
-    (``lat``, ``lon``) degrees; camera field of view ``fov_deg`` degrees. Refuses an existing
+    (``lat``, ``lon``) degrees (the UTM zone of the site is the truth's ``epsg``, even where passes
+    cross into the next zone); camera field of view ``fov_deg`` degrees. Refuses an existing
     non-empty ``directory`` unless ``overwrite`` (:class:`OutputExistsError`).
+
+    Recorder realism, each off by default (then the flight is exactly the ideal one):
+
+    - ``dropped_frames`` (0..10): at each cube switch within a pass the recorder drops that many
+      frames: the next cube's first line starts ``dropped_frames + 1`` frame intervals after the
+      previous cube's last line (true times and the camera clock alike).
+    - ``shutters`` (ms) / ``gains`` (dB): exposures cycled over cubes (a list not given: shutters
+      as by default, gains 0 dB); ``shutter_steps``: shutters :data:`SHUTTER_STEPS` at 0 dB. By default
+      (shutter, gain) already cycles over cubes through ``EXPOSURES``.
+    - ``sync_offset`` (s): the true camera-to-navigation error. Each cube's ``.lcf`` starts at its
+      first line's true time minus ``sync_offset``, so that ``lcf_t0 + (times[i] - times[0]) +
+      sync_offset`` is line i's true time; the truth keeps true times and poses.
+    - ``bank_deg`` (10..70): coordinated banked turns between passes with this sustained bank
+      (None: flat half-circle turns); ``record_turns``: each pass's recording (but the last's) goes on
+      into the following turn, until the bank of a banked turn starts rolling out (half the turn for
+      flat turns), capped at 80 % of the pass's recording; those lines have huge view angles.
+    - ``pause_s`` (s): the recorder stops that long before the middle line (``lines // 2``) of cube
+      ``pause_cube`` and carries on in the same file: its ``.times`` jump by ``pause_s`` plus a frame
+      interval there, its ``.lcf`` is continuous. Every pass's straight segment is ``pause_s`` longer.
+    - ``boresight_deg`` (roll, pitch, yaw) and ``lever_arm_m`` (x, y, z, body frame): the true camera
+      mounting (DESIGN 3); the ``.lcf`` records the INS, the camera sees through the mount.
     """
     _check(cubes, bands, samples, lines, cubes_per_pass, lat, lon, fov_deg)
+    recorder = _recorder(cubes, lines, dropped_frames, shutters, gains, shutter_steps, sync_offset,
+                         bank_deg, record_turns, pause_s, pause_cube, boresight_deg, lever_arm_m)
     directory = Path(directory)
     if (directory.exists() and not (directory.is_dir() and not any(directory.iterdir()))) \
             and not overwrite:
@@ -179,11 +310,27 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
     epsg = utm_epsg(lon, lat)
     e0, n0 = (float(np.round(v)) for v in to_utm(lon, lat, epsg))
     passes = -(-cubes // cubes_per_pass)
+    record_s = (cubes_per_pass * lines + (cubes_per_pass - 1) * recorder.dropped_frames) / FRAMERATE
+    if recorder.pause_s:
+        record_s += recorder.pause_s
+    into_turn = 0.0
+    if recorder.record_turns and passes > 1:
+        if recorder.bank_deg:
+            turn = banked_turn(float(SPEED), float(SPACING), recorder.bank_deg)
+            into_turn = turn.peak_end_s + 0.5 * RAMP_S
+        else:
+            into_turn = 0.5 * math.pi * (SPACING / 2.0) / SPEED
+        into_turn = min(into_turn, RECORD_TURN_FRACTION * record_s)
     traj = Trajectory(epsg, e0, n0, HEADING_DEG, SPEED, SPACING, HEIGHT, GROUND_HEIGHT, T_START_GPS,
-                      RUN_S, cubes_per_pass * lines / FRAMERATE, passes, default_wobble(rng))
-    plans = _plan(cubes, lines, cubes_per_pass, traj)
+                      RUN_S, record_s, passes, default_wobble(rng), bank_deg=recorder.bank_deg,
+                      record_into_turn_s=into_turn)
+    camera = camera_path(traj, recorder.mount)
+    plans = _plan(cubes, lines, cubes_per_pass, traj, recorder)
     spans = [(min(p.line_time[0] for p in plans if p.pass_index == k),
               max(p.line_time[-1] for p in plans if p.pass_index == k)) for k in range(passes)]
+    if into_turn:   # targets go on the straight part of each pass only
+        spans = [(t0, min(t1, traj.segment_end(k)) if k < passes - 1 else t1)
+                 for k, (t0, t1) in enumerate(spans)]
     wavelengths = np.round(np.linspace(400.0, 1000.0, bands), 3)
     spectra = material_spectra(wavelengths)
     scene = Scene(e0, n0, int(seed), 1.2, random_waves(rng), tuple(layout(traj, spans, rng)),
@@ -194,7 +341,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
     pixel = 2.0 * HEIGHT * math.tan(math.radians(fov_deg) / 2.0) / samples
     ku = max(4, int(math.ceil(pixel / SUBSAMPLE_M)))
     block = max(1, min(MAX_POINTS // (KT * samples * ku), MAX_VALUES // (bands * samples)))
-    context = _Context(scene, traj, radiometry, spectra.T.astype(np.float32), fov_deg, samples, ku,
+    context = _Context(scene, camera, radiometry, spectra.T.astype(np.float32), fov_deg, samples, ku,
                        int(seed))
 
     workers = _workers()
@@ -207,7 +354,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                   file=sys.stderr) as bar, ThreadPoolExecutor(workers) as pool:
             for plan in plans:
                 hdr = header_text(samples, lines, bands, wavelengths, plan.shutter_ms, plan.gain_db,
-                                  FRAMERATE, plan.line_time[0], plan.base, GROUND_HEIGHT)
+                                  FRAMERATE, plan.lcf_t0, plan.base, GROUND_HEIGHT)
                 jobs = [(plan, i0, plan.line_time[i0:i0 + block]) for i0 in range(0, lines, block)]
                 with BilWriter(tmp / f"{plan.base}.bil", samples, lines, bands, hdr) as out:
                     for dn in _parallel_map(lambda job: _cube_block(job, context), jobs, pool,
@@ -216,14 +363,20 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                         bar.update(dn.shape[1])
                 write_times(tmp / f"{plan.base}.bil.times", plan.camera_time)
                 _lcf(traj, plan, tmp / f"{plan.base}.lcf")
-                position, attitude = traj(plan.line_time)
+                position, attitude = camera(plan.line_time)
                 cube_truths.append(CubeTruth(plan.base, plan.line_time, position, attitude,
                                              plan.shutter_ms, plan.gain_db, FRAMERATE))
         darks = tuple(DarkFrame(g, s, d) for (g, s), d in sorted(radiometry.darks.items()))
         write_icp(tmp / "calibration.icp", Calibration(None, radiometry.gain, SHUTTER_CAL, GAIN_CAL,
                                                        tuple(float(w) for w in wavelengths), darks))
+        pause = recorder.pause_at(lines)
         truth = Truth(directory, epsg, float(fov_deg), GROUND_HEIGHT, wavelengths, tuple(cube_truths),
-                      samples, (float(lon), float(lat)), int(seed), scene, traj)
+                      samples, (float(lon), float(lat)), int(seed), scene, traj,
+                      sync_offset=recorder.sync_offset, mount=recorder.mount,
+                      dropped_frames=recorder.dropped_frames,
+                      pause_cube=None if pause is None else pause[0],
+                      pause_line=None if pause is None else pause[1],
+                      pause_s=recorder.pause_s, record_turns=bool(into_turn))
         save_truth(truth, tmp / "truth")
         _finalize(tmp, directory)
     except BaseException:
@@ -248,15 +401,46 @@ def summary(truth: Truth) -> str:
         f"  nominal GSD {truth.nominal_gsd * 100:.1f} cm across, "
         f"{truth.flight.speed / truth.cubes[0].framerate * 100:.1f} cm along; field of view "
         f"{truth.fov_deg:g} deg; ground {truth.ground_height:g} m (ellipsoid)",
+        *_recorder_summary(truth),
         f"  truth: {truth.directory / 'truth'}",
     ])
 
 
+def _recorder_summary(truth: Truth) -> list[str]:
+    out = []
+    if truth.dropped_frames:
+        out.append(f"  dropped frames at cube switches: {truth.dropped_frames}")
+    if truth.sync_offset:
+        out.append(f"  sync offset (true): {truth.sync_offset:+g} s")
+    if truth.bank_deg:
+        out.append(f"  banked turns: {truth.bank_deg:g} deg" + (", recorded" if truth.record_turns else ""))
+    elif truth.record_turns:
+        out.append("  turns recorded")
+    if truth.pause_cube is not None:
+        out.append(f"  pause: {truth.pause_s:g} s before line {truth.pause_line} of cube "
+                   f"{truth.cubes[truth.pause_cube].base}")
+    if not truth.mount.identity:
+        out.append("  boresight (roll, pitch, yaw) {} deg, lever arm (x, y, z) {} m".format(
+            ",".join(f"{v:g}" for v in truth.boresight_deg), ",".join(f"{v:g}" for v in truth.lever_arm_m)))
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     """CLI handler of ``archive simulate``; returns the exit code."""
+    def opt(name: str, default):
+        value = getattr(args, name, None)
+        return default if value is None else value
+
     truth = simulate_flight(args.directory, cubes=args.cubes, bands=args.bands, samples=args.samples,
                             lines=args.lines, cubes_per_pass=args.cubes_per_pass, seed=args.seed,
                             lat=args.lat, lon=args.lon, fov_deg=args.fov, overwrite=args.overwrite,
-                            progress=not args.quiet)
+                            progress=not args.quiet, dropped_frames=opt("dropped_frames", 0),
+                            shutters=opt("shutters", None), gains=opt("gains", None),
+                            shutter_steps=bool(opt("shutter_steps", False)),
+                            sync_offset=opt("sync_offset", 0.0), bank_deg=opt("bank_deg", None),
+                            record_turns=bool(opt("record_turns", False)), pause_s=opt("pause", 0.0),
+                            pause_cube=opt("pause_cube", 0),
+                            boresight_deg=opt("boresight", (0.0, 0.0, 0.0)),
+                            lever_arm_m=opt("lever_arm", (0.0, 0.0, 0.0)))
     print(summary(truth))
     return 0

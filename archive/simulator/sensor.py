@@ -1,11 +1,13 @@
 """The simulated pushbroom camera: direct ray tracing of every sample over its footprint and
 exposure, and the radiometric model that turns radiance into 12-bit DN.
 
-Camera = body (no boresight, no lever arm). Camera vector of focal-plane coordinate u: (0, u, 1);
+The camera path is the platform's trajectory, or a :class:`~archive.simulator.mount.MountedCamera`
+(boresight, lever arm). Camera vector of focal-plane coordinate u: (0, u, 1);
 sample s (0-based, N samples) covers u in [-T + 2T s/N, -T + 2T (s+1)/N] with T = tan(fov/2).
 Each sample's DN integrates the radiance over ``ku`` points of u in its interval times ``kt``
 points of time in [t_line, t_line + shutter] (midpoint rule), each ray intersected with the flat
-ground ``alt = ground_height``.
+ground ``alt = ground_height``. A ray that does not meet the ground (pointing at or above the horizon,
+as in steeply banked turns) sees black sky (abundance 0).
 
 DN = dark[b, s] + L * response / gain[b, s] + noise, rounded and clipped to 0..4095, with
 ``response = (shutter / shutter_cal) * 10 ** ((gain_db - gain_cal) / 20)``.
@@ -99,11 +101,15 @@ def focal_plane(fov_deg: float, samples: int, ku: int) -> np.ndarray:
 
 def ground_points(traj: Trajectory, t: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """UTM E, N (m), each (len(t), len(u)), where the rays of focal-plane coordinates ``u`` at GPS
-    times ``t`` meet the ground (``traj.ground_height``)."""
+    times ``t`` meet the ground (``traj.ground_height``); NaN for rays that do not go down.
+    ``traj``: the camera path (a Trajectory when camera = body, or a MountedCamera)."""
     t = np.asarray(t, float).ravel()
     pos = traj.position(t)
-    r = traj.attitude(t).as_matrix()                               # (n, 3, 3) body -> NED
+    r = traj.attitude(t).as_matrix()                               # (n, 3, 3) camera -> NED
     d = r[:, None, :, 1] * u[None, :, None] + r[:, None, :, 2]     # (n, U, 3) N, E, D
+    down = d[..., 2] > 1e-9
+    if not down.all():
+        d = np.where(down[..., None], d, np.nan)
     lam = (pos[:, 2] - traj.ground_height)[:, None] / d[..., 2]
     return pos[:, 0, None] + lam * d[..., 1], pos[:, 1, None] + lam * d[..., 0]
 
@@ -115,6 +121,11 @@ def trace_abundance(scene: Scene, traj: Trajectory, line_time: np.ndarray, shutt
     t = line_time[:, None] + shutter_s * (np.arange(kt)[None, :] + 0.5) / kt   # (lines, kt)
     u = focal_plane(fov_deg, samples, ku)
     e, n = ground_points(traj, t.ravel(), u)
+    sky = ~np.isfinite(e)
+    if sky.any():
+        e, n = np.where(sky, scene.origin_e, e), np.where(sky, scene.origin_n, n)
     a = scene.abundance(e, n)                                       # (M, lines*kt, samples*ku)
+    if sky.any():
+        a[:, sky] = 0.0
     a = a.reshape(a.shape[0], line_time.size, kt, samples, ku)
     return a.mean(axis=(2, 4))

@@ -8,18 +8,23 @@ Angles are radians unless a name says ``_deg``. Attitude is body -> NED with N =
 The nominal path lives in a pass frame (a, c): ``a`` along the first pass's grid heading ``psi``,
 ``c`` to its right. Pass k is the straight line c = (k - (P - 1) / 2) * spacing, flown towards +a
 for even k and -a for odd k; a half circle of radius spacing / 2 joins the end of one pass to the
-start of the next. Small smooth perturbations (sums of sinusoids of ``tau = t - t_ref``) are added
-to the along / across / altitude position and to roll, pitch and yaw.
+start of the next (``bank_deg`` > 0: a coordinated banked turn instead, see
+:mod:`archive.simulator.turns`; ``record_into_turn_s`` > 0: the straight segment ends that long before
+the recording of the pass does, so the last lines of each pass but the last are flown in the turn).
+Small smooth perturbations (sums of sinusoids of ``tau = t - t_ref``) are added to the along / across
+/ altitude position and to roll, pitch and yaw (and the bank of banked turns to the roll).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 from pyproj import Transformer
 from scipy.spatial.transform import Rotation
+
+from archive.simulator.turns import BankedTurn, banked_turn
 
 __all__ = ["FRAMERATE", "INS_RATE", "Trajectory", "Wobble", "convergence", "default_wobble",
            "utm_epsg", "to_lonlat", "to_utm"]
@@ -76,6 +81,9 @@ class Trajectory:
     (ellipsoid); t_ref: GPS seconds at which pass 0 starts (its run-in); run_s: straight flight
     before and after recording on each pass (s); record_s: recording time of a full pass (s);
     passes: number of passes; wobble: perturbations (see :func:`default_wobble`).
+    bank_deg: 0 for today's flat half-circle turns, else the sustained bank (deg) of coordinated
+    turns (:class:`~archive.simulator.turns.BankedTurn`); record_into_turn_s: how long each pass's
+    recording goes on into the following turn (s; 0: recording ends ``run_s`` before the turn).
     """
 
     epsg: int
@@ -91,17 +99,29 @@ class Trajectory:
     record_s: float
     passes: int
     wobble: dict[str, Wobble] = field(default_factory=dict)
+    bank_deg: float = 0.0
+    record_into_turn_s: float = 0.0
 
     # --- timeline ---------------------------------------------------------------------------------
     @property
     def segment_s(self) -> float:
-        """Duration of one straight pass segment (run-in + recording + run-out), s."""
+        """Duration of one straight pass segment (run-in + recording + run-out), s; with
+        ``record_into_turn_s``, run-in + the part of the recording before the turn."""
+        if self.record_into_turn_s:
+            return self.run_s + self.record_s - self.record_into_turn_s
         return self.record_s + 2.0 * self.run_s
 
     @property
     def turn_s(self) -> float:
-        """Duration of one half-circle turn, s."""
+        """Duration of one turn, s."""
+        if self.bank_deg:
+            return self.turn.duration
         return math.pi * (self.spacing / 2.0) / self.speed
+
+    @property
+    def turn(self) -> BankedTurn | None:
+        """The banked turn between passes (None for the flat half-circle turns)."""
+        return banked_turn(float(self.speed), float(self.spacing), float(self.bank_deg)) if self.bank_deg else None
 
     @property
     def period_s(self) -> float:
@@ -110,6 +130,29 @@ class Trajectory:
     def record_start(self, k: int) -> float:
         """GPS time of the first line of pass ``k`` (s)."""
         return self.t_ref + k * self.period_s + self.run_s
+
+    def segment_end(self, k: int) -> float:
+        """GPS time at which the straight segment of pass ``k`` ends (its turn starts)."""
+        return self.t_ref + k * self.period_s + self.segment_s
+
+    def turning(self, t) -> np.ndarray:
+        """True at GPS times ``t`` flown in a turn between passes."""
+        tau = np.asarray(t, float) - self.t_ref
+        k = np.clip(np.floor(tau / self.period_s), 0, self.passes - 1).astype(int)
+        return (tau - k * self.period_s > self.segment_s) & (k < self.passes - 1)
+
+    def nominal_bank(self, t) -> np.ndarray:
+        """Roll (aerospace sign, rad) of the banked turns at GPS times ``t``, without the wobble
+        (0 on the passes and everywhere when ``bank_deg`` is 0)."""
+        tau = np.asarray(t, float) - self.t_ref
+        if not self.bank_deg:
+            return np.zeros_like(tau)
+        k = np.clip(np.floor(tau / self.period_s), 0, self.passes - 1).astype(int)
+        s = tau - k * self.period_s
+        turning = (s > self.segment_s) & (k < self.passes - 1)
+        bank = self.turn.bank(np.where(turning, s - self.segment_s, 0.0))
+        # even passes turn right (right wing down, + roll), odd passes turn left
+        return np.where(turning, np.where(k % 2 == 1, -bank, bank), 0.0)
 
     def pass_c(self, k) -> np.ndarray:
         return (np.asarray(k, float) - (self.passes - 1) / 2.0) * self.spacing
@@ -128,6 +171,12 @@ class Trajectory:
         c = self.pass_c(k)
         rel = np.where(odd, np.pi, 0.0)
         phi = np.where(turning, (s - self.segment_s) * self.speed / radius, 0.0)
+        if self.bank_deg:
+            x, y, psi, _ = self.turn(np.where(turning, s - self.segment_s, 0.0))
+            a = np.where(turning, sign * (half + x), a)
+            c = np.where(turning, c + y, c)
+            rel = np.where(turning, np.where(odd, np.pi - psi, psi), rel)
+            return a, c, rel
         a = np.where(turning, sign * (half + radius * np.sin(phi)), a)
         c = np.where(turning, c + radius * (1.0 - np.cos(phi)), c)
         rel = np.where(turning, np.where(odd, np.pi - phi, phi), rel)
@@ -154,7 +203,10 @@ class Trajectory:
         w = self.wobble
         yaw = math.radians(self.heading_deg) + rel + np.radians(w["yaw_deg"](tau))
         yaw = np.mod(yaw + np.pi, 2.0 * np.pi) - np.pi
-        return yaw, np.radians(w["pitch_deg"](tau)), np.radians(w["roll_deg"](tau))
+        roll = np.radians(w["roll_deg"](tau))
+        if self.bank_deg:
+            roll = roll + self.nominal_bank(t)
+        return yaw, np.radians(w["pitch_deg"](tau)), roll
 
     def position(self, t) -> np.ndarray:
         """(..., 3) E, N (UTM m) and altitude (m, ellipsoid) at GPS times ``t``."""
@@ -179,6 +231,9 @@ class Trajectory:
         d = asdict(self)
         d["wobble"] = {k: {"offset": v.offset, "terms": [list(t) for t in v.terms]}
                        for k, v in self.wobble.items()}
+        for f in fields(self):   # options added later: written only when set (older truths lack them)
+            if f.name in _OPTIONAL and d[f.name] == f.default:
+                del d[f.name]
         return d
 
     @classmethod
@@ -186,6 +241,9 @@ class Trajectory:
         d = dict(d)
         d["wobble"] = {k: Wobble.from_dict(v) for k, v in d["wobble"].items()}
         return cls(**d)
+
+
+_OPTIONAL = ("bank_deg", "record_into_turn_s")
 
 
 # --- projection helpers (pyproj directly, independent of archive.navigation) ----------------------

@@ -5,8 +5,15 @@ trajectory and wobble terms, per-cube exposure) and ``truth.npz`` the arrays (wa
 per-cube line times, positions and attitude quaternions). :func:`load_truth` rebuilds the same
 objects, so every test evaluates the same functions the simulator used.
 
-Coordinates: UTM metres (E, N) of ``epsg``, altitude m above the WGS-84 ellipsoid; times are GPS
-seconds on the ``.lcf`` scale; attitude is camera (= body) -> NED with N = grid north.
+Coordinates: UTM metres (E, N) of ``epsg`` (the zone of the site, also for points beyond a zone
+border), altitude m above the WGS-84 ellipsoid; the evaluation functions also take points in another
+CRS (``crs=``: an EPSG code such as the neighbouring UTM zone's, or 4326 for lon/lat). Times are TRUE
+GPS seconds of exposure start: the ``.lcf`` scale plus the camera's ``sync_offset`` (see
+:class:`Truth`); per-line poses are the CAMERA's (``boresight_deg`` / ``lever_arm_m`` applied), while the
+``.lcf`` records the INS (:meth:`Truth.ins_trajectory`).
+
+Options added after version 1 (sync offset, mounting, dropped frames, pause, banked turns recorded) are
+written only when set, so a default flight's truth is unchanged and older truths load with defaults.
 """
 
 from __future__ import annotations
@@ -14,28 +21,47 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass
-from functools import cached_property
+from dataclasses import dataclass, field
+from functools import cached_property, lru_cache
 from pathlib import Path
 
 import numpy as np
+from pyproj import CRS, Transformer
 from scipy.spatial.transform import Rotation
 
 from archive.errors import FormatError, MissingInputError
+from archive.simulator.mount import Mount, camera_path
 from archive.simulator.scene import Scene, points_in_polygon
 from archive.simulator.sensor import ground_points
 from archive.simulator.trajectory import Trajectory, convergence
 
-__all__ = ["CubeTruth", "Truth", "load_truth", "save_truth", "TRUTH_VERSION"]
+__all__ = ["CubeTruth", "Truth", "load_truth", "save_truth", "TRUTH_VERSION",
+           "FOOTPRINT_MAX_OFF_NADIR_DEG"]
 
 TRUTH_VERSION = 1
+#: lines whose swath edge is seen further off nadir than this (banked turns) are left out of the footprint
+FOOTPRINT_MAX_OFF_NADIR_DEG = 75.0
+
+
+@lru_cache(maxsize=16)
+def _transformer(source: str, target: int) -> Transformer:
+    return Transformer.from_crs(CRS.from_user_input(source), CRS.from_epsg(target), always_xy=True)
+
+
+def _crs_key(crs) -> str:
+    """A hashable description of ``crs`` (EPSG int, 'EPSG:x' string, pyproj CRS, ...)."""
+    if isinstance(crs, (int, np.integer)):
+        return f"EPSG:{int(crs)}"
+    if isinstance(crs, CRS):
+        return crs.to_wkt()
+    return str(crs)
 
 
 @dataclass(frozen=True, eq=False)
 class CubeTruth:
-    """One cube: ``line_time`` (lines,) GPS s at exposure start; ``position_utm`` (lines, 3) E, N,
-    alt (m) of the camera then; ``attitude`` (lines,) camera -> NED (grid north); exposure
-    ``shutter_ms`` (ms) and ``gain_db`` (dB); ``framerate`` (Hz)."""
+    """One cube: ``line_time`` (lines,) true GPS s at exposure start; ``position_utm`` (lines, 3) E,
+    N, alt (m) of the camera then (lever arm applied); ``attitude`` (lines,) camera -> NED (grid
+    north, boresight applied); exposure ``shutter_ms`` (ms) and ``gain_db`` (dB); ``framerate`` (Hz)."""
 
     base: str
     line_time: np.ndarray
@@ -54,7 +80,15 @@ class CubeTruth:
 class Truth:
     """Everything the simulator knows. ``wavelengths`` (bands,) nm; ``cubes`` in capture order;
     ``samples`` per line; ``site`` (lon, lat) degrees; ``scene`` and ``flight`` evaluate the
-    radiance and the continuous motion."""
+    radiance and the continuous motion of the platform (INS).
+
+    Recorder realism (defaults = an ideal recorder): ``sync_offset`` (s) the true camera-to-navigation
+    offset: a line's true time = lcf_t0 + (times[i] - times[0]) + sync_offset; ``mount`` the true
+    camera mounting (``boresight_deg`` (roll, pitch, yaw) deg, ``lever_arm_m`` (x, y, z) m, body frame);
+    ``dropped_frames`` frames dropped at each cube switch within a pass; ``pause_cube`` /
+    ``pause_line`` / ``pause_s``: the recorder stopped ``pause_s`` s before line ``pause_line`` of cube
+    ``pause_cube`` (None / None / 0: no pause); ``record_turns``: the end of each pass's recording is
+    flown in the turn (``bank_deg``: the sustained bank of the turns, 0 for flat half circles)."""
 
     directory: Path
     epsg: int
@@ -67,20 +101,86 @@ class Truth:
     seed: int
     scene: Scene
     flight: Trajectory
+    sync_offset: float = 0.0
+    mount: Mount = field(default_factory=Mount)
+    dropped_frames: int = 0
+    pause_cube: int | None = None
+    pause_line: int | None = None
+    pause_s: float = 0.0
+    record_turns: bool = False
+
+    # --- recorder options -----------------------------------------------------------------------
+    @property
+    def boresight_deg(self) -> tuple[float, float, float]:
+        return tuple(self.mount.boresight_deg)
+
+    @property
+    def lever_arm_m(self) -> tuple[float, float, float]:
+        return tuple(self.mount.lever_arm_m)
+
+    @property
+    def bank_deg(self) -> float:
+        """Sustained bank of the turns between passes (deg), 0 for the flat half-circle turns."""
+        return float(self.flight.bank_deg)
+
+    @property
+    def crs(self) -> str:
+        """'EPSG:<epsg>': the CRS of every UTM coordinate of the truth."""
+        return f"EPSG:{self.epsg}"
+
+    def in_turn(self, cube: int) -> np.ndarray:
+        """(lines,) True for the lines of cube ``cube`` flown in a turn between passes."""
+        return self.flight.turning(self.cubes[cube].line_time)
+
+    # --- coordinates ------------------------------------------------------------------------------
+    def to_utm(self, x, y, crs=None) -> tuple[np.ndarray, np.ndarray]:
+        """Points (x, y) in ``crs`` (EPSG code, 'EPSG:x', pyproj CRS; 4326: lon, lat degrees; None:
+        the truth's own UTM) -> UTM E, N (m) of the truth's ``epsg``."""
+        x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+        if crs is None or _crs_key(crs) == self.crs:
+            return x, y
+        e, n = _transformer(_crs_key(crs), self.epsg).transform(x, y)
+        return np.asarray(e, float).reshape(x.shape), np.asarray(n, float).reshape(x.shape)
+
+    def from_utm(self, e, n, crs=None) -> tuple[np.ndarray, np.ndarray]:
+        """UTM E, N (m) of the truth's ``epsg`` -> (x, y) in ``crs`` (see :meth:`to_utm`)."""
+        e, n = np.broadcast_arrays(np.asarray(e, float), np.asarray(n, float))
+        if crs is None or _crs_key(crs) == self.crs:
+            return e, n
+        inverse = Transformer.from_crs(CRS.from_epsg(self.epsg), CRS.from_user_input(_crs_key(crs)),
+                                       always_xy=True)
+        x, y = inverse.transform(e, n)
+        return np.asarray(x, float).reshape(e.shape), np.asarray(y, float).reshape(e.shape)
 
     # --- scene ------------------------------------------------------------------------------------
-    def radiance(self, e, n) -> np.ndarray:
-        """True radiance (bands, *e.shape) at UTM points (m), point value (no blur)."""
-        return self.scene.radiance(e, n)
+    def radiance(self, e, n, crs=None) -> np.ndarray:
+        """True radiance (bands, *e.shape) at UTM points (m), point value (no blur); points in
+        another CRS with ``crs`` (see :meth:`to_utm`)."""
+        return self.scene.radiance(*self.to_utm(e, n, crs))
 
-    def radiance_box(self, e, n, size: float, supersample: int = 8) -> np.ndarray:
-        """True radiance (bands, *e.shape) averaged over size x size m squares centred at (e, n)
-        (supersample x supersample points per square)."""
-        return self.scene.radiance_box(e, n, size, supersample)
+    def radiance_box(self, e, n, size: float, supersample: int = 8, crs=None) -> np.ndarray:
+        """True radiance (bands, *e.shape) averaged over size x size squares centred at (e, n)
+        (supersample x supersample points per square). With ``crs``, the squares are squares of that
+        CRS (its axes, ``size`` in its units, e.g. a pixel of a render made in the other UTM zone)."""
+        if crs is None or _crs_key(crs) == self.crs:
+            return self.scene.radiance_box(e, n, size, supersample)
+        e, n = np.broadcast_arrays(np.asarray(e, float), np.asarray(n, float))
+        offsets = ((np.arange(supersample) + 0.5) / supersample - 0.5) * float(size)
+        oe, on = (g.ravel() for g in np.meshgrid(offsets, offsets))
+        flat_e, flat_n = e.ravel(), n.ravel()
+        materials = len(self.scene.materials)
+        out = np.zeros((materials, flat_e.size))
+        step = max(1, (1 << 18) // oe.size)
+        for s0 in range(0, flat_e.size, step):
+            pe, pn = self.to_utm(flat_e[s0:s0 + step, None] + oe[None, :],
+                                 flat_n[s0:s0 + step, None] + on[None, :], crs)
+            a = self.scene.abundance(pe.ravel(), pn.ravel())
+            out[:, s0:s0 + step] = a.reshape(materials, -1, oe.size).mean(axis=2)
+        return np.tensordot(self.scene.spectra.T, out.reshape((materials,) + e.shape), axes=(1, 0))
 
-    def abundance(self, e, n) -> np.ndarray:
+    def abundance(self, e, n, crs=None) -> np.ndarray:
         """Material abundances (materials, *e.shape) at UTM points; see ``scene.materials``."""
-        return self.scene.abundance(e, n)
+        return self.scene.abundance(*self.to_utm(e, n, crs))
 
     @property
     def spectra(self) -> np.ndarray:
@@ -92,9 +192,20 @@ class Truth:
         return self.scene.homogeneous_patches()
 
     # --- motion -------------------------------------------------------------------------------------
+    @property
+    def camera(self):
+        """The camera path (``position(t)``, ``attitude(t)``): ``flight`` seen through ``mount``."""
+        return camera_path(self.flight, self.mount)
+
     def trajectory(self, t) -> tuple[np.ndarray, Rotation]:
-        """Continuous truth at lcf-scale GPS times ``t`` (n,): positions (n, 3) E, N, alt (m) and
-        attitudes (n,) body (= camera) -> NED (grid north)."""
+        """Continuous truth of the CAMERA at true GPS times ``t`` (n,): positions (n, 3) E, N, alt (m)
+        and attitudes (n,) camera -> NED (grid north). Equal to :meth:`ins_trajectory` unless the
+        flight has a boresight or a lever arm."""
+        return self.camera(t)
+
+    def ins_trajectory(self, t) -> tuple[np.ndarray, Rotation]:
+        """Continuous truth of the INS / body (what the ``.lcf`` records) at GPS times ``t`` (n,):
+        positions (n, 3) E, N, alt (m) and attitudes (n,) body -> NED (grid north)."""
         return self.flight(t)
 
     @property
@@ -111,12 +222,13 @@ class Truth:
     @property
     def strips(self) -> list[tuple[int, ...]]:
         """Cube indices of each strip: consecutive cubes whose first line follows the previous
-        cube's last line within 1.5 frame intervals (no turn between them)."""
+        cube's last line within 1.5 frame intervals plus the dropped frames (a recorder's cube
+        switch, no turn between them). A pause inside a cube splits the footprint, not the strip."""
         out: list[list[int]] = []
         for k, cube in enumerate(self.cubes):
             if out:
                 prev = self.cubes[out[-1][-1]]
-                if cube.line_time[0] - prev.line_time[-1] <= 1.5 / prev.framerate:
+                if cube.line_time[0] - prev.line_time[-1] <= (1.5 + self.dropped_frames) / prev.framerate:
                     out[-1].append(k)
                     continue
             out.append([k])
@@ -127,24 +239,47 @@ class Truth:
     def _footprints(self) -> list[np.ndarray]:
         t_half = math.tan(math.radians(self.fov_deg) / 2.0)
         edges = np.array([-t_half, t_half])
+        camera = self.camera
+        cos_limit = math.cos(math.radians(FOOTPRINT_MAX_OFF_NADIR_DEG))
         polygons = []
         for strip in self.strips:
             t = np.concatenate([self.cubes[k].line_time + self.cubes[k].shutter_ms / 2000.0 for k in strip])
-            e, n = ground_points(self.flight, t, edges)
-            left = np.stack([e[:, 0], n[:, 0]], axis=1)
-            right = np.stack([e[:, 1], n[:, 1]], axis=1)
-            polygons.append(np.concatenate([left, right[::-1]]))
+            e, n = ground_points(camera, t, edges)
+            # split at a pause and leave out lines seen too far off nadir (banked turns)
+            starts = np.cumsum([0] + [self.cubes[k].lines for k in strip])
+            cut = np.zeros(t.size, bool)
+            if self.pause_cube in strip:
+                cut[starts[strip.index(self.pause_cube)] + self.pause_line] = True
+            m = camera.attitude(t).as_matrix()
+            ok = np.ones(t.size, bool)
+            for u in edges:
+                d = m[:, :, 1] * u + m[:, :, 2]
+                ok &= d[:, 2] >= cos_limit * np.linalg.norm(d, axis=1)
+            ok &= np.isfinite(e).all(axis=1)
+            run = np.cumsum(cut | np.concatenate([[False], ok[1:] != ok[:-1]]))
+            for r in np.unique(run[ok]):
+                sel = ok & (run == r)
+                if sel.sum() < 2:
+                    continue
+                left = np.stack([e[sel, 0], n[sel, 0]], axis=1)
+                right = np.stack([e[sel, 1], n[sel, 1]], axis=1)
+                polygons.append(np.concatenate([left, right[::-1]]))
         return polygons
 
-    def footprint(self) -> list[np.ndarray]:
+    def footprint(self, crs=None) -> list[np.ndarray]:
         """One polygon per strip, (k, 2) UTM (E, N) vertices (not repeated at the end): the left
         swath edge from the first to the last line, then the right edge back, each line's edge
-        taken at its mid-exposure pose."""
+        taken at its mid-exposure pose. A pause splits a strip's polygon in two; lines whose swath
+        edge is seen more than FOOTPRINT_MAX_OFF_NADIR_DEG off nadir (steep banks) are left out.
+        ``crs``: vertices in that CRS instead (see :meth:`to_utm`)."""
+        if crs is not None and _crs_key(crs) != self.crs:
+            return [np.stack(self.from_utm(p[:, 0], p[:, 1], crs), axis=1) for p in self._footprints]
         return [p.copy() for p in self._footprints]
 
-    def covered(self, e, n) -> np.ndarray:
-        """True where UTM points (m) lie inside the true footprint (union of strips); shape of e."""
-        e, n = np.broadcast_arrays(np.asarray(e, float), np.asarray(n, float))
+    def covered(self, e, n, crs=None) -> np.ndarray:
+        """True where UTM points (m) lie inside the true footprint (union of strips); shape of e.
+        ``crs``: points in that CRS instead (see :meth:`to_utm`)."""
+        e, n = self.to_utm(e, n, crs)
         shape = e.shape
         e, n = e.ravel(), n.ravel()
         inside = np.zeros(e.size, bool)
@@ -177,6 +312,22 @@ def save_truth(truth: Truth, folder: str | os.PathLike) -> None:
         arrays[f"attitude_quat_{k}"] = c.attitude.as_quat()
     for k, poly in enumerate(truth.footprint()):
         arrays[f"footprint_{k}"] = poly
+    # recorder options added after version 1: only when set (a default truth stays as it was)
+    if truth.sync_offset:
+        meta["sync_offset"] = truth.sync_offset
+        meta["notes_sync_offset"] = ("line times and poses are TRUE: a line's true time is lcf_t0 + "
+                                     "(times[i] - times[0]) + sync_offset; each .lcf starts at its cube's "
+                                     "first true line time - sync_offset")
+    if any(truth.mount.boresight_deg):
+        meta["boresight_deg"] = [float(v) for v in truth.mount.boresight_deg]
+    if any(truth.mount.lever_arm_m):
+        meta["lever_arm_m"] = [float(v) for v in truth.mount.lever_arm_m]
+    if truth.dropped_frames:
+        meta["dropped_frames"] = truth.dropped_frames
+    if truth.pause_cube is not None:
+        meta["pause"] = {"cube": truth.pause_cube, "line": truth.pause_line, "seconds": truth.pause_s}
+    if truth.record_turns:
+        meta["record_turns"] = True
     np.savez(folder / "truth.npz", **arrays)
     (folder / "truth.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
 
@@ -204,6 +355,15 @@ def load_truth(directory: str | os.PathLike) -> Truth:
                   float(c["gain_db"]), float(c["framerate"]))
         for k, c in enumerate(meta["cubes"]))
     scene = Scene.from_dict(meta["scene"], arrays["wavelengths"], arrays["spectra"])
+    mount = Mount(tuple(float(v) for v in meta.get("boresight_deg", (0.0, 0.0, 0.0))),
+                  tuple(float(v) for v in meta.get("lever_arm_m", (0.0, 0.0, 0.0))))
+    pause = meta.get("pause")
     return Truth(flight_dir, int(meta["epsg"]), float(meta["fov_deg"]), float(meta["ground_height"]),
                  arrays["wavelengths"], cubes, int(meta["samples"]), tuple(meta["site"]),
-                 int(meta["seed"]), scene, Trajectory.from_dict(meta["trajectory"]))
+                 int(meta["seed"]), scene, Trajectory.from_dict(meta["trajectory"]),
+                 sync_offset=float(meta.get("sync_offset", 0.0)), mount=mount,
+                 dropped_frames=int(meta.get("dropped_frames", 0)),
+                 pause_cube=None if pause is None else int(pause["cube"]),
+                 pause_line=None if pause is None else int(pause["line"]),
+                 pause_s=0.0 if pause is None else float(pause["seconds"]),
+                 record_turns=bool(meta.get("record_turns", False)))
