@@ -4,6 +4,7 @@ samples (skipped where they are absent) and on flights the simulator makes with 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from archive.formats.lcf import read_lcf
@@ -97,3 +98,206 @@ def test_banked_lines_are_left_out_and_the_mesh_stays_small():
     w, s, e, n = mesh.bounds_utm()
     assert e - w < 2 * 40 * np.tan(np.radians(40.0)) + 1   # bounded by the view-angle limit
     assert np.flatnonzero(mesh.breaks).tolist() == [59 - dropped - 20]
+
+
+# ---------------------------------------------------------------------------------------------
+# simulated flights with what real recorders do, rendered and compared with the truth
+# ---------------------------------------------------------------------------------------------
+SMALL = dict(bands=4, samples=64, lines=120)
+
+
+def _simulate(tmp_path_factory, name, **options):
+    from archive.simulator.command import simulate_flight
+
+    directory = tmp_path_factory.mktemp(name) / "flight"
+    return directory, simulate_flight(directory, **{**SMALL, **options})
+
+
+def _mosaic(sources, gsd, **keywords):
+    """The radiance mosaic (band, y, x), computed in this process, and its Grid."""
+    import archive
+    from archive.grid import Grid
+
+    ds = archive.mosaic([str(s) for s in sources], gsd=gsd, fov=FOV, mode="radiance", **keywords)
+    t = ds.rio.transform()
+    grid = Grid(ds.rio.crs.to_epsg(), t.a, t.c, t.f, ds.sizes["x"], ds.sizes["y"])
+    return ds["radiance"].values, grid
+
+
+def _coverage(truths, grid, d_px=1.5):
+    """(eroded, dilated) truth coverage on ``grid`` (in its CRS), by d_px pixels."""
+    x, y = grid.xy_centres()
+    xx, yy = np.meshgrid(x, y)
+    d = d_px * grid.gsd
+    eroded = np.zeros(grid.shape, bool)
+    dilated = np.zeros(grid.shape, bool)
+    for truth in truths:
+        e = np.ones(grid.shape, bool)
+        for dx in (-d, 0.0, d):
+            for dy in (-d, 0.0, d):
+                inside = truth.covered(xx + dx, yy + dy, crs=grid.epsg)
+                e &= inside
+                dilated |= inside
+        eroded |= e
+    return eroded, dilated
+
+
+@pytest.mark.parametrize("dropped", [1, 2])
+def test_no_hole_at_seams_with_dropped_frames_and_shutter_steps(tmp_path_factory, dropped):
+    directory, truth = _simulate(tmp_path_factory, f"seam{dropped}", cubes=4, cubes_per_pass=2,
+                                 dropped_frames=dropped, shutter_steps=True, seed=11)
+    assert len({c.shutter_ms for c in truth.cubes}) > 1
+    values, grid = _mosaic([directory], truth.nominal_gsd, ground_height=truth.ground_height)
+    eroded, dilated = _coverage([truth], grid)
+    has_value = ~np.isnan(values).any(axis=0)
+    assert eroded.sum() > 1000
+    assert not (eroded & ~has_value).any(), f"{(eroded & ~has_value).sum()} NaN pixels inside the swath"
+    assert not (has_value & ~dilated).any(), f"{(has_value & ~dilated).sum()} values outside"
+
+
+@pytest.mark.parametrize("sync", [-0.5, -0.05, 0.05, 0.5])
+def test_poses_at_cube_starts_with_sync_offsets(tmp_path_factory, sync):
+    from archive.ingest.command import ingest
+    from archive.sources import open_source
+
+    # cubes of 1 s (250 lines), longer than the largest offset: each cube start lies in the previous .lcf
+    directory, truth = _simulate(tmp_path_factory, "sync", cubes=4, cubes_per_pass=2, sync_offset=sync, seed=4,
+                                 lines=250, samples=32, bands=2)
+    params = NavigationParams(fov_deg=FOV, sync_offset=sync)
+    raw = open_source(directory, params)
+    archive_dir = directory.parent / "archive"
+    [result] = ingest([str(directory)], archive_dir, FOV, progress=False, sync_offset=sync)
+    col = open_source(result.cid, NavigationParams(fov_deg=FOV, sync_offset=None), archive=archive_dir)
+    checked = 0
+    for k, cube in enumerate(truth.cubes):
+        p, q = raw.poses(k), col.poses(k)
+        np.testing.assert_array_equal(p.position, q.position)          # raw and collection agree
+        np.testing.assert_array_equal(p.attitude.as_quat(), q.attitude.as_quat())
+        assert (p.valid is None) == (q.valid is None)
+        np.testing.assert_allclose(p.time, cube.line_time, atol=1e-6)
+        # lines inside the flight's navigation (not extrapolated) are interpolated to the truth
+        _, outside = raw.navigation._locate(p.time)
+        inside = outside == 0.0
+        first_of_strip = k in [s[0] for s in truth.strips]
+        if not first_of_strip or sync > 0:
+            assert inside[0], (k, outside[0])          # a cube start reaches into the previous .lcf
+        if not inside.any():
+            continue
+        utm = p.utm()
+        err = np.linalg.norm(utm[inside] - np.asarray(cube.position_utm)[inside], axis=1)
+        assert err.max() < 1e-3, (k, err.max())
+        angle = np.degrees((p.attitude[inside].inv() * cube.attitude[inside]).magnitude())
+        assert angle.max() < 1e-3, (k, angle.max())
+        if inside[0]:
+            checked += 1
+        if p.valid is not None:                          # left out: only lines of a strip's first cube
+            assert first_of_strip and sync < 0
+    assert checked >= 2
+
+
+def test_turns_up_to_70_degrees_keep_the_output_bounded(tmp_path_factory):
+    from archive import pipeline
+
+    directory, truth = _simulate(tmp_path_factory, "turns", cubes=4, cubes_per_pass=2, lines=160, bank_deg=70.0,
+                                 record_turns=True, seed=5)
+    assert max(truth.bank_deg for _ in [0]) == 70.0
+    out = directory.parent / "out.zarr"
+    import archive
+
+    s = archive.render([str(directory)], out, gsd=2 * truth.nominal_gsd, fov=FOV, ground_height=truth.ground_height,
+                       mode="radiance", quiet=True)
+    assert s["left_out"].get("view angle", 0) > 0
+    assert "line" in pipeline.describe(s) and "beyond the view-angle limit" in pipeline.describe(s)
+    # the straight passes' footprint, grown by what a line at the 40 deg limit can reach (~34 m at 40 m)
+    rings = np.concatenate(truth.footprint())
+    w, s_, e, n = rings[:, 0].min(), rings[:, 1].min(), rings[:, 0].max(), rings[:, 1].max()
+    assert s["width"] * s["gsd"] <= (e - w) + 2 * 40.0 * np.tan(np.radians(40.0)) + 2
+    assert s["height"] * s["gsd"] <= (n - s_) + 2 * 40.0 * np.tan(np.radians(40.0)) + 2
+
+
+def test_no_smear_across_a_pause(tmp_path_factory):
+    directory, truth = _simulate(tmp_path_factory, "pause", cubes=2, cubes_per_pass=2, pause_s=0.6, pause_cube=0,
+                                 seed=6)
+    values, grid = _mosaic([directory], truth.nominal_gsd, ground_height=truth.ground_height)
+    eroded, dilated = _coverage([truth], grid)
+    has_value = ~np.isnan(values).any(axis=0)
+    assert len(truth.footprint()) >= 2                # the pause splits the pass
+    assert not (has_value & ~dilated).any(), f"{(has_value & ~dilated).sum()} values on ground flown while paused"
+    assert not (eroded & ~has_value).any()
+
+
+def _shifts(values, grid, truth_of, band=2):
+    """Lucas-Kanade shifts (dy, dx) px of textured windows against the truth radiance."""
+    from tests.test_render_truth import lucas_kanade
+
+    x, y = grid.xy_centres()
+    size = 16
+    out = []
+    for r in range(0, grid.height - size + 1, size // 2):
+        for c in range(0, grid.width - size + 1, size // 2):
+            image = values[band, r:r + size, c:c + size]
+            if np.isnan(image).any():
+                continue
+            gy, gx = np.gradient(image)
+            if np.sqrt(np.mean(gx**2 + gy**2)) < 0.02 * np.mean(image):
+                continue
+            xx, yy = np.meshgrid(x[c:c + size], y[r:r + size])
+            truth = truth_of(xx, yy)
+            if truth is None:
+                continue
+            reference = truth.radiance_box(xx, yy, grid.gsd, supersample=4, crs=grid.epsg)[band]
+            out.append(lucas_kanade(reference, image))
+    return np.array(out)
+
+
+def _shift_ok(shifts) -> bool:
+    size = np.hypot(shifts[:, 0], shifts[:, 1])
+    return np.median(size) <= 0.2 and np.percentile(size, 95) <= 0.5 and np.all(np.abs(shifts.mean(axis=0)) < 0.1)
+
+
+def test_two_flights_across_a_zone_border_mosaic_into_one_grid(tmp_path_factory):
+    west_dir, west = _simulate(tmp_path_factory, "west", cubes=2, cubes_per_pass=1, lon=-90.00005, seed=7,
+                               samples=128, lines=200)
+    east_dir, east = _simulate(tmp_path_factory, "east", cubes=2, cubes_per_pass=1, lon=-89.9995, seed=8,
+                               samples=128, lines=200)
+    assert {west.epsg, east.epsg} == {32615, 32616}
+    assert west.ground_height == east.ground_height
+    values, grid = _mosaic([west_dir, east_dir], west.nominal_gsd, ground_height=west.ground_height)
+    assert grid.epsg in (32615, 32616)
+    x, y = grid.xy_centres()
+
+    def truth_of(xx, yy):
+        inside = [t for t in (west, east) if t.covered(xx, yy, crs=grid.epsg).all()]
+        others = [t for t in (west, east) if t.covered(xx, yy, crs=grid.epsg).any() and t not in inside]
+        return inside[0] if len(inside) == 1 and not others else None
+
+    shifts = _shifts(values, grid, truth_of)
+    assert len(shifts) >= 10
+    assert _shift_ok(shifts), shifts
+    # both flights are in the grid
+    for truth in (west, east):
+        xx, yy = np.meshgrid(x, y)
+        assert (truth.covered(xx, yy, crs=grid.epsg) & ~np.isnan(values[0])).sum() > 500
+
+
+def test_boresight_and_lever_arm_from_the_cli_recover_the_truth(tmp_path_factory):
+    import xarray as xr
+
+    from archive.cli import main
+    from archive.grid import Grid
+
+    directory, truth = _simulate(tmp_path_factory, "mount", cubes=2, cubes_per_pass=2, seed=9, samples=128,
+                                 lines=200, boresight_deg=(1.0, 2.25, 0.5), lever_arm_m=(0.3, 0.1, 0.2))
+    results = {}
+    for name, extra in (("mounted", ["--boresight", "1,2.25,0.5", "--lever-arm", "0.3,0.1,0.2"]), ("plain", [])):
+        out = directory.parent / f"{name}.zarr"
+        assert main(["render", str(directory), "--fov", str(FOV), "--gsd", str(truth.nominal_gsd), "--mode",
+                     "radiance", "--ground-height", str(truth.ground_height), "--out", str(out), "--quiet",
+                     *extra]) == 0
+        ds = xr.open_zarr(out, decode_coords="all")
+        t = ds.rio.transform()
+        grid = Grid(ds.rio.crs.to_epsg(), t.a, t.c, t.f, ds.sizes["x"], ds.sizes["y"])
+        results[name] = _shifts(ds["radiance"].values, grid, lambda xx, yy: truth)
+    assert len(results["mounted"]) >= 10
+    assert _shift_ok(results["mounted"]), results["mounted"]
+    assert not _shift_ok(results["plain"])   # the test can fail: the mounting moves the image by pixels
