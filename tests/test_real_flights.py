@@ -301,3 +301,100 @@ def test_boresight_and_lever_arm_from_the_cli_recover_the_truth(tmp_path_factory
     assert len(results["mounted"]) >= 10
     assert _shift_ok(results["mounted"]), results["mounted"]
     assert not _shift_ok(results["plain"])   # the test can fail: the mounting moves the image by pixels
+
+
+# ---------------------------------------------------------------------------------------------
+# smaller defects: ground height auto, signed DN, white reference span, .lcf column 10
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    return _simulate(tmp_path_factory, "small", cubes=2, cubes_per_pass=2, seed=12, bands=3, samples=32, lines=60)
+
+
+def _set_ground_elevation(directory, value: str) -> None:
+    for hdr in directory.glob("*.hdr"):
+        text = hdr.read_text()
+        lines = [ln for ln in text.splitlines() if not ln.startswith("ground elevation")]
+        hdr.write_text("\n".join(lines[:-1] + [f"ground elevation = {value}", lines[-1]]) + "\n")
+
+
+def test_ground_height_auto(small, tmp_path):
+    import shutil
+
+    from archive.errors import InputError
+    from archive.ingest.command import ingest
+    from archive.sources import open_source
+    from archive.sources.ground import auto_ground_height
+
+    directory, truth = small
+    params = NavigationParams(fov_deg=FOV)
+    assert auto_ground_height([open_source(directory, params)]) == truth.ground_height
+    # a collection keeps the height it was ingested with, whatever its headers say
+    copy = tmp_path / "zero"
+    shutil.copytree(directory, copy)
+    _set_ground_elevation(copy, "0.000")                 # Resonon's unset default
+    [r] = ingest([str(copy)], tmp_path / "a", FOV, ground_height=truth.ground_height - 3.0, progress=False)
+    col = open_source(r.cid, params, archive=tmp_path / "a")
+    assert col.header(0).metadata["ground elevation"] == 0.0
+    assert auto_ground_height([col]) == truth.ground_height - 3.0
+    # a raw flight whose header holds the unset 0: refused, asking for --ground-height or --dem
+    with pytest.raises(InputError, match=r"unset default 0.*--ground-height M.*--dem"):
+        auto_ground_height([open_source(copy, params)])
+    # ground at or above the camera, or implausibly far below it
+    for value, match in (("200", "not below the camera"), ("-9000", "implausibly far below")):
+        _set_ground_elevation(copy, value)
+        with pytest.raises(InputError, match=match):
+            auto_ground_height([open_source(copy, params)])
+
+
+def test_signed_int16_cubes_render_their_negative_dn(small):
+    from archive.graph.plan import cube_meshes
+    from archive.grid import Grid
+    from archive.render.reference import reference_values
+    from archive.render.renderer import render_cube
+    from archive.sources import open_source
+
+    directory, truth = small
+    src = open_source(directory, NavigationParams(fov_deg=FOV))
+    mesh = cube_meshes(src, FOV, truth.ground_height)[0]
+    dn = src.read_bands(0, [0, 1]).astype(np.int16) - np.int16(500)   # dark-subtracted: negative DN
+    assert dn.min() < 0
+    w, s, e, n = mesh.bounds_utm()
+    grid = Grid.from_bounds(mesh.epsg, w, s, e, n, truth.nominal_gsd)
+    result = render_cube(mesh, dn, None, grid)
+    rows, cols = np.nonzero(result.covered)
+    x, y = grid.xy_centres()
+    ref = reference_values(mesh, dn, None, x[cols], y[rows])
+    assert (result.values[:, rows, cols] == ref).all(axis=0).mean() > 0.99
+    assert np.nanmin(result.values) < 0
+
+
+def test_white_reference_must_span_the_bands(small, tmp_path):
+    import archive
+    from archive.errors import InputError
+
+    directory, truth = small
+    wl = np.asarray(truth.wavelengths)
+    short = tmp_path / "white.txt"
+    np.savetxt(short, np.stack([np.linspace(wl.min(), wl.max() - 200, 5), np.full(5, 100.0)], axis=1))
+    with pytest.raises(InputError, match="white reference spans"):
+        archive.mosaic([str(directory)], gsd=1.0, fov=FOV, mode="reflectance", white_reference=short)
+
+
+def test_lcf_rows_flagged_do_not_use_are_left_out(small, tmp_path):
+    import shutil
+
+    from archive.sources import open_source
+
+    directory, truth = small
+    copy = tmp_path / "flagged"
+    shutil.copytree(directory, copy)
+    lcf = sorted(copy.glob("*.lcf"))[0]
+    rows = [r.split("\t") for r in lcf.read_text().splitlines()]
+    for r in rows[10:14]:                              # four rows with a broken fix, flagged 'do not use'
+        r[4], r[5], r[9] = "200.0", "95.0", "0"
+    lcf.write_text("\n".join("\t".join(r) for r in rows) + "\n")
+    params = NavigationParams(fov_deg=FOV)
+    good, flagged = open_source(directory, params), open_source(copy, params)
+    assert flagged.navigation.cubes[0].lcf.use is not None and (~flagged.navigation.cubes[0].lcf.use).sum() == 4
+    np.testing.assert_allclose(flagged.poses(0).position, good.poses(0).position, atol=2e-3)
