@@ -10,15 +10,14 @@ import numpy as np
 
 from archive.collection import open_dn, read_calibration, read_info
 from archive.formats.envi import EnviHeader
-from archive.navigation import Poses, Track
 from archive.params import NavigationParams
-from archive.sources.base import CubeInfo, Radiometry, band_list, check_cube, check_mode, radiometry_for
-from archive.sources.navigation import CubeNavigation, FlightNavigation
+from archive.sources.base import CubeInfo, Radiometry, band_list, check_mode, radiometry_for
+from archive.sources.navigation import CubeNavigation, FlightNavigation, NavigatedSource
 
 __all__ = ["CollectionSource"]
 
 
-class CollectionSource:
+class CollectionSource(NavigatedSource):
     """A collection store (``<archive>/collections/<id>.zarr``) read as a flight.
 
     Poses are recomputed from the stored raw navigation with ``params`` (sync offset, boresight,
@@ -74,27 +73,9 @@ class CollectionSource:
     def _where(self, cube: int, base: str | None = None) -> str:
         return f"{self.store} cube {cube} ({base if base is not None else self.cubes[cube].base})"
 
-    def _check(self, cube: int) -> int:
-        return check_cube(cube, self.cubes, self.label)
-
-    def line_times(self, cube: int) -> np.ndarray:
-        """(lines,) exposure-start times of ``cube`` on the .lcf scale (sync offset included), s."""
-        return self.navigation.line_times(self._check(cube))
-
-    def check_navigation(self, cube: int) -> None:
-        """NavigationError unless navigation covers the cube's lines (as the raw source)."""
-        self.navigation.check(self._check(cube))
-
-    def track(self, cube: int) -> Track:
-        return self.navigation.cube_track(self._check(cube))
-
     def header(self, cube: int) -> EnviHeader:
         """The cube's ENVI header as ingested (its path names the store, not a file)."""
         return self._headers[self._check(cube)]
-
-    def poses(self, cube: int, delay: float = 0.0) -> Poses:
-        """Camera poses of every line of ``cube`` at exposure start + ``delay`` s (as the raw source)."""
-        return self.navigation.poses(self._check(cube), delay)
 
     def read_bands(self, cube: int, bands: Sequence[int]) -> np.ndarray:
         """(len(bands), lines, samples) DN of ``cube`` in the stored (native) dtype; reads only the

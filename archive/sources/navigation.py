@@ -42,7 +42,8 @@ from archive.navigation import (LocalFrame, Poses, Track, boresight_rotation, in
                                 span_text, track_from_lcf)
 from archive.params import NavigationParams
 
-__all__ = ["NAV_GAP", "NAV_TOLERANCE", "SYNC_TOLERANCE", "CubeNavigation", "FlightNavigation", "merge_tracks"]
+__all__ = ["NAV_GAP", "NAV_TOLERANCE", "SYNC_TOLERANCE", "CubeNavigation", "FlightNavigation", "NavigatedSource",
+           "merge_tracks"]
 
 #: Extrapolation allowed beyond the navigation without a sync offset, s.
 NAV_TOLERANCE = 0.02
@@ -205,3 +206,35 @@ class FlightNavigation:
     def __dask_tokenize__(self):
         return ("FlightNavigation", self.frame, self.params,
                 tuple((c.camera_time.tobytes(), c.lcf.time.tobytes(), c.shutter_ms) for c in self.cubes))
+
+
+class NavigatedSource:
+    """The navigation members of a file-backed source (raw or collection), served by its
+    :class:`FlightNavigation` ``self.navigation``; cube indices are checked against ``self.cubes``
+    (errors name ``self.label``)."""
+
+    navigation: FlightNavigation
+    cubes: tuple
+    label: str
+
+    def _check(self, cube: int) -> int:
+        from archive.sources.base import check_cube
+
+        return check_cube(cube, self.cubes, self.label)
+
+    def line_times(self, cube: int) -> np.ndarray:
+        """(lines,) exposure-start times of ``cube`` on the .lcf scale (sync offset included), s."""
+        return self.navigation.line_times(self._check(cube))
+
+    def check_navigation(self, cube: int) -> None:
+        """NavigationError naming the cube's navigation unless it covers the cube's lines."""
+        self.navigation.check(self._check(cube))
+
+    def track(self, cube: int) -> Track:
+        """INS samples of ``cube``'s own navigation in the flight's frame."""
+        return self.navigation.cube_track(self._check(cube))
+
+    def poses(self, cube: int, delay: float = 0.0) -> Poses:
+        """Camera poses of every line of ``cube`` at exposure start + ``delay`` seconds: (lines, 3)
+        NED positions, (lines,) camera -> NED attitudes, ``valid`` (see :class:`FlightNavigation`)."""
+        return self.navigation.poses(self._check(cube), delay)

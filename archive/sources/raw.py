@@ -16,10 +16,10 @@ from archive.formats.flight import CubeFiles, discover_flight
 from archive.formats.icp import Calibration, read_icp
 from archive.formats.lcf import read_lcf
 from archive.formats.times import read_times
-from archive.navigation import LocalFrame, Poses, Track, local_frame_for
+from archive.navigation import LocalFrame, local_frame_for
 from archive.params import NavigationParams
-from archive.sources.base import CubeInfo, Radiometry, band_list, check_cube, check_mode, radiometry_for
-from archive.sources.navigation import CubeNavigation, FlightNavigation
+from archive.sources.base import CubeInfo, Radiometry, band_list, check_mode, radiometry_for
+from archive.sources.navigation import CubeNavigation, FlightNavigation, NavigatedSource
 
 __all__ = ["RawFlightSource", "flight_id"]
 
@@ -36,7 +36,7 @@ class _RawCube:
     header: EnviHeader
 
 
-class RawFlightSource:
+class RawFlightSource(NavigatedSource):
     """A raw Resonon flight directory (``<base>.bil`` + ``.bil.hdr`` + ``.lcf`` + ``.bil.times``
     per cube, optional ``*.icp``).
 
@@ -113,28 +113,6 @@ class RawFlightSource:
         white = None if self.white_reference is None else self.white_reference.tobytes()
         return ("RawFlightSource", str(self.directory), self.id, files, self.params,
                 str(self.calibration_path), white)
-
-    def _check(self, cube: int) -> int:
-        return check_cube(cube, self.cubes, self.label)
-
-    # --- navigation ---------------------------------------------------------------------------
-
-    def line_times(self, cube: int) -> np.ndarray:
-        """(lines,) exposure-start times of ``cube`` on the .lcf scale (sync offset included), s."""
-        return self.navigation.line_times(self._check(cube))
-
-    def check_navigation(self, cube: int) -> None:
-        """NavigationError naming the cube's .lcf unless navigation covers its lines."""
-        self.navigation.check(self._check(cube))
-
-    def track(self, cube: int) -> Track:
-        """INS samples of ``cube``'s .lcf in the flight's frame."""
-        return self.navigation.cube_track(self._check(cube))
-
-    def poses(self, cube: int, delay: float = 0.0) -> Poses:
-        """Camera poses of every line of ``cube`` at exposure start + ``delay`` seconds:
-        (lines, 3) NED positions, (lines,) camera -> NED attitudes."""
-        return self.navigation.poses(self._check(cube), delay)
 
     # --- pixels and radiometry ----------------------------------------------------------------
 
