@@ -9,8 +9,9 @@ PY=${PYTHON:-python3}
 VENV=${VENV:-.venv}
 
 system_packages() {
-    # Headless OpenGL (EGL + Mesa llvmpipe) and venv support.
-    local pkgs="libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri python3-venv"
+    # Headless OpenGL (EGL + Mesa llvmpipe) and venv support, plus the packages given (the test job:
+    # Debian's chromium, which the viewer's browser test drives through Playwright).
+    local pkgs="libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri python3-venv $*"
     local missing=""
     if command -v dpkg-query >/dev/null 2>&1; then
         for p in $pkgs; do
@@ -41,9 +42,11 @@ case "${1:-}" in
         "$VENV/bin/archive" render demo/flight --fov 47.5 --gsd 0.25 --out demo/mosaic.tif \
             --quicklook demo/quicklook.png --overwrite
         echo "demo: mosaic in demo/mosaic.tif, preview in demo/quicklook.png"
+        "$VENV/bin/archive" ingest demo/flight --archive demo/archive --fov 47.5 --overwrite --quiet >/dev/null
+        echo "demo: browse the demo archive in a web browser: $VENV/bin/archive view --archive demo/archive"
         ;;
     test)
-        system_packages
+        system_packages chromium  # no 'playwright install': the browser comes from Debian
         python_env "[test]"
         shift
         "$VENV/bin/python" -m pytest -q "$@"

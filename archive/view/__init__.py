@@ -1,0 +1,9 @@
+"""``archive view``: the archive's flights in a web browser, georectified on the fly.
+
+Modules: ``server`` (the Starlette app, its HTTP API and the command), ``flights`` (which flights
+are served; tiles, point spectra and view statistics drawn by the inverse renderer), ``worker``
+(the one render thread, with cancellation of abandoned requests), ``tiles`` (Web-Mercator tile
+grids, PNG encoding), ``query`` (request parameters), ``cache`` (byte-bounded LRU caches);
+``static/`` holds the page and its vendored map library (Leaflet, BSD-2-Clause). Importing this
+package imports nothing: import the module you need.
+"""

@@ -1,0 +1,589 @@
+"""The flights a viewer serves, and what it draws of them: tiles, point spectra, view statistics.
+
+:class:`FlightRegistry` knows which ids exist (the archive's catalog, plus raw flight directories
+named on the command line) and answers catalog queries as GeoJSON; nothing else on disk can be
+named. :class:`Flight` holds one flight's caches and does its drawing with the inverse renderer:
+
+- geometry per (ground height, sync offset): the opened source, its cube meshes (the same
+  :func:`~archive.graph.plan.cube_meshes` as ``archive render``) transformed to EPSG:3857 for tiles
+  and to the UTM zone of ``archive render`` (:func:`~archive.graph.plan.job_epsg`) for points;
+- lookups (pass 1 of the renderer: which line and sample each tile pixel sees) per cube and tile
+  grid, shared by every band choice; cube bands (DN) read from the store once.
+
+Every method of :class:`Flight` may use OpenGL: call them from the viewer's one render thread
+(:class:`archive.view.worker.RenderThread`), never from the event loop.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from archive.errors import InputError, MissingInputError
+from archive.grid import Grid
+from archive.params import NavigationParams
+from archive.view.cache import ByteLRU
+from archive.view.query import ViewQuery
+from archive.view.tiles import MERCATOR_EPSG, bbox_grid, encode_png, transparent_png
+
+__all__ = ["DEFAULT_RGB_NM", "Flight", "FlightRegistry", "Geometry", "UnknownFlight"]
+
+#: Wavelengths of the default (true colour) channels, nm.
+DEFAULT_RGB_NM = (640.0, 550.0, 460.0)
+#: Bands read per group for a point spectrum (bounds the memory of a many-band click).
+POINT_BAND_GROUP = 16
+#: Geometries (ground height x sync offset) kept per flight; flights kept open.
+GEOMETRIES_KEPT = 6
+FLIGHTS_KEPT = 16
+#: Seconds the list of catalog ids is trusted before the index is asked again.
+IDS_TTL_S = 5.0
+
+
+class UnknownFlight(MissingInputError):
+    """An id that is neither in the archive's catalog nor one of the flights named (HTTP 404)."""
+
+    def __init__(self, cid: str):
+        shown = cid if len(cid) <= 80 else cid[:77] + "..."
+        super().__init__(repr(shown), "collection", "GET /api/collections lists the ids this viewer serves")
+
+
+@dataclass(frozen=True, eq=False)
+class Geometry:
+    """A flight's meshes at one ground height and sync offset.
+
+    source: the opened flight source; ground_height: m above the ellipsoid (resolved);
+    epsg: the UTM zone ``archive render`` uses for this flight; utm / mercator: per cube, its mesh
+    in ``epsg`` / EPSG:3857; bounds: (cubes, 4) W, S, E, N EPSG:3857 metres of each cube's mesh
+    (NaN for a cube without a drawable mesh).
+    """
+
+    source: object
+    ground_height: float
+    epsg: int
+    utm: tuple
+    mercator: tuple
+    bounds: np.ndarray
+
+    def union(self, cubes: range) -> tuple[float, float, float, float] | None:
+        """W, S, E, N (EPSG:3857 m) of the cubes' meshes, None when none is drawable."""
+        b = self.bounds[list(cubes)]
+        b = b[np.isfinite(b).all(axis=1)]
+        if not len(b):
+            return None
+        return (float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max()))
+
+
+def _intersects(a, b) -> bool:
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
+def _slice_radiometry(radiometry, lines: slice, samples: slice):
+    """The radiometric terms of some lines and samples of a cube (None stays None: raw DN)."""
+    from archive.sources.base import Radiometry
+
+    if radiometry is None:
+        return None
+    return Radiometry(radiometry.dark[:, samples], radiometry.gain[:, samples], radiometry.response[lines],
+                      radiometry.saturation)
+
+
+def _crop(lookup):
+    """(lookup, lines, samples): ``lookup`` cut to the lines and samples it sees, and those slices
+    of the cube. Rendering the cut cube through it gives the same values from much smaller
+    textures (a tile sees a few hundred lines of a cube)."""
+    from archive.render.renderer import Lookup
+
+    seen = lookup.line >= 0
+    lines = lookup.line[seen]
+    samples = lookup.sample[seen]
+    l0, l1 = int(lines.min()), int(lines.max()) + 1
+    s0, s1 = int(samples.min()), int(samples.max()) + 1
+    line = np.where(seen, lookup.line - l0, -1).astype(np.int32)
+    sample = np.where(seen, lookup.sample - s0, -1).astype(np.int32)
+    return Lookup(lookup.grid, line, sample, l1 - l0, s1 - s0), slice(l0, l1), slice(s0, s1)
+
+
+class Flight:
+    """One flight of the viewer: its caches and drawing (see the module docstring).
+
+    cid: the id it is served under; opener(params) -> a flight source with these navigation
+    parameters; fov: field of view (deg) for the meshes, None: the one the source records;
+    bands_cache / lookup_cache: shared byte-bounded caches of cube bands and lookups.
+    """
+
+    def __init__(self, cid: str, opener: Callable, fov: float | None, bands_cache: ByteLRU,
+                 lookup_cache: ByteLRU):
+        self.id = cid
+        self.opener = opener
+        self.bands_cache = bands_cache
+        self.lookup_cache = lookup_cache
+        self._sources: OrderedDict = OrderedDict()
+        self._geometries: OrderedDict = OrderedDict()
+        self._radiometry: OrderedDict = OrderedDict()
+        self._ranges: OrderedDict = OrderedDict()
+        first = self.source(None)
+        self.fov = float(fov if fov is not None else (first.fov_deg or math.nan))
+        if not (0 < self.fov < 180):
+            raise InputError(first.label, "the field of view is unknown", "pass --fov DEG to 'archive view'")
+        self.cubes = first.cubes
+        self.wavelengths = first.wavelengths
+        self.has_calibration = first.has_calibration
+
+    # ---- sources and geometry ------------------------------------------------------------
+    @staticmethod
+    def _keep(cache: OrderedDict, key, value, limit: int):
+        cache[key] = value
+        cache.move_to_end(key)
+        while len(cache) > limit:
+            cache.popitem(last=False)
+        return value
+
+    def source(self, sync_offset: float | None):
+        """The source with this sync offset (s; None: as ingested, else 0)."""
+        found = self._sources.get(sync_offset)
+        if found is not None:
+            self._sources.move_to_end(sync_offset)
+            return found
+        # fov_deg is not used by sources (meshes take self.fov); boresight and lever arm: as ingested
+        params = NavigationParams(fov_deg=47.5, sync_offset=sync_offset, boresight_deg=None, lever_arm_m=None)
+        return self._keep(self._sources, sync_offset, self.opener(params), GEOMETRIES_KEPT)
+
+    def geometry(self, ground_height: float | None, sync_offset: float | None) -> Geometry:
+        """Meshes at this ground height (None: auto) and sync offset (None: as ingested)."""
+        key = (ground_height, sync_offset)
+        found = self._geometries.get(key)
+        if found is not None:
+            self._geometries.move_to_end(key)
+            return found
+        from archive.graph.plan import cube_meshes, job_epsg
+        from archive.pipeline import resolve_ground_height
+
+        source = self.source(sync_offset)
+        ground = resolve_ground_height("auto" if ground_height is None else ground_height, [source])
+        meshes = cube_meshes(source, self.fov, ground)
+        epsg = job_epsg([meshes])
+        utm = tuple(m if m.epsg == epsg else m.to_epsg(epsg) for m in meshes)
+        mercator = tuple(m.to_epsg(MERCATOR_EPSG) for m in meshes)
+        bounds = np.array([m.bounds_utm() if m.rows >= 2 else (np.nan,) * 4 for m in mercator], float)
+        return self._keep(self._geometries, key, Geometry(source, float(ground), int(epsg), utm, mercator, bounds),
+                          GEOMETRIES_KEPT)
+
+    def cube_range(self, cubes: tuple[int, int] | None) -> range:
+        n = len(self.cubes)
+        if cubes is None:
+            return range(n)
+        if cubes[1] >= n:
+            raise InputError("cubes", f"cube {cubes[1]} out of range: the flight has cubes 0..{n - 1}")
+        return range(cubes[0], cubes[1] + 1)
+
+    def bands(self, query: ViewQuery) -> list[int]:
+        """Source band indices of the channels of ``query`` (default: true colour)."""
+        from archive.pipeline import select_bands
+
+        nbands = self.cubes[0].bands
+        if query.band is not None:
+            if query.band >= nbands:
+                raise InputError("band", f"band {query.band} out of range: the flight has bands 0..{nbands - 1}")
+            return [query.band]
+        source = self.source(None)
+        if query.wavelengths is not None:
+            return [select_bands(source, [w])[0] for w in query.wavelengths]
+        return self.default_bands()
+
+    def default_bands(self) -> list[int]:
+        """True colour (the bands nearest 640, 550, 460 nm) when the flight spans it, else three
+        bands at 3/4, 1/2 and 1/4 of its range."""
+        from archive.pipeline import select_bands
+
+        try:
+            return [select_bands(self.source(None), [w])[0] for w in DEFAULT_RGB_NM]
+        except InputError:
+            n = self.cubes[0].bands
+            return [min(n - 1, (3 * n) // 4), n // 2, n // 4]
+
+    def mode(self, query: ViewQuery) -> str:
+        mode = query.mode or ("radiance" if self.has_calibration else "raw")
+        self.radiometry(0, (0,), mode)  # InputError now when the mode is impossible
+        return mode
+
+    # ---- pixels ------------------------------------------------------------------------
+    def radiometry(self, cube: int, bands: Sequence[int], mode: str):
+        key = (cube, tuple(bands), mode)
+        found = self._radiometry.get(key)
+        if found is None:
+            found = self._keep(self._radiometry, key, self.source(None).radiometry(cube, list(bands), mode), 256)
+        return found
+
+    def band(self, cube: int, band: int) -> np.ndarray:
+        """(lines, samples) DN of one band of one cube (cached)."""
+        def read():
+            dn = self.source(None).read_bands(cube, [band])[0]
+            return dn, dn.nbytes
+        return self.bands_cache.get_or_make((self.id, cube, band), read)
+
+    def lookup(self, geometry: Geometry, cube: int, grid: Grid):
+        """Pass 1 of the renderer for ``cube`` on ``grid`` (cached); None when nothing is covered."""
+        from archive.render.renderer import rasterize_lookup
+
+        mesh = geometry.mercator[cube] if grid.epsg == MERCATOR_EPSG else geometry.utm[cube]
+
+        def make():
+            found = rasterize_lookup(mesh, grid, self.cubes[cube].samples)
+            if found.box() is None:
+                return None, 64
+            return found, found.line.nbytes + found.sample.nbytes
+        key = (self.id, geometry.ground_height, geometry.source.params.sync_offset, cube, grid)
+        return self.lookup_cache.get_or_make(key, make)
+
+    def render(self, grid: Grid, bands: Sequence[int], mode: str, cubes: range, geometry: Geometry,
+               check: Callable[[], None] = lambda: None) -> np.ndarray:
+        """(len(bands), height, width) float32 of the cubes on ``grid`` (EPSG:3857, or the flight's
+        UTM zone), NaN where no line covers, later cubes winning (``archive render``'s 'last' rule).
+        ``check()`` runs before each cube (raises to stop: an abandoned request)."""
+        from archive.render.renderer import render_lookup
+
+        out = np.full((len(bands), grid.height, grid.width), np.nan, np.float32)
+        box = grid.bounds
+        for c in cubes:
+            if grid.epsg == MERCATOR_EPSG and not (np.isfinite(geometry.bounds[c]).all()
+                                                    and _intersects(geometry.bounds[c], box)):
+                continue
+            check()
+            lookup = self.lookup(geometry, c, grid)
+            if lookup is None:
+                continue
+            sub, lines, samples = _crop(lookup)
+            block = np.stack([self.band(c, b)[lines, samples] for b in bands])
+            rad = _slice_radiometry(self.radiometry(c, bands, mode), lines, samples)
+            values = render_lookup(sub, block, rad).values
+            np.copyto(out, values, where=np.isfinite(values))
+        return out
+
+    # ---- what the API answers ----------------------------------------------------------
+    def tile(self, grid: Grid, query: ViewQuery, check: Callable[[], None] = lambda: None) -> bytes:
+        """PNG of one EPSG:3857 tile grid (transparent where no line covers)."""
+        geometry = self.geometry(query.ground_height, query.sync_offset)
+        cubes = self.cube_range(query.cubes)
+        bands = self.bands(query)
+        mode = self.mode(query)
+        union = geometry.union(cubes)
+        if union is None or not _intersects(union, grid.bounds):
+            return transparent_png()
+        ranges = query.stretch.ranges
+        if ranges is None:
+            ranges = self.flight_ranges(bands, mode, cubes, geometry, query.stretch.percentiles)
+        values = self.render(grid, bands, mode, cubes, geometry, check)
+        if not np.isfinite(values).any():
+            return transparent_png()
+        return encode_png(values, ranges)
+
+    def flight_ranges(self, bands, mode, cubes, geometry, percentiles) -> tuple:
+        """Per band (low, high) percentiles over the whole flight (cached)."""
+        key = (tuple(bands), mode, cubes.start, cubes.stop, geometry.ground_height,
+               geometry.source.params.sync_offset, percentiles)
+        found = self._ranges.get(key)
+        if found is None:
+            stats = self.stats(None, bands, mode, cubes, geometry, percentiles)
+            pairs = []
+            for lo, hi in zip(stats["low"], stats["high"], strict=True):
+                lo = 0.0 if lo is None else lo
+                hi = lo + 1.0 if hi is None or hi <= lo else hi
+                pairs.append((lo, hi))
+            found = self._keep(self._ranges, key, tuple(pairs), 64)
+        return found
+
+    def stats(self, bbox, bands: Sequence[int], mode: str, cubes: range, geometry: Geometry,
+              percentiles=(2.0, 98.0)) -> dict:
+        """Per band percentiles of the values inside ``bbox`` (W, S, E, N EPSG:3857 m; None: the
+        whole flight), drawn on a grid of at most 512 px a side over the covered part."""
+        union = geometry.union(cubes)
+        box = union
+        if union is not None and bbox is not None:
+            box = (max(union[0], bbox[0]), max(union[1], bbox[1]), min(union[2], bbox[2]), min(union[3], bbox[3]))
+            if box[0] >= box[2] or box[1] >= box[3]:
+                box = None
+        out = {"band": [int(b) for b in bands], "mode": mode, "percentiles": list(percentiles),
+               "wavelength": self._wavelengths(bands), "low": [None] * len(bands), "high": [None] * len(bands),
+               "count": 0, "gsd": None}
+        if box is None:
+            return out
+        grid = bbox_grid(*box)
+        values = self.render(grid, bands, mode, cubes, geometry)
+        out["gsd"] = grid.gsd
+        for i, v in enumerate(values):
+            v = v[np.isfinite(v)]
+            out["count"] = max(out["count"], int(v.size))
+            if v.size:
+                lo, hi = np.percentile(v, percentiles)
+                out["low"][i], out["high"][i] = float(lo), float(hi)
+        return out
+
+    def _wavelengths(self, bands) -> list | None:
+        return None if self.wavelengths is None else [float(self.wavelengths[b]) for b in bands]
+
+    def point(self, lon: float, lat: float, gsd: float, query: ViewQuery) -> dict:
+        """The full spectrum of the output pixel at (lon, lat): the pixel of ``archive render``'s
+        grid at ``gsd`` (UTM, corners on multiples of ``gsd``) holding the point, rendered alone
+        by the same two passes (bit-identical values), with the cube, line and sample it shows."""
+        from archive.formats.lcf import gps_seconds_to_datetime
+        from archive.navigation import project, to_lonlat
+        from archive.render.renderer import Lookup, rasterize_lookup, render_lookup
+
+        geometry = self.geometry(query.ground_height, query.sync_offset)
+        cubes = self.cube_range(query.cubes)
+        mode = self.mode(query)
+        x, y = (float(v) for v in project(lon, lat, geometry.epsg))
+        col, row = math.floor(x / gsd), math.floor(y / gsd)
+        grid = Grid(geometry.epsg, gsd, col * gsd, (row + 1) * gsd, 1, 1)
+        cx, cy = col * gsd + gsd / 2, row * gsd + gsd / 2
+        clon, clat = (float(v) for v in to_lonlat(cx, cy, geometry.epsg))
+        nbands = self.cubes[0].bands
+        values = np.full(nbands, np.nan, np.float32)
+        hit = None
+        saturated = False
+        for c in cubes:
+            mesh = geometry.utm[c]
+            if mesh.rows < 2:
+                continue
+            w, s, e, n = mesh.bounds_utm()
+            if not (w <= cx <= e and s <= cy <= n):
+                continue
+            found = rasterize_lookup(mesh, grid, self.cubes[c].samples)
+            line, sample = int(found.line[0, 0]), int(found.sample[0, 0])
+            if line < 0:
+                continue
+            one = Lookup(grid, np.zeros((1, 1), np.int32), np.zeros((1, 1), np.int32), 1, 1)
+            source = self.source(None)
+            for b0 in range(0, nbands, POINT_BAND_GROUP):
+                group = list(range(b0, min(b0 + POINT_BAND_GROUP, nbands)))
+                dn = source.read_bands(c, group)[:, line:line + 1, sample:sample + 1]
+                rad = _slice_radiometry(self.radiometry(c, group, mode), slice(line, line + 1),
+                                        slice(sample, sample + 1))
+                result = render_lookup(one, dn, rad)
+                v = result.values[:, 0, 0]
+                np.copyto(values[b0:b0 + len(group)], v, where=np.isfinite(v))
+                saturated = saturated or bool(result.saturated[0, 0])
+            hit = (c, line, sample)
+        answer = {
+            "id": self.id, "lon": lon, "lat": lat, "mode": mode, "gsd": gsd, "epsg": geometry.epsg,
+            "pixel": {"x": cx, "y": cy, "lon": clon, "lat": clat},
+            "ground_height": geometry.ground_height, "sync_offset": float(geometry.source.params.sync_offset),
+            "wavelength": self._wavelengths(range(nbands)),
+            "values": [float(v) if np.isfinite(v) else None for v in values],
+            "covered": hit is not None, "cube": None, "line": None, "sample": None, "time": None,
+            "utc": None, "saturated": saturated,
+        }
+        if hit is not None:
+            c, line, sample = hit
+            t = float(geometry.source.line_times(c)[line])
+            answer.update(cube=c, base=self.cubes[c].base, line=line, sample=sample, time=t,
+                          utc=gps_seconds_to_datetime(t).isoformat().replace("+00:00", "Z"))
+        return answer
+
+    def describe(self) -> dict:
+        """What the page needs to build its controls: cubes, bands, modes, default ground height
+        and the camera's lowest altitude (the ground-height slider's range)."""
+        from archive.sources.ground import camera_altitudes
+
+        geometry = self.geometry(None, None)
+        source = geometry.source
+        modes = ["raw", "relative"] + (["radiance"] if self.has_calibration else [])
+        return {
+            "id": self.id, "fov_deg": self.fov, "bands": self.cubes[0].bands,
+            "wavelength": self._wavelengths(range(self.cubes[0].bands)),
+            "default_bands": self.default_bands(), "modes": modes,
+            "default_mode": "radiance" if self.has_calibration else "raw",
+            "ground_height": geometry.ground_height,
+            "lowest_camera": float(np.min(camera_altitudes(source))),
+            "sync_offset": float(source.params.sync_offset),
+            "cubes": [{"index": c.index, "base": c.base, "lines": c.lines, "samples": c.samples}
+                      for c in self.cubes],
+            "bounds_3857": geometry.union(range(len(self.cubes))),
+        }
+
+
+class FlightRegistry:
+    """The flights one viewer serves: the collections of ``archive`` (ids from its catalog index)
+    and the raw flight ``directories`` (ids from their files; ``fov`` needed for those).
+
+    ids are checked here (:meth:`check`) before anything opens a store: nothing else on disk is
+    reachable. :meth:`flight` opens flights lazily and keeps the last FLIGHTS_KEPT (call it from
+    the render thread).
+    """
+
+    def __init__(self, archive=None, directories: Sequence = (), fov: float | None = None,
+                 bands_cache: ByteLRU | None = None, lookup_cache: ByteLRU | None = None):
+        from archive.api import open_archive
+
+        self.archive = None if archive is None else open_archive(archive)
+        self.fov = fov
+        self.bands_cache = bands_cache if bands_cache is not None else ByteLRU(256 << 20)
+        self.lookup_cache = lookup_cache if lookup_cache is not None else ByteLRU(64 << 20)
+        self._lock = threading.Lock()
+        self._ids: tuple[float, frozenset] | None = None
+        self._items: dict[str, tuple[int, dict]] = {}
+        self._flights: OrderedDict[str, Flight] = OrderedDict()
+        self.raw: dict[str, tuple[Path, dict]] = {}
+        if directories and fov is None:
+            raise InputError("--fov", "the field of view is required for raw flight directories",
+                             "pass --fov DEG (47.5 for a Pika L and for 'archive simulate' flights)")
+        for d in directories:
+            path = Path(d).absolute()
+            if not path.is_dir():
+                raise MissingInputError(path, "flight directory")
+            feature = _raw_feature(path, float(fov))
+            self.raw[feature["id"]] = (path, feature)
+        if self.archive is None and not self.raw:
+            raise InputError(None, "nothing to view", "give --archive ARCHIVE and/or raw flight directories")
+
+    # ---- ids and the catalog -------------------------------------------------------------
+    def catalog_ids(self) -> frozenset:
+        if self.archive is None:
+            return frozenset()
+        with self._lock:
+            now = time.monotonic()
+            if self._ids is None or now - self._ids[0] > IDS_TTL_S:
+                from archive.catalog.index import ensure_index, search
+
+                self._ids = (now, frozenset(row.id for row in search(ensure_index(self.archive))))
+            return self._ids[1]
+
+    def check(self, cid: str) -> str:
+        """``cid`` if this viewer serves it, else :class:`UnknownFlight`."""
+        if cid in self.raw or cid in self.catalog_ids():
+            return cid
+        raise UnknownFlight(cid)
+
+    def _item(self, cid: str) -> dict:
+        path = self.archive.item_path(cid)
+        try:
+            stamp = path.stat().st_mtime_ns
+        except OSError:
+            raise UnknownFlight(cid) from None
+        with self._lock:
+            found = self._items.get(cid)
+        if found is None or found[0] != stamp:
+            from archive.catalog.index import read_item_file
+
+            found = (stamp, _feature_of_item(read_item_file(path)))
+            with self._lock:
+                self._items[cid] = found
+        return found[1]
+
+    def feature(self, cid: str) -> dict:
+        """The GeoJSON Feature of one served flight."""
+        self.check(cid)
+        if cid in self.raw:
+            return self.raw[cid][1]
+        return self._item(cid)
+
+    def features(self, bbox=None, datetime: str | None = None, wavelength: float | None = None) -> dict:
+        """GeoJSON FeatureCollection of the footprints matching every given filter (as ``archive
+        catalog search``): bbox (W, S, E, N degrees), datetime 'A/B' (ISO 8601, '..' open),
+        wavelength (nm, within the flight's bands). Catalog flights first (by start time), then
+        raw flights."""
+        features = []
+        if self.archive is not None:
+            ids = self.archive.search(bbox=bbox, datetime=datetime, wavelength=wavelength)
+            features += [self._item(cid) for cid in ids]
+        if self.raw:
+            from archive.catalog.index import parse_datetime_range
+
+            start, end = (None, None) if datetime is None else parse_datetime_range(datetime)
+            for _, feature in self.raw.values():
+                p = feature["properties"]
+                fb = feature["bbox"]
+                if bbox is not None and not (bbox[0] <= fb[2] and fb[0] <= bbox[2] and bbox[1] <= fb[3]
+                                             and fb[1] <= bbox[3]):
+                    continue
+                if start is not None and p["end_time"] < start or end is not None and p["start_time"] > end:
+                    continue
+                if wavelength is not None and not (p["min_wavelength"] is not None
+                                                   and p["min_wavelength"] <= wavelength <= p["max_wavelength"]):
+                    continue
+                features.append(feature)
+        return {"type": "FeatureCollection", "features": features, "numberMatched": len(features)}
+
+    # ---- opened flights ------------------------------------------------------------------
+    def flight(self, cid: str) -> Flight:
+        """The opened :class:`Flight` of a checked id (render thread only)."""
+        self.check(cid)
+        found = self._flights.get(cid)
+        if found is not None:
+            self._flights.move_to_end(cid)
+            return found
+        from archive.sources import open_source
+
+        if cid in self.raw:
+            directory = self.raw[cid][0]
+
+            def opener(params):
+                return open_source(directory, params)
+        else:
+            archive = self.archive.path
+
+            def opener(params):
+                return open_source(cid, params, archive=archive)
+        found = Flight(cid, opener, self.fov, self.bands_cache, self.lookup_cache)
+        self._flights[cid] = found
+        while len(self._flights) > FLIGHTS_KEPT:
+            self._flights.popitem(last=False)
+        return found
+
+
+def _feature_of_item(item: dict) -> dict:
+    """A catalog Item as the viewer's GeoJSON Feature: geometry, bbox and the properties the
+    page shows and filters by."""
+    from archive.catalog.stac import item_summary
+
+    s = item_summary(item)
+    p = item.get("properties", {})
+    props = {
+        "id": s["id"], "kind": "collection", "start_datetime": s["start_iso"], "end_datetime": s["end_iso"],
+        "start_time": s["start_time"], "end_time": s["end_time"], "bands": s["bands"],
+        "min_wavelength": s["min_wavelength"], "max_wavelength": s["max_wavelength"],
+        "wavelength": p.get("archive:wavelengths"), "sensor": s["sensor"], "gsd": s["gsd"],
+        "fov_deg": p.get("archive:fov_deg"), "ground_height": p.get("archive:ground_height"),
+        "cubes": p.get("archive:cubes"), "lines": p.get("archive:lines"), "samples": p.get("archive:samples"),
+    }
+    return {"type": "Feature", "id": s["id"], "geometry": item.get("geometry"), "bbox": s["bbox"],
+            "properties": props}
+
+
+def _raw_feature(directory: Path, fov: float) -> dict:
+    """The Feature of a raw flight directory: its footprint at the headers' ground height (as the
+    catalog computes it for a collection), time range and wavelengths."""
+    from scipy.spatial.transform import Rotation
+
+    from archive.catalog.footprint import flight_footprint
+    from archive.formats.lcf import gps_seconds_to_datetime
+    from archive.sources import open_source
+    from archive.sources.ground import auto_ground_height
+
+    source = open_source(directory, NavigationParams(fov_deg=fov))
+    ground = auto_ground_height([source])
+    poses = [source.poses(i) for i in range(len(source.cubes))]
+    times = np.concatenate([p.time for p in poses])
+    fp = flight_footprint(times, np.concatenate([p.position for p in poses]),
+                          Rotation.concatenate([p.attitude for p in poses]), source.frame, fov, ground,
+                          source.cubes[0].samples, where=str(directory))
+    start, end = gps_seconds_to_datetime(float(times[0])), gps_seconds_to_datetime(float(times[-1]))
+    wl = source.wavelengths
+    iso = [t.isoformat().replace("+00:00", "Z") for t in (start, end)]
+    props = {
+        "id": source.id, "kind": "raw", "start_datetime": iso[0], "end_datetime": iso[1],
+        "start_time": start.timestamp(), "end_time": end.timestamp(), "bands": source.cubes[0].bands,
+        "min_wavelength": None if wl is None else float(min(wl)),
+        "max_wavelength": None if wl is None else float(max(wl)),
+        "wavelength": None if wl is None else [float(w) for w in wl], "sensor": None, "gsd": round(fp.gsd, 4),
+        "fov_deg": fov, "ground_height": ground, "cubes": len(source.cubes),
+        "lines": int(sum(c.lines for c in source.cubes)), "samples": source.cubes[0].samples,
+    }
+    return {"type": "Feature", "id": source.id, "geometry": fp.geometry(), "bbox": fp.bbox(), "properties": props}

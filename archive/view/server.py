@@ -1,0 +1,352 @@
+"""``archive view``: a local web server (Starlette on uvicorn) for the archive's flights.
+
+Endpoints (JSON unless said; errors are ``{"error": message}`` with a 4xx status and never a stack
+trace):
+
+- ``GET /`` the page (``static/index.html``); ``GET /static/...`` its assets (Leaflet vendored);
+- ``GET /api/collections?bbox=W,S,E,N&datetime=A/B&wavelength=NM`` GeoJSON FeatureCollection of
+  the footprints (id, time range, wavelength range, bands, nominal gsd...);
+- ``GET /api/collections/{id}`` what the page needs to build its controls (bands, modes, cubes,
+  default ground height, lowest camera altitude);
+- ``GET /api/collections/{id}/tiles/{z}/{x}/{y}.png?wavelengths=R,G,B|band=I&mode=&stretch=&cubes=A-B
+  &ground_height=&sync_offset=`` a 256 x 256 EPSG:3857 tile drawn by the inverse renderer;
+- ``GET /api/collections/{id}/point?lon=&lat=&gsd=&mode=...`` the full spectrum of the output pixel
+  at that point (the pixel of ``archive render --gsd GSD``'s grid), with cube, line, sample, time;
+- ``GET /api/collections/{id}/stats?bbox=&wavelengths=&mode=&percentiles=2,98`` per band
+  percentiles of the view;
+- ``GET /api/status`` counters, cache sizes and the server's resident memory.
+
+All drawing runs on one render thread (:class:`~archive.view.worker.RenderThread`); a request whose
+client has gone is cancelled before it draws. Binding anything but a loopback address needs
+``--allow-remote``; on loopback, requests must name a loopback Host (no DNS rebinding).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import logging
+import socket
+import sys
+import time
+from importlib.resources import files
+from pathlib import Path
+
+from archive.errors import ArchiveError, InputError, MissingInputError, RenderError
+from archive.view.cache import ByteLRU
+from archive.view.flights import FlightRegistry
+from archive.view.query import parse_bbox, parse_number, parse_query
+from archive.view.tiles import MAX_ZOOM, mercator_box, tile_grid
+from archive.view.worker import Cancelled, RenderThread
+
+__all__ = ["check_host", "create_app", "is_loopback", "run", "serve"]
+
+log = logging.getLogger("archive.view")
+
+#: Default memory for the caches (tiles, cube bands, lookups), MiB.
+DEFAULT_CACHE_MB = 512
+LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (a name or address) is the loopback interface."""
+    host = host.strip().strip("[]")
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_host(host: str, allow_remote: bool) -> None:
+    """InputError unless ``host`` is loopback or ``allow_remote`` is given."""
+    if not is_loopback(host) and not allow_remote:
+        raise InputError("--host", f"refusing to serve on {host!r}: not a loopback address, so anyone who can "
+                         "reach this machine could read the archive",
+                         "use --host 127.0.0.1 (the default), or add --allow-remote to serve the network on purpose")
+
+
+class Viewer:
+    """What the server holds: the flights, the render thread, the tile cache, counters."""
+
+    def __init__(self, registry: FlightRegistry, tile_cache_bytes: int):
+        self.registry = registry
+        self.render = RenderThread()
+        self.tiles = ByteLRU(tile_cache_bytes)
+        self.started = time.time()
+        self.cancelled = 0
+
+    def status(self) -> dict:
+        return {
+            "uptime_s": round(time.time() - self.started, 3), "render": dict(self.render.counts),
+            "queued": self.render.queued, "abandoned": self.cancelled,
+            "caches": {"tiles": self.tiles.stats().as_dict(), "bands": self.registry.bands_cache.stats().as_dict(),
+                       "lookups": self.registry.lookup_cache.stats().as_dict()},
+            "rss_bytes": resident_bytes(),
+        }
+
+
+def resident_bytes() -> int | None:
+    """This process's resident memory, bytes (Linux /proc), None elsewhere."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+# ---- jobs run on the render thread -------------------------------------------------------------
+def _tile_job(registry, cid, grid, query, check):
+    return registry.flight(cid).tile(grid, query, check)
+
+
+def _point_job(registry, cid, lon, lat, gsd, query, check):
+    check()
+    flight = registry.flight(cid)
+    if gsd is None:
+        gsd = registry_gsd(registry, cid)
+    return flight.point(lon, lat, gsd, query)
+
+
+def _stats_job(registry, cid, box, query, percentiles, check):
+    flight = registry.flight(cid)
+    geometry = flight.geometry(query.ground_height, query.sync_offset)
+    return flight.stats(box, flight.bands(query), flight.mode(query), flight.cube_range(query.cubes), geometry,
+                        percentiles)
+
+
+def _describe_job(registry, cid, check):
+    return registry.flight(cid).describe()
+
+
+def registry_gsd(registry: FlightRegistry, cid: str) -> float:
+    """The nominal pixel size of a flight (its catalog entry), m."""
+    gsd = registry.feature(cid)["properties"].get("gsd")
+    if gsd:
+        return float(gsd)
+    raise InputError("gsd", f"no nominal pixel size is known for {cid}", "pass gsd=M")
+
+
+# ---- the app ----------------------------------------------------------------------------------
+def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CACHE_MB << 20) // 4,
+               allowed_hosts: tuple[str, ...] | None = None):
+    """The Starlette application serving ``registry``'s flights. allowed_hosts: Host header names
+    accepted (None: any), e.g. the loopback names when bound to loopback."""
+    from contextlib import asynccontextmanager
+
+    from starlette.applications import Starlette
+    from starlette.concurrency import run_in_threadpool
+    from starlette.exceptions import HTTPException
+    from starlette.responses import HTMLResponse, JSONResponse, Response
+    from starlette.routing import Mount, Route
+    from starlette.staticfiles import StaticFiles
+
+    viewer = Viewer(registry, tile_cache_bytes)
+    static = files("archive.view") / "static"
+
+    def error(status: int, message: str) -> JSONResponse:
+        return JSONResponse({"error": message, "status": status}, status_code=status)
+
+    async def on_archive_error(request, exc: ArchiveError):
+        if isinstance(exc, MissingInputError):
+            return error(404, str(exc))
+        if isinstance(exc, RenderError):
+            return error(500, f"rendering failed: {exc}")
+        return error(400, str(exc))
+
+    async def on_http_error(request, exc: HTTPException):
+        message = exc.detail if exc.status_code != 404 else f"no such resource: {request.url.path}"
+        return error(exc.status_code, str(message))
+
+    async def on_cancelled(request, exc: Cancelled):
+        viewer.cancelled += 1
+        return Response(status_code=499)  # the client has gone; nobody reads this
+
+    async def on_crash(request, exc: Exception):
+        log.exception("archive view: %s %s failed", request.method, request.url.path)
+        return error(500, f"internal error ({type(exc).__name__}); see the server's log")
+
+    async def drawn(request, fn, *args):
+        if await request.is_disconnected():
+            raise Cancelled()
+        return await viewer.render.run(fn, *args, abandoned=request.is_disconnected)
+
+    def cid_of(request) -> str:
+        return registry.check(request.path_params["cid"])
+
+    async def index(request):
+        return HTMLResponse((static / "index.html").read_text(encoding="utf-8"))
+
+    async def collections(request):
+        p = request.query_params
+        bbox = parse_bbox(p)
+        wavelength = parse_number(p, "wavelength", 0.0, 1e5)
+        when = p.get("datetime") or None
+        if when is not None and len(when) > 100:
+            raise InputError("datetime", f"value of {len(when)} characters is too long")
+        found = await run_in_threadpool(registry.features, bbox, when, wavelength)
+        return JSONResponse(found, media_type="application/geo+json")
+
+    async def describe(request):
+        return JSONResponse(await drawn(request, _describe_job, registry, cid_of(request)))
+
+    async def tile(request):
+        cid = cid_of(request)
+        z, x, y = (request.path_params[k] for k in ("z", "x", "y"))
+        if z > MAX_ZOOM:
+            raise InputError("z", f"zoom {z} is out of range 0..{MAX_ZOOM}", "request a shallower tile")
+        grid = tile_grid(z, x, y)
+        query = parse_query(request.query_params)
+        key = (cid, z, x, y, query)
+        png = viewer.tiles.get(key)
+        if png is None:
+            png = await drawn(request, _tile_job, registry, cid, grid, query)
+            viewer.tiles.put(key, png, len(png))
+        return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=600"})
+
+    async def point(request):
+        cid = cid_of(request)
+        p = request.query_params
+        lon = parse_number(p, "lon", -180.0, 180.0)
+        lat = parse_number(p, "lat", -85.0, 85.0)
+        if lon is None or lat is None:
+            raise InputError("lon/lat", "both lon and lat (degrees) are required")
+        gsd = parse_number(p, "gsd", 1e-3, 1e3)
+        query = parse_query(p, channels=False)
+        return JSONResponse(await drawn(request, _point_job, registry, cid, lon, lat, gsd, query))
+
+    async def stats(request):
+        cid = cid_of(request)
+        p = request.query_params
+        bbox = parse_bbox(p)
+        box = None if bbox is None else mercator_box(*bbox)
+        query = parse_query(p)
+        pct = p.get("percentiles") or "2,98"
+        try:
+            lo, hi = (float(v) for v in pct.split(","))
+        except ValueError:
+            raise InputError("percentiles", f"expected LOW,HIGH percentiles, got {pct[:40]!r}") from None
+        if not 0 <= lo < hi <= 100:
+            raise InputError("percentiles", f"expected 0 <= low < high <= 100, got {pct!r}")
+        return JSONResponse(await drawn(request, _stats_job, registry, cid, box, query, (lo, hi)))
+
+    async def status(request):
+        return JSONResponse(viewer.status())
+
+    @asynccontextmanager
+    async def lifespan(app):
+        yield
+        viewer.render.shutdown()
+
+    routes = [
+        Route("/", index),
+        Route("/api/status", status),
+        Route("/api/collections", collections),
+        Route("/api/collections/{cid}", describe),
+        Route("/api/collections/{cid}/tiles/{z:int}/{x:int}/{y:int}.png", tile),
+        Route("/api/collections/{cid}/point", point),
+        Route("/api/collections/{cid}/stats", stats),
+        Mount("/static", StaticFiles(directory=str(static)), name="static"),
+    ]
+    handlers = {ArchiveError: on_archive_error, HTTPException: on_http_error, Cancelled: on_cancelled,
+                Exception: on_crash}
+    app = Starlette(routes=routes, exception_handlers=handlers, lifespan=lifespan)
+    app.state.viewer = viewer
+    if allowed_hosts is None:
+        return app
+    return _HostCheck(app, allowed_hosts)
+
+
+class _HostCheck:
+    """ASGI middleware: HTTP requests whose Host header is not one of ``allowed`` get a 400 (a
+    page of another site reaching the loopback server by DNS rebinding names its own host)."""
+
+    def __init__(self, app, allowed):
+        self.app = app
+        self.allowed = {h.lower().strip("[]") for h in allowed}
+        self.state = getattr(app, "state", None)
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] == "http":
+            host = dict(scope.get("headers") or []).get(b"host", b"").decode("latin-1").lower()
+            name = host.rsplit(":", 1)[0] if host.count(":") == 1 or host.startswith("[") else host
+            if name.strip("[]") not in self.allowed:
+                from starlette.responses import JSONResponse
+
+                body = {"error": f"Host {host!r} is not served here; open the URL archive view printed", "status": 400}
+                await JSONResponse(body, status_code=400)(scope, receive, send)
+                return
+        await self.app(scope, receive, send)
+
+
+def _bind(host: str, port: int) -> socket.socket:
+    family = socket.AF_INET6 if ":" in host.strip("[]") else socket.AF_INET
+    # IPPROTO_TCP named explicitly: asyncio sets TCP_NODELAY only on sockets that say they are TCP
+    # (with proto 0, Nagle's algorithm and the client's delayed ACK add 40 ms to each response).
+    sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host.strip("[]"), port))
+    except OSError as exc:
+        sock.close()
+        raise InputError("--port", f"cannot listen on {host}:{port}: {exc.strerror or exc}",
+                         "choose another --port (0 picks a free one)") from None
+    sock.listen(128)
+    sock.set_inheritable(True)
+    return sock
+
+
+def url_of(sock: socket.socket) -> str:
+    host, port = sock.getsockname()[:2]
+    shown = f"[{host}]" if ":" in host else host
+    return f"http://{shown}:{port}/"
+
+
+def serve(registry: FlightRegistry, host: str = "127.0.0.1", port: int = 8000, *, allow_remote: bool = False,
+          cache_mb: int = DEFAULT_CACHE_MB, announce=print, ready=None) -> None:
+    """Serve ``registry`` until interrupted. ``announce(text)`` is told the URL once listening;
+    ``ready(server)`` (optional) gets the uvicorn Server (tests stop it with ``should_exit``)."""
+    import uvicorn
+
+    check_host(host, allow_remote)
+    sock = _bind(host, int(port))
+    allowed = (*LOOPBACK_NAMES, host) if is_loopback(host) else None
+    app = create_app(registry, tile_cache_bytes=(cache_mb << 20) // 4, allowed_hosts=allowed)
+    config = uvicorn.Config(app, log_level="warning", access_log=False, lifespan="on",
+                            timeout_graceful_shutdown=3)
+    server = uvicorn.Server(config)
+    if ready is not None:
+        ready(server)
+    announce(url_of(sock))
+    try:
+        server.run(sockets=[sock])
+    finally:
+        sock.close()
+
+
+def run(args: argparse.Namespace) -> int:
+    """The ``archive view`` command."""
+    check_host(args.host, args.allow_remote)
+    if not is_loopback(args.host):
+        print(f"archive view: warning: serving on {args.host}, not loopback: anyone who can reach this machine "
+              "can read the archive's flights", file=sys.stderr)
+    if args.cache_mb <= 0:
+        raise InputError("--cache-mb", f"must be a positive number of MiB, got {args.cache_mb}")
+    cache = int(args.cache_mb) << 20
+    registry = FlightRegistry(args.archive, args.directories, args.fov, bands_cache=ByteLRU(cache // 2),
+                              lookup_cache=ByteLRU(cache // 4))
+    count = len(registry.catalog_ids()) + len(registry.raw)
+
+    def announce(url: str) -> None:
+        print(f"archive view: {count} flight{'s' if count != 1 else ''} at {url}  (Ctrl-C stops)", flush=True)
+
+    try:
+        serve(registry, args.host, args.port, allow_remote=args.allow_remote, cache_mb=args.cache_mb,
+              announce=announce)
+    except KeyboardInterrupt:  # Ctrl-C is how a viewer is stopped: uvicorn has shut down cleanly
+        pass
+    print("archive view: stopped", flush=True)
+    return 0

@@ -1,0 +1,293 @@
+"""Load bench of ``archive view`` (issue 13): tile latency on loopback, cold and warm, first tile of a
+newly opened flight, and the server's memory.
+
+    python bench/bench_view.py [--clients 8] [--requests 200] [--restarts 3] [--cache-mb 512]
+                               [--cubes 4 --bands 8 --samples 128 --lines 250] [--workdir DIR]
+                               [--json FILE] [--results bench/RESULTS.md]
+
+Bounded: it makes clients x requests tile requests twice and stops by itself. Steps:
+
+1. simulate a flight (``archive simulate`` defaults: the demo's) and ingest it into an archive in
+   --workdir (reused while its marker file exists);
+2. first tile, --restarts times: start ``archive view --archive A --port 0`` (a subprocess), wait
+   for its URL, ask the catalog (what the page does first) then the tile at the centre of the
+   flight at zoom 20 with the default parameters (RGB, radiance, flight 2 %/98 % stretch): its
+   latency includes opening the flight, its meshes, the GL context and the flight's percentiles;
+3. cold: --clients threads, each with one keep-alive HTTP/1.1 connection, make --requests 3-band
+   tile requests over the flight at zooms 18-22, every URL distinct (a fixed stretch that differs
+   per request), so that each one is rendered (flight, meshes, bands warm; lookups of a tile
+   shared by later requests of the same tile, as when a user changes bands or stretch);
+4. warm: the same requests again (tile cache hits).
+
+The server's resident memory (VmRSS) is sampled every 0.1 s; its /api/status gives the render and
+cache counters. Prints a Markdown table; --results appends it, with the machine and command, to a
+RESULTS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import http.client
+import json
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+FOV = 47.5
+HALF_WORLD = math.pi * 6378137.0
+
+
+def machine() -> dict:
+    cpu = "?"
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("model name"):
+            cpu = line.split(":", 1)[1].strip()
+            break
+    mem = 0
+    for line in Path("/proc/meminfo").read_text().splitlines():
+        if line.startswith("MemTotal"):
+            mem = int(line.split()[1]) * 1024
+    gl = subprocess.run([sys.executable, "-c", "from archive.render.context import gl_info; i = gl_info(); "
+                         "print(i['renderer'], '|', i['version'])"], capture_output=True, text=True, cwd=ROOT)
+    return {"cpu": cpu, "cores": os.cpu_count(), "ram_gb": round(mem / 1e9, 1),
+            "gl": gl.stdout.strip() or gl.stderr.strip()[-200:], "load": os.getloadavg()}
+
+
+def rss(pid: int) -> int:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+class Server:
+    """``archive view`` in a subprocess, with its peak resident memory sampled."""
+
+    def __init__(self, archive: Path, cache_mb: int):
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.proc = subprocess.Popen([sys.executable, "-m", "archive", "view", "--archive", str(archive), "--port", "0",
+                                      "--cache-mb", str(cache_mb)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                     text=True, cwd=ROOT, env=env)
+        line = self.proc.stdout.readline()
+        found = re.search(r"http://127\.0\.0\.1:(\d+)/", line)
+        if not found:
+            self.proc.kill()
+            raise SystemExit(f"archive view did not start: {line}{self.proc.stderr.read()}")
+        self.port = int(found.group(1))
+        self.peak = 0
+        self._stop = threading.Event()
+        self._sampler = threading.Thread(target=self._sample, daemon=True)
+        self._sampler.start()
+
+    def _sample(self):
+        while not self._stop.is_set():
+            self.peak = max(self.peak, rss(self.proc.pid))
+            time.sleep(0.1)
+
+    def rss(self) -> int:
+        return rss(self.proc.pid)
+
+    def stop(self):
+        self._stop.set()
+        self.proc.send_signal(signal.SIGINT)
+        try:
+            self.proc.wait(20)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+
+def get(conn: http.client.HTTPConnection, path: str) -> tuple[int, bytes, float]:
+    t = time.perf_counter()
+    conn.request("GET", path, headers={"Host": "127.0.0.1"})
+    response = conn.getresponse()
+    body = response.read()
+    return response.status, body, time.perf_counter() - t
+
+
+def tiles_over(bbox, z: int, pad: int = 0) -> list[tuple[int, int, int]]:
+    x0 = HALF_WORLD * math.radians(bbox[0]) / math.pi
+    x1 = HALF_WORLD * math.radians(bbox[2]) / math.pi
+
+    def merc_y(lat):
+        return 6378137.0 * math.log(math.tan(math.pi / 4 + math.radians(lat) / 2))
+
+    y0, y1 = merc_y(bbox[1]), merc_y(bbox[3])
+    side = 2 * HALF_WORLD / 2**z
+    cols = range(int((x0 + HALF_WORLD) // side) - pad, int((x1 + HALF_WORLD) // side) + 1 + pad)
+    rows = range(int((HALF_WORLD - y1) // side) - pad, int((HALF_WORLD - y0) // side) + 1 + pad)
+    return [(z, x, y) for x in cols for y in rows]
+
+
+def make_archive(workdir: Path, args) -> tuple[Path, str, dict]:
+    archive = workdir / "archive"
+    marker = workdir / f".bench-view-{args.cubes}-{args.bands}-{args.samples}-{args.lines}"
+    if not marker.exists():
+        import shutil
+
+        from archive.ingest.command import ingest
+        from archive.simulator.command import simulate_flight
+
+        shutil.rmtree(workdir, ignore_errors=True)
+        workdir.mkdir(parents=True)
+        simulate_flight(workdir / "flight", cubes=args.cubes, bands=args.bands, samples=args.samples, lines=args.lines)
+        ingest([workdir / "flight"], archive, FOV, progress=False)
+        marker.touch()
+    (item,) = [json.loads(p.read_text()) for p in (archive / "catalog" / "items").glob("*.json")]
+    return archive, item["id"], item
+
+
+def percentile(values, q) -> float:
+    return float(np.percentile(np.asarray(values) * 1000.0, q)) if values else float("nan")
+
+
+def run_clients(port: int, plans: list[list[str]]) -> tuple[list[float], int]:
+    """Each plan on its own thread and connection; (latencies s, non-200 count)."""
+    latencies: list[list[float]] = [[] for _ in plans]
+    failures = [0] * len(plans)
+
+    def client(i):
+        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=60)
+        for path in plans[i]:
+            status, body, dt = get(conn, path)
+            latencies[i].append(dt)
+            if status != 200 or not body.startswith(b"\x89PNG"):
+                failures[i] += 1
+        conn.close()
+
+    threads = [threading.Thread(target=client, args=(i,)) for i in range(len(plans))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return [x for lat in latencies for x in lat], sum(failures)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--clients", type=int, default=8)
+    ap.add_argument("--requests", type=int, default=200, help="tile requests per client and phase")
+    ap.add_argument("--restarts", type=int, default=3, help="server starts measured for the first tile")
+    ap.add_argument("--cache-mb", type=int, default=512)
+    ap.add_argument("--cubes", type=int, default=4)
+    ap.add_argument("--bands", type=int, default=8)
+    ap.add_argument("--samples", type=int, default=128)
+    ap.add_argument("--lines", type=int, default=250)
+    ap.add_argument("--workdir", type=Path, default=Path("/tmp/archive-bench-view"))
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--results", type=Path, help="append the Markdown section to this file")
+    args = ap.parse_args(argv)
+
+    R: dict = {"machine": machine(), "args": {k: str(v) for k, v in vars(args).items()}}
+    archive, cid, item = make_archive(args.workdir, args)
+    bbox = item["bbox"]
+    R["flight"] = {"id": cid, "cubes": args.cubes, "bands": args.bands, "samples": args.samples, "lines": args.lines,
+                   "bbox": bbox}
+    base = f"/api/collections/{cid}/tiles"
+
+    # ---- first tile of a newly opened flight -------------------------------------------------
+    lon, lat = (bbox[0] + bbox[2]) / 2, (bbox[1] + bbox[3]) / 2
+    (centre,) = tiles_over([lon, lat, lon, lat], 20)
+    firsts, starts = [], []
+    for _ in range(max(args.restarts, 1)):
+        t = time.perf_counter()
+        server = Server(archive, args.cache_mb)
+        starts.append(time.perf_counter() - t)
+        conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=60)
+        status, _, _ = get(conn, "/api/collections")
+        assert status == 200
+        status, body, dt = get(conn, f"{base}/{centre[0]}/{centre[1]}/{centre[2]}.png")
+        assert status == 200 and body.startswith(b"\x89PNG"), body[:200]
+        firsts.append(dt)
+        conn.close()
+        server.stop()
+    R["first_tile_ms"] = [round(x * 1000, 1) for x in firsts]
+    R["server_start_s"] = [round(x, 2) for x in starts]
+
+    # ---- load: cold then warm ------------------------------------------------------------------
+    tiles = [t for z in range(18, 23) for t in tiles_over(bbox, z)]
+    server = Server(archive, args.cache_mb)
+    rss_idle = server.rss()
+    plans = []
+    wavelengths = ["650,550,450", "800,650,550", "900,700,500"]
+    for i in range(args.clients):
+        plan = []
+        for j in range(args.requests):
+            k = i * args.requests + j
+            z, x, y = tiles[(k * 7919) % len(tiles)]  # spread over zooms and tiles
+            plan.append(f"{base}/{z}/{x}/{y}.png?wavelengths={wavelengths[k % 3]}&stretch=0,{1000 + k}")
+        plans.append(plan)
+    t = time.perf_counter()
+    cold, cold_fail = run_clients(server.port, plans)
+    cold_s = time.perf_counter() - t
+    t = time.perf_counter()
+    warm, warm_fail = run_clients(server.port, plans)
+    warm_s = time.perf_counter() - t
+    conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=60)
+    status = json.loads(get(conn, "/api/status")[1])
+    conn.close()
+    rss_end = server.rss()
+    server.stop()
+    n = args.clients * args.requests
+    R["tiles_in_rotation"] = len(tiles)
+    R["cold"] = {"p50_ms": percentile(cold, 50), "p95_ms": percentile(cold, 95), "max_ms": percentile(cold, 100),
+                 "req_per_s": n / cold_s, "failed": cold_fail}
+    R["warm"] = {"p50_ms": percentile(warm, 50), "p95_ms": percentile(warm, 95), "max_ms": percentile(warm, 100),
+                 "req_per_s": n / warm_s, "failed": warm_fail}
+    R["server"] = {"rss_idle_mb": rss_idle / 1e6, "rss_end_mb": rss_end / 1e6, "rss_peak_mb": server.peak / 1e6,
+                   "status": status}
+    R["machine"]["load_after"] = os.getloadavg()
+
+    m = R["machine"]
+    caches = status["caches"]
+    lines = [
+        f"## Viewer load (issue 13): {args.cubes} cubes x {args.lines} lines x {args.samples} samples x {args.bands} bands",
+        "",
+        f"Command: `.venv/bin/python bench/bench_view.py {' '.join(sys.argv[1:] if argv is None else argv)}` (flight: `archive simulate` {args.cubes} cubes x {args.lines} lines x "
+        f"{args.samples} samples x {args.bands} bands, ingested; `archive view` in a subprocess, clients on "
+        "loopback, one keep-alive HTTP/1.1 connection per client thread).",
+        f"Machine: {m['cpu']}, {m['cores']} cores, {m['ram_gb']} GB RAM; GL: {m['gl']}; load average "
+        f"before {m['load'][0]:.2f}, after {m['load_after'][0]:.2f} (the VM is shared with other engineers' jobs).",
+        "",
+        "| measure | p50 ms | p95 ms | max ms | tiles/s |",
+        "|---|---|---|---|---|",
+        f"| cold: 3-band tile rendered ({n} requests, {args.clients} clients, all URLs distinct) | "
+        f"{R['cold']['p50_ms']:.1f} | {R['cold']['p95_ms']:.1f} | {R['cold']['max_ms']:.1f} | {R['cold']['req_per_s']:.1f} |",
+        f"| warm: the same requests again (tile cache) | {R['warm']['p50_ms']:.1f} | {R['warm']['p95_ms']:.1f} | "
+        f"{R['warm']['max_ms']:.1f} | {R['warm']['req_per_s']:.1f} |",
+        "",
+        f"First tile of a newly opened flight (fresh server each time, zoom 20 centre tile, flight stretch): "
+        f"{', '.join(f'{x:.0f}' for x in R['first_tile_ms'])} ms; server start to URL printed: "
+        f"{', '.join(f'{x:.1f}' for x in R['server_start_s'])} s.",
+        f"Server memory (VmRSS): {R['server']['rss_idle_mb']:.0f} MB idle, peak {R['server']['rss_peak_mb']:.0f} MB, "
+        f"{R['server']['rss_end_mb']:.0f} MB at the end; caches at the end: tiles {caches['tiles']['entries']} "
+        f"({caches['tiles']['bytes'] / 1e6:.1f} MB of {caches['tiles']['limit'] / 1e6:.0f}), bands "
+        f"{caches['bands']['bytes'] / 1e6:.1f} MB, lookups {caches['lookups']['bytes'] / 1e6:.1f} MB of "
+        f"{caches['lookups']['limit'] / 1e6:.0f} ({caches['lookups']['evictions']} evicted); renders "
+        f"{status['render']['done']}, failed requests {cold_fail + warm_fail}.",
+        "",
+    ]
+    text = "\n".join(lines)
+    print(text)
+    if args.json:
+        args.json.write_text(json.dumps(R, indent=1, default=str))
+    if args.results:
+        with open(args.results, "a") as f:
+            f.write("\n" + text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,397 @@
+"""``archive view``'s HTTP API (issue 13) on a small simulated flight ingested into an archive.
+
+Tiles are checked against the catalog footprint (which contains every covered pixel by
+construction); point spectra against ``archive.mosaic`` (bit for bit the values ``archive render``
+writes) at the pixel holding the point; bad ids, paths and parameters give 4xx JSON messages
+without stack traces; non-loopback binds are refused without ``--allow-remote``; an abandoned
+tile request never reaches the renderer (real uvicorn, a raw socket closed early).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import socket
+import threading
+import time
+import warnings
+
+import numpy as np
+import pytest
+from PIL import Image
+from pyproj import Transformer
+
+import archive
+from archive.catalog.footprint import points_in_polygon
+from archive.cli import main
+from archive.errors import InputError
+from archive.view.cache import ByteLRU
+from archive.view.flights import FlightRegistry
+from archive.view.server import LOOPBACK_NAMES, check_host, create_app
+from archive.view.tiles import HALF_WORLD, tile_grid
+
+FOV = 47.5
+Z = 20  # ~0.12 m pixels here: the flight spans a few tiles
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """(archive path, collection id, its STAC Item) of a 4-cube, 6-band simulated flight."""
+    from archive.ingest.command import ingest
+    from archive.simulator.command import simulate_flight
+
+    root = tmp_path_factory.mktemp("view")
+    simulate_flight(root / "flight", cubes=4, bands=6, samples=64, lines=150, cubes_per_pass=2, seed=5)
+    (result,) = ingest([root / "flight"], root / "archive", FOV, progress=False)
+    item = json.loads((root / "archive" / "catalog" / "items" / f"{result.cid}.json").read_text())
+    return root / "archive", result.cid, item
+
+
+def _client(app):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # starlette's note about which httpx it found
+        from starlette.testclient import TestClient
+    return TestClient(app)
+
+
+@pytest.fixture(scope="module")
+def client(demo):
+    with _client(create_app(FlightRegistry(demo[0]))) as c:
+        yield c
+
+
+def _tiles_over(bbox, z):
+    """XYZ tiles (x, y) of zoom z covering a W, S, E, N degree box."""
+    to_merc = Transformer.from_crs(4326, 3857, always_xy=True)
+    (x0, x1), (y0, y1) = to_merc.transform([bbox[0], bbox[2]], [bbox[1], bbox[3]])
+    side = 2 * HALF_WORLD / 2**z
+    cols = range(int((x0 + HALF_WORLD) // side), int((x1 + HALF_WORLD) // side) + 1)
+    rows = range(int((HALF_WORLD - y1) // side), int((HALF_WORLD - y0) // side) + 1)
+    return [(x, y) for x in cols for y in rows]
+
+
+def _rgba(response) -> np.ndarray:
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "image/png"
+    image = Image.open(io.BytesIO(response.content))
+    assert image.size == (256, 256)
+    return np.asarray(image.convert("RGBA"))
+
+
+def _pixel_lonlat(z, x, y):
+    """lon, lat (256, 256) of the pixel centres of tile z/x/y."""
+    grid = tile_grid(z, x, y)
+    xs, ys = grid.xy_centres()
+    mx, my = np.meshgrid(xs, ys)
+    lon, lat = Transformer.from_crs(3857, 4326, always_xy=True).transform(mx, my)
+    return np.asarray(lon), np.asarray(lat)
+
+
+def _inside_footprint(item, lon, lat) -> np.ndarray:
+    geometry = item["geometry"]
+    polygons = [geometry["coordinates"]] if geometry["type"] == "Polygon" else geometry["coordinates"]
+    pts = np.stack([lon.ravel(), lat.ravel()], axis=-1)
+    inside = np.zeros(len(pts), bool)
+    for poly in polygons:
+        inside |= points_in_polygon(pts, np.asarray(poly[0]))
+    return inside.reshape(lon.shape)
+
+
+def test_collections_geojson_and_filters(client, demo):
+    _, cid, item = demo
+    fc = client.get("/api/collections").json()
+    assert fc["type"] == "FeatureCollection"
+    (f,) = fc["features"]
+    p = f["properties"]
+    assert f["id"] == cid and f["geometry"] == item["geometry"] and f["bbox"] == item["bbox"]
+    assert p["bands"] == 6 and p["min_wavelength"] == 400.0 and p["max_wavelength"] == 1000.0
+    assert p["start_datetime"] == item["properties"]["start_datetime"] and p["cubes"] == 4
+    w, s, e, n = item["bbox"]
+    day = p["start_datetime"][:10]
+    for query, hits in [({"bbox": f"{w},{s},{e},{n}"}, 1), ({"bbox": "10,10,11,11"}, 0),
+                        ({"datetime": day}, 1), ({"datetime": "2001-01-01/2001-02-01"}, 0),
+                        ({"wavelength": "650"}, 1), ({"wavelength": "1500"}, 0),
+                        ({"bbox": f"{w},{s},{e},{n}", "datetime": f"{day}/..", "wavelength": "500"}, 1)]:
+        got = client.get("/api/collections", params=query)
+        assert got.status_code == 200, got.text
+        assert len(got.json()["features"]) == hits, query
+
+
+def test_describe(client, demo):
+    _, cid, item = demo
+    info = client.get(f"/api/collections/{cid}").json()
+    assert info["bands"] == 6 and len(info["cubes"]) == 4 and info["default_mode"] == "radiance"
+    assert info["ground_height"] == item["properties"]["archive:ground_height"]
+    assert info["lowest_camera"] > info["ground_height"] + 1
+    assert len(info["default_bands"]) == 3
+
+
+def test_tiles_cover_the_footprint_and_nothing_else(client, demo):
+    _, cid, item = demo
+    tiles = _tiles_over(item["bbox"], Z)
+    assert 2 <= len(tiles) <= 40
+    opaque_total = inside_total = covered_inside = 0
+    for x, y in tiles:
+        rgba = _rgba(client.get(f"/api/collections/{cid}/tiles/{Z}/{x}/{y}.png"))
+        opaque = rgba[..., 3] > 0
+        assert set(np.unique(rgba[..., 3])) <= {0, 255}
+        inside = _inside_footprint(item, *_pixel_lonlat(Z, x, y))
+        assert not (opaque & ~inside).any(), f"tile {x}/{y}: pixels drawn outside the footprint"
+        opaque_total += int(opaque.sum())
+        inside_total += int(inside.sum())
+        covered_inside += int((opaque & inside).sum())
+    assert opaque_total > 10_000
+    # the footprint is each strip's hull grown by a margin: most of it is covered
+    assert covered_inside / inside_total > 0.7
+    # far from the flight: transparent, and nothing rendered for it
+    x, y = tiles[0]
+    far = _rgba(client.get(f"/api/collections/{cid}/tiles/{Z}/{x + 40}/{y}.png"))
+    assert (far[..., 3] == 0).all()
+
+
+def test_tile_options_and_cache(client, demo):
+    _, cid, item = demo
+    def drawn(t):
+        return (_rgba(client.get(f"/api/collections/{cid}/tiles/{Z}/{t[0]}/{t[1]}.png"))[..., 3] > 0).sum()
+
+    x, y = max(_tiles_over(item["bbox"], Z), key=drawn)
+    url = f"/api/collections/{cid}/tiles/{Z}/{x}/{y}.png"
+    base = _rgba(client.get(url))
+    before = client.get("/api/status").json()
+    again = _rgba(client.get(url))
+    after = client.get("/api/status").json()
+    assert np.array_equal(base, again)
+    assert after["render"]["submitted"] == before["render"]["submitted"]  # from the tile cache
+    assert after["caches"]["tiles"]["hits"] == before["caches"]["tiles"]["hits"] + 1
+    grey = np.asarray(Image.open(io.BytesIO(client.get(url, params={"band": 2}).content)))
+    assert grey.ndim == 3 and grey.shape[2] == 2  # grey + alpha
+    assert np.array_equal(grey[..., 1] > 0, base[..., 3] > 0)
+    lower = _rgba(client.get(url, params={"ground_height": item["properties"]["archive:ground_height"] - 15}))
+    assert (lower[..., 3] != base[..., 3]).mean() > 0.01  # another ground: other coverage
+    fixed = _rgba(client.get(url, params={"wavelengths": "650,550,450", "stretch": "0,1e9"}))
+    assert fixed[..., :3][fixed[..., 3] > 0].max() <= 1  # radiance is far below 1e9 / 255
+    one_cube = _rgba(client.get(url, params={"cubes": "3-3"}))
+    assert (one_cube[..., 3] > 0).sum() < (base[..., 3] > 0).sum()
+
+
+@pytest.mark.parametrize("options", [
+    {},
+    {"ground_height": 75.5, "sync_offset": 0.004, "mode": "relative", "cubes": (1, 3)},
+])
+def test_point_equals_the_rendered_mosaic(client, demo, options):
+    """The spectrum of /point at a pixel centre of ``archive.mosaic``'s grid is that pixel's values,
+    float32 bit for bit, whatever the parameters (same meshes, same two GL passes)."""
+    path, cid, item = demo
+    gsd = item["properties"]["gsd"]  # the page's default: the nominal gsd
+    cubes = options.get("cubes")
+    params = {k: v for k, v in options.items() if k != "cubes"}
+    ds = archive.mosaic([cid], archive=path, gsd=gsd, **params)
+    values = ds[[v for v in ds.data_vars if v != "saturated"][0]].values
+    epsg = ds.rio.crs.to_epsg()
+    to_ll = Transformer.from_crs(epsg, 4326, always_xy=True)
+    rows, cols = np.nonzero(np.isfinite(values).all(axis=0))
+    pick = np.random.default_rng(7).choice(len(rows), 25, replace=False)
+    query = {k: str(v) for k, v in params.items()}
+    if cubes is not None:
+        # later cubes win in the mosaic: wherever cubes first..last (last = the flight's last cube)
+        # cover a pixel, the whole mosaic shows the same cube as the point of those cubes
+        query["cubes"] = f"{cubes[0]}-{cubes[1]}"
+    compared = 0
+    for k in pick:
+        r, c = rows[k], cols[k]
+        lon, lat = to_ll.transform(float(ds.x[c]), float(ds.y[r]))
+        got = client.get(f"/api/collections/{cid}/point", params={"lon": repr(lon), "lat": repr(lat), **query})
+        assert got.status_code == 200, got.text
+        p = got.json()
+        assert p["gsd"] == gsd and p["epsg"] == epsg
+        assert abs(p["pixel"]["x"] - float(ds.x[c])) < 1e-6 and abs(p["pixel"]["y"] - float(ds.y[r])) < 1e-6
+        if cubes is not None and not p["covered"]:
+            continue
+        assert p["covered"] and p["line"] >= 0 and p["sample"] >= 0
+        if cubes is not None:
+            assert cubes[0] <= p["cube"] <= cubes[1]
+        spectrum = np.array([np.nan if v is None else v for v in p["values"]], np.float32)
+        assert len(spectrum) == 6 and p["wavelength"] == item["properties"]["archive:wavelengths"]
+        assert np.array_equal(spectrum.view(np.uint32), values[:, r, c].astype(np.float32).view(np.uint32)), \
+            (r, c, spectrum, values[:, r, c])
+        compared += 1
+    assert compared >= 10
+
+
+def test_stats_of_the_view(client, demo):
+    _, cid, item = demo
+    w, s, e, n = item["bbox"]
+    whole = client.get(f"/api/collections/{cid}/stats", params={"wavelengths": "650,550,450"}).json()
+    assert whole["count"] > 10_000 and len(whole["low"]) == 3
+    assert all(lo < hi for lo, hi in zip(whole["low"], whole["high"]))
+    half = client.get(f"/api/collections/{cid}/stats",
+                      params={"bbox": f"{w},{s},{(w + e) / 2},{n}", "band": 1, "percentiles": "10,90"}).json()
+    assert half["band"] == [1] and half["percentiles"] == [10.0, 90.0] and half["count"] > 1000
+    away = client.get(f"/api/collections/{cid}/stats", params={"bbox": "10,10,10.1,10.1"}).json()
+    assert away["count"] == 0 and away["low"] == [None] * 3
+
+
+BAD = [
+    # (path, params, status, words the message must hold)
+    ("/api/collections/Nope_123/tiles/20/0/0.png", {}, 404, "Nope_123"),
+    ("/api/collections/..%2F..%2Fetc%2Fpasswd/point", {"lon": 0, "lat": 0}, 404, ""),
+    ("/api/collections/%2E%2E/stats", {}, 404, ".."),
+    ("/api/collections/../../etc/passwd", {}, 404, ""),
+    ("/static/..%2F..%2Fcli.py", {}, 404, ""),
+    ("/static/../server.py", {}, 404, ""),
+    ("/api/nothing", {}, 404, "/api/nothing"),
+    ("{tile}", {"z": 31}, 400, "zoom 31"),
+    ("/api/collections/{cid}/tiles/20/99999999/0.png", {}, 400, "does not exist at zoom 20"),
+    ("{tile}", {"wavelengths": ",".join(["700"] * 10_000)}, 400, "10000"),
+    ("{tile}", {"wavelengths": "500,600"}, 400, "1 (grey) or 3"),
+    ("{tile}", {"wavelengths": "5000,600,500"}, 400, "no band near 5000"),
+    ("{tile}", {"band": 6}, 400, "band 6 out of range"),
+    ("{tile}", {"band": 1, "wavelengths": 500}, 400, "either band"),
+    ("{tile}", {"mode": "magic"}, 400, "magic"),
+    ("{tile}", {"mode": "reflectance"}, 400, "white reference"),
+    ("{tile}", {"stretch": "p90,p10"}, 400, "percentiles"),
+    ("{tile}", {"stretch": "1,2,3"}, 400, "stretch"),
+    ("{tile}", {"cubes": "3-1"}, 400, "first <= last"),
+    ("{tile}", {"cubes": "0-9"}, 400, "cube 9 out of range"),
+    ("{tile}", {"ground_height": 1e7}, 400, "ground_height"),
+    ("{tile}", {"ground_height": 500}, 400, "not below the camera"),
+    ("{tile}", {"sync_offset": "nan"}, 400, "finite"),
+    ("{tile}", {"sync_offset": 3600}, 400, "out of range"),
+    ("/api/collections/{cid}/point", {"lon": 1}, 400, "lon and lat"),
+    ("/api/collections/{cid}/point", {"lon": 500, "lat": 0}, 400, "lon"),
+    ("/api/collections/{cid}/point", {"lon": 0, "lat": 0, "gsd": 0}, 400, "gsd"),
+    ("/api/collections/{cid}/stats", {"percentiles": "50"}, 400, "percentiles"),
+    ("/api/collections", {"bbox": "1,2,3"}, 400, "4 numbers"),
+    ("/api/collections", {"bbox": "10,0,0,10"}, 400, "W <= E"),
+    ("/api/collections", {"datetime": "yesterday"}, 400, "yesterday"),
+    ("/api/collections", {"wavelength": "x"}, 400, "number"),
+]
+
+
+@pytest.mark.parametrize("path, params, status, words", BAD, ids=[f"{b[0][-24:]}-{b[3]}" for b in BAD])
+def test_bad_requests_give_json_4xx_without_trace(client, demo, path, params, status, words):
+    _, cid, _ = demo
+    params = dict(params)
+    if path == "{tile}":
+        path = f"/api/collections/{cid}/tiles/{params.pop('z', 20)}/0/0.png"
+    got = client.get(path.format(cid=cid), params=params)
+    assert got.status_code == status, got.text
+    assert got.headers["content-type"].startswith("application/json")
+    body = got.json()
+    assert words in body["error"] and body["status"] == status
+    assert "Traceback" not in got.text and 'File "' not in got.text
+
+
+def test_host_checks(demo, capsys):
+    for host in ("127.0.0.1", "::1", "localhost", "127.0.0.2"):
+        check_host(host, allow_remote=False)
+    for host in ("0.0.0.0", "192.168.1.20", "::", "example.org"):
+        with pytest.raises(InputError, match="--allow-remote"):
+            check_host(host, allow_remote=False)
+        check_host(host, allow_remote=True)
+    assert main(["view", "--archive", str(demo[0]), "--host", "0.0.0.0", "--port", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "refusing to serve on '0.0.0.0'" in err and "--allow-remote" in err and "Traceback" not in err
+    # bound to loopback, the server answers only requests naming a loopback host (DNS rebinding)
+    app = create_app(FlightRegistry(demo[0]), allowed_hosts=LOOPBACK_NAMES)
+    with _client(app) as c:
+        assert c.get("http://127.0.0.1:8000/api/collections").status_code == 200
+        assert c.get("http://[::1]:8000/api/status").status_code == 200
+        evil = c.get("http://evil.example:8000/api/collections")
+        assert evil.status_code == 400 and "evil.example" in evil.json()["error"]
+
+
+def test_byte_lru_keeps_its_limit():
+    cache = ByteLRU(100)
+    for i in range(10):
+        cache.put(i, bytes(30), 30)
+    assert len(cache) == 3 and cache.stats().bytes == 90 and cache.get(0) is None and cache.get(9) is not None
+    cache.get(7)
+    cache.put("new", b"", 30)   # evicts the least recently used: 8
+    assert cache.get(8) is None and cache.get(7) is not None
+    cache.put("huge", b"", 101)  # larger than the limit: not kept
+    assert cache.get("huge") is None and cache.stats().bytes <= 100 and cache.stats().evictions == 8
+
+
+@pytest.fixture
+def live(demo):
+    """A real uvicorn server on a free loopback port, in a thread; yields (base URL, Viewer)."""
+    import uvicorn
+
+    app = create_app(FlightRegistry(demo[0]))
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    sock.listen(16)
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 20
+    while not server.started:
+        assert time.monotonic() < deadline, "uvicorn did not start"
+        time.sleep(0.02)
+    yield f"http://127.0.0.1:{sock.getsockname()[1]}", app.state.viewer
+    server.should_exit = True
+    thread.join(10)
+    sock.close()
+
+
+def _get_json(url):
+    import urllib.request
+
+    with urllib.request.urlopen(url, timeout=10) as r:
+        return json.loads(r.read())
+
+
+def test_abandoned_tile_requests_are_not_rendered(live, demo):
+    base, viewer = live
+    _, cid, item = demo
+    x, y = _tiles_over(item["bbox"], Z)[0]
+    path = f"/api/collections/{cid}/tiles/{Z}/{x}/{y}.png?stretch=0,1000"
+    gate = threading.Event()
+    viewer.render.submit(lambda check: gate.wait(20))  # the render thread is busy
+    port = int(base.rsplit(":", 1)[1])
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
+        deadline = time.monotonic() + 10
+        while viewer.render.queued < 2:  # the tile job waits behind the gate
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+    # the client has gone: the server notices while the job waits, and cancels it
+    deadline = time.monotonic() + 10
+    while _get_json(base + "/api/status")["abandoned"] < 1:
+        assert time.monotonic() < deadline, "the abandoned request was not noticed"
+        time.sleep(0.02)
+    gate.set()
+    while viewer.render.queued:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    counts = _get_json(base + "/api/status")["render"]
+    assert counts["skipped"] == 1 and counts["done"] == 1 and counts["failed"] == 0  # the gate only
+    # asked again by a client that stays: rendered
+    import urllib.request
+
+    with urllib.request.urlopen(base + path, timeout=20) as r:
+        assert r.status == 200 and r.headers["content-type"] == "image/png"
+    assert _get_json(base + "/api/status")["render"]["done"] == 2
+
+
+def test_raw_flight_directories(demo):
+    """``archive view FLIGHT_DIR --fov DEG``: a raw flight served like a collection (its footprint
+    computed as the catalog does; tiles and points drawn from the raw files)."""
+    path, cid, item = demo
+    flight_dir = path.parent / "flight"
+    with pytest.raises(InputError, match="--fov"):
+        FlightRegistry(None, [flight_dir])
+    with _client(create_app(FlightRegistry(None, [flight_dir], FOV))) as c:
+        (f,) = c.get("/api/collections").json()["features"]
+        assert f["properties"]["kind"] == "raw" and f["id"] != cid
+        assert np.allclose(f["bbox"], item["bbox"], atol=1e-6)
+        assert c.get("/api/collections", params={"bbox": "10,10,11,11"}).json()["features"] == []
+        assert c.get(f"/api/collections/{cid}").status_code == 404  # the archive is not served
+        tiles = _tiles_over(f["bbox"], Z)
+        drawn = sum(int((_rgba(c.get(f"/api/collections/{f['id']}/tiles/{Z}/{x}/{y}.png"))[..., 3] > 0).sum())
+                    for x, y in tiles)
+        assert drawn > 10_000
+        lon, lat = (f["bbox"][0] + f["bbox"][2]) / 2, (f["bbox"][1] + f["bbox"][3]) / 2
+        p = c.get(f"/api/collections/{f['id']}/point", params={"lon": lon, "lat": lat}).json()
+        assert p["gsd"] == f["properties"]["gsd"] and len(p["values"]) == 6
