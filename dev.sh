@@ -11,7 +11,7 @@ VENV=${VENV:-.venv}
 system_packages() {
     # Headless OpenGL (EGL + Mesa llvmpipe) and venv support, plus the packages given (the test job:
     # Debian's chromium, which the viewer's browser test drives through Playwright).
-    local pkgs="libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri python3-venv $*"
+    local pkgs="libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri python3-venv proj-data $*"
     local missing=""
     if command -v dpkg-query >/dev/null 2>&1; then
         for p in $pkgs; do

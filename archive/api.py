@@ -108,7 +108,7 @@ def plan(sources: Source | Sequence[Source], *, gsd: float, archive: Source | No
          fov: float | None = None, calibration: Source | None = None, ground_height: float | str = "auto",
          wavelengths=None, bands="all", mode: str | None = None, white_reference: Source | None = None,
          sync_offset: float | None = None, boresight=None, lever_arm=None, overlap: str = "last",
-           crs=None, max_view_angle: float = 40.0,
+           crs=None, max_view_angle: float = 40.0, dem: Source | None = None, dem_datum: str | None = None,
          band_group: int | None = None, quiet: bool = True):
     """The plan of a mosaic of ``sources`` (:class:`archive.pipeline.OutputPlan`: opened sources,
     grid, cube meshes and windows, band groups), from metadata only: no pixel read, no GL.
@@ -119,7 +119,7 @@ def plan(sources: Source | Sequence[Source], *, gsd: float, archive: Source | No
                        ground_height=ground_height, wavelengths=wavelengths, bands=bands, mode=mode,
                        white_reference=white_reference, sync_offset=sync_offset, boresight=boresight,
                        lever_arm=lever_arm, overlap=overlap, crs=crs,
-                       max_view_angle=max_view_angle)
+                       max_view_angle=max_view_angle, dem=dem, dem_datum=dem_datum)
     return pipeline.plan(request, band_group=band_group, quiet=quiet)
 
 
@@ -127,7 +127,7 @@ def mosaic(sources: Source | Sequence[Source], *, gsd: float, archive: Source | 
            fov: float | None = None, calibration: Source | None = None, ground_height: float | str = "auto",
            wavelengths=None, bands="all", mode: str | None = None, white_reference: Source | None = None,
            sync_offset: float | None = None, boresight=None, lever_arm=None, overlap: str = "last",
-           crs=None, max_view_angle: float = 40.0,
+           crs=None, max_view_angle: float = 40.0, dem: Source | None = None, dem_datum: str | None = None,
            band_group: int | None = None, quiet: bool = True):
     """A lazy ``xarray.Dataset`` of the mosaic of ``sources``: nothing is rendered until computed.
 
@@ -140,7 +140,10 @@ def mosaic(sources: Source | Sequence[Source], *, gsd: float, archive: Source | 
     pitch, yaw deg), lever_arm (x, y, z m): None means as ingested for a collection, else 0;
     overlap: 'last' | 'mean'; crs: the output's projected CRS ('EPSG:32616', an int...; default:
     the UTM zone holding most of the flights, others rendered into it); max_view_angle: degrees
-    off nadir at the field-of-view edge beyond which lines are left out (turns); band_group: bands per render task and per band chunk (default sized
+    off nadir at the field-of-view edge beyond which lines are left out (turns); dem: a DEM GeoTIFF
+    (any CRS) the meshes follow instead of flat ground (exclusive with a numeric ground_height; ground
+    no line sees is NaN); dem_datum: 'ellipsoid' | 'egm96' | 'egm2008', required when the DEM's CRS
+    does not declare its vertical datum; band_group: bands per render task and per band chunk (default sized
     to the task memory budget); quiet: no notes on stderr.
 
     The data variable is named by mode ('radiance', 'dn', 'relative', 'reflectance'), (band, y, x)
@@ -158,7 +161,7 @@ def mosaic(sources: Source | Sequence[Source], *, gsd: float, archive: Source | 
                        ground_height=ground_height, wavelengths=wavelengths, bands=bands, mode=mode,
                        white_reference=white_reference, sync_offset=sync_offset, boresight=boresight,
                        lever_arm=lever_arm, overlap=overlap, crs=crs,
-                       max_view_angle=max_view_angle)
+                       max_view_angle=max_view_angle, dem=dem, dem_datum=dem_datum)
     return pipeline.mosaic(request, band_group=band_group, quiet=quiet)
 
 
@@ -166,15 +169,17 @@ def render(sources: Source | Sequence[Source], out: Source, *, gsd: float, archi
            fov: float | None = None, calibration: Source | None = None, ground_height: float | str = "auto",
            wavelengths=None, bands="all", mode: str | None = None, white_reference: Source | None = None,
            sync_offset: float | None = None, boresight=None, lever_arm=None, overlap: str = "last",
-           crs=None, max_view_angle: float = 40.0,
+           crs=None, max_view_angle: float = 40.0, dem: Source | None = None, dem_datum: str | None = None,
            quicklook: Source | None = None, scheduler: str | None = None, workers: int | None = None,
-           overwrite: bool = False, quiet: bool = True, per_flight: bool = False, format: str = "zarr") -> dict:
+           overwrite: bool = False, quiet: bool = True, per_flight: bool = False, format: str = "zarr",
+           threads: int | None = None) -> dict:
     """Render ``sources`` into ``out`` (.zarr, .tif or .hdr) exactly as ``archive render``; returns
     its summary (out, width, height, gsd, epsg, bands, wavelengths, mode, cubes, sources, renders,
     assemblies, seconds, graph_seconds).
 
     Keywords as :func:`mosaic`, plus: quicklook: also write an RGB .png; scheduler: a Dask
-    scheduler address (default: a local cluster of ``workers`` processes, 1); overwrite: replace an
+    scheduler address (default: a local cluster of ``workers`` processes, 1, of ``threads`` threads
+    each, default the cores); overwrite: replace an
     existing output; quiet: no progress bar or notes; per_flight: one output per source,
     ``out/<name>.<format>`` (then the summary holds ``outputs``). Nothing is left at ``out`` when
     anything fails.
@@ -185,9 +190,9 @@ def render(sources: Source | Sequence[Source], out: Source, *, gsd: float, archi
                        ground_height=ground_height, wavelengths=wavelengths, bands=bands, mode=mode,
                        white_reference=white_reference, sync_offset=sync_offset, boresight=boresight,
                        lever_arm=lever_arm, overlap=overlap, crs=crs,
-                       max_view_angle=max_view_angle)
+                       max_view_angle=max_view_angle, dem=dem, dem_datum=dem_datum)
     return pipeline.render(request, out, quicklook=quicklook, overwrite=overwrite, scheduler=scheduler,
-                           workers=workers, quiet=quiet, per_flight=per_flight, format=format)
+                           workers=workers, quiet=quiet, per_flight=per_flight, format=format, threads=threads)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -221,9 +226,10 @@ def render_keywords(args: argparse.Namespace) -> dict:
         "wavelengths": args.wavelengths, "bands": args.bands, "mode": args.mode,
         "white_reference": args.white_reference, "sync_offset": args.sync_offset, "boresight": args.boresight,
         "lever_arm": args.lever_arm, "overlap": args.overlap, "crs": args.crs,
-        "max_view_angle": args.max_view_angle, "quicklook": args.quicklook,
+        "max_view_angle": args.max_view_angle, "dem": args.dem, "dem_datum": args.dem_datum,
+        "quicklook": args.quicklook,
         "scheduler": args.scheduler, "workers": args.workers, "overwrite": args.overwrite, "quiet": args.quiet,
-        "format": args.format,
+        "format": args.format, "threads": getattr(args, "threads", None),
     }
     ids = _query_ids(args)
     if ids is not None:

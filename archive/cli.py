@@ -123,6 +123,9 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
                    help="true camera mounting angles, degrees, aerospace signs (default 0,0,0)")
     r.add_argument("--lever-arm", type=numbers(3), metavar="X,Y,Z",
                    help="true camera position from the INS in the body frame, metres (default 0,0,0)")
+    p.add_argument("--terrain", choices=["hills", "ridge"],
+                   help="terrain instead of flat ground: 'hills' (>= 10 m relief) or 'ridge' (with ground hidden "
+                        "from some lines); writes dem.tif (ellipsoidal heights) beside the flight")
     p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -166,12 +169,22 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--crs", metavar="EPSG:XXXX",
                    help="projected CRS of the output (default: the UTM zone holding most of the flights; "
                         "flights of other zones are rendered into it)")
+    p.add_argument("--dem", metavar="FILE",
+                   help="digital elevation model, a GeoTIFF in any CRS and resolution (only the part under the "
+                        "flight is read): the meshes follow it instead of the flat ground; ground no line sees stays NaN; "
+                        "exclusive with a numeric --ground-height")
+    p.add_argument("--dem-datum", choices=["ellipsoid", "egm96", "egm2008"], default=None,
+                   help="vertical datum of the DEM's heights, required when its CRS does not declare one "
+                        "(geoid heights are converted to ellipsoidal ones with PROJ's grids)")
     p.add_argument("--overlap", choices=["last", "mean"], default="last", help="where flights overlap: the later line wins (default) or the mean")
     p.add_argument("--quicklook", metavar="PNG", help="also write an RGB preview (2%%/98%% stretch)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="Dask scheduler address, e.g. tcp://host:8786 (default: a local cluster). Workers need "
                         "--nthreads 1 --resources GPU=1 and the same file paths (shared file system); see docs/deploy.md")
     p.add_argument("--workers", type=_positive_int, metavar="N", help="local cluster worker processes (default: 1)")
+    p.add_argument("--threads", type=_positive_int, metavar="N",
+                   help="threads per local worker (default: the cores divided among the workers, at least 2): "
+                        "render tasks draw on the worker's GL thread while the others mosaic, compress and write")
     # Batch jobs over the catalog: every flight of --archive that matches, rendered in one graph.
     p._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-[\d.]+(,\s*-?[\d.]+)+$")
     q = p.add_argument_group("batch jobs over the catalog of --archive (every given filter must match)")
@@ -200,6 +213,12 @@ def _add_info(sub: argparse._SubParsersAction) -> None:
     p.add_argument("directory", metavar="DIR", help="raw flight directory")
     p.add_argument("--fov", type=float, default=47.5, metavar="DEG", help="field of view used for the swath width (default 47.5)")
     p.add_argument("--sync-offset", type=float, default=0.0, metavar="S", help="camera-to-navigation time offset, seconds (default 0)")
+    p.add_argument("--dem", metavar="FILE",
+                   help="digital elevation model, a GeoTIFF in any CRS and resolution (only the part under the "
+                        "flight is read): also check that it covers the swath and report the terrain under the flight")
+    p.add_argument("--dem-datum", choices=["ellipsoid", "egm96", "egm2008"], default=None,
+                   help="vertical datum of the DEM's heights, required when its CRS does not declare one "
+                        "(geoid heights are converted to ellipsoidal ones with PROJ's grids)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
@@ -223,6 +242,12 @@ def _add_ingest(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ground-height", type=float, metavar="M",
                    help="ground height, metres above the ellipsoid, for the catalog footprint "
                         "(default: the header's 'ground elevation')")
+    p.add_argument("--dem", metavar="FILE",
+                   help="digital elevation model, a GeoTIFF in any CRS and resolution (only the part under the "
+                        "flight is read): the catalog footprint follows the terrain; exclusive with --ground-height")
+    p.add_argument("--dem-datum", choices=["ellipsoid", "egm96", "egm2008"], default=None,
+                   help="vertical datum of the DEM's heights, required when its CRS does not declare one "
+                        "(geoid heights are converted to ellipsoidal ones with PROJ's grids)")
     p.add_argument("--sync-offset", type=float, default=0.0, metavar="S",
                    help="camera-to-navigation time offset, seconds (default 0); recorded, used by renders of the collection")
     _add_mounting(p, recorded=False)

@@ -1,10 +1,20 @@
 """Writers for rendered mosaics: Zarr, Cloud-Optimized GeoTIFF, ENVI BSQ and an RGB quicklook.
 
-Every mosaic is first written, tile by tile, into a Zarr store (:class:`MosaicStore`): one chunk is
-one band of one 1024 x 1024 tile, so tasks writing different tiles or bands never share a chunk.
-The other formats are converted from that store chunk by chunk, so no writer ever holds the whole
-mosaic in memory. Rasters are ``(band, y, x)`` float32, NaN where no line covers a pixel; ``y`` grows
-southwards (row 0 is the northern edge).
+Every format is written by the render graph's own tile tasks, tile by tile, straight into the
+output under its temporary name; no writer ever holds the whole mosaic, and no format is converted
+from another. A *sink* is the small picklable handle those tasks write through (one output tile,
+1024 x 1024 px, of a range of bands at a time; tiles never share bytes, so tasks need no locks):
+
+- :class:`MosaicStore` (Zarr): one chunk is one band of one tile, encoded and written whole;
+- :class:`~archive.sinks.EnviSink` (ENVI BSQ): positioned writes (``os.pwrite``) of the tile's rows into the data
+  file, preallocated at its final size (no memory map); the header is written last;
+- :class:`~archive.sinks.CogSink` (COG): each task compresses its tiles (512 px, one band per tile) and the first
+  overview level computed from them into a spool file; overview tasks compute each further level
+  from the one below; :func:`archive.cog.assemble` then lays the compressed tiles out as a COG
+  without decoding them.
+
+Rasters are ``(band, y, x)`` float32, NaN where no line covers a pixel; ``y`` grows southwards (row 0
+is the northern edge).
 
 Nothing is ever half-written at the requested path: :class:`Output` writes to hidden temporary
 siblings (``.<name>.partial-<pid>...``), renames them into place only when complete, and removes them
@@ -15,41 +25,44 @@ once the new one is complete.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import math
 import os
 import shutil
 import sys
-import threading
 import uuid
 import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
-from archive.errors import InputError, OutputExistsError
+from archive.errors import InputError, OutputExistsError, RenderError
 from archive.grid import Grid
+from archive.sinks import CHUNK, CogSink, EnviSink, TileWriter, chunk_buffer
 
 __all__ = [
     "CHUNK",
-    "ChunkWriter",
     "FORMATS",
+    "ChunkWriter",
+    "CogSink",
+    "EnviSink",
     "MosaicStore",
     "Output",
+    "OutputMeta",
     "Tile",
+    "copy_store",
+    "envi_data_path",
     "output_format",
     "quicklook_bands",
     "variable_for_mode",
     "write_mosaic",
-    "zarr_to_cog",
-    "zarr_to_envi",
     "write_quicklook",
 ]
 
-#: Output tile = Zarr chunk edge, pixels.
-CHUNK = 1024
 #: Output suffix -> format name.
 FORMATS = {".zarr": "zarr", ".tif": "cog", ".tiff": "cog", ".hdr": "envi"}
 _VARIABLES = {"raw": "dn", "relative": "relative", "radiance": "radiance", "reflectance": "reflectance"}
@@ -154,20 +167,15 @@ class ChunkWriter:
     (bench/RESULTS.md "Render (issue 4)").
     """
 
-    _local = threading.local()
-
     def __init__(self, array, directory: str):
         self.array, self.directory, self.meta = array, directory, array.metadata
         self.codec = _direct_codec(array, directory)
         self._made: set[str] = set()  # chunk directories known to exist
 
-    @classmethod
-    def buffer(cls) -> np.ndarray:
+    @staticmethod
+    def buffer() -> np.ndarray:
         """This thread's reusable (CHUNK, CHUNK) float32 chunk buffer (contents undefined)."""
-        buffer = getattr(cls._local, "buffer", None)
-        if buffer is None:
-            buffer = cls._local.buffer = np.empty((CHUNK, CHUNK), np.float32)
-        return buffer
+        return chunk_buffer()
 
     def write(self, band: int, row: int, col: int, chunk: np.ndarray) -> None:
         """Write chunk (band, row, col) (chunk indices): ``chunk`` (CHUNK, CHUNK) float32 C-contiguous,
@@ -229,6 +237,12 @@ class MosaicStore:
     path: str
     variable: str
 
+    #: What the graph does for this sink: record saturation flags; write tiles no cube touches
+    #: (unwritten Zarr chunks read as NaN: no); overview levels computed by the graph (none).
+    saturation: ClassVar[bool] = True
+    blank_tiles: ClassVar[bool] = False
+    overview_levels: ClassVar[int] = 0
+
     @classmethod
     def create(
         cls,
@@ -244,8 +258,8 @@ class MosaicStore:
         wavelengths: nm per output band (or None); band_indices: the source band index of each output band.
         """
         import dask.array as da
-        import xarray as xr
         import rioxarray  # noqa: F401  (registers .rio)
+        import xarray as xr
 
         nb = len(band_indices)
         if wavelengths is not None and len(wavelengths) != nb:
@@ -340,6 +354,11 @@ class MosaicStore:
                         part = buffer
                     writer.write(band0 + b, (row0 + r) // CHUNK, (col0 + c) // CHUNK, part)
 
+    def open_tile(self, band0: int, tile: tuple[int, int, int, int], nbands: int) -> _ZarrTileWriter:
+        """A writer of one output tile (row0, col0, height, width) of bands band0.. (see :class:`archive.sinks.TileWriter`)."""
+        self.check_aligned(tile[2:], tile[0], tile[1])
+        return _ZarrTileWriter(self.chunk_writer(), band0, tile)
+
     def chunk_writer(self) -> ChunkWriter:
         """A :class:`ChunkWriter` on the values array (it checks no tile alignment: see write_values)."""
         return ChunkWriter(self._array(self.variable, "r+"), os.path.join(self.path, self.variable))
@@ -363,58 +382,109 @@ class MosaicStore:
 
 
 # ---------------------------------------------------------------------------------------------
-# Conversions from the finished store (chunk by chunk)
+# The Zarr sink's tile writer
 # ---------------------------------------------------------------------------------------------
-def _band_labels(store: MosaicStore) -> list[str]:
-    wl = store.wavelengths
-    idx = store.band_indices
-    if wl is None:
-        return [f"band {i}" for i in idx]
-    return [f"band {i}: {w:.1f} nm" for i, w in zip(idx, wl)]
+class _ZarrTileWriter(TileWriter):
+    def __init__(self, writer: ChunkWriter, band0: int, tile):
+        super().__init__(band0, tile)
+        self.writer = writer
+
+    def write(self, b: int, chunk: np.ndarray) -> None:
+        self.writer.write(self.band0 + b, self.tile[0] // CHUNK, self.tile[1] // CHUNK, chunk)
 
 
-def zarr_to_cog(store: MosaicStore, path: str | os.PathLike, work: str | os.PathLike,
-                compress: str = "DEFLATE") -> None:
-    """Write the store as a Cloud-Optimized GeoTIFF at ``path`` (512 px tiles, overviews, NaN nodata).
-
-    The bands are first copied chunk by chunk into a tiled GeoTIFF at ``work`` (deleted afterwards),
-    which GDAL's COG driver then rewrites with overviews in the cloud-optimized layout.
-    """
-    import rasterio
-    import rasterio.shutil
-    from rasterio.windows import Window
-
-    grid = store.grid
+def copy_store(store: MosaicStore, sink, band_group: int = 16) -> None:
+    """Write every tile of a finished Zarr ``store`` through ``sink`` in this process, with the same
+    tile writers (and, for a COG, the same overview pyramid) as the render graph's tasks."""
     values = store._array(store.variable)
     nb = values.shape[0]
-    labels = _band_labels(store)
-    wl = store.wavelengths
-    profile = dict(
-        driver="GTiff", width=grid.width, height=grid.height, count=nb, dtype="float32",
-        crs=grid.crs, transform=grid.transform, nodata=np.nan, tiled=True, blockxsize=512,
-        blockysize=512, interleave="band", compress="ZSTD", zstd_level=1, predictor=3,
-        bigtiff="IF_SAFER",
-    )
+    grid = store.grid
+    blocks: dict[tuple[int, int, int], np.ndarray | None] = {}
+    for row0, col0, g in grid.tiles(CHUNK):
+        tile = (row0, col0, g.height, g.width)
+        for b0 in range(0, nb, band_group):
+            n = min(band_group, nb - b0)
+            with sink.open_tile(b0, tile, n) as writer:
+                for b in range(n):
+                    buffer = writer.buffer()
+                    buffer[...] = np.nan
+                    buffer[:g.height, :g.width] = values[b0 + b, row0:row0 + g.height, col0:col0 + g.width]
+                    writer.write(b, buffer)
+                blocks[row0 // CHUNK, col0 // CHUNK, b0] = writer.close()
+    for level in range(2, sink.overview_levels + 1):
+        rows, cols = sink.tiles(level)
+        below, blocks = blocks, {}
+        for r in range(rows):
+            for c in range(cols):
+                for b0 in range(0, nb, band_group):
+                    kids = [None if k is None else below.get((*k, b0)) for k in sink.children(level, r, c)]
+                    blocks[r, c, b0] = sink.overview(level, r, c, b0, min(band_group, nb - b0), kids)
+
+
+# ---------------------------------------------------------------------------------------------
+# Output metadata, headers, tags
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class OutputMeta:
+    """What an output says besides its pixels: the grid, the wavelength (nm) and source band index
+    of each band, the variable name ('radiance', 'dn'...) and the processing attributes."""
+
+    grid: Grid
+    band_indices: tuple[int, ...]
+    wavelengths: tuple[float, ...] | None = None
+    variable: str = "radiance"
+    attrs: dict | None = field(default=None, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "band_indices", tuple(int(i) for i in self.band_indices))
+        if self.wavelengths is not None:
+            object.__setattr__(self, "wavelengths", tuple(float(w) for w in self.wavelengths))
+            if len(self.wavelengths) != len(self.band_indices):
+                raise ValueError(f"{len(self.wavelengths)} wavelengths for {len(self.band_indices)} bands")
+
+    @property
+    def nbands(self) -> int:
+        return len(self.band_indices)
+
+    @property
+    def labels(self) -> list[str]:
+        if self.wavelengths is None:
+            return [f"band {i}" for i in self.band_indices]
+        return [f"band {i}: {w:.1f} nm" for i, w in zip(self.band_indices, self.wavelengths)]
+
+
+def _cog_metadata(meta: OutputMeta) -> str:
+    from archive.cog import gdal_metadata
+
+    dataset = {"variable": meta.variable, "source_bands": ",".join(str(i) for i in meta.band_indices)}
+    if meta.wavelengths is not None:
+        dataset.update(wavelength="{" + ", ".join(f"{w:.4f}" for w in meta.wavelengths) + "}",
+                       wavelength_units="nm")
+    bands = []
+    for b, label in enumerate(meta.labels):
+        items = {"DESCRIPTION": label}
+        if meta.wavelengths is not None:
+            items.update(wavelength=f"{meta.wavelengths[b]:.4f}", wavelength_units="nm")
+        bands.append(items)
+    return gdal_metadata(dataset, bands)
+
+
+def assemble_cog(sink: CogSink, meta: OutputMeta, path: str | os.PathLike) -> int:
+    """Lay the spooled tiles of ``sink`` out as a COG at ``path`` (no decoding); returns its size."""
+    from archive.cog import assemble
+
+    spools = {}
+    for name in os.listdir(sink.spool):
+        if name.endswith(".tiles") and name.startswith("L"):
+            level, r, c, band0 = (int(v) for v in name[1:-len(".tiles")].split("-"))
+            spools[level, r, c, band0] = os.path.join(sink.spool, name)
+    grid = meta.grid
     try:
-        with rasterio.open(work, "w", **profile) as dst:
-            for b in range(nb):
-                for row0, col0, h, w in store.chunks():
-                    block = values[b, row0:row0 + h, col0:col0 + w]
-                    dst.write(block, b + 1, window=Window(col0, row0, w, h))
-                dst.set_band_description(b + 1, labels[b])
-                if wl is not None:
-                    dst.update_tags(b + 1, wavelength=f"{wl[b]:.4f}", wavelength_units="nm")
-            tags = {"variable": store.variable, "source_bands": ",".join(str(i) for i in store.band_indices)}
-            if wl is not None:
-                tags.update(wavelength="{" + ", ".join(f"{w:.4f}" for w in wl) + "}", wavelength_units="nm")
-            dst.update_tags(**tags)
-        rasterio.shutil.copy(
-            work, os.fspath(path), driver="COG", compress=compress, predictor="FLOATING_POINT",
-            blocksize=512, overviews="AUTO", resampling="AVERAGE", bigtiff="IF_SAFER",
-            num_threads="ALL_CPUS",
-        )
-    finally:
-        _remove(Path(work))
+        return assemble(path, spools, height=grid.height, width=grid.width, nbands=meta.nbands, epsg=grid.epsg,
+                        transform=grid.transform, metadata=_cog_metadata(meta),
+                        area_tiles=[CHUNK // 512] + [1] * sink.overview_levels)
+    except ValueError as exc:
+        raise RenderError(f"{path}: {exc}") from exc
 
 
 def _envi_map_info(grid: Grid) -> str:
@@ -436,29 +506,15 @@ def envi_data_path(header: str | os.PathLike) -> Path:
     return header.with_name(header.name[: -len(".hdr")]) if header.name.lower().endswith(".hdr") else header
 
 
-def zarr_to_envi(store: MosaicStore, header: str | os.PathLike, data: str | os.PathLike) -> None:
-    """Write the store as ENVI BSQ: float32 little-endian ``data`` plus its ``header`` text.
-
-    The data are copied chunk by chunk through a memory map (no band is held whole).
-    """
-    grid = store.grid
-    values = store._array(store.variable)
-    nb = values.shape[0]
-    out = np.memmap(data, dtype="<f4", mode="w+", shape=(nb, grid.height, grid.width))
-    try:
-        for b in range(nb):
-            for row0, col0, h, w in store.chunks():
-                out[b, row0:row0 + h, col0:col0 + w] = values[b, row0:row0 + h, col0:col0 + w]
-            out.flush()
-    finally:
-        del out
-    wl = store.wavelengths
+def envi_header(meta: OutputMeta) -> str:
+    """The ENVI header text of a float32 little-endian BSQ output."""
+    grid = meta.grid
     lines = [
         "ENVI",
-        f"description = {{archive render mosaic: {store.variable}, NaN where not covered}}",
+        f"description = {{archive render mosaic: {meta.variable}, NaN where not covered}}",
         f"samples = {grid.width}",
         f"lines = {grid.height}",
-        f"bands = {nb}",
+        f"bands = {meta.nbands}",
         "header offset = 0",
         "file type = ENVI Standard",
         "data type = 4",
@@ -467,12 +523,12 @@ def zarr_to_envi(store: MosaicStore, header: str | os.PathLike, data: str | os.P
         f"map info = {_envi_map_info(grid)}",
         f"coordinate system string = {{{grid.crs.to_wkt(version='WKT1_ESRI')}}}",
         "data ignore value = NaN",
-        "band names = {" + ", ".join(lbl.replace(",", ";") for lbl in _band_labels(store)) + "}",
+        "band names = {" + ", ".join(lbl.replace(",", ";") for lbl in meta.labels) + "}",
     ]
-    if wl is not None:
+    if meta.wavelengths is not None:
         lines += ["wavelength units = Nanometers",
-                  "wavelength = {" + ", ".join(f"{w:.4f}" for w in wl) + "}"]
-    Path(header).write_text("\n".join(lines) + "\n", encoding="ascii")
+                  "wavelength = {" + ", ".join(f"{w:.4f}" for w in meta.wavelengths) + "}"]
+    return "\n".join(lines) + "\n"
 
 
 def quicklook_bands(wavelengths: Sequence[float] | None, nbands: int) -> tuple[int, int, int]:
@@ -490,17 +546,24 @@ def quicklook_bands(wavelengths: Sequence[float] | None, nbands: int) -> tuple[i
 
 
 def write_quicklook(store: MosaicStore, path: str | os.PathLike, max_size: int = 2048) -> None:
+    """Write an RGBA PNG preview of a Zarr mosaic (see :func:`quicklook_png`)."""
+    values = store._array(store.variable)
+    quicklook_png(lambda b, step: np.asarray(values[b, ::step, ::step], dtype=np.float32), store.grid,
+                  store.wavelengths, values.shape[0], path, max_size)
+
+
+def quicklook_png(read_band, grid: Grid, wavelengths, nbands: int, path: str | os.PathLike,
+                  max_size: int = 2048) -> None:
     """Write an RGBA PNG preview: 2 %/98 % stretch per channel over covered pixels, uncovered transparent.
 
-    Reads every ``step``-th pixel only (step so that the longer side is at most ``max_size``).
+    ``read_band(b, step)`` returns every ``step``-th pixel of band b (both axes); step is chosen so
+    that the longer side is at most ``max_size``.
     """
     from PIL import Image
 
-    grid = store.grid
-    values = store._array(store.variable)
     step = max(1, math.ceil(max(grid.height, grid.width) / max_size))
-    bands = quicklook_bands(store.wavelengths, values.shape[0])
-    channels = [np.asarray(values[b, ::step, ::step], dtype=np.float32) for b in bands]
+    bands = quicklook_bands(wavelengths, nbands)
+    channels = [read_band(b, step) for b in bands]
     covered = np.zeros(channels[0].shape, dtype=bool)
     for c in channels:
         covered |= np.isfinite(c)
@@ -514,6 +577,33 @@ def write_quicklook(store: MosaicStore, path: str | os.PathLike, max_size: int =
             rgba[..., i] = np.where(ok, np.round(stretched), 0).astype(np.uint8)
     rgba[..., 3] = np.where(covered, 255, 0)
     Image.fromarray(rgba, mode="RGBA").save(path, format="PNG")
+
+
+def _envi_band(data: str | os.PathLike, grid: Grid, b: int, step: int) -> np.ndarray:
+    """Every step-th pixel of band b of a BSQ float32 file, read row by row (pread)."""
+    rows = range(0, grid.height, step)
+    out = np.empty((len(rows), -(-grid.width // step)), np.float32)
+    fd = os.open(data, os.O_RDONLY)
+    try:
+        for k, r in enumerate(rows):
+            raw = os.pread(fd, grid.width * 4, ((b * grid.height + r) * grid.width) * 4)
+            out[k] = np.frombuffer(raw, "<f4")[::step]
+    finally:
+        os.close(fd)
+    return out
+
+
+def _cog_band(path: str | os.PathLike, grid: Grid, b: int, step: int) -> np.ndarray:
+    """Every step-th pixel of band b of a GeoTIFF, read in strips of full-resolution rows."""
+    import rasterio
+    from rasterio.windows import Window
+
+    parts = []
+    with rasterio.open(path) as ds:
+        for row0 in range(0, grid.height, 512 * step):
+            h = min(512 * step, grid.height - row0)
+            parts.append(ds.read(b + 1, window=Window(0, row0, grid.width, h))[::step, ::step])
+    return np.concatenate(parts).astype(np.float32, copy=False)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -548,8 +638,10 @@ def _remove_stale_temps(final: Path) -> None:
 class Output:
     """One requested output (plus an optional quicklook) and the temporary files that build it.
 
-    Use: ``out.check()`` early; write tiles into ``out.store_path`` (a MosaicStore); then
-    ``out.finalize(store)``; always ``out.cleanup()`` in a ``finally`` (it removes temporaries only).
+    Use: ``out.check()`` early; ``sink = out.sink(meta)`` creates the format's sink under temporary
+    names (:class:`MosaicStore`, :class:`EnviSink` or :class:`CogSink`); write every tile through it
+    (the render graph's tasks do); then ``out.finalize()``; always ``out.cleanup()`` in a ``finally``
+    (it removes temporaries only).
     """
 
     path: Path
@@ -564,6 +656,7 @@ class Output:
         self.format = output_format(self.path)
         if self.quicklook is not None and self.quicklook.suffix.lower() != ".png":
             raise InputError(self.quicklook, "the quicklook must be a .png file", "name it <something>.png")
+        self._sink = self._meta = None
 
     def _temp(self, final: Path, tag: str = "") -> Path:
         tmp = final.with_name(f".{final.name}.partial-{os.getpid()}{tag}")
@@ -577,7 +670,8 @@ class Output:
         return paths + ([self.quicklook] if self.quicklook is not None else [])
 
     def check(self) -> None:
-        """OutputExistsError if a final path exists and overwrite is off; InputError for a bad parent.
+        """OutputExistsError if a final path exists and overwrite is off; InputError for a parent
+        that is not a directory or not writable.
 
         Also removes the temporaries a killed earlier run left beside a final path (their process,
         named in the temporary's name, no longer runs on this machine).
@@ -591,37 +685,66 @@ class Output:
             if _exists(final) and final.is_dir() != (final.suffix.lower() == ".zarr"):
                 raise InputError(final, "exists and is of another kind (file vs directory)",
                                  "remove it or choose another output path")
+            _check_writable(final.parent)
 
-    @property
-    def store_path(self) -> Path:
-        """Where the tiles go: the Zarr output's own temporary, or a temporary store to convert from."""
-        if not hasattr(self, "_store_path"):
-            self.check()
-            for final in self.finals:
-                missing = [d for d in (final.parent, *final.parent.parents) if not d.exists()]
+    def _make_dirs(self) -> None:
+        for final in self.finals:
+            missing = [d for d in (final.parent, *final.parent.parents) if not d.exists()]
+            try:
                 final.parent.mkdir(parents=True, exist_ok=True)
-                self._made_dirs.extend(missing)  # deepest first: removed again if left empty
-            tag = "" if self.format == "zarr" else ".zarr"
-            self._store_path = self._temp(self.path, tag)
-        return self._store_path
+            except OSError as exc:
+                raise _unwritable(final.parent, exc) from None
+            self._made_dirs.extend(missing)  # deepest first: removed again if left empty
 
-    def finalize(self, store: MosaicStore) -> None:
-        """Convert the finished store to the output format and move everything into place."""
+    def sink(self, meta: OutputMeta):
+        """Create the temporary output of ``meta`` (metadata only, no pixels) and return its sink."""
+        if self._sink is not None:
+            raise RuntimeError(f"{self.path}: sink created twice")
+        self.check()
+        self._make_dirs()
+        grid = meta.grid
+        try:
+            if self.format == "zarr":
+                sink = MosaicStore.create(self._temp(self.path), grid, meta.wavelengths, meta.band_indices,
+                                          meta.variable, meta.attrs)
+            elif self.format == "envi":
+                data = envi_data_path(self.path)
+                sink = EnviSink.create(self._temp(data), meta.nbands, grid.height, grid.width)
+            else:
+                sink = CogSink.create(self._temp(self.path, ".tiles"), meta.nbands, grid.height, grid.width)
+        except OSError as exc:
+            if exc.errno == errno.ENOSPC:
+                size = meta.nbands * grid.height * grid.width * 4
+                raise InputError(self.path.parent, f"not enough free space for a {size / 1e9:.1f} GB output",
+                                 "free some space or choose another folder") from None
+            raise _unwritable(self.path.parent, exc) from None
+        self._sink, self._meta = sink, meta
+        return sink
+
+    def finalize(self, sink=None) -> None:
+        """Finish the output (ENVI header, COG layout) and move everything into place."""
+        sink = self._sink if sink is None else sink
+        meta = self._meta
+        grid = meta.grid
         moves: list[tuple[Path, Path]] = []
         if self.format == "zarr":
-            moves.append((Path(store.path), self.path))
+            moves.append((Path(sink.path), self.path))
+            values = sink._array(sink.variable)
+            read_band = lambda b, step: np.asarray(values[b, ::step, ::step], np.float32)
         elif self.format == "cog":
-            tmp = self._temp(self.path)
-            zarr_to_cog(store, tmp, self._temp(self.path, ".gtiff"))
-            moves.append((tmp, self.path))
+            cog = self._temp(self.path)
+            assemble_cog(sink, meta, cog)
+            _remove(Path(sink.spool))
+            moves.append((cog, self.path))
+            read_band = lambda b, step: _cog_band(cog, grid, b, step)
         else:
-            data = envi_data_path(self.path)
-            tmp_data, tmp_header = self._temp(data), self._temp(self.path)
-            zarr_to_envi(store, tmp_header, tmp_data)
-            moves += [(tmp_data, data), (tmp_header, self.path)]  # header last: it makes it visible
+            header = self._temp(self.path)
+            header.write_text(envi_header(meta), encoding="ascii")
+            moves += [(Path(sink.data), envi_data_path(self.path)), (header, self.path)]  # header last
+            read_band = lambda b, step: _envi_band(sink.data, grid, b, step)
         if self.quicklook is not None:
             tmp = self._temp(self.quicklook)
-            write_quicklook(store, tmp)
+            quicklook_png(read_band, grid, meta.wavelengths, meta.nbands, tmp)
             moves.append((tmp, self.quicklook))
         self.check()  # something may have appeared meanwhile
         for tmp, final in moves:
@@ -638,6 +761,19 @@ class Output:
             except OSError:
                 pass
         self._made_dirs.clear()
+
+
+def _unwritable(where: Path, exc: OSError) -> InputError:
+    return InputError(where, f"cannot write there ({exc.strerror or exc})",
+                      "choose an output folder you can write to")
+
+
+def _check_writable(folder: Path) -> None:
+    """InputError unless ``folder`` (or, when it does not exist yet, its nearest existing parent)
+    lets this process create files."""
+    existing = next((d for d in (folder, *folder.parents) if d.exists()), None)
+    if existing is not None and existing.is_dir() and not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(existing, "is not writable", "choose an output folder you can write to")
 
 
 def _replace(tmp: Path, final: Path) -> None:
@@ -672,14 +808,24 @@ def write_mosaic(
     """Write chunk-aligned tiles (in this process) into an output of any format, atomically.
 
     tiles: :class:`Tile` objects, each covering whole 1024 px chunks of ``grid`` (edge tiles smaller).
-    If the iterable or a writer raises, nothing is left at ``path``.
+    COG and ENVI: the tiles are gathered in a temporary Zarr store first, then written through the
+    format's sink by :func:`copy_store`. If the iterable or a writer raises, nothing is left at ``path``.
     """
     out = Output(Path(path), overwrite=overwrite, quicklook=quicklook)
+    meta = OutputMeta(grid, tuple(band_indices), None if wavelengths is None else tuple(wavelengths), variable, attrs)
     try:
-        store = MosaicStore.create(out.store_path, grid, wavelengths, band_indices, variable, attrs)
+        if out.format == "zarr":
+            store = out.sink(meta)
+        else:
+            out.check()
+            out._make_dirs()
+            store = MosaicStore.create(out._temp(out.path, ".zarr"), grid, meta.wavelengths, meta.band_indices,
+                                       variable, attrs)
         for tile in tiles:
             store.write_tile(tile)
-        out.finalize(store)
+        if out.format != "zarr":
+            copy_store(store, out.sink(meta))
+        out.finalize()
     finally:
         out.cleanup()
     return out

@@ -7,11 +7,13 @@ One request (:class:`RenderRequest`: the options of ``archive render``, the keyw
 2. :func:`open_inputs`: open the sources (:func:`archive.sources.open_source`), select the bands,
    settle the radiometric mode and the ground height;
 3. :func:`plan_output`: cube meshes, output grid and cube windows (metadata only, no GL);
-4. either :func:`render`: build the render graph (:mod:`archive.graph.build`) into a Zarr store,
-   run it on a local cluster (one worker process, two threads, GL tasks one at a time: GL contexts
-   are per thread) or on ``scheduler``, then convert the store into the requested format and move
-   it into place (nothing is left at ``out`` when anything fails); or :func:`mosaic`: the same plan
-   as a lazy ``xarray.Dataset`` (:mod:`archive.graph.lazy`) computed on demand.
+4. either :func:`render`: build the render graph (:mod:`archive.graph.build`), whose tile tasks
+   write the requested format directly (Zarr chunks, ENVI rows, compressed COG tiles) under a
+   temporary name, run it on a local cluster (one worker process with a thread per core: render
+   tasks draw on its GL thread while the other threads write) or on ``scheduler``, then finish the
+   output (ENVI header, COG layout) and move it into place (nothing is left at ``out`` when
+   anything fails); or :func:`mosaic`: the same plan as a lazy ``xarray.Dataset``
+   (:mod:`archive.graph.lazy`) computed on demand.
 
 Batch jobs (``per_flight``): one output per source, ``out/<name>.<format>``, all in one graph (one
 progress bar). Band groups are sized from the workers' memory limits (:func:`_task_budget`).
@@ -135,7 +137,9 @@ class RenderRequest:
     boresight (roll, pitch, yaw deg), lever_arm (x, y, z m): None means as ingested for a collection,
     else 0; overlap: 'last' | 'mean'; crs: the output's projected CRS (None: the UTM zone holding most
     of the flights); max_view_angle: degrees off nadir at the field-of-view edge beyond which lines
-    are left out of the meshes (turns).
+    are left out of the meshes (turns); dem: a DEM GeoTIFF (any CRS) the meshes follow instead of
+    the flat ground (exclusive with a numeric ground_height; :mod:`archive.dem`); dem_datum: its
+    heights' vertical datum when its CRS does not declare one ('ellipsoid' | 'egm96' | 'egm2008').
 
     Build one with :meth:`create`, which normalises what callers give (a single source, CLI text
     such as ``'550,650'``, paths); checks that need files are :func:`check_request`'s.
@@ -157,12 +161,14 @@ class RenderRequest:
     overlap: str = "last"
     crs: str | None = None
     max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE
+    dem: str | None = None
+    dem_datum: str | None = None
 
     @classmethod
     def create(cls, sources, *, gsd, archive=None, fov=None, calibration=None, ground_height="auto",
                wavelengths=None, bands="all", mode=None, white_reference=None, sync_offset=None,
                boresight=None, lever_arm=None, overlap="last", crs=None,
-               max_view_angle=DEFAULT_MAX_VIEW_ANGLE) -> RenderRequest:
+               max_view_angle=DEFAULT_MAX_VIEW_ANGLE, dem=None, dem_datum=None) -> RenderRequest:
         """A request from API keywords (or CLI values); InputError for malformed values."""
         if isinstance(sources, (str, os.PathLike)):
             sources = [sources]
@@ -178,7 +184,8 @@ class RenderRequest:
             sync_offset=_number(sync_offset, "--sync-offset", "seconds"),
             boresight=_triple(boresight, "--boresight"), lever_arm=_triple(lever_arm, "--lever-arm"),
             overlap=overlap, crs=None if crs is None else str(crs),
-            max_view_angle=_number(max_view_angle, "--max-view-angle", "degrees"))
+            max_view_angle=_number(max_view_angle, "--max-view-angle", "degrees"),
+            dem=fspath(dem), dem_datum=None if dem_datum is None else str(dem_datum))
 
     def with_sources(self, sources: Sequence[str]) -> RenderRequest:
         """This request for other sources."""
@@ -332,9 +339,26 @@ def check_request(request: RenderRequest) -> NavigationParams:
         raise InputError("--overlap", f"unknown overlap rule {request.overlap!r}", f"use one of {', '.join(RULES)}")
     if request.mode == "reflectance" and not request.white_reference:
         raise InputError("--mode", "reflectance needs a white reference spectrum", "pass --white-reference FILE")
+    _check_dem(request)
     return NavigationParams(fov_deg=float(fov),
                             sync_offset=None if request.sync_offset is None else float(request.sync_offset),
                             boresight_deg=request.boresight, lever_arm_m=request.lever_arm)
+
+
+def _check_dem(request: RenderRequest) -> None:
+    """--dem / --dem-datum: exclusive with a numeric --ground-height; the DEM opens (a raster with a
+    CRS, whose vertical datum is declared or given, and whose geoid grid PROJ finds): metadata only."""
+    if request.dem is None:
+        if request.dem_datum is not None:
+            raise InputError("--dem-datum", "gives the vertical datum of a DEM, but no --dem was given",
+                             "add --dem FILE, or leave --dem-datum out")
+        return
+    if str(request.ground_height).strip().lower() != "auto":
+        raise InputError("--dem", f"--dem and --ground-height {request.ground_height} are exclusive: the DEM "
+                         "gives the ground", "leave --ground-height out")
+    from archive.dem import open_dem
+
+    open_dem(request.dem, request.dem_datum)
 
 
 def _collection_fov(archive, ids: Sequence[str]) -> float:
@@ -384,6 +408,8 @@ class Inputs:
     grounds: tuple[float, ...]
     crs: str | None = None
     max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE
+    dem: object = None  #: the :class:`archive.dem.DemSpec` the meshes follow (grounds are then None)
+    meshes: tuple | None = None  #: with a DEM: each source's terrain meshes (built here: DEM errors come early)
 
 
 def _quiet(text: str) -> None:
@@ -395,6 +421,9 @@ def open_inputs(request: RenderRequest, nav: NavigationParams, say=_quiet, mosai
 
     mosaic: all sources go into one output (same bands, one ground height); else each source is
     an output of its own. ``say(text)`` tells notes (a source without calibration renders raw DN).
+    With a DEM, the sources' terrain meshes are built here (metadata and DEM only, no pixel, no GL),
+    so that a DEM that does not cover the flights, or has holes under them, fails before any
+    cluster starts.
     """
     from archive.sources import open_source
 
@@ -415,14 +444,23 @@ def open_inputs(request: RenderRequest, nav: NavigationParams, say=_quiet, mosai
         mode = "raw"
     for s, b in zip(sources, bands):
         s.radiometry(0, b[:1], mode)  # mode problems (calibration, white reference) surface now
-    if mosaic:
+    dem = None
+    if request.dem is not None:   # the DEM gives the ground: no flat height to settle
+        from archive.dem import DemSpec
+
+        dem = DemSpec.create(request.dem, request.dem_datum)
+        grounds = [None] * len(sources)
+        opened = dem.open()
+        meshes = tuple(_terrain_meshes(s, nav.fov_deg, opened, float(request.gsd), float(request.max_view_angle))
+                       for s in sources)
+    elif mosaic:
         grounds = [resolve_ground_height(request.ground_height, sources)] * len(sources)
     else:
         grounds = [resolve_ground_height(request.ground_height, [s]) for s in sources]
     params = RenderParams(gsd=float(request.gsd), ground_height=grounds[0], mode=mode,
                           bands=tuple(bands[0]), overlap=request.overlap, navigation=nav)
     return Inputs(tuple(sources), tuple(tuple(b) for b in bands), params, tuple(grounds), request.crs,
-                  float(request.max_view_angle))
+                  float(request.max_view_angle), dem, meshes if dem is not None else None)
 
 
 @dataclass(frozen=True, eq=False)
@@ -438,6 +476,7 @@ class OutputPlan:
     wavelengths: list[float] | None
     max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE
     left_out: dict | None = None  #: lines left out of the meshes, by reason ('no navigation', 'view angle')
+    dem: object = None  #: the :class:`archive.dem.DemSpec` the meshes follow (ground_height is then None)
 
     @property
     def variable(self) -> str:
@@ -446,15 +485,19 @@ class OutputPlan:
 
     @property
     def mesh_spec(self) -> tuple:
-        """What the meshes were built from (for graph keys)."""
-        return (self.params.navigation, self.ground_height, self.max_view_angle, self.plan.grid.epsg)
+        """What the meshes were built from (for graph keys): with a DEM also the DEM (file, datum)
+        and the GSD (the segments follow it)."""
+        spec = (self.params.navigation, self.ground_height, self.max_view_angle, self.plan.grid.epsg)
+        return spec if self.dem is None else (*spec, self.dem, self.params.gsd)
 
     @property
     def attrs(self) -> dict:
-        """The output's attributes (mode, gsd, fov, ground height, sync offset, overlap, sources)."""
+        """The output's attributes (mode, gsd, fov, ground height or DEM, sync offset, overlap, sources)."""
         offsets = list(dict.fromkeys(float(s.params.sync_offset) for s in self.sources))
+        ground = ({"ground_height_m": self.ground_height} if self.dem is None else
+                  {"dem": self.dem.path, "dem_datum": self.dem.datum or "declared"})
         return {"mode": self.params.mode, "gsd_m": self.params.gsd, "fov_deg": self.params.navigation.fov_deg,
-                "ground_height_m": self.ground_height, "sync_offset_s": offsets[0] if len(offsets) == 1 else offsets,
+                **ground, "sync_offset_s": offsets[0] if len(offsets) == 1 else offsets,
                 "overlap": self.params.overlap, "sources": [str(s.label) for s in self.sources]}
 
 
@@ -472,7 +515,10 @@ def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget:
     sources = [inputs.sources[i] for i in idx]
     bands = [inputs.bands[i] for i in idx]
     ground = inputs.grounds[idx[0]]
-    meshes = [cube_meshes(s, p.navigation.fov_deg, ground, inputs.max_view_angle) for s in sources]
+    if inputs.meshes is None:
+        meshes = [cube_meshes(s, p.navigation.fov_deg, ground, inputs.max_view_angle) for s in sources]
+    else:   # terrain meshes, built by open_inputs
+        meshes = [list(inputs.meshes[i]) for i in idx]
     plan = plan_render(sources, meshes, bands, p.gsd, crs=inputs.crs)
     if band_group is None:
         plan = with_task_groups(plan, TASK_VALUES_BYTES if budget is None else budget)
@@ -488,21 +534,52 @@ def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget:
         for m in ms:
             for reason, n in (m.dropped or {}).items():
                 left_out[reason] = left_out.get(reason, 0) + int(n)
-    return OutputPlan(tuple(sources), plan, p, ground, out_wl, inputs.max_view_angle, left_out)
+    return OutputPlan(tuple(sources), plan, p, ground, out_wl, inputs.max_view_angle, left_out, inputs.dem)
 
 
-def build_output(output: OutputPlan, store_path: str | os.PathLike):
-    """(store, graph): create the Zarr store of ``output`` at ``store_path`` (metadata only) and
-    build (never compute) the render graph that fills it."""
+def _terrain_meshes(source, fov_deg: float, dem, gsd: float, max_view_angle: float) -> list:
+    """Ground meshes of every cube of ``source`` over ``dem`` (an opened :class:`archive.dem.Dem`)
+    for output pixels of ``gsd`` m: :func:`archive.graph.plan.cube_meshes` with the terrain (same
+    strip joins, opening and closing rows; :mod:`archive.render.mesh`, "Terrain meshes")."""
+    from archive.graph.plan import strip_links
+    from archive.render.mesh import build_mesh
+
+    poses = [source.poses(i) for i in range(len(source.cubes))]
+    dem.check_flight(poses, fov_deg)   # one error naming all the ground the DEM lacks under the flight
+    links = strip_links(source, poses)
+    meshes = []
+    for i, info in enumerate(source.cubes):
+        closing = poses[i + 1] if i < len(links) and links[i] else None
+        opening = poses[i - 1] if i > 0 and links[i - 1] else None
+        meshes.append(build_mesh(
+            poses[i], fov_deg, math.nan, info.shutter_ms or 0.0, info.framerate or 0.0,
+            closing=closing, opening=opening,
+            closing_shutter_ms=source.cubes[i + 1].shutter_ms or 0.0 if closing is not None else None,
+            opening_shutter_ms=source.cubes[i - 1].shutter_ms or 0.0 if opening is not None else None,
+            max_view_angle=max_view_angle, terrain=dem, gsd=gsd))
+    return meshes
+
+
+def build_output(output: OutputPlan, target):
+    """(sink, graph): create the output of ``output`` (metadata only) and build (never compute) the
+    render graph that writes it.
+
+    target: an :class:`~archive.outputs.Output` (its format's sink, under its temporary names), or a
+    path where a Zarr store is created.
+    """
     from archive.graph.build import build_render_graph
-    from archive.outputs import MosaicStore
+    from archive.outputs import MosaicStore, OutputMeta
 
     p, plan = output.params, output.plan
-    store = MosaicStore.create(store_path, plan.grid, output.wavelengths, plan.bands[0], output.variable,
-                               output.attrs)
-    graph = build_render_graph(plan, list(output.sources), store, mode=p.mode, overlap=p.overlap,
+    meta = OutputMeta(plan.grid, tuple(plan.bands[0]), None if output.wavelengths is None else tuple(output.wavelengths),
+                      output.variable, output.attrs)
+    if isinstance(target, Output):
+        sink = target.sink(meta)
+    else:
+        sink = MosaicStore.create(target, plan.grid, meta.wavelengths, meta.band_indices, meta.variable, meta.attrs)
+    graph = build_render_graph(plan, list(output.sources), sink, mode=p.mode, overlap=p.overlap,
                                mesh_spec=output.mesh_spec)
-    return store, graph
+    return sink, graph
 
 
 # ---------------------------------------------------------------------------------------------
@@ -514,12 +591,29 @@ def _check_gpu_workers(client, where: str) -> None:
     if not any((w.get("resources") or {}).get("GPU", 0) >= 1 for w in workers.values()):
         raise InputError(
             where, "no worker offers the 'GPU' resource the render tasks need",
-            "start workers with `dask worker ADDRESS --nthreads 1 --resources GPU=1`",
+            "start workers with `dask worker ADDRESS --resources GPU=2` (docs/deploy.md)",
         )
 
 
-def _cluster(scheduler: str | None, workers: int | None, say):
-    """(client, cluster or None): ``scheduler`` or a local cluster of GPU-resourced workers."""
+#: Render tasks a local worker admits at once (its 'GPU' resource): one draws on the worker's GL
+#: thread while the next reads its bands.
+GL_SLOTS = 2
+
+
+def _positive(value, option: str, what: str) -> int | None:
+    if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0):
+        raise InputError(option, f"expected a positive number of {what}, got {value!r}")
+    return None if value is None else int(value)
+
+
+def _cluster(scheduler: str | None, workers: int | None, say, threads: int | None = None):
+    """(client, cluster or None): ``scheduler`` or a local cluster of GPU-resourced workers.
+
+    Local cluster: ``workers`` processes (default 1) of ``threads`` threads each (default: the
+    machine's cores divided among the workers, at least 2). Render tasks need the 'GPU' resource
+    (GL_SLOTS per worker: one draws on the worker's GL thread while another reads); writer tasks
+    need none, so the other threads mosaic, encode and write meanwhile.
+    """
     import logging
 
     from distributed import Client, LocalCluster
@@ -529,7 +623,7 @@ def _cluster(scheduler: str | None, workers: int | None, say):
             client = Client(scheduler, timeout="20s")
         except OSError as exc:
             raise InputError("--scheduler", f"cannot connect to {scheduler}: {exc}",
-                             "start one with `dask scheduler` and workers with `--resources GPU=1`") from None
+                             "start one with `dask scheduler` and workers with `--resources GPU=2`") from None
         say(f"archive render: Dask dashboard at {client.dashboard_link}")
         try:
             _check_gpu_workers(client, f"--scheduler {scheduler}")
@@ -537,16 +631,13 @@ def _cluster(scheduler: str | None, workers: int | None, say):
             client.close()
             raise
         return client, None
-    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer))
-                                or workers <= 0):
-        raise InputError("--workers", f"expected a positive number of worker processes, got {workers!r}")
-    workers = int(workers or 1)
+    workers = _positive(workers, "--workers", "worker processes") or 1
+    threads = _positive(threads, "--threads", "threads per worker")
     cores = max(1, (os.cpu_count() or 1) // workers)
-    # Spawned worker processes (never forked after GL). Two threads each: the GPU=1 resource keeps
-    # GL tasks one at a time per worker (each thread has its own context) while the other thread
-    # assembles and compresses the previous band group.
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=2, processes=True,
-                           resources={"GPU": 1}, env={"LP_NUM_THREADS": str(cores)},
+    # Spawned worker processes (never forked after GL). GL calls run on each worker's GL thread
+    # (archive.graph.tasks.gl_call); llvmpipe draws with the worker's cores (LP_NUM_THREADS).
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=threads or max(2, cores), processes=True,
+                           resources={"GPU": GL_SLOTS}, env={"LP_NUM_THREADS": str(cores)},
                            dashboard_address=":0", silence_logs=logging.CRITICAL)  # errors come back here
     return Client(cluster), cluster
 
@@ -557,7 +648,7 @@ def _wait_for_writers(client, timeout: float = 60.0) -> None:
     try:
         while time.monotonic() < deadline:
             running = [k for stack in client.call_stack().values() for k in stack]
-            if not any(str(k).startswith(("write-", "saturated-")) for k in running):
+            if not any(str(k).startswith(("write-", "saturated-", "blank-", "overview-")) for k in running):
                 return
             time.sleep(0.2)
     except Exception:  # the scheduler may be gone already
@@ -630,11 +721,11 @@ def _flight_outputs(sources: Sequence[str], out, format: str, overwrite: bool, q
 
 @dataclass
 class _Job:
-    """One output of a command: its Output, plan, store and graph."""
+    """One output of a command: its Output, plan, sink and graph."""
 
     output: Output
     planned: OutputPlan
-    store: object
+    sink: object
     graph: object
 
 
@@ -648,12 +739,14 @@ def _say(quiet: bool):
 
 def render(request: RenderRequest, out: str | os.PathLike, *, quicklook: str | os.PathLike | None = None,
            overwrite: bool = False, scheduler: str | None = None, workers: int | None = None,
-           quiet: bool = True, per_flight: bool = False, format: str = "zarr") -> dict:
+           quiet: bool = True, per_flight: bool = False, format: str = "zarr", threads: int | None = None) -> dict:
     """Render ``request`` into ``out`` (.zarr, .tif or .hdr); returns a summary dict. Raises ArchiveError.
 
     One output at ``out``, or with ``per_flight`` one output per source, ``out/<name>.<format>``:
     then the summary holds ``outputs``, one summary per flight. Every output's tasks run in one
-    graph, on ``scheduler`` (an address) or on a local cluster of ``workers`` processes.
+    graph, on ``scheduler`` (an address) or on a local cluster of ``workers`` processes of
+    ``threads`` threads each (default: the cores). The graph's tile tasks write every format
+    directly; COG and ENVI are finished (layout, header) and renamed into place afterwards.
     """
     from archive.graph.build import RenderGraph
 
@@ -677,12 +770,12 @@ def render(request: RenderRequest, out: str | os.PathLike, *, quicklook: str | o
     try:
         inputs = open_inputs(request, nav, say, mosaic=not per_flight)
         members = [[i] for i in range(len(inputs.sources))] if per_flight else [list(range(len(inputs.sources)))]
-        client, cluster = _cluster(scheduler, workers, say)
+        client, cluster = _cluster(scheduler, workers, say, threads)
         budget = _task_budget(client)
         for output, idx in zip(outputs, members):
             planned = plan_output(inputs, idx, budget=budget)
-            store, graph = build_output(planned, output.store_path)
-            jobs.append(_Job(output, planned, store, graph))
+            sink, graph = build_output(planned, output)
+            jobs.append(_Job(output, planned, sink, graph))
         graph = RenderGraph(tuple(w for j in jobs for w in j.graph.writes), sum(j.graph.renders for j in jobs),
                             sum(j.graph.assemblies for j in jobs))
         t = time.perf_counter()
@@ -690,7 +783,7 @@ def render(request: RenderRequest, out: str | os.PathLike, *, quicklook: str | o
             _execute(client, graph, quiet, shared=cluster is None)
         graph_seconds = time.perf_counter() - t
         for job in jobs:
-            job.output.finalize(job.store)
+            job.output.finalize(job.sink)
     finally:
         if client is not None:
             client.close()

@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import datetime
 
 
-from archive.catalog.footprint import flight_footprint
+from archive.catalog.footprint import flight_footprint, recorded_footprint
 from archive.catalog.index import add_rows, rebuild_index, row_from_item
 from archive.catalog.root import ArchiveRoot
 from archive.catalog.stac import make_item, write_item
@@ -15,8 +15,8 @@ from archive.errors import FormatError
 
 def item_for_collection(root: ArchiveRoot, cid: str) -> dict:
     """The STAC Item of collection ``cid``: footprint from the stored per-line poses (with the
-    ingest's navigation parameters) at the stored ground height, times, wavelengths, sensor,
-    nominal GSD."""
+    ingest's navigation parameters) at the stored ground height, or as traced on the DEM at ingest
+    (``archive ingest --dem``), times, wavelengths, sensor, nominal GSD."""
     store = root.require_collection(cid)
     info = read_info(store, navigation=False)
     attrs = info.attrs
@@ -26,8 +26,12 @@ def item_for_collection(root: ArchiveRoot, cid: str) -> dict:
     frame = info.frame
     rec = read_poses(store)
     bands, lines, samples = rec.shape
-    fp = flight_footprint(rec.time, rec.position, rec.attitude, frame, info.fov_deg, info.ground_height,
-                          samples, where=str(store))
+    terrain = attrs.get("terrain") or {}
+    if terrain.get("footprint_lonlat"):   # traced on the DEM at ingest (the DEM may be gone since)
+        fp = recorded_footprint(terrain["footprint_lonlat"], frame.epsg, float(terrain["gsd"]))
+    else:
+        fp = flight_footprint(rec.time, rec.position, rec.attitude, frame, info.fov_deg, info.ground_height,
+                              samples, where=str(store))
     wavelengths = rec.wavelengths
     extra = {
         "archive:fov_deg": info.fov_deg,
@@ -39,6 +43,9 @@ def item_for_collection(root: ArchiveRoot, cid: str) -> dict:
         "archive:strips": len(fp.strips_utm),
         "archive:software": attrs.get("archive:software"),
     }
+    if terrain:
+        extra["archive:dem"] = terrain.get("dem")
+        extra["archive:dem_datum"] = terrain.get("datum")
     return make_item(
         cid, fp.geometry(), fp.bbox(), datetime.fromisoformat(attrs["start_datetime"]),
         datetime.fromisoformat(attrs["end_datetime"]), wavelengths, bands,

@@ -1,11 +1,13 @@
 """Ground footprint of a flight from its per-line camera poses (numpy only, no OpenGL).
 
 Each line's swath edges (focal-plane u = -tan(fov/2) and +tan(fov/2), DESIGN 3) are intersected
-with the flat ground; the lines are split into strips where time jumps (a turn, a pause: never
-joined, as in the mesh); each strip's outline is the convex hull of its edge points grown by a
-margin. The margin covers what the start-of-exposure poses leave out (the last line's own span,
-mid-exposure centring, a few cm) and curved passes are covered by the hull, so the outline always
-CONTAINS the true footprint; it is a catalog footprint, not a coverage mask.
+with the flat ground (or traced to their first hits on a DEM, :func:`terrain_swath_edges`); the
+lines are split into strips where time jumps (a turn, a pause: never joined, as in the mesh); each
+strip's outline is the convex hull of its edge points grown by a margin. The margin covers what
+the start-of-exposure poses leave out (the last line's own span, mid-exposure centring, a few cm;
+over a DEM also how far a line's trace can leave the chord of its edge hits) and curved passes are
+covered by the hull, so the outline always CONTAINS the true footprint; it is a catalog footprint,
+not a coverage mask.
 """
 
 from __future__ import annotations
@@ -86,6 +88,36 @@ def swath_edges(position: np.ndarray, attitude: Rotation, fov_deg: float, ground
     return out[0], out[1]
 
 
+def terrain_swath_edges(position: np.ndarray, attitude: Rotation, fov_deg: float, frame, terrain,
+                        where: str = "") -> tuple[np.ndarray, np.ndarray, float]:
+    """:func:`swath_edges` on the terrain: the first hits of the two edge rays of every line on
+    ``terrain`` (an opened :class:`archive.dem.Dem`; errors name it and the ground it lacks).
+    position: (lines, 3) camera N, E, D metres of ``frame``; returns (left, right) (lines, 2) N, E
+    and the relief (m) between the highest and lowest of those hits."""
+    t = np.tan(np.radians(fov_deg) / 2.0)
+    position = np.asarray(position, float)
+    origin = np.stack([position[:, 1] + frame.origin_e, position[:, 0] + frame.origin_n,
+                       frame.origin_alt - position[:, 2]], axis=1)
+    rays = [np.atleast_2d(attitude.apply(np.array([0.0, u, 1.0]))) for u in (-t, t)]
+    hits = terrain.intersect(frame.epsg, origin, [np.stack([d[:, 1], d[:, 0], -d[:, 2]], axis=1) for d in rays])
+    out = []
+    heights = []
+    for (lam, under), d in zip(hits, rays):
+        if under.any():
+            row = int(np.flatnonzero(under)[0])
+            raise InputError(where or None, f"line {row}: the camera is at or below the ground of the DEM "
+                             f"{getattr(terrain, 'path', '')} (camera {origin[row, 2]:.2f} m)",
+                             "check the DEM and its vertical datum (--dem-datum)")
+        if not np.all(np.isfinite(lam)):
+            row = int(np.flatnonzero(~np.isfinite(lam))[0])
+            raise InputError(where or None, f"line {row}: the swath edge looks at or above the horizon",
+                             "check the attitude (roll/pitch) and --fov")
+        out.append(position[:, :2] + lam[:, None] * d[:, :2])
+        heights.append(position[:, 2] + lam * d[:, 2])
+    heights = np.concatenate(heights)
+    return out[0], out[1], float(heights.max() - heights.min())
+
+
 def strips(time: np.ndarray) -> list[slice]:
     """Split line indices into strips (the project's one strip rule, :func:`archive.navigation.strip_slices`)."""
     return strip_slices(time)
@@ -103,17 +135,26 @@ def _grown_hull(points: np.ndarray, margin: float) -> np.ndarray:
 
 
 def flight_footprint(time: np.ndarray, position: np.ndarray, attitude: Rotation, frame, fov_deg: float,
-                     ground_height: float, samples: int, where: str = "") -> Footprint:
+                     ground_height: float, samples: int, where: str = "", terrain=None) -> Footprint:
     """Footprint of a flight: time (lines,) s; position (lines, 3) N, E, D m; attitude (lines,)
-    camera -> NED; frame: the navigation LocalFrame; ground_height: m above the ellipsoid."""
-    ground_down = frame.origin_alt - float(ground_height)
+    camera -> NED; frame: the navigation LocalFrame; ground_height: m above the ellipsoid; terrain:
+    an opened :class:`archive.dem.Dem` the swath edges are traced to instead (ground_height unused)."""
+    ground_down = None if terrain is not None else frame.origin_alt - float(ground_height)
     # Lines the renderer leaves out (turns: too far off nadir) are left out of the footprint too.
     seen = view_angles(attitude, fov_deg) <= DEFAULT_MAX_VIEW_ANGLE
     if not seen.any():
         raise InputError(where or None, f"every line looks more than {DEFAULT_MAX_VIEW_ANGLE:g} degrees off nadir",
                          "check the attitude (roll/pitch) and --fov")
     time, position, attitude = np.asarray(time)[seen], np.asarray(position)[seen], attitude[seen]
-    left, right = swath_edges(position, attitude, fov_deg, ground_down, where)
+    bulge = 0.0
+    if terrain is not None:
+        left, right, relief = terrain_swath_edges(position, attitude, fov_deg, frame, terrain, where)
+        # a line's ground trace leaves the chord of its edge hits by up to relief x tan(tilt of its
+        # fan plane from the vertical): added to the margin, so that the outline still contains it
+        sin_tilt = float(np.max(np.abs(attitude.as_matrix()[:, 2, 0])))
+        bulge = relief * sin_tilt / max(np.sqrt(1.0 - sin_tilt**2), 1e-3)
+    else:
+        left, right = swath_edges(position, attitude, fov_deg, ground_down, where)
     width = np.linalg.norm(right - left, axis=1)
     gsd = float(np.median(width) / max(int(samples), 1))
     rings = []
@@ -121,10 +162,21 @@ def flight_footprint(time: np.ndarray, position: np.ndarray, attitude: Rotation,
         pts = np.vstack([left[sl], right[sl]])  # (N, E)
         centre = (left[sl] + right[sl]) / 2.0
         step = float(np.max(np.linalg.norm(np.diff(centre, axis=0), axis=1))) if len(centre) > 1 else 0.0
-        margin = MARGIN_M + 2.0 * step + gsd
+        margin = MARGIN_M + 2.0 * step + gsd + bulge
         en = pts[:, ::-1] + np.array([frame.origin_e, frame.origin_n])  # (E, N) UTM
         rings.append(_grown_hull(en, margin))
     return Footprint(tuple(rings), frame.epsg, gsd)
+
+
+def recorded_footprint(rings_lonlat, epsg: int, gsd: float) -> Footprint:
+    """A :class:`Footprint` from lon/lat rings (degrees; as :meth:`Footprint.lonlat` gave them)."""
+    tr = Transformer.from_crs(4326, int(epsg), always_xy=True)
+    strips = []
+    for ring in rings_lonlat:
+        ring = np.asarray(ring, float)
+        e, n = tr.transform(ring[:, 0], ring[:, 1])
+        strips.append(np.stack([np.asarray(e), np.asarray(n)], axis=-1))
+    return Footprint(tuple(strips), int(epsg), float(gsd))
 
 
 def points_in_polygon(points: np.ndarray, ring: np.ndarray) -> np.ndarray:

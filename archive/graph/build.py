@@ -3,15 +3,21 @@
 Per cube, one lookup task (GL pass 1, annotated ``resources={"GPU": 1}``) records which (line,
 sample) each pixel of the cube's window sees; per cube and band group, one render task (GPU too)
 draws the group's bands through that lookup, 8 bands per GL pass. Per output tile (1024 x 1024, the
-Zarr chunks) and band group, one writer task mosaics the renders that touch the tile in capture
-order and writes the result into the tile's own chunks (chunk-aligned: no two tasks write into one
-chunk), band by band through one reused chunk buffer. Each writer also ORs its saturation mask into
-the previous group's (a chain per tile); one last task per tile writes it. Tiles no cube touches
-get no task: their chunks read back as NaN.
+Zarr chunks) and band group, one writer task (no resource: any thread of any worker) mosaics the
+renders that touch the tile in capture order and writes the result through the output's *sink*
+(:mod:`archive.outputs`): Zarr chunks, ENVI rows, or compressed COG tiles; no two tasks write the
+same bytes. Zarr: each writer also ORs its saturation mask into the previous group's (a chain per
+tile); one last task per tile writes it; tiles no cube touches get no task (their chunks read back
+as NaN). ENVI and COG: tiles no cube touches get a task writing NaN. COG: each writer also spools
+its tile's first overview level and returns that level's 2 x 2 average (its quarter of level 2);
+per band group, overview tasks build each further level from the four quarters of the level below.
 
-Memory: priorities make one band group finish (render, then assemble and write) before the next
-starts, so about one group's cube renders (cube window x group x float32 each) are held at a time.
-:func:`with_task_groups` sizes the groups so that one render holds at most ``TASK_VALUES_BYTES``.
+Memory: priorities make one band group finish (render, then assemble and write, then overviews)
+before the next starts, and a render waits (through a small ``gate-`` task) until the writers
+completed by the render RENDERS_AHEAD before it have run, so the renders held at a time are those
+between a tile's first and last touching cube plus RENDERS_AHEAD, whatever the flight length and
+however much faster renders are than writes. :func:`with_task_groups` sizes the groups so that one
+render holds at most ``TASK_VALUES_BYTES``.
 
 Keys are ``<kind>-<dask.base.tokenize(inputs)>``, so the same inputs give the same graph.
 """
@@ -26,8 +32,9 @@ from dask.base import tokenize
 from dask.delayed import Delayed, delayed
 
 from archive.graph.plan import GROUP, RenderPlan, band_groups
-from archive.graph.tasks import assemble_write_task, lookup_task, render_task, write_saturated_task
-from archive.outputs import CHUNK, MosaicStore
+from archive.graph.tasks import (assemble_write_task, blank_write_task, gate_task, lookup_task, overview_task,
+                                 render_task, write_saturated_task)
+from archive.outputs import CHUNK
 
 __all__ = ["RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "task_group_size", "with_task_groups"]
 
@@ -38,6 +45,11 @@ TASK_VALUES_BYTES = 192 * 1024**2
 MAX_GROUP = 64
 #: Bands per GL pass in render tasks (8 = the renderer's most per pass).
 BANDS_PER_PASS = 8
+#: Renders that may run ahead of the writers consuming earlier renders (in (group, capture)
+#: order): bounds the renders held in memory whatever the flight length and GPU speed.
+RENDERS_AHEAD = 3
+#: Lookups (8 B per cube window pixel) that band groups may share; beyond, one per group and cube.
+LOOKUP_BYTES = 256 * 1024**2
 
 
 def task_group_size(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> int:
@@ -55,8 +67,9 @@ def with_task_groups(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> Rende
 
 @dataclasses.dataclass(frozen=True)
 class RenderGraph:
-    """The built graph: ``writes`` are the final tasks (values writers, then saturation writers);
-    ``assemblies`` counts the values writers (one per tile and band group, each assembling its tile)."""
+    """The built graph: ``writes`` are the tasks the command waits for (values writers, blank-tile
+    writers, overview tasks, saturation writers); ``assemblies`` counts the values writers (one per
+    touched tile and band group, each assembling its tile)."""
 
     writes: tuple[Delayed, ...]
     renders: int
@@ -66,9 +79,10 @@ class RenderGraph:
         return len(self.writes)
 
 
-def build_render_graph(plan: RenderPlan, sources: Sequence, store: MosaicStore, *, mode: str,
+def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
                        overlap: str, mesh_spec: object = None) -> RenderGraph:
-    """Dask graph rendering ``plan`` from ``sources`` into the Zarr ``store``.
+    """Dask graph rendering ``plan`` from ``sources`` into ``sink`` (:class:`~archive.outputs.MosaicStore`,
+    :class:`~archive.sinks.EnviSink` or :class:`~archive.sinks.CogSink`).
 
     mesh_spec: the parameters the meshes were built from (fov, ground height...), only for keys.
     """
@@ -77,54 +91,133 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, store: MosaicStore, 
     tokens = [tokenize(s) for s in sources]
     source_nodes = [delayed(s, name=f"source-{t}", traverse=False) for s, t in zip(sources, tokens)]
 
-    # Priorities (higher runs first) finish one band group before starting the next, and assemble
-    # and write a tile as soon as its renders exist: only one group's renders are held at a time.
-    ngroups = len(plan.groups)
+    # Priorities (higher runs first) finish one band group before starting the next, and write a
+    # tile as soon as its renders exist, its overviews as soon as their tiles are written.
+    ngroups, njobs = len(plan.groups), len(plan.jobs)
 
-    def priority(g: int, stage: int) -> int:
-        return 2 * (ngroups - g) + stage
+    def priority(g: int, stage: int, j: int = 0) -> int:
+        """Group first, then stage (renders 0 < writers 1 < overviews 2), then capture order."""
+        return (3 * (ngroups - g) + stage) * (njobs + 1) + (njobs - j)
 
-    # renders[(job index, group index)]; one lookup (GL pass 1) per cube, shared by its groups
-    renders: dict[tuple[int, int], Delayed] = {}
-    for j, job in enumerate(plan.jobs):
-        mesh_key = f"mesh-{tokenize(tokens[job.source], job.cube, mesh_spec)}"
-        mesh = delayed(job.mesh, name=mesh_key, traverse=False)
-        samples = int(sources[job.source].cubes[job.cube].samples)
-        lkey = f"lookup-{tokenize(mesh_key, job.window, samples)}"
-        with dask.annotate(resources={"GPU": 1}, priority=priority(0, 0)):
-            lookup = delayed(lookup_task, pure=True)(mesh, job.window, samples, dask_key_name=lkey)
-        for g, (b0, b1) in enumerate(plan.groups):
-            bands = plan.bands[job.source][b0:b1]
-            key = f"render-{tokenize(tokens[job.source], job.cube, bands, lkey, mode, BANDS_PER_PASS)}"
-            with dask.annotate(resources={"GPU": 1}, priority=priority(g, 0)):
-                renders[j, g] = delayed(render_task, pure=True)(
-                    source_nodes[job.source], job.cube, bands, lookup, mode, BANDS_PER_PASS,
-                    dask_key_name=key
-                )
-
-    writes: list[Delayed] = []
-    saturation: list[Delayed] = []
-    assemblies = 0
+    # The tiles to write, and for each cube the tiles it completes (their last touching cube).
+    tiles = []
     for row0, col0, tile_grid in plan.grid.tiles(CHUNK):
         tile = (row0, col0, tile_grid.height, tile_grid.width)
         touching = [j for j, job in enumerate(plan.jobs) if _intersects(tile, job.box)]
-        if not touching:
-            continue
-        boxes = tuple(plan.jobs[j].box for j in touching)
-        mask = None  # saturation so far: each group's writer ORs in its own (one small mask per tile)
+        if touching or sink.blank_tiles:
+            tiles.append((tile, touching))
+    completes: dict[int, list[int]] = {}  # job index -> tiles whose last touching render it is
+    for t, (_, touching) in enumerate(tiles):
+        if touching:
+            completes.setdefault(max(touching), []).append(t)
+
+    # One lookup (GL pass 1) per cube, shared by its band groups while all of them fit
+    # LOOKUP_BYTES (8 B per window pixel); beyond that (long flights and several groups) each group
+    # makes its own, so that held lookups do not grow with the flight either.
+    shared = len(plan.groups) == 1 or 8 * sum(job.window.width * job.window.height
+                                              for job in plan.jobs) <= LOOKUP_BYTES
+    meshes: dict[int, tuple[Delayed, str, int]] = {}
+    for j, job in enumerate(plan.jobs):
+        mesh_key = f"mesh-{tokenize(tokens[job.source], job.cube, mesh_spec)}"
+        meshes[j] = (delayed(job.mesh, name=mesh_key, traverse=False), mesh_key,
+                     int(sources[job.source].cubes[job.cube].samples))
+    lookups: dict[tuple[int, int], Delayed] = {}
+
+    def lookup(j: int, g: int, gate: Delayed | None) -> Delayed:
+        if shared and (j, 0) in lookups:
+            return lookups[j, 0]
+        mesh, mesh_key, samples = meshes[j]
+        window = plan.jobs[j].window
+        lkey = f"lookup-{tokenize(mesh_key, window, samples, *([] if shared else [g]))}"
+        with dask.annotate(resources={"GPU": 1}, priority=priority(g, 0, j)):
+            lookups[j, 0 if shared else g] = delayed(lookup_task, pure=True)(
+                mesh, window, samples, *([] if gate is None else [gate]), dask_key_name=lkey)
+        return lookups[j, 0 if shared else g]
+
+    # Renders in (group, capture) order. Backpressure: render number s (and its lookup) waits for
+    # the writers that render s - RENDERS_AHEAD completed (a token of them), so renders never run
+    # further ahead of the writers than that, however long the flight and however fast the GPU.
+    renders: dict[tuple[int, int], Delayed] = {}
+    writers: dict[tuple[int, int], Delayed] = {}  # (tile number, group) -> values writer
+    gates: list[Delayed | None] = []
+    masks: dict[int, Delayed] = {}  # tile number -> saturation so far (Zarr: a chain per tile)
+    assemblies = 0
+    for g, (b0, b1) in enumerate(plan.groups):
+        for j, job in enumerate(plan.jobs):
+            bands = plan.bands[job.source][b0:b1]
+            # the latest writers' token at or before s - RENDERS_AHEAD: each render waits at least
+            # for what the render before it waited for
+            gate = next((t for t in reversed(gates[:max(0, len(gates) - RENDERS_AHEAD + 1)]) if t is not None),
+                        None)
+            lk = lookup(j, g, gate)
+            key = f"render-{tokenize(tokens[job.source], job.cube, bands, lk.key, mode, BANDS_PER_PASS)}"
+            with dask.annotate(resources={"GPU": 1}, priority=priority(g, 0, j)):
+                renders[j, g] = delayed(render_task, pure=True)(
+                    source_nodes[job.source], job.cube, bands, lk, mode, BANDS_PER_PASS,
+                    *([] if gate is None else [gate]), dask_key_name=key
+                )
+            done = []
+            for t in completes.get(j, []):
+                tile, touching = tiles[t]
+                boxes = tuple(plan.jobs[i].box for i in touching)
+                parts = [renders[i, g] for i in touching]
+                mask = masks.get(t) if sink.saturation else None
+                akey = tokenize(overlap, tile, b1 - b0, boxes, [p.key for p in parts])
+                wkey = f"write-{tokenize(sink, b0, tile, akey, None if mask is None else mask.key)}"
+                with dask.annotate(priority=priority(g, 1, j)):
+                    writers[t, g] = delayed(assemble_write_task)(sink, overlap, b0, tile, b1 - b0, boxes, mask,
+                                                                 *parts, dask_key_name=wkey)
+                assemblies += 1
+                if sink.saturation:
+                    masks[t] = writers[t, g]
+                done.append(writers[t, g])
+            gate = None
+            if done:
+                gkey = f"gate-{tokenize([d.key for d in done])}"
+                with dask.annotate(priority=priority(g, 1, j)):
+                    gate = delayed(gate_task)(*done, dask_key_name=gkey)
+            gates.append(gate)
+
+    writes: list[Delayed] = [writers[t, g] for t in range(len(tiles)) for g in range(len(plan.groups))
+                             if (t, g) in writers]
+    firsts: dict[tuple[int, int, int], Delayed] = {}  # (tile row, tile col, group) -> writer (COG)
+    for t, (tile, touching) in enumerate(tiles):
         for g, (b0, b1) in enumerate(plan.groups):
-            parts = [renders[j, g] for j in touching]
-            akey = tokenize(overlap, tile, b1 - b0, boxes, [p.key for p in parts])
-            wkey = f"write-{tokenize(store, b0, tile, akey, None if mask is None else mask.key)}"
-            with dask.annotate(priority=priority(g, 1)):
-                mask = delayed(assemble_write_task)(store, overlap, b0, tile, b1 - b0, boxes, mask, *parts,
-                                                    dask_key_name=wkey)
-            writes.append(mask)
-            assemblies += 1
-        skey = f"saturated-{tokenize(store, tile, mask.key)}"
+            if not touching:
+                key = f"blank-{tokenize(sink, b0, b1, tile)}"
+                with dask.annotate(priority=priority(g, 1)):
+                    writers[t, g] = delayed(blank_write_task)(sink, b0, tile, b1 - b0, dask_key_name=key)
+                writes.append(writers[t, g])
+            firsts[tile[0] // CHUNK, tile[1] // CHUNK, g] = writers[t, g]
+    saturation: list[Delayed] = []
+    for t, mask in masks.items():
+        tile = tiles[t][0]
+        skey = f"saturated-{tokenize(sink, tile, mask.key)}"
         with dask.annotate(priority=priority(ngroups, 1)):
-            saturation.append(delayed(write_saturated_task)(store, tile, mask, dask_key_name=skey))
+            saturation.append(delayed(write_saturated_task)(sink, tile, mask, dask_key_name=skey))
+    writes += _overview_tasks(sink, plan.groups, firsts, priority)
     return RenderGraph(tuple(writes + saturation), len(renders), assemblies)
+
+
+def _overview_tasks(sink, groups, firsts: dict, priority) -> list[Delayed]:
+    """Overview levels 2.. of a COG sink, per band group: tile (r, c) of level L from the tasks that
+    returned tiles (2r.., 2c..) of level L - 1 (level 1: the writers, keyed by output tile)."""
+    tasks: list[Delayed] = []
+    below = firsts
+    for level in range(2, sink.overview_levels + 1):
+        rows, cols = sink.tiles(level)
+        current: dict[tuple[int, int, int], Delayed] = {}
+        for g, (b0, b1) in enumerate(groups):
+            for r in range(rows):
+                for c in range(cols):
+                    kids = [None if k is None else below.get((*k, g)) for k in sink.children(level, r, c)]
+                    key = f"overview-{tokenize(sink, level, r, c, b0, [None if k is None else k.key for k in kids])}"
+                    with dask.annotate(priority=priority(g, 2)):
+                        current[r, c, g] = delayed(overview_task)(sink, level, r, c, b0, b1 - b0, *kids,
+                                                                  dask_key_name=key)
+        tasks += current.values()
+        below = current
+    return tasks
 
 
 def _intersects(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:

@@ -10,7 +10,8 @@ per cube and band group, one :func:`~archive.graph.tasks.assemble_task` (the mos
 renders (and the lookups); tiles no cube touches are NaN without any render.
 
 Keys are ``<kind>-<dask.base.tokenize(inputs)>``; lookup and render keys are those of
-:func:`archive.graph.build.build_render_graph` for the same inputs. GL tasks (lookups and renders)
+:func:`archive.graph.build.build_render_graph` for the same inputs when its band groups share the
+lookups (they do unless the lookups exceed its ``LOOKUP_BYTES``). GL tasks (lookups and renders)
 are annotated ``resources={"GPU": 1}`` like the render graph's, and never fused with other tasks
 (``block_fusion``): they keep their keys and run as tasks of their own, in the worker thread that
 owns the GL context. Dask's array optimizer drops layer annotations when it fuses (dask/dask#7036),

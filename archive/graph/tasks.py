@@ -2,11 +2,22 @@
 
 They run on Dask workers but can be called directly (tests, debugging). Boxes are
 ``(row0, col0, height, width)`` in pixels of the output grid; rasters are ``(band, y, x)``.
+
+GL work (the lookup pass and the band passes) runs on the process's one GL thread
+(:func:`gl_call`), whichever worker thread runs the task: the OpenGL context lives there, made once,
+and the worker's other threads mosaic, encode and write meanwhile. A render task reads its bands
+and radiometry in its own thread first, so a second render task admitted by the worker's ``GPU``
+resource reads while the first one draws.
+
+Writer tasks write through a *sink* (:mod:`archive.outputs`: Zarr store, ENVI file or COG spool),
+one output tile of one band group each.
 """
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -17,27 +28,43 @@ from archive.outputs import CHUNK, MosaicStore
 
 Box = tuple[int, int, int, int]
 
-__all__ = ["Box", "assemble_task", "assemble_write_task", "lookup_task", "render_task", "write_saturated_task",
-           "write_values_task"]
+__all__ = ["Box", "assemble_task", "assemble_write_task", "blank_write_task", "gate_task", "gl_call", "lookup_task",
+           "overview_task", "render_task", "write_saturated_task", "write_values_task"]
+
+_GL_LOCK = threading.Lock()
+_GL_EXECUTOR: list[ThreadPoolExecutor] = []
 
 
-def lookup_task(mesh, window: Grid, samples: int):
+def gl_call(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` run on this process's GL thread (one per process, made on first use,
+    named 'archive-gl'), the calling thread waiting for it: every GL call of the process goes through
+    one thread, so one context serves them all (a context belongs to the thread that made it)."""
+    with _GL_LOCK:
+        if not _GL_EXECUTOR:
+            _GL_EXECUTOR.append(ThreadPoolExecutor(1, thread_name_prefix="archive-gl"))
+        executor = _GL_EXECUTOR[0]
+    return executor.submit(fn, *args, **kwargs).result()
+
+
+def lookup_task(mesh, window: Grid, samples: int, *after):
     """Pass 1 of the renderer for one cube: which (line, sample) each pixel centre of ``window`` sees.
 
     Runs once per cube (GL, on a worker); returns a picklable :class:`archive.render.renderer.Lookup`
     ((height, width) int32 line and sample, -1 where not covered) that every band group reuses.
+    ``after``: results of tasks it waits for (the graph's backpressure), not used.
     """
     from archive.render.renderer import rasterize_lookup  # GL only on workers
 
-    return rasterize_lookup(mesh, window, samples)
+    return gl_call(rasterize_lookup, mesh, window, samples)
 
 
 def render_task(source, cube: int, bands: Sequence[int], lookup, mode: str,
-                bands_per_pass: int = 8) -> tuple[np.ndarray, np.ndarray]:
+                bands_per_pass: int = 8, *after) -> tuple[np.ndarray, np.ndarray]:
     """Render ``bands`` of ``cube`` of ``source`` through the cube's ``lookup`` (from :func:`lookup_task`).
 
-    Reads the bands and radiometry here, on the worker, then draws with this thread's GL context,
-    ``bands_per_pass`` (1..8) bands per full-screen pass.
+    Reads the bands and radiometry here, in the task's thread, then draws on the process's GL
+    thread (:func:`gl_call`), ``bands_per_pass`` (1..8) bands per full-screen pass. ``after``: results
+    of tasks the render waits for (the graph's backpressure, :func:`gate_task`), not used.
     Returns values (len(bands), window height, window width) float32 (NaN where not covered) and
     saturated (window height, window width) bool.
     """
@@ -47,7 +74,7 @@ def render_task(source, cube: int, bands: Sequence[int], lookup, mode: str,
     try:
         dn = source.read_bands(cube, bands)
         radiometry = source.radiometry(cube, bands, mode)
-        result = render_lookup(lookup, dn, radiometry, bands_per_pass=min(bands_per_pass, len(bands)))
+        result = gl_call(render_lookup, lookup, dn, radiometry, bands_per_pass=min(bands_per_pass, len(bands)))
     except (InputError, RenderError) as exc:  # say which cube: the renderer cannot know
         where = f"{source.label} cube {source.cubes[cube].base}"
         if isinstance(exc, InputError):
@@ -97,46 +124,86 @@ def assemble_task(rule: str, tile: Box, nbands: int, boxes: Sequence[Box],
     return mosaic.result()
 
 
-def write_values_task(store: MosaicStore, band0: int, tile: Box, assembled: tuple[np.ndarray, np.ndarray],
-                      saturated_before: np.ndarray | None = None) -> np.ndarray:
-    """Write an assembled tile's values into its own chunks.
+def write_values_task(sink, band0: int, tile: Box, assembled: tuple[np.ndarray, np.ndarray],
+                      saturated_before: np.ndarray | None = None):
+    """Write an assembled tile's values (nbands, h, w) through ``sink``, band by band.
 
-    Returns the tile's saturation mask (h, w) bool OR ``saturated_before`` (earlier band groups).
+    Returns what :func:`assemble_write_task` returns.
     """
     values, saturated = assembled
-    store.write_values(band0, tile[0], tile[1], values)
+    with sink.open_tile(band0, tile, values.shape[0]) as writer:
+        for b in range(values.shape[0]):
+            buffer = writer.buffer()
+            buffer[:tile[2], :tile[3]] = values[b]
+            buffer[tile[2]:] = np.nan  # the grid's outside part (zarr's padding of edge chunks)
+            buffer[:tile[2], tile[3]:] = np.nan
+            writer.write(b, buffer)
+        passed = writer.close()
+    return _result(sink, saturated, saturated_before, passed)
+
+
+def _result(sink, saturated, saturated_before, passed):
+    if not sink.saturation:
+        return passed
     return saturated if saturated_before is None else saturated | saturated_before
 
 
-def assemble_write_task(store: MosaicStore, rule: str, band0: int, tile: Box, nbands: int,
+def assemble_write_task(sink, rule: str, band0: int, tile: Box, nbands: int,
                         boxes: Sequence[Box], saturated_before: np.ndarray | None,
-                        *renders: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+                        *renders: tuple[np.ndarray, np.ndarray]):
     """:func:`assemble_task` and :func:`write_values_task` in one: mosaic the renders of one band
-    group onto one output tile (one chunk wide) and write its chunks, band by band.
+    group onto one output tile (one chunk wide) and write it through ``sink``
+    (:class:`~archive.outputs.MosaicStore`, :class:`~archive.sinks.EnviSink` or
+    :class:`~archive.sinks.CogSink`), band by band.
 
     For the 'last' rule no tile is built: each band is mosaicked by
     :func:`~archive.graph.mosaic.last_values` straight into this thread's reusable chunk buffer (the
-    grid's outside part, zarr's padding of edge chunks, left NaN) and encoded from there; the other
-    rules assemble the tile first. The written values and the returned saturation mask (h, w) bool
-    (OR ``saturated_before``) are those of :func:`assemble_task` then :func:`write_values_task`.
+    grid's outside part left NaN) and written from there; the other rules assemble the tile first.
+
+    Returns, for a sink that records saturation (Zarr), the tile's saturation mask (h, w) bool OR
+    ``saturated_before`` (earlier band groups); for the others what the sink's tile writer passes on
+    (COG: the tile's quarter of overview level 2, (nbands, ceil(h/4), ceil(w/4)) float32, or None).
     """
     if rule != "last":
-        return write_values_task(store, band0, tile, assemble_task(rule, tile, nbands, boxes, *renders),
+        return write_values_task(sink, band0, tile, assemble_task(rule, tile, nbands, boxes, *renders),
                                  saturated_before)
     if len(boxes) != len(renders):
         raise ValueError(f"{len(boxes)} boxes for {len(renders)} renders")
     if tile[0] % CHUNK or tile[1] % CHUNK or tile[2] > CHUNK or tile[3] > CHUNK:
         raise ValueError(f"tile {tile} is not one {CHUNK} px chunk")
-    store.check_aligned(tile[2:], tile[0], tile[1])
     parts = _tile_parts(tile, boxes, renders)
-    writer = store.chunk_writer()
-    buffer = writer.buffer()
-    row, col = tile[0] // CHUNK, tile[1] // CHUNK
-    for b in range(nbands):
-        last_values(buffer, [(values[b], tr, tc) for values, _, tr, tc in parts])
-        writer.write(band0 + b, row, col, buffer)
-    saturated = last_saturation(tile[2], tile[3], parts)
-    return saturated if saturated_before is None else saturated | saturated_before
+    with sink.open_tile(band0, tile, nbands) as writer:
+        buffer = writer.buffer()
+        for b in range(nbands):
+            last_values(buffer, [(values[b], tr, tc) for values, _, tr, tc in parts])
+            writer.write(b, buffer)
+        passed = writer.close()
+    saturated = last_saturation(tile[2], tile[3], parts) if sink.saturation else None
+    return _result(sink, saturated, saturated_before, passed)
+
+
+def gate_task(*done) -> None:
+    """A token that the writers ``done`` have run (renders wait on it: memory backpressure)."""
+    return None
+
+
+def blank_write_task(sink, band0: int, tile: Box, nbands: int):
+    """Write NaN into every band of a tile no cube touches (formats without a fill value: ENVI, COG);
+    returns what the sink's tile writer passes on (None)."""
+    with sink.open_tile(band0, tile, nbands) as writer:
+        buffer = writer.buffer()
+        buffer[...] = np.nan
+        for b in range(nbands):
+            writer.write(b, buffer)
+        return writer.close()
+
+
+def overview_task(sink, level: int, row: int, col: int, band0: int, nbands: int, *children):
+    """Tile (row, col) of overview ``level`` >= 2 of a COG, for bands band0..: the quarters its
+    children of the level below computed (their NaN-aware 2 x 2 averages, in
+    :meth:`~archive.sinks.CogSink.children` order; None: all NaN or absent), compressed into the
+    sink's spool. Returns its own quarter of the next level (or None)."""
+    return sink.overview(level, row, col, band0, nbands, children)
 
 
 def write_saturated_task(store: MosaicStore, tile: Box, *masks: np.ndarray) -> int:

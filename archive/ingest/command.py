@@ -59,6 +59,41 @@ def _ground_height(source: RawFlightSource, given: float | None) -> tuple[float,
     return auto_ground_height([source]), "header 'ground elevation'"
 
 
+def _terrain_record(src: RawFlightSource, dem_path, dem_datum: str | None, ground_height: float | None,
+                    arrays: dict, samples: int, poses: list) -> tuple[float, str, dict]:
+    """(ground height, its origin, the ``terrain`` attribute) of a flight ingested with a DEM: the
+    footprint traced on the DEM (lon/lat rings, nominal GSD), the DEM's name and vertical datum."""
+    from scipy.spatial.transform import Rotation
+
+    from archive.catalog.footprint import flight_footprint
+    from archive.dem import open_dem
+
+    if ground_height is not None:
+        raise InputError("--dem", f"--dem and --ground-height {ground_height:g} are exclusive: the DEM gives "
+                         "the ground", "leave --ground-height out")
+    dem = open_dem(dem_path, dem_datum)
+    dem.check_flight(poses, float(src.params.fov_deg))   # names all the ground it lacks under the swath
+    position = arrays["position"]
+    frame = src.frame
+    under = dem.heights_at(frame.epsg, position[:, 1] + frame.origin_e, position[:, 0] + frame.origin_n)
+    if not np.isfinite(under).any():
+        dem.raise_uncovered(frame.epsg, position[:, 1] + frame.origin_e, position[:, 0] + frame.origin_n,
+                            "under the flight track")
+    ground = check_ground_height(float(np.nanmedian(under)), camera_altitudes(src), src.label,
+                                 f"the median height of the DEM {dem.path} under the track")
+    fp = flight_footprint(arrays["time"], position, Rotation.from_quat(arrays["attitude"]), frame,
+                          float(src.params.fov_deg), ground, samples, where=str(src.label), terrain=dem)
+    record = {"dem": dem.path.name, "dem_path": str(dem.path), "datum": dem.datum, "declared": dem.declared,
+              "gsd": fp.gsd, "footprint_lonlat": [[[round(float(x), 9), round(float(y), 9)] for x, y in ring]
+                                                  for ring in fp.lonlat()]}
+    return ground, f"DEM {dem.path.name} (median under the track)", record
+
+
+def _dem_of(terrain: dict | None) -> tuple[str, str] | None:
+    """(DEM path, datum) of a collection's ``terrain`` attribute, or None (ingested without a DEM)."""
+    return None if not terrain else (str(terrain.get("dem_path")), str(terrain.get("datum")))
+
+
 def _jsonable(value):
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
@@ -72,11 +107,16 @@ def _jsonable(value):
 def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: str | os.PathLike | None = None,
                    ground_height: float | None = None, sync_offset: float = 0.0,
                    boresight: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                   lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> StorePlan:
+                   lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                   dem: str | os.PathLike | None = None, dem_datum: str | None = None) -> StorePlan:
     """Read and check a raw flight (everything but the pixels) and return what its store will hold.
     ``sync_offset`` (s), ``boresight`` (roll, pitch, yaw degrees) and ``lever_arm`` (x, y, z metres,
     body frame) are recorded as the collection's navigation parameters (renders use them unless
     given others) and shape the stored poses and the catalog footprint.
+    ``dem`` (with ``dem_datum`` when its CRS declares no vertical datum; exclusive with
+    ``ground_height``): the catalog footprint follows the terrain (traced now, recorded as the
+    ``terrain`` attribute with the DEM's name), and the recorded ground height is the DEM's median
+    under the track (what flat renders of the collection use).
     Raises a clear ArchiveError naming the cube or file for a broken flight; writes nothing."""
     if not (np.isfinite(fov_deg) and 0 < fov_deg < 180):
         raise InputError("--fov", f"field of view {fov_deg} deg is not in (0, 180)", "47.5 for a Pika L")
@@ -147,7 +187,15 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
     start = gps_seconds_to_datetime(float(arrays["time"][0]))
     end = gps_seconds_to_datetime(float(arrays["time"][-1]))
     cid = collection_id(sensor, start)
-    ground, ground_source = _ground_height(src, ground_height)
+    terrain = None
+    if dem is not None:
+        ground, ground_source, terrain = _terrain_record(src, dem, dem_datum, ground_height, arrays, first.samples,
+                                                         poses)
+    else:
+        if dem_datum is not None:
+            raise InputError("--dem-datum", "gives the vertical datum of a DEM, but no --dem was given",
+                             "add --dem FILE, or leave --dem-datum out")
+        ground, ground_source = _ground_height(src, ground_height)
 
     sources: list[tuple[str, int]] = []
     names: dict[str, str] = {}
@@ -189,6 +237,8 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
         "cubes": cubes,
         "source_names": names,
     }
+    if terrain is not None:
+        attrs["terrain"] = terrain
     return StorePlan(cid=cid, arrays=arrays, attrs=attrs, data_files=[str(f.data) for f in files],
                      cube_lines=[h.lines for h in headers], bands=first.bands, samples=first.samples,
                      dtype=first.dtype.newbyteorder("<"), sources=sources, dims=dims)
@@ -269,12 +319,15 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
            calibration: str | os.PathLike | None = None, ground_height: float | None = None,
            overwrite: bool = False, workers: int | None = None, progress: bool = True,
            sync_offset: float = 0.0, boresight: tuple[float, float, float] = (0.0, 0.0, 0.0),
-           lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> list[IngestResult]:
+           lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0), dem: str | os.PathLike | None = None,
+           dem_datum: str | None = None) -> list[IngestResult]:
     """Ingest raw flight ``directories`` into the archive (created when absent). Every flight is
-    checked before anything is written; see the module docstring."""
+    checked before anything is written; see the module docstring. ``dem`` / ``dem_datum``: the
+    catalog footprint follows that terrain (:func:`prepare_flight`)."""
     from archive.catalog.describe import catalog_collection
 
-    plans = [prepare_flight(d, fov_deg, calibration, ground_height, sync_offset, boresight, lever_arm)
+    plans = [prepare_flight(d, fov_deg, calibration, ground_height, sync_offset, boresight, lever_arm,
+                            dem, dem_datum)
              for d in directories]
     root = create_archive(archive_path)
     results = []
@@ -288,6 +341,12 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
             if any(recorded.get(k, 0.0 if k == "sync_offset" else [0.0] * 3) != v for k, v in wanted.items()):
                 raise InputError(final, f"was ingested with other navigation parameters ({recorded or 'none'}, "
                                  f"now {wanted})", "pass --overwrite to re-ingest with the new ones")
+            old_dem = _dem_of(read_attrs(final).get("terrain"))
+            if old_dem != _dem_of(plan.attrs.get("terrain")):
+                new_dem = _dem_of(plan.attrs.get("terrain"))
+                raise InputError(final, f"was ingested with {'the DEM ' + old_dem[0] if old_dem else 'no DEM'}, "
+                                 f"now {'the DEM ' + new_dem[0] if new_dem else 'none'}",
+                                 "pass --overwrite to re-ingest (the catalog footprint follows the DEM)")
             if not _same_sources(final, plan):
                 raise InputError(final, f"holds a different flight than {directories[plans.index(plan)]} under the "
                                  f"same id {plan.cid} (same sensor, same start second)",
@@ -307,7 +366,8 @@ def run(args: argparse.Namespace) -> int:
     results = ingest(args.directories, args.archive, args.fov, calibration=args.calibration,
                      ground_height=args.ground_height, overwrite=args.overwrite, workers=args.workers,
                      progress=not args.quiet, sync_offset=args.sync_offset,
-                     boresight=args.boresight or (0.0, 0.0, 0.0), lever_arm=args.lever_arm or (0.0, 0.0, 0.0))
+                     boresight=args.boresight or (0.0, 0.0, 0.0), lever_arm=args.lever_arm or (0.0, 0.0, 0.0),
+                     dem=getattr(args, "dem", None), dem_datum=getattr(args, "dem_datum", None))
     for r in results:
         print(f"{r.cid}: {r.status} ({r.store})")
     return 0

@@ -1,8 +1,9 @@
-"""``archive info DIR``: check a raw flight directory completely and print its summary.
+"""``archive info DIR [--dem FILE]``: check a raw flight directory completely and print its summary.
 
 Checks (through :class:`archive.sources.RawFlightSource`): every cube's header and data file size,
 ``.times`` line count and order, ``.lcf`` parse, navigation coverage of every line (with the given
-sync offset), and the calibration if there is one (its bands and samples must fit every cube).
+sync offset), and the calibration if there is one (its bands and samples must fit every cube); with
+``--dem``, that the DEM covers every line's swath (and the terrain under the flight).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from archive.errors import InputError
 from archive.formats.lcf import gps_seconds_to_datetime
 from archive.navigation import frame_interval, joined, strip_slices
 from archive.params import NavigationParams
@@ -25,8 +27,46 @@ def _number(x: float | None, digits: int = 3) -> float | None:
     return None if x is None or not math.isfinite(x) else round(float(x), digits)
 
 
-def summarize(source: RawFlightSource, fov_deg: float) -> dict[str, Any]:
-    """Summary of a flight as plain JSON-able values (times s, lengths m, angles deg)."""
+def terrain_summary(source: RawFlightSource, fov_deg: float, dem) -> dict[str, Any]:
+    """The terrain under a flight from ``dem`` (an opened :class:`archive.dem.Dem`): every line's
+    swath edges and 7 rays between traced to their first hits on it (an error names the DEM and the lon/lat box it does
+    not cover, or its holes), the ground under the camera and the camera's height above it (m)."""
+    t = math.tan(math.radians(fov_deg) / 2)
+    frame = source.frame
+    dem.check_flight([source.poses(info.index) for info in source.cubes], fov_deg)
+    ground, clearance, edges = [], [], []
+    for info in source.cubes:
+        poses = source.poses(info.index)
+        p = poses.position
+        if poses.valid is not None:
+            p = p[np.asarray(poses.valid, bool)]
+        if len(p) == 0:
+            continue
+        origin = np.stack([p[:, 1] + frame.origin_e, p[:, 0] + frame.origin_n, frame.origin_alt - p[:, 2]], axis=1)
+        att = poses.attitude if poses.valid is None else poses.attitude[np.asarray(poses.valid, bool)]
+        rays = []
+        for u in np.linspace(-t, t, 9):   # the edges (checked: the DEM must cover them) and 7 rays between
+            d = np.atleast_2d(att.apply(np.array([0.0, u, 1.0])))
+            rays.append(np.stack([d[:, 1], d[:, 0], -d[:, 2]], axis=1))
+        for (lam, under), d in zip(dem.intersect(frame.epsg, origin, rays), rays):
+            if under.any():
+                raise InputError(source.label, f"cube {info.base}: the camera is at or below the ground of "
+                                 f"the DEM {dem.path}", "check the DEM and its vertical datum (--dem-datum)")
+            edges.append((origin[:, 2] + lam * d[:, 2])[np.isfinite(lam)])
+        h = dem.heights_at(frame.epsg, origin[:, 0], origin[:, 1])
+        ground.append(h)
+        clearance.append(origin[:, 2] - h)
+    heights = np.concatenate(ground + edges)
+    above = np.concatenate(clearance)
+    return {"dem": str(dem.path), "datum": dem.datum, "datum_declared": dem.declared,
+            "ground_min_m": _number(float(np.nanmin(heights)), 2), "ground_max_m": _number(float(np.nanmax(heights)), 2),
+            "height_above_ground_mean_m": _number(float(np.nanmean(above)), 2),
+            "height_above_ground_min_m": _number(float(np.nanmin(above)), 2)}
+
+
+def summarize(source: RawFlightSource, fov_deg: float, dem=None) -> dict[str, Any]:
+    """Summary of a flight as plain JSON-able values (times s, lengths m, angles deg); with ``dem``
+    (an opened :class:`archive.dem.Dem`) also ``terrain`` (:func:`terrain_summary`)."""
     cubes = []
     track_length = 0.0
     track_time = 0.0
@@ -93,6 +133,7 @@ def summarize(source: RawFlightSource, fov_deg: float) -> dict[str, Any]:
         "swath_per_m_height": round(2 * half, 4),
         "gsd_per_m_height": round(2 * half / samples, 6),
         "calibration": None if source.calibration_path is None else str(source.calibration_path),
+        **({} if dem is None else {"terrain": terrain_summary(source, fov_deg, dem)}),
         "cube_list": cubes,
     }
 
@@ -115,6 +156,11 @@ def format_summary(s: dict[str, Any]) -> str:
         f"swath      {s['swath_per_m_height']:.3f} x height above ground (FOV {s['fov_deg']:g} deg); nominal GSD "
         f"{s['gsd_per_m_height'] * 100:.3f} cm per m of height ({s['gsd_per_m_height'] * 40 * 100:.2f} cm at 40 m)",
         f"calibration {s['calibration'] or 'none (only --mode raw and relative)'}",
+        *([] if not s.get("terrain") else [
+            f"terrain    {s['terrain']['dem']} ({s['terrain']['datum']} heights): ground "
+            f"{s['terrain']['ground_min_m']:.1f}\u2013{s['terrain']['ground_max_m']:.1f} m above the ellipsoid under "
+            f"the swath, camera {s['terrain']['height_above_ground_mean_m']:.1f} m above it mean "
+            f"({s['terrain']['height_above_ground_min_m']:.1f} min)"]),
         "",
         f"{'#':>3}  {'cube':<28} {'lines':>6} {'Hz':>8} {'shutter ms':>10} {'gain dB':>7} {'start s':>16} "
         f"{'dur s':>7} {'track m':>8} {'alt m':>7}",
@@ -132,8 +178,16 @@ def format_summary(s: dict[str, Any]) -> str:
 def run(args: argparse.Namespace) -> int:
     """``archive info DIR [--fov DEG] [--sync-offset S] [--json]``; errors propagate as ArchiveError."""
     params = NavigationParams(fov_deg=float(args.fov), sync_offset=float(args.sync_offset))
+    dem = None
+    if getattr(args, "dem", None) is not None:
+        from archive.dem import open_dem
+
+        dem = open_dem(args.dem, args.dem_datum)
+    elif getattr(args, "dem_datum", None) is not None:
+        raise InputError("--dem-datum", "gives the vertical datum of a DEM, but no --dem was given",
+                         "add --dem FILE, or leave --dem-datum out")
     source = RawFlightSource(args.directory, params)
-    summary = summarize(source, params.fov_deg)
+    summary = summarize(source, params.fov_deg, dem)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

@@ -1,4 +1,6 @@
-"""The ground mesh of one cube: where each image line's field-of-view ends meet the flat ground.
+"""The ground mesh of one cube: where each image line's field-of-view ends meet the flat ground
+(or, over a DEM, where the ends of the line's across-track segments meet the terrain: see
+"Terrain meshes" below).
 
 Row k of the mesh is one image line at its mid-exposure pose. Each row has two vertices, the rays
 through the two ends of the line of samples (camera vectors (0, -t, 1) and (0, +t, 1),
@@ -30,6 +32,38 @@ within MAX_JOIN_FRAMES frame intervals (:func:`archive.navigation.joined`), each
 mid-exposure with its OWN line's shutter (so that two cubes of different shutters meet exactly),
 and lines without navigation or looking further than ``max_view_angle`` off nadir are left out:
 the mesh is cut there (no quad spans a gap or a dropped line).
+
+Terrain meshes (``build_mesh(..., terrain=dem, gsd=...)``)
+--------------------------------------------------------
+
+Segments: each row (line) is split into the same V - 1 across-track segments, at focal-plane
+coordinates u_0 = -t < u_1 < ... < u_{V-1} = +t shared by every row of the cube, and every vertex
+ray is intersected with the DEM (first hit, :meth:`archive.dem.Surface.intersect`). Quads join
+consecutive rows and neighbouring columns; the sample coordinate s = (u + t) / 2t is
+perspective-correct within a segment (lambda-weighted, as on flat ground).
+
+Straight-edge bound: along a segment the mesh puts ray u on the 3-D chord between the segment's
+two ground points (that is what the perspective-correct interpolation does), so its map position is
+off by |lambda_true(u) - lambda_chord(u)| x |horizontal part of the ray|. Columns start at most
+START_COLUMN (4) DEM pixels or output pixels wide on the ground (the larger), and a column is halved
+(for every row of the cube) while that error, measured at the middle ray of any of its segments,
+exceeds EDGE_ERROR_PX / 2 output pixels. A chord's deviation from a smoothly curved surface peaks at
+the middle, and from a single bend (a DEM cell edge) anywhere along it, it is at least half its peak
+at the middle: so the error anywhere along a segment stays under EDGE_ERROR_PX (0.1) output pixel.
+(Several bends of opposite sense within one segment could hide more; columns no wider than a few DEM
+pixels keep that to DEM detail that is itself below the check. Tests sample 1200 rays per line
+densely and find the largest error equal to the midpoint estimate, <= 0.05 pixel.)
+``edge_error`` records the largest midpoint error left (metres; columns stop halving after
+MAX_LEVELS halvings or MAX_COLUMNS vertices per row).
+
+Occlusion: an edge of the mesh (along a row, between rows, or a quad's diagonal) whose direction
+is within GRAZING_DEG of the line of sight and which is longer than half a pixel on the map joins
+ground points far apart in range: hidden ground (or ground seen at grazing incidence) lies between
+them. Triangles with such an edge are left out (``hidden``), and columns holding such a segment in
+any row are halved until its rays are OCCLUSION_PX apart on the ground, so the visible ground left
+out beside an occlusion is under half a pixel wide. Where one line's remaining triangles still
+fold over each other on the map, the GL depth test keeps the nearest (depth = distance from the
+camera, :attr:`Mesh.distance`). Ground no line sees is never drawn: NaN in the output.
 """
 
 from __future__ import annotations
@@ -44,6 +78,22 @@ from scipy.spatial.transform import Rotation
 
 from archive.errors import InputError, RenderError
 from archive.navigation import DEFAULT_MAX_VIEW_ANGLE, frame_interval, ground_hits, joined, view_angles
+
+#: Terrain meshes: the straight-edge error bound, output pixels (checked at segment midpoints
+#: against half of it, see :func:`_terrain_mesh`).
+EDGE_ERROR_PX = 0.1
+#: Terrain meshes: an edge within this angle of the line of sight (the surface between its ends
+#: would be seen at more than 90 - GRAZING_DEG degrees of incidence) spans an occlusion.
+GRAZING_DEG = 10.0
+#: Terrain meshes: segments spanning an occlusion are split until their rays are this close on the
+#: ground (output pixels), so that the ground left out beside an occlusion stays below it.
+OCCLUSION_PX = 0.5
+#: Terrain meshes: columns start at most this many DEM pixels or output pixels wide on the ground
+#: (the larger), then are halved where the straight-edge check needs it.
+START_COLUMN = 4.0
+#: Terrain meshes: most vertices per row, and most halvings of a column.
+MAX_COLUMNS = 4097
+MAX_LEVELS = 10
 
 if TYPE_CHECKING:  # pragma: no cover
     from archive.navigation import LocalFrame, Poses
@@ -62,6 +112,13 @@ class Mesh:
     breaks: (rows - 1,) bool, True where rows k and k+1 are not joined (no quad between them:
         a time gap, or lines left out between them); None: every row joined to the next.
     dropped: lines of the cube left out, by reason ('no navigation', 'view angle').
+
+    Terrain meshes (:func:`build_mesh` with ``terrain``) have ``V`` >= 2 vertices per row instead of
+    two: ground (rows, V, 2), depth (rows, V), and
+    columns: (V,) normalised sample coordinate s of each vertex column (None: [0, 1], the flat mesh);
+    distance: (rows, V) metres from the camera to each vertex's ground point (the GL depth), or None;
+    hidden: (rows - 1, V - 1, 2) bool, triangles left out because they span an occlusion, or None;
+    edge_error: the largest straight-edge deviation measured at segment midpoints, metres (0 flat).
     """
 
     frame: LocalFrame
@@ -73,6 +130,10 @@ class Mesh:
     ground_height: float
     breaks: np.ndarray | None = None
     dropped: dict | None = None
+    columns: np.ndarray | None = None
+    distance: np.ndarray | None = None
+    hidden: np.ndarray | None = None
+    edge_error: float = 0.0
 
     @property
     def rows(self) -> int:
@@ -109,26 +170,40 @@ class Mesh:
         ground = np.stack([n - frame.origin_n, e - frame.origin_e], axis=-1).reshape(self.ground.shape)
         return dataclasses.replace(self, frame=frame, ground=ground)
 
-    def triangles(self) -> np.ndarray:
-        """(2 * (rows - 1), 3) int32 vertex indices, two per quad, in line order.
+    @property
+    def per_row(self) -> int:
+        """Vertices per row: 2 for a flat mesh, V for a terrain mesh."""
+        return int(self.ground.shape[1])
 
-        Vertex 2k is row k's left end, 2k + 1 its right end. The first triangle of each quad has
-        row k's edge, the second row k+1's edge, so each row's segment is a triangle edge.
+    def triangles(self) -> np.ndarray:
+        """(2 * quads, 3) int32 vertex indices, two per quad, in line order (then column order).
+
+        Vertex V k + j is row k's vertex j (V = :attr:`per_row`; flat meshes: 2k is row k's left
+        end, 2k + 1 its right end). The first triangle of each quad has row k's edge, the second
+        row k+1's edge, so each row's segment is a triangle edge. Quads between rows that are not
+        joined (``breaks``) and triangles of terrain meshes that span an occlusion (``hidden``) are
+        left out.
         """
+        v = self.per_row
         k = np.arange(max(self.rows - 1, 0), dtype=np.int32)
         if self.breaks is not None:
             k = k[~np.asarray(self.breaks, bool)]
-        k = k[:, None]
-        first = 2 * k + np.array([0, 1, 2], dtype=np.int32)
-        second = 2 * k + np.array([1, 3, 2], dtype=np.int32)
-        return np.stack([first, second], axis=1).reshape(-1, 3)
+        j = np.arange(v - 1, dtype=np.int32)
+        a = (v * k[:, None] + j[None, :])[..., None]                 # (quads along, across, 1)
+        first = a + np.array([0, 1, v], dtype=np.int32)
+        second = a + np.array([1, v + 1, v], dtype=np.int32)
+        tri = np.stack([first, second], axis=2)                       # (k, j, 2, 3)
+        if self.hidden is not None:
+            return tri[~np.asarray(self.hidden, bool)[k]].reshape(-1, 3)
+        return tri.reshape(-1, 3)
 
     def vertex_attributes(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per vertex (2 * rows): (N, E) float64 local metres (rows, 2) and (L, s, lambda) float64."""
+        """Per vertex (V * rows): (N, E) float64 local metres (rows, 2) and (L, s, lambda) float64."""
+        v = self.per_row
         pos = self.ground.reshape(-1, 2)
-        attr = np.empty((self.rows * 2, 3))
-        attr[:, 0] = np.repeat(self.line, 2)
-        attr[:, 1] = np.tile([0.0, 1.0], self.rows)
+        attr = np.empty((self.rows * v, 3))
+        attr[:, 0] = np.repeat(self.line, v)
+        attr[:, 1] = np.tile([0.0, 1.0] if self.columns is None else self.columns, self.rows)
         attr[:, 2] = self.depth.reshape(-1)
         return pos, attr
 
@@ -183,6 +258,8 @@ def build_mesh(
     closing_shutter_ms: float | None = None,
     opening_shutter_ms: float | None = None,
     max_view_angle: float | None = DEFAULT_MAX_VIEW_ANGLE,
+    terrain=None,
+    gsd: float | None = None,
 ) -> Mesh:
     """Ground mesh of one cube from its per-line exposure-start poses.
 
@@ -198,6 +275,9 @@ def build_mesh(
     max_view_angle: degrees off nadir of a field-of-view edge beyond which a line is left out
     (None: no limit). Lines without navigation, beyond the limit, or whose edge rays miss the
     ground are left out; the mesh is cut there (:attr:`Mesh.breaks`) and ``dropped`` counts them.
+    terrain: None (flat ground at ``ground_height``) or a DEM (:class:`archive.dem.Dem`, anything with
+    ``surface_under``): then the mesh follows the terrain (module docstring, "Terrain meshes"), ``gsd`` (the output
+    pixel, m) setting how finely; ``ground_height`` is not used (NaN in the mesh).
     """
     if not (0 < fov_deg < 180):
         raise InputError("fov", f"field of view must be in (0, 180) degrees, got {fov_deg!r}")
@@ -264,6 +344,9 @@ def build_mesh(
         oblique = int(np.count_nonzero(too_far[first:first + lines]))
         keep &= ~too_far
 
+    if terrain is not None:
+        return _terrain_mesh(frame, mid_pos, mid_att, keep, link, line, lines, first, float(fov_deg),
+                             ground_height, terrain, gsd, no_navigation, oblique)
     t = math.tan(math.radians(fov_deg) / 2)
     d_ground = float(frame.origin_alt) - float(ground_height)
     below = keep & (mid_pos[:, 2] >= d_ground)
@@ -298,3 +381,141 @@ def build_mesh(
     return Mesh(frame, ground[rows], depth[rows], line[rows], lines, float(fov_deg), float(ground_height),
                 breaks=None if joined_rows.all() else ~joined_rows,
                 dropped={"no navigation": no_navigation, "view angle": oblique})
+
+
+# ---------------------------------------------------------------------------------------------
+# Terrain
+# ---------------------------------------------------------------------------------------------
+
+
+def _enu(d: np.ndarray) -> np.ndarray:
+    """(n, 3) N, E, D vectors -> E, N, Up."""
+    return np.stack([d[:, 1], d[:, 0], -d[:, 2]], axis=1)
+
+
+def _edge_hidden(pa: np.ndarray, pb: np.ndarray, da: np.ndarray, db: np.ndarray, min_map: float) -> np.ndarray:
+    """Edges (..., 3) from ground points pa to pb (N, E, D m) seen along unit rays da, db: True where
+    the edge is within GRAZING_DEG of the mean line of sight and longer than ``min_map`` m on the map."""
+    v = pb - pa
+    length = np.linalg.norm(v, axis=-1)
+    m = da + db
+    m = m / np.linalg.norm(m, axis=-1, keepdims=True)
+    sin = np.linalg.norm(np.cross(v, m), axis=-1) / np.where(length > 0, length, 1.0)
+    return (length > 0) & (sin < np.sin(np.radians(GRAZING_DEG))) & (np.hypot(v[..., 0], v[..., 1]) > min_map)
+
+
+def _terrain_mesh(frame, mid_pos, mid_att, keep, link, line, lines, first, fov_deg, ground_height, terrain,
+                  gsd, no_navigation, oblique) -> Mesh:
+    """The terrain part of :func:`build_mesh` (module docstring, "Terrain meshes")."""
+    if gsd is None or not (math.isfinite(gsd) and gsd > 0):
+        raise InputError("gsd", f"a terrain mesh needs the output pixel size, got {gsd!r}")
+    t = math.tan(math.radians(fov_deg) / 2)
+    rows = np.flatnonzero(keep)
+
+    def empty() -> Mesh:
+        return Mesh(frame, np.zeros((0, 2, 2)), np.ones((0, 2)), np.zeros(0), lines, fov_deg, math.nan,
+                    dropped={"no navigation": no_navigation, "view angle": oblique},
+                    columns=np.array([0.0, 1.0]), distance=np.zeros((0, 2)))
+
+    if rows.size == 0:
+        return empty()
+    pos = mid_pos[rows]
+    att = mid_att[rows]
+    origin = np.stack([pos[:, 1] + frame.origin_e, pos[:, 0] + frame.origin_n,
+                       float(frame.origin_alt) - pos[:, 2]], axis=1)
+    edges = [att.apply(np.array([0.0, u, 1.0])) for u in (-t, t)]
+    surface = terrain.surface_under(frame.epsg, origin, [_enu(d) for d in edges])
+    cache: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+    matrix = att.as_matrix()                                     # (R, 3, 3) camera -> NED
+
+    def trace(us) -> None:
+        """Intersect the rays of every focal-plane coordinate of ``us`` not traced yet (one call)."""
+        todo = [float(u) for u in dict.fromkeys(us) if float(u) not in cache]
+        if not todo:
+            return
+        u = np.array(todo)
+        d = matrix[:, None, :, 1] * u[None, :, None] + matrix[:, None, :, 2]     # (R, U, 3) N, E, D
+        o = np.broadcast_to(origin[:, None, :], d.shape).reshape(-1, 3)
+        lam, under = surface.intersect(o, _enu(d.reshape(-1, 3)))
+        if under.any():
+            r = int(np.argmax(under)) // u.size
+            raise RenderError(f"line {int(line[rows[r]])}: the camera ({origin[r, 2]:.1f} m) is at or below "
+                              f"the DEM's ground ({surface.height(origin[r, 0], origin[r, 1]):.1f} m); "
+                              "check the DEM, its vertical datum (--dem-datum) and the altitudes")
+        lam = lam.reshape(d.shape[:2])
+        for k, key in enumerate(todo):
+            cache[key] = (lam[:, k], d[:, k])
+
+    def hits(u: float):
+        """(lam (R,), ray (R, 3) N, E, D) of focal-plane coordinate u for the rows kept."""
+        trace([u])
+        return cache[float(u)]
+
+    # rows whose field-of-view edges miss the terrain (rays at or above the horizon) are left out
+    missed = ~(np.isfinite(hits(-t)[0]) & np.isfinite(hits(t)[0]))
+    if missed.any():
+        oblique += int(np.count_nonzero((rows[missed] >= first) & (rows[missed] < first + lines)))
+        good = ~missed
+        rows, pos, att, origin, matrix = rows[good], pos[good], att[good], origin[good], matrix[good]
+        for u, (lam, d) in list(cache.items()):
+            cache[u] = (lam[good], d[good])
+        if rows.size == 0:
+            return empty()
+
+    def ground(u: float) -> np.ndarray:
+        lam, d = hits(u)
+        return pos + lam[:, None] * d
+
+    width = float(np.median(np.hypot(*(ground(t) - ground(-t))[:, :2].T)))
+    pixel = surface.dem.pixel_m if getattr(surface, "dem", None) is not None else 2.0 * surface.res
+    start = START_COLUMN * max(pixel, gsd)
+    k0 = int(min(max(math.ceil(width / start), 2), MAX_COLUMNS - 1))
+    us = np.linspace(-t, t, k0 + 1)
+    us[0], us[-1] = -t, t
+    tol = 0.5 * EDGE_ERROR_PX * gsd
+    worst = 0.0
+    for level in range(MAX_LEVELS + 1):
+        mids = 0.5 * (us[:-1] + us[1:])
+        trace(np.concatenate([us, mids]))
+        lam_v = np.stack([hits(u)[0] for u in us], axis=1)              # (R, V)
+        ray_v = np.stack([hits(u)[1] for u in us], axis=1)              # (R, V, 3)
+        lam_m = np.stack([hits(u)[0] for u in mids], axis=1)            # (R, V - 1)
+        ray_m = np.stack([hits(u)[1] for u in mids], axis=1)
+        la, lb = lam_v[:, :-1], lam_v[:, 1:]
+        chord = 2.0 * la * lb / (la + lb)                  # lambda of the chord point on the middle ray
+        err = np.abs(lam_m - chord) * np.hypot(ray_m[..., 0], ray_m[..., 1])
+        pts = pos[:, None, :] + lam_v[..., None] * ray_v
+        unit = ray_v / np.linalg.norm(ray_v, axis=-1, keepdims=True)
+        occluded = _edge_hidden(pts[:, :-1], pts[:, 1:], unit[:, :-1], unit[:, 1:], 0.5 * gsd)
+        rng = np.linalg.norm(lam_v[..., None] * ray_v, axis=-1)
+        angle = np.linalg.norm(np.cross(unit[:, :-1], unit[:, 1:]), axis=-1)
+        spread = np.maximum(rng[:, :-1], rng[:, 1:]) * angle
+        need = (~occluded & (err > tol)) | (occluded & (spread > OCCLUSION_PX * gsd))
+        worst = float(np.max(np.where(occluded, 0.0, err), initial=0.0))
+        split = need.any(axis=0)
+        if not split.any() or level == MAX_LEVELS or us.size + int(split.sum()) > MAX_COLUMNS:
+            break
+        us = np.sort(np.concatenate([us, mids[split]]))
+
+    # rows and their joins, as on flat ground
+    joined_rows = np.ones(max(len(rows) - 1, 0), bool)
+    if len(rows) > 1:
+        joined_rows = (np.diff(rows) == 1) & link[rows[:-1]]
+    hidden = None
+    if len(rows) > 1:
+        a, b = pts[:-1], pts[1:]                           # rows k and k + 1
+        ua, ub = unit[:-1], unit[1:]
+        across = occluded                                  # (R, V - 1) along each row
+        down = _edge_hidden(a, b, ua, ub, 0.5 * gsd)       # (R - 1, V): column edges
+        diag = _edge_hidden(a[:, 1:], b[:, :-1], ua[:, 1:], ub[:, :-1], 0.5 * gsd)   # (R - 1, V - 1)
+        tri1 = across[:-1] | diag | down[:, :-1]
+        tri2 = down[:, 1:] | across[1:] | diag
+        hidden = np.stack([tri1, tri2], axis=-1)
+    ground_ne = pts[..., :2]
+    distance = rng
+    columns = (us + t) / (2.0 * t)
+    columns[0], columns[-1] = 0.0, 1.0
+    return Mesh(frame, ground_ne, lam_v, line[rows], lines, fov_deg, math.nan,
+                breaks=None if joined_rows.all() else ~joined_rows,
+                dropped={"no navigation": no_navigation, "view angle": oblique},
+                columns=columns, distance=distance, hidden=hidden, edge_error=worst)

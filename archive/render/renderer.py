@@ -4,7 +4,9 @@
    onto a float framebuffer that covers a window of the output grid; each fragment (= output pixel
    centre) records the line (floor(L + 0.5), discarded outside [0, lines)) and the sample
    (floor(samples * s), perspective-correct s, clamped) it sees. Later lines are drawn later and win
-   where the mesh folds over itself. The result, a :class:`Lookup`, is a small picklable value:
+   where the mesh folds over itself; terrain meshes (:mod:`archive.render.mesh`, "Terrain meshes") are drawn
+   with the depth test instead (depth = distance from the camera: the nearest ground wins) and
+   leave out the triangles that span an occlusion (hidden ground stays uncovered). The result, a :class:`Lookup`, is a small picklable value:
    compute it once per cube and reuse it for every group of bands.
 2. :func:`render_lookup` runs one full-screen pass per group of up to 8 bands (one R32F render
    target per band) over the covered rows of the grid: the fragment shader reads the pixel's
@@ -175,18 +177,23 @@ def rasterize_lookup(mesh: Mesh, grid: Grid, samples: int, *, max_size: int | No
 
     ctx = get_context()
     _, window = _limits(max_size)
-    program = get_program("cube.vert.glsl", "lookup.frag.glsl")
+    terrain = mesh.distance is not None   # terrain mesh: depth test on the distance from the camera
+    program = get_program("terrain.vert.glsl" if terrain else "cube.vert.glsl", "lookup.frag.glsl")
 
     # Vertex data: float32 metres relative to the mesh centre (float64 offsets go in uniforms).
     pos, attr = mesh.vertex_attributes()
     centre = pos.mean(axis=0)                        # (N, E) local metres
-    vdata = np.empty((pos.shape[0], 5), np.float32)
+    vdata = np.empty((pos.shape[0], 6 if terrain else 5), np.float32)
     vdata[:, 0] = pos[:, 1] - centre[1]
     vdata[:, 1] = pos[:, 0] - centre[0]
-    vdata[:, 2:] = attr
+    vdata[:, 2:5] = attr
+    if terrain:
+        vdata[:, 5] = mesh.distance.reshape(-1)
+        far = float(np.max(mesh.distance, initial=0.0)) * 1.01 + 1.0
     centre_e = mesh.frame.origin_e + centre[1]
     centre_n = mesh.frame.origin_n + centre[0]
-    # 2 triangles per quad in line order (later lines drawn later win where the mesh folds).
+    # 2 triangles per quad in line order (later lines drawn later win where the mesh folds; terrain:
+    # the nearest).
     triangles = mesh.triangles().reshape(-1).astype(np.int32)
     windows = sub.tiles(window)
     fbw = max(w.width for _, _, w in windows)
@@ -199,10 +206,21 @@ def rasterize_lookup(mesh: Mesh, grid: Grid, samples: int, *, max_size: int | No
         ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST | moderngl.CULL_FACE)
         vbo = keep(ctx.buffer(vdata.tobytes()))
         ibo = keep(ctx.buffer(triangles.tobytes()))
-        vao = keep(ctx.vertex_array(program, [(vbo, "2f 3f", "in_pos", "in_attr")],
-                                    index_buffer=ibo, index_element_size=4))
+        if terrain:
+            vao = keep(ctx.vertex_array(program, [(vbo, "2f 3f 1f", "in_pos", "in_attr", "in_dist")],
+                                        index_buffer=ibo, index_element_size=4))
+        else:
+            vao = keep(ctx.vertex_array(program, [(vbo, "2f 3f", "in_pos", "in_attr")],
+                                        index_buffer=ibo, index_element_size=4))
         index_rb = keep(ctx.renderbuffer((fbw, fbh), 2, dtype="f4"))
-        fbo = keep(ctx.framebuffer(color_attachments=[index_rb]))
+        if terrain:
+            depth_rb = keep(ctx.depth_renderbuffer((fbw, fbh)))
+            fbo = keep(ctx.framebuffer(color_attachments=[index_rb], depth_attachment=depth_rb))
+            program["u_far"].value = far
+            ctx.enable(moderngl.DEPTH_TEST)
+            ctx.depth_func = "<"
+        else:
+            fbo = keep(ctx.framebuffer(color_attachments=[index_rb]))
         program["u_inv_gsd"].value = 1.0 / grid.gsd
         program["u_samples"].value = samples
         program["u_lo"].value = 0
@@ -211,7 +229,10 @@ def rasterize_lookup(mesh: Mesh, grid: Grid, samples: int, *, max_size: int | No
             fbo.use()
             vp = (0, 0, win.width, win.height)
             ctx.viewport = vp
-            fbo.clear(-1.0, -1.0, 0.0, 0.0, viewport=vp)
+            if terrain:
+                fbo.clear(-1.0, -1.0, 0.0, 0.0, depth=1.0, viewport=vp)
+            else:
+                fbo.clear(-1.0, -1.0, 0.0, 0.0, viewport=vp)
             program["u_size"].value = (float(win.width), float(win.height))
             program["u_centre_px"].value = (
                 (centre_e - win.x0) / grid.gsd, (win.y0 - centre_n) / grid.gsd)
@@ -224,6 +245,10 @@ def rasterize_lookup(mesh: Mesh, grid: Grid, samples: int, *, max_size: int | No
             sample[rs, cs] = idx[..., 1]
         _check_gl(ctx, f"rasterizing the lookup of a {mesh.lines}-line cube")
     finally:
+        if terrain:
+            import moderngl
+
+            ctx.disable(moderngl.DEPTH_TEST)
         keep.release()
     return lookup
 

@@ -34,6 +34,7 @@ from archive.simulator.mount import Mount, camera_path
 from archive.simulator.scene import MATERIALS, Scene, material_spectra, random_waves
 from archive.simulator.sensor import (EXPOSURES, GAIN_CAL, SHUTTER_CAL, Radiometry,
                                       make_radiometry, trace_abundance)
+from archive.simulator.terrain import TERRAINS, Terrain, make_terrain, write_dem
 from archive.simulator.trajectory import (FRAMERATE, INS_RATE, Trajectory, convergence,
                                           default_wobble, to_lonlat, to_utm, utm_epsg)
 from archive.simulator.turns import RAMP_S, banked_turn
@@ -57,6 +58,9 @@ MAX_VALUES = 1 << 22           #: DN values (bands x lines x samples) per block 
 SHUTTER_STEPS = (3.0, 1.5, 3.9, 2.2)  #: ms, shutters cycled over cubes by ``shutter_steps`` (gain 0 dB)
 MAX_BANK_DEG = 70.0
 MIN_BANK_DEG = 10.0
+DEM_NAME = "dem.tif"           #: the DEM GeoTIFF written into a terrain flight's directory
+DEM_RESOLUTION = 0.1           #: m, its pixel side
+DEM_MARGIN = 10.0              #: m of DEM around the footprint's bounding box
 RECORD_TURN_FRACTION = 0.8     #: at most this fraction of a pass's recording is flown in the turn
 
 
@@ -213,6 +217,7 @@ class _Context:
     samples: int
     ku: int
     seed: int
+    terrain: Terrain | None = None
 
 
 def _cube_block(job: tuple[_CubePlan, int, np.ndarray], ctx: _Context) -> np.ndarray:
@@ -220,7 +225,7 @@ def _cube_block(job: tuple[_CubePlan, int, np.ndarray], ctx: _Context) -> np.nda
     Its noise is seeded by (seed, cube, first line), so the result does not depend on threading."""
     plan, i0, t = job
     a = trace_abundance(ctx.scene, ctx.camera, t, plan.shutter_ms / 1000.0, ctx.fov_deg, ctx.samples,
-                        ctx.ku, KT)
+                        ctx.ku, KT, ctx.terrain)
     radiance = np.tensordot(ctx.spectra_t, a.astype(np.float32), axes=(1, 0))
     rng = np.random.default_rng([ctx.seed, plan.index, i0])
     return ctx.radiometry.dn(radiance, plan.shutter_ms, plan.gain_db, rng)
@@ -267,7 +272,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                     shutter_steps: bool = False, sync_offset: float = 0.0,
                     bank_deg: float | None = None, record_turns: bool = False, pause_s: float = 0.0,
                     pause_cube: int = 0, boresight_deg: Sequence[float] = (0.0, 0.0, 0.0),
-                    lever_arm_m: Sequence[float] = (0.0, 0.0, 0.0)) -> Truth:
+                    lever_arm_m: Sequence[float] = (0.0, 0.0, 0.0), terrain: str | None = None) -> Truth:
     """Write a simulated flight into ``directory`` and return its :class:`Truth`.
 
     ``cubes`` cubes of ``lines`` lines x ``samples`` samples x ``bands`` bands (400-1000 nm,
@@ -296,8 +301,17 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
       interval there, its ``.lcf`` is continuous. Every pass's straight segment is ``pause_s`` longer.
     - ``boresight_deg`` (roll, pitch, yaw) and ``lever_arm_m`` (x, y, z, body frame): the true camera
       mounting (DESIGN 3); the ``.lcf`` records the INS, the camera sees through the mount.
+
+    ``terrain`` ('hills' | 'ridge', :mod:`archive.simulator.terrain`; None: flat ground): every sample's
+    rays are traced to their first hit on an analytic height field about the ground height (the
+    camera still flies ``HEIGHT`` above ``GROUND_HEIGHT``), and the flight directory gets
+    ``dem.tif``: the heights above the ellipsoid every ``DEM_RESOLUTION`` m over the footprint (in
+    the site's UTM zone, its 3-D CRS declaring ellipsoidal heights). The truth knows which ground no
+    line sees (:meth:`Truth.visible`).
     """
     _check(cubes, bands, samples, lines, cubes_per_pass, lat, lon, fov_deg)
+    if terrain is not None and terrain not in TERRAINS:
+        raise InputError("simulate", f"terrain {terrain!r}, expected one of {', '.join(TERRAINS)}")
     recorder = _recorder(cubes, lines, dropped_frames, shutters, gains, shutter_steps, sync_offset,
                          bank_deg, record_turns, pause_s, pause_cube, boresight_deg, lever_arm_m)
     directory = Path(directory)
@@ -325,6 +339,8 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                       RUN_S, record_s, passes, default_wobble(rng), bank_deg=recorder.bank_deg,
                       record_into_turn_s=into_turn)
     camera = camera_path(traj, recorder.mount)
+    relief = None if terrain is None else make_terrain(
+        terrain, GROUND_HEIGHT, e0, n0, HEADING_DEG, [float(traj.pass_c(k)) for k in range(passes)])
     plans = _plan(cubes, lines, cubes_per_pass, traj, recorder)
     spans = [(min(p.line_time[0] for p in plans if p.pass_index == k),
               max(p.line_time[-1] for p in plans if p.pass_index == k)) for k in range(passes)]
@@ -342,7 +358,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
     ku = max(4, int(math.ceil(pixel / SUBSAMPLE_M)))
     block = max(1, min(MAX_POINTS // (KT * samples * ku), MAX_VALUES // (bands * samples)))
     context = _Context(scene, camera, radiometry, spectra.T.astype(np.float32), fov_deg, samples, ku,
-                       int(seed))
+                       int(seed), relief)
 
     workers = _workers()
     tmp = directory.with_name(f".{directory.name}.simulate-{os.getpid()}")
@@ -376,13 +392,22 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                       dropped_frames=recorder.dropped_frames,
                       pause_cube=None if pause is None else pause[0],
                       pause_line=None if pause is None else pause[1],
-                      pause_s=recorder.pause_s, record_turns=bool(into_turn))
+                      pause_s=recorder.pause_s, record_turns=bool(into_turn), terrain=relief)
         save_truth(truth, tmp / "truth")
+        if relief is not None:
+            write_dem(tmp / DEM_NAME, relief, epsg, dem_bounds(truth))
         _finalize(tmp, directory)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return truth
+
+
+def dem_bounds(truth: Truth, margin: float = DEM_MARGIN) -> tuple[float, float, float, float]:
+    """(west, south, east, north) UTM metres a flight's DEM covers: the footprint's box + ``margin``."""
+    rings = np.concatenate(truth.footprint())
+    return (float(rings[:, 0].min() - margin), float(rings[:, 1].min() - margin),
+            float(rings[:, 0].max() + margin), float(rings[:, 1].max() + margin))
 
 
 def summary(truth: Truth) -> str:
@@ -402,6 +427,9 @@ def summary(truth: Truth) -> str:
         f"{truth.flight.speed / truth.cubes[0].framerate * 100:.1f} cm along; field of view "
         f"{truth.fov_deg:g} deg; ground {truth.ground_height:g} m (ellipsoid)",
         *_recorder_summary(truth),
+        *([] if truth.terrain is None else [
+            f"  terrain: {truth.terrain.kind}, {truth.terrain.relief[0]:g}-{truth.terrain.relief[1]:g} m bounds "
+            f"(ellipsoid); DEM {truth.directory / DEM_NAME}"]),
         f"  truth: {truth.directory / 'truth'}",
     ])
 
@@ -441,6 +469,6 @@ def run(args: argparse.Namespace) -> int:
                             record_turns=bool(opt("record_turns", False)), pause_s=opt("pause", 0.0),
                             pause_cube=opt("pause_cube", 0),
                             boresight_deg=opt("boresight", (0.0, 0.0, 0.0)),
-                            lever_arm_m=opt("lever_arm", (0.0, 0.0, 0.0)))
+                            lever_arm_m=opt("lever_arm", (0.0, 0.0, 0.0)), terrain=opt("terrain", None))
     print(summary(truth))
     return 0

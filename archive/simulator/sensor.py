@@ -6,8 +6,10 @@ The camera path is the platform's trajectory, or a :class:`~archive.simulator.mo
 sample s (0-based, N samples) covers u in [-T + 2T s/N, -T + 2T (s+1)/N] with T = tan(fov/2).
 Each sample's DN integrates the radiance over ``ku`` points of u in its interval times ``kt``
 points of time in [t_line, t_line + shutter] (midpoint rule), each ray intersected with the flat
-ground ``alt = ground_height``. A ray that does not meet the ground (pointing at or above the horizon,
-as in steeply banked turns) sees black sky (abundance 0).
+ground ``alt = ground_height`` (or its first hit on the flight's terrain, when it has one: the
+scene is an orthophoto draped on the terrain, radiance a function of E, N). A ray that does not
+meet the ground (pointing at or above the horizon, as in steeply banked turns) sees black sky
+(abundance 0).
 
 DN = dark[b, s] + L * response / gain[b, s] + noise, rounded and clipped to 0..4095, with
 ``response = (shutter / shutter_cal) * 10 ** ((gain_db - gain_cal) / 20)``.
@@ -99,14 +101,21 @@ def focal_plane(fov_deg: float, samples: int, ku: int) -> np.ndarray:
     return (-t + 2.0 * t * frac).ravel()
 
 
-def ground_points(traj: Trajectory, t: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def ground_points(traj: Trajectory, t: np.ndarray, u: np.ndarray,
+                  terrain=None) -> tuple[np.ndarray, np.ndarray]:
     """UTM E, N (m), each (len(t), len(u)), where the rays of focal-plane coordinates ``u`` at GPS
-    times ``t`` meet the ground (``traj.ground_height``); NaN for rays that do not go down.
+    times ``t`` meet the ground (``traj.ground_height``, or the first hit on ``terrain``, a
+    :class:`~archive.simulator.terrain.Terrain`); NaN for rays that do not go down.
     ``traj``: the camera path (a Trajectory when camera = body, or a MountedCamera)."""
     t = np.asarray(t, float).ravel()
     pos = traj.position(t)
     r = traj.attitude(t).as_matrix()                               # (n, 3, 3) camera -> NED
     d = r[:, None, :, 1] * u[None, :, None] + r[:, None, :, 2]     # (n, U, 3) N, E, D
+    if terrain is not None:
+        shape = d.shape[:2]
+        origin = np.broadcast_to(pos[:, None, :], shape + (3,)).reshape(-1, 3)
+        lam = terrain.intersect(origin, d.reshape(-1, 3)).reshape(shape)
+        return pos[:, 0, None] + lam * d[..., 1], pos[:, 1, None] + lam * d[..., 0]
     down = d[..., 2] > 1e-9
     if not down.all():
         d = np.where(down[..., None], d, np.nan)
@@ -115,12 +124,13 @@ def ground_points(traj: Trajectory, t: np.ndarray, u: np.ndarray) -> tuple[np.nd
 
 
 def trace_abundance(scene: Scene, traj: Trajectory, line_time: np.ndarray, shutter_s: float,
-                    fov_deg: float, samples: int, ku: int, kt: int) -> np.ndarray:
-    """Abundances (materials, lines, samples) integrated over each sample's footprint and exposure."""
+                    fov_deg: float, samples: int, ku: int, kt: int, terrain=None) -> np.ndarray:
+    """Abundances (materials, lines, samples) integrated over each sample's footprint and exposure
+    (each sub-ray's first hit on ``terrain`` when given, else on the flat ground)."""
     line_time = np.asarray(line_time, float)
     t = line_time[:, None] + shutter_s * (np.arange(kt)[None, :] + 0.5) / kt   # (lines, kt)
     u = focal_plane(fov_deg, samples, ku)
-    e, n = ground_points(traj, t.ravel(), u)
+    e, n = ground_points(traj, t.ravel(), u, terrain)
     sky = ~np.isfinite(e)
     if sky.any():
         e, n = np.where(sky, scene.origin_e, e), np.where(sky, scene.origin_n, n)

@@ -33,6 +33,7 @@ from archive.errors import FormatError, MissingInputError
 from archive.simulator.mount import Mount, camera_path
 from archive.simulator.scene import Scene, points_in_polygon
 from archive.simulator.sensor import ground_points
+from archive.simulator.terrain import Terrain
 from archive.simulator.trajectory import Trajectory, convergence
 
 __all__ = ["CubeTruth", "Truth", "load_truth", "save_truth", "TRUTH_VERSION",
@@ -88,7 +89,9 @@ class Truth:
     ``dropped_frames`` frames dropped at each cube switch within a pass; ``pause_cube`` /
     ``pause_line`` / ``pause_s``: the recorder stopped ``pause_s`` s before line ``pause_line`` of cube
     ``pause_cube`` (None / None / 0: no pause); ``record_turns``: the end of each pass's recording is
-    flown in the turn (``bank_deg``: the sustained bank of the turns, 0 for flat half circles)."""
+    flown in the turn (``bank_deg``: the sustained bank of the turns, 0 for flat half circles).
+    ``terrain``: the analytic height field the rays were traced to (None: flat ground at
+    ``ground_height``); the footprint then follows it and :meth:`visible` says which ground a line sees."""
 
     directory: Path
     epsg: int
@@ -108,6 +111,7 @@ class Truth:
     pause_line: int | None = None
     pause_s: float = 0.0
     record_turns: bool = False
+    terrain: Terrain | None = None
 
     # --- recorder options -----------------------------------------------------------------------
     @property
@@ -237,14 +241,19 @@ class Truth:
     # --- footprint ---------------------------------------------------------------------------------
     @cached_property
     def _footprints(self) -> list[np.ndarray]:
+        return [poly for _, _, poly in self._footprint_parts]
+
+    @cached_property
+    def _footprint_parts(self) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """(strip index, mid-exposure times of the part's lines, polygon) of every footprint part."""
         t_half = math.tan(math.radians(self.fov_deg) / 2.0)
         edges = np.array([-t_half, t_half])
         camera = self.camera
         cos_limit = math.cos(math.radians(FOOTPRINT_MAX_OFF_NADIR_DEG))
         polygons = []
-        for strip in self.strips:
+        for s_index, strip in enumerate(self.strips):
             t = np.concatenate([self.cubes[k].line_time + self.cubes[k].shutter_ms / 2000.0 for k in strip])
-            e, n = ground_points(camera, t, edges)
+            e, n = ground_points(camera, t, edges, self.terrain)
             # split at a pause and leave out lines seen too far off nadir (banked turns)
             starts = np.cumsum([0] + [self.cubes[k].lines for k in strip])
             cut = np.zeros(t.size, bool)
@@ -263,7 +272,14 @@ class Truth:
                     continue
                 left = np.stack([e[sel, 0], n[sel, 0]], axis=1)
                 right = np.stack([e[sel, 1], n[sel, 1]], axis=1)
-                polygons.append(np.concatenate([left, right[::-1]]))
+                ring = [left, right[::-1]]
+                if self.terrain is not None:   # the first and last lines' traces curve over the terrain
+                    inner = np.linspace(-t_half, t_half, 129)[1:-1]
+                    ends = t[sel][[0, -1]]
+                    te, tn = ground_points(camera, ends, inner, self.terrain)
+                    ring = [left, np.stack([te[1], tn[1]], axis=1), right[::-1],
+                            np.stack([te[0], tn[0]], axis=1)[::-1]]
+                polygons.append((s_index, t[sel], np.concatenate(ring)))
         return polygons
 
     def footprint(self, crs=None) -> list[np.ndarray]:
@@ -288,6 +304,70 @@ class Truth:
             idx = np.nonzero((e >= lo[0]) & (e <= hi[0]) & (n >= lo[1]) & (n <= hi[1]))[0]
             inside[idx[points_in_polygon(poly, e[idx], n[idx])]] = True
         return inside.reshape(shape)
+
+    def ground_height_at(self, e, n, crs=None) -> np.ndarray:
+        """Height of the ground (m above the ellipsoid) at UTM points: the terrain's, else the flat
+        ``ground_height``; shape of e."""
+        e, n = self.to_utm(e, n, crs)
+        if self.terrain is None:
+            return np.full(e.shape, float(self.ground_height))
+        return self.terrain.height(e, n)
+
+    def visible(self, e, n, crs=None) -> np.ndarray:
+        """True where the ground at UTM points (m) is seen by a line: inside the footprint of a part
+        of a strip, and the ray from the camera (when that part's field of view sweeps the point,
+        the mid-exposure pose interpolated between the two lines it falls between) meets the terrain
+        first there (within 1 cm). Equal to :meth:`covered` on flat ground. Shape of e; ``crs``:
+        points in that CRS instead (see :meth:`to_utm`)."""
+        e, n = self.to_utm(e, n, crs)
+        shape = e.shape
+        e, n = e.ravel(), n.ravel()
+        if self.terrain is None:
+            return self.covered(e, n).reshape(shape)
+        t_half = math.tan(math.radians(self.fov_deg) / 2.0)
+        seen = np.zeros(e.size, bool)
+        camera = self.camera
+        for _, t, poly in self._footprint_parts:
+            lo, hi = poly.min(axis=0), poly.max(axis=0)
+            idx = np.nonzero((e >= lo[0]) & (e <= hi[0]) & (n >= lo[1]) & (n <= hi[1]) & ~seen)[0]
+            idx = idx[points_in_polygon(poly, e[idx], n[idx])]
+            if idx.size == 0:
+                continue
+            pe, pn = e[idx], n[idx]
+            ph = self.terrain.height(pe, pn)
+            pos, att = camera(t)
+            xaxis = att.as_matrix()[:, :, 0]                       # camera x in N, E, D
+            points = np.stack([pn, pe, ph], axis=1)
+            a = np.zeros(idx.size, np.intp)
+            b = np.full(idx.size, t.size - 1, np.intp)
+            fa, fb = _along(points, pos[a], xaxis[a]), _along(points, pos[b], xaxis[b])
+            ok = np.sign(fa) != np.sign(fb)
+            for _ in range(int(np.ceil(np.log2(max(t.size, 2)))) + 1):
+                m = (a + b) // 2
+                fm = _along(points, pos[m], xaxis[m])
+                same = np.sign(fm) == np.sign(fa)
+                a = np.where(same, m, a)
+                fa = np.where(same, fm, fa)
+                b = np.where(same, b, m)
+                fb = np.where(same, fb, fm)
+            ts = t[a] + (t[b] - t[a]) * fa / np.where(fa != fb, fa - fb, 1.0)
+            cpos, catt = camera(ts)
+            v = np.stack([pn - cpos[:, 1], pe - cpos[:, 0], cpos[:, 2] - ph], axis=1)   # N, E, D
+            cam = catt.inv().apply(v)
+            ok &= (cam[:, 2] > 0) & (np.abs(cam[:, 1]) <= t_half * cam[:, 2] * (1 + 1e-9))
+            lam = self.terrain.intersect(cpos, v)
+            ok &= np.isfinite(lam) & (lam >= 1.0 - 0.01 / np.linalg.norm(v, axis=1))
+            seen[idx[ok]] = True
+        return seen.reshape(shape)
+
+
+def _along(points: np.ndarray, position: np.ndarray, xaxis: np.ndarray) -> np.ndarray:
+    """Camera-x coordinates (m) of ground points (n, 3: N, E, altitude) seen from cameras at
+    ``position`` (n, 3: E, N, altitude) whose x axes (N, E, D) are ``xaxis`` (n, 3): the sign says on
+    which side of each camera's line of view a point lies."""
+    v = np.stack([points[:, 0] - position[:, 1], points[:, 1] - position[:, 0], position[:, 2] - points[:, 2]],
+                 axis=1)
+    return np.einsum("ij,ij->i", v, xaxis)
 
 
 # --- persistence -----------------------------------------------------------------------------------
@@ -328,6 +408,8 @@ def save_truth(truth: Truth, folder: str | os.PathLike) -> None:
         meta["pause"] = {"cube": truth.pause_cube, "line": truth.pause_line, "seconds": truth.pause_s}
     if truth.record_turns:
         meta["record_turns"] = True
+    if truth.terrain is not None:
+        meta["terrain"] = truth.terrain.to_dict()
     np.savez(folder / "truth.npz", **arrays)
     (folder / "truth.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
 
@@ -366,4 +448,5 @@ def load_truth(directory: str | os.PathLike) -> Truth:
                  pause_cube=None if pause is None else int(pause["cube"]),
                  pause_line=None if pause is None else int(pause["line"]),
                  pause_s=0.0 if pause is None else float(pause["seconds"]),
-                 record_turns=bool(meta.get("record_turns", False)))
+                 record_turns=bool(meta.get("record_turns", False)),
+                 terrain=None if meta.get("terrain") is None else Terrain.from_dict(meta["terrain"]))

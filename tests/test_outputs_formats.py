@@ -1,0 +1,254 @@
+"""COG and ENVI written by the render graph's own tile tasks (issue 10), on a small simulated flight.
+
+Checked against the Zarr mosaic of the same render, bit for bit: ENVI BSQ by positioned writes into
+a preallocated file; COG from tiles compressed by the writer tasks, overviews computed from the tiles
+inside the graph, laid out without recompression (GDAL's COG checks, every tile's leader and
+trailer, band-interleaved). A render SIGKILLed while writing leaves no output and the rerun is
+identical; an unwritable or full output folder is a one-line error with nothing left behind.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import logging
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+import xarray as xr
+
+from archive.cli import main
+from archive.cog import check_cog, downsample2, file_layout, level_shapes
+from archive.grid import Grid
+from archive.outputs import CHUNK, CogSink, EnviSink, Output, OutputMeta
+
+FOV = 47.5
+GSD = 0.015  # 4185 x 2079 px: 15 output tiles, 2 of them touched by no cube; 4 COG overview levels
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    from archive.simulator.command import simulate_flight
+
+    directory = tmp_path_factory.mktemp("formats") / "flight"
+    simulate_flight(directory, cubes=4, bands=6, samples=64, lines=150, cubes_per_pass=2, seed=3)
+    return directory
+
+
+@pytest.fixture(scope="module")
+def scheduler():
+    """A LocalCluster shaped like the command's own: 1 spawned worker, 2 threads, GPU=2."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=True, resources={"GPU": 2},
+                      dashboard_address=":0", silence_logs=logging.ERROR) as cluster:
+        yield cluster.scheduler_address
+
+
+def _args(flight, out, *extra) -> list[str]:
+    return ["render", str(flight), "--fov", str(FOV), "--gsd", str(GSD), "--ground-height", "auto",
+            "--out", str(out), "--quiet", *extra]
+
+
+@pytest.fixture(scope="module")
+def rendered(flight, scheduler, tmp_path_factory):
+    """The same render as Zarr, COG and ENVI (one shared cluster); the Zarr values (band, y, x)."""
+    folder = tmp_path_factory.mktemp("rendered")
+    for name in ("m.zarr", "m.tif", "m.hdr"):
+        assert main(_args(flight, folder / name, "--scheduler", scheduler)) == 0
+    values = xr.open_zarr(folder / "m.zarr", decode_coords="all")["radiance"].values
+    return folder, values
+
+
+def _bits(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, np.float32).view(np.uint32)
+
+
+def test_envi_equals_zarr_bit_for_bit(rendered):
+    folder, values = rendered
+    data = folder / "m"
+    assert data.stat().st_size == values.size * 4
+    np.testing.assert_array_equal(_bits(np.fromfile(data, "<f4").reshape(values.shape)), _bits(values))
+    assert np.isnan(values).any() and np.isfinite(values).any()
+    text = (folder / "m.hdr").read_text()
+    assert "interleave = bsq" in text and "map info = {UTM, 1, 1," in text
+    with rasterio.open(data) as ds:
+        assert ds.driver == "ENVI" and ds.crs.to_epsg() == 32616 and ds.count == values.shape[0]
+        z = xr.open_zarr(folder / "m.zarr", decode_coords="all")
+        assert tuple(ds.transform)[:6] == tuple(z.rio.transform())[:6]
+        assert float(ds.tags(2)["wavelength"]) == pytest.approx(float(z["wavelength"][1]))
+
+
+def test_cog_equals_zarr_and_is_a_valid_cog(rendered):
+    folder, values = rendered
+    path = folder / "m.tif"
+    assert check_cog(path) == []
+    layout = file_layout(path)
+    nb, height, width = values.shape
+    shapes = level_shapes(height, width)
+    assert len(shapes) == 5  # full resolution + 4 overviews
+    assert [(im["height"], im["width"]) for im in layout["images"]] == shapes
+    assert all(im["planar"] == 2 and im["samples"] == nb and im["predictor"] == 3 for im in layout["images"])
+    z = xr.open_zarr(folder / "m.zarr", decode_coords="all")
+    with rasterio.open(path) as ds:
+        assert ds.crs.to_epsg() == 32616 and tuple(ds.transform)[:6] == tuple(z.rio.transform())[:6]
+        assert ds.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG" and ds.interleaving.value == "BAND"
+        assert np.isnan(ds.nodata) and ds.block_shapes == [(512, 512)] * nb
+        assert ds.overviews(1) == [2, 4, 8, 16]
+        wl = [float(ds.tags(b + 1)["wavelength"]) for b in range(nb)]
+        np.testing.assert_allclose(wl, z["wavelength"].values)
+        assert ds.descriptions[0] == f"band 0: {wl[0]:.1f} nm"
+        np.testing.assert_array_equal(_bits(ds.read()), _bits(values))
+    # overviews: NaN-aware 2 x 2 means, each level from the one below
+    expected = values
+    for level in range(1, len(shapes)):
+        expected = downsample2(expected)
+        with rasterio.open(path, overview_level=level - 1) as ov:
+            np.testing.assert_array_equal(_bits(ov.read()), _bits(expected))
+    assert np.isfinite(expected).any()
+
+
+def test_cog_bands_are_contiguous_and_a_few_bands_read_a_few_bytes(rendered):
+    folder, values = rendered
+    layout = file_layout(folder / "m.tif")
+    nb = values.shape[0]
+    for im in layout["images"]:
+        offsets = im["offsets"].reshape(nb, -1)
+        ends = offsets + im["counts"].reshape(nb, -1)
+        assert all(ends[b].max() <= offsets[b + 1].min() for b in range(nb - 1))  # band after band
+    # bytes a reader fetches for a 512 x 512 window: one tile per band
+    main = layout["images"][0]
+    counts = main["counts"].reshape(nb, -1)
+    k = np.flatnonzero(counts[0] > counts[0].min())[0]  # a tile with data
+    assert counts[:1, k].sum() < counts[:, k].sum() / (nb - 1)
+
+
+def test_blank_tiles_are_nan(rendered):
+    folder, values = rendered
+    untouched = [(r, c) for r in range(0, values.shape[1], CHUNK) for c in range(0, values.shape[2], CHUNK)
+                 if np.isnan(values[:, r:r + CHUNK, c:c + CHUNK]).all()]
+    assert untouched  # written by blank-tile tasks in ENVI and COG (checked equal above)
+
+
+# ---------------------------------------------------------------------------------------------
+# A render killed while writing, then run again
+# ---------------------------------------------------------------------------------------------
+def _writing_began(folder: Path, name: str) -> bool:
+    """True once tile data lands in the temporaries of ``name`` (a chunk file, a spool file, or
+    non-zero bytes in the preallocated ENVI data)."""
+    for tmp in folder.glob(f".{Path(name).stem if name.endswith('.hdr') else name}.partial-*"):
+        if tmp.is_dir():
+            if any(p.is_file() and not p.name.endswith(".json") for p in tmp.rglob("*")):
+                return True
+        elif tmp.stat().st_size > 1 << 20:
+            with open(tmp, "rb") as f:
+                size = tmp.stat().st_size
+                if any(any(os.pread(f.fileno(), 4096, off)) for off in range(0, size, size // 256)):
+                    return True
+    return False
+
+
+@pytest.mark.parametrize("name", ["m.zarr", "m.tif", "m.hdr"])
+def test_killed_while_writing_leaves_nothing_and_rerun_is_identical(flight, rendered, tmp_path, name):
+    folder, values = rendered
+    out = tmp_path / name
+    cmd = [sys.executable, "-m", "archive", *_args(flight, out)]
+    job = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not _writing_began(tmp_path, name):
+            assert job.poll() is None, job.stderr.read().decode()
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        os.killpg(job.pid, signal.SIGKILL)  # the command and its cluster: no cleanup code runs
+        job.wait(30)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(job.pid, signal.SIGKILL)
+        job.wait(30)
+    assert job.returncode == -signal.SIGKILL
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left and all(".partial-" in n and n.startswith(".") for n in left), left
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    finals = {"m.zarr": ["m.zarr"], "m.tif": ["m.tif"], "m.hdr": ["m", "m.hdr"]}[name]
+    assert sorted(p.name for p in tmp_path.iterdir()) == finals  # the killed run's temporaries are gone
+    if name == "m.zarr":
+        got = xr.open_zarr(out)["radiance"].values
+    elif name == "m.tif":
+        with rasterio.open(out) as ds:
+            got = ds.read()
+        assert (out.read_bytes() == (folder / name).read_bytes())  # the very same file
+    else:
+        got = np.fromfile(tmp_path / "m", "<f4").reshape(values.shape)
+    np.testing.assert_array_equal(_bits(got), _bits(values))
+
+
+# ---------------------------------------------------------------------------------------------
+# Output folders that cannot take the output
+# ---------------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def _read_only(folder: Path):
+    """Make ``folder`` unwritable for this process (chmod, or the immutable flag when root)."""
+    folder.chmod(0o555)
+    immutable = False
+    try:
+        if not os.access(folder, os.W_OK):
+            yield
+            return
+        if shutil.which("chattr") is None or subprocess.run(["chattr", "+i", str(folder)],
+                                                            capture_output=True).returncode != 0:
+            pytest.skip("cannot make a folder read-only for this user (root without chattr +i)")
+        immutable = True
+        yield
+    finally:
+        if immutable:
+            subprocess.run(["chattr", "-i", str(folder)], check=True)
+        folder.chmod(0o755)
+
+
+@pytest.mark.parametrize("name", ["m.zarr", "m.tif", "m.hdr"])
+def test_read_only_folder_is_a_clear_error(flight, tmp_path, capsys, name):
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    with _read_only(folder):
+        rc = main(_args(flight, folder / "sub" / name, "--gsd", "0.5"))
+        err = capsys.readouterr().err.strip()
+        assert rc != 0 and len(err.splitlines()) == 1, err
+        assert err.startswith("archive render: error:") and "not writable" in err and str(folder) in err
+        assert list(folder.iterdir()) == []
+
+
+def test_full_folder_is_a_clear_error_before_rendering(tmp_path, monkeypatch):
+    grid = Grid(epsg=32616, gsd=0.5, x0=771000.0, y0=3891500.0, width=300, height=200)
+
+    def full(fd, offset, length):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "posix_fallocate", full)
+    out = Output(tmp_path / "new" / "m.hdr")
+    try:
+        with pytest.raises(Exception, match="not enough free space for a 0.0 GB output") as info:
+            out.sink(OutputMeta(grid, (0, 1)))
+        assert "\n" not in str(info.value)
+    finally:
+        out.cleanup()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_sinks_refuse_tiles_off_the_chunk_grid(tmp_path):
+    envi = EnviSink.create(tmp_path / "e", 2, 1500, 1100)
+    cog = CogSink.create(tmp_path / "c", 2, 1500, 1100)
+    for sink in (envi, cog):
+        with pytest.raises(ValueError, match="not one 1024 px chunk"):
+            sink.open_tile(0, (512, 0, 1024, 1024), 2)
+        with pytest.raises(ValueError, match="bands"):
+            sink.open_tile(1, (0, 0, 1024, 1024), 2)
