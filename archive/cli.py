@@ -180,7 +180,7 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quicklook", metavar="PNG", help="also write an RGB preview (2%%/98%% stretch)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="Dask scheduler address, e.g. tcp://host:8786 (default: a local cluster). Workers need "
-                        "--nthreads 1 --resources GPU=1 and the same file paths (shared file system); see docs/deploy.md")
+                        "--nthreads <cores> --resources GPU=2 and the same file paths (shared file system); see docs/deploy.md")
     p.add_argument("--workers", type=_positive_int, metavar="N", help="local cluster worker processes (default: 1)")
     p.add_argument("--threads", type=_positive_int, metavar="N",
                    help="threads per local worker (default: the cores divided among the workers, at least 2): "
