@@ -425,6 +425,7 @@ def open_inputs(request: RenderRequest, nav: NavigationParams, say=_quiet, mosai
     so that a DEM that does not cover the flights, or has holes under them, fails before any
     cluster starts.
     """
+    from archive.graph.plan import cube_meshes
     from archive.sources import open_source
 
     # absolute paths: workers (maybe on another machine sharing the file system) open them again
@@ -451,7 +452,8 @@ def open_inputs(request: RenderRequest, nav: NavigationParams, say=_quiet, mosai
         dem = DemSpec.create(request.dem, request.dem_datum)
         grounds = [None] * len(sources)
         opened = dem.open()
-        meshes = tuple(_terrain_meshes(s, nav.fov_deg, opened, float(request.gsd), float(request.max_view_angle))
+        meshes = tuple(cube_meshes(s, nav.fov_deg, math.nan, float(request.max_view_angle), terrain=opened,
+                                   gsd=float(request.gsd))
                        for s in sources)
     elif mosaic:
         grounds = [resolve_ground_height(request.ground_height, sources)] * len(sources)
@@ -535,29 +537,6 @@ def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget:
             for reason, n in (m.dropped or {}).items():
                 left_out[reason] = left_out.get(reason, 0) + int(n)
     return OutputPlan(tuple(sources), plan, p, ground, out_wl, inputs.max_view_angle, left_out, inputs.dem)
-
-
-def _terrain_meshes(source, fov_deg: float, dem, gsd: float, max_view_angle: float) -> list:
-    """Ground meshes of every cube of ``source`` over ``dem`` (an opened :class:`archive.dem.Dem`)
-    for output pixels of ``gsd`` m: :func:`archive.graph.plan.cube_meshes` with the terrain (same
-    strip joins, opening and closing rows; :mod:`archive.render.mesh`, "Terrain meshes")."""
-    from archive.graph.plan import strip_links
-    from archive.render.mesh import build_mesh
-
-    poses = [source.poses(i) for i in range(len(source.cubes))]
-    dem.check_flight(poses, fov_deg)   # one error naming all the ground the DEM lacks under the flight
-    links = strip_links(source, poses)
-    meshes = []
-    for i, info in enumerate(source.cubes):
-        closing = poses[i + 1] if i < len(links) and links[i] else None
-        opening = poses[i - 1] if i > 0 and links[i - 1] else None
-        meshes.append(build_mesh(
-            poses[i], fov_deg, math.nan, info.shutter_ms or 0.0, info.framerate or 0.0,
-            closing=closing, opening=opening,
-            closing_shutter_ms=source.cubes[i + 1].shutter_ms or 0.0 if closing is not None else None,
-            opening_shutter_ms=source.cubes[i - 1].shutter_ms or 0.0 if opening is not None else None,
-            max_view_angle=max_view_angle, terrain=dem, gsd=gsd))
-    return meshes
 
 
 def build_output(output: OutputPlan, target):

@@ -6,6 +6,7 @@ mesh's bounding box (``grid.crop(mesh bounds)``, whole pixels): its render task 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -71,13 +72,23 @@ def strip_links(source, poses: Sequence) -> list[bool]:
 
 
 def cube_meshes(source, fov_deg: float, ground_height: float,
-                max_view_angle: float | None = DEFAULT_MAX_VIEW_ANGLE) -> list:
+                max_view_angle: float | None = DEFAULT_MAX_VIEW_ANGLE, *, terrain=None,
+                gsd: float | None = None) -> list:
     """Ground mesh of every cube of ``source``, joined to its strip neighbours (closing/opening
     rows, each at its own line's mid-exposure); lines beyond ``max_view_angle`` degrees off nadir
-    or without navigation are left out (see :func:`archive.render.mesh.build_mesh`)."""
+    or without navigation are left out (see :func:`archive.render.mesh.build_mesh`).
+
+    terrain: an opened :class:`archive.dem.Dem` instead of the flat ``ground_height`` (then
+    ``gsd``, the output pixel in metres, sets the across-track segmentation; one error names all the
+    ground the DEM lacks under the flight)."""
     from archive.render.mesh import build_mesh
 
     poses = [source.poses(i) for i in range(len(source.cubes))]
+    extra = {}
+    if terrain is not None:
+        terrain.check_flight(poses, fov_deg)
+        ground_height = math.nan
+        extra = {"terrain": terrain, "gsd": gsd}
     links = strip_links(source, poses)
     meshes = []
     for i, info in enumerate(source.cubes):
@@ -88,7 +99,7 @@ def cube_meshes(source, fov_deg: float, ground_height: float,
             closing=closing, opening=opening,
             closing_shutter_ms=source.cubes[i + 1].shutter_ms or 0.0 if closing is not None else None,
             opening_shutter_ms=source.cubes[i - 1].shutter_ms or 0.0 if opening is not None else None,
-            max_view_angle=max_view_angle))
+            max_view_angle=max_view_angle, **extra))
     return meshes
 
 
