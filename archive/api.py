@@ -96,9 +96,17 @@ def open_archive(path: Source) -> Archive:
 # ---------------------------------------------------------------------------------------------
 # Rendering
 # ---------------------------------------------------------------------------------------------
-def _request(sources, **keywords):
+#: The keywords of :func:`plan`, :func:`mosaic` and :func:`render` that make the render request.
+REQUEST_KEYWORDS = ("gsd", "archive", "fov", "calibration", "ground_height", "wavelengths", "bands", "mode",
+                    "white_reference", "sync_offset", "boresight", "lever_arm", "overlap", "crs",
+                    "max_view_angle", "dem", "dem_datum")
+
+
+def _request(sources, values: dict):
+    """The :class:`~archive.pipeline.RenderRequest` of an API call's ``values`` (its ``locals()``)."""
     from archive.pipeline import RenderRequest
 
+    keywords = {name: values[name] for name in REQUEST_KEYWORDS}
     if isinstance(keywords.get("archive"), ArchiveRoot):
         keywords["archive"] = keywords["archive"].path
     return RenderRequest.create(sources, **keywords)
@@ -108,18 +116,14 @@ def plan(sources: Source | Sequence[Source], *, gsd: float, archive: Source | No
          fov: float | None = None, calibration: Source | None = None, ground_height: float | str = "auto",
          wavelengths=None, bands="all", mode: str | None = None, white_reference: Source | None = None,
          sync_offset: float | None = None, boresight=None, lever_arm=None, overlap: str = "last",
-           crs=None, max_view_angle: float = 40.0, dem: Source | None = None, dem_datum: str | None = None,
+         crs=None, max_view_angle: float = 40.0, dem: Source | None = None, dem_datum: str | None = None,
          band_group: int | None = None, quiet: bool = True):
     """The plan of a mosaic of ``sources`` (:class:`archive.pipeline.OutputPlan`: opened sources,
     grid, cube meshes and windows, band groups), from metadata only: no pixel read, no GL.
     Keywords as :func:`mosaic`."""
     from archive import pipeline
 
-    request = _request(sources, gsd=gsd, archive=archive, fov=fov, calibration=calibration,
-                       ground_height=ground_height, wavelengths=wavelengths, bands=bands, mode=mode,
-                       white_reference=white_reference, sync_offset=sync_offset, boresight=boresight,
-                       lever_arm=lever_arm, overlap=overlap, crs=crs,
-                       max_view_angle=max_view_angle, dem=dem, dem_datum=dem_datum)
+    request = _request(sources, locals())
     return pipeline.plan(request, band_group=band_group, quiet=quiet)
 
 
@@ -157,11 +161,7 @@ def mosaic(sources: Source | Sequence[Source], *, gsd: float, archive: Source | 
     """
     from archive import pipeline
 
-    request = _request(sources, gsd=gsd, archive=archive, fov=fov, calibration=calibration,
-                       ground_height=ground_height, wavelengths=wavelengths, bands=bands, mode=mode,
-                       white_reference=white_reference, sync_offset=sync_offset, boresight=boresight,
-                       lever_arm=lever_arm, overlap=overlap, crs=crs,
-                       max_view_angle=max_view_angle, dem=dem, dem_datum=dem_datum)
+    request = _request(sources, locals())
     return pipeline.mosaic(request, band_group=band_group, quiet=quiet)
 
 
@@ -186,11 +186,7 @@ def render(sources: Source | Sequence[Source], out: Source, *, gsd: float, archi
     """
     from archive import pipeline
 
-    request = _request(sources, gsd=gsd, archive=archive, fov=fov, calibration=calibration,
-                       ground_height=ground_height, wavelengths=wavelengths, bands=bands, mode=mode,
-                       white_reference=white_reference, sync_offset=sync_offset, boresight=boresight,
-                       lever_arm=lever_arm, overlap=overlap, crs=crs,
-                       max_view_angle=max_view_angle, dem=dem, dem_datum=dem_datum)
+    request = _request(sources, locals())
     return pipeline.render(request, out, quicklook=quicklook, overwrite=overwrite, scheduler=scheduler,
                            workers=workers, quiet=quiet, per_flight=per_flight, format=format, threads=threads)
 
