@@ -709,16 +709,18 @@ class Surface:
         fail_pts: list[np.ndarray] = []
 
         def clearance(idx, t):
+            """Height of the ray points above the DEM; rays reaching a DEM hole are marked failed."""
             p = o[idx] + t[:, None] * d[idx]
-            return p[:, 2] - self.height(p[:, 0], p[:, 1]), p
+            g = p[:, 2] - self.height(p[:, 0], p[:, 1])
+            bad = ~np.isfinite(g)
+            if bad.any():
+                failed[idx[bad]] = True
+                fail_pts.append(p[bad, :2])
+            return g
 
         idx = np.flatnonzero(down)
         t = start[idx]
-        g, p = clearance(idx, t)
-        bad = ~np.isfinite(g)
-        if bad.any():
-            failed[idx[bad]] = True
-            fail_pts.append(p[bad, :2])
+        g = clearance(idx, t)
         below = np.isfinite(g) & (g <= 0)
         under[idx[below]] = True
         keep = np.isfinite(g) & (g > 0)
@@ -729,11 +731,7 @@ class Surface:
                 break
             step = np.maximum(g / (dz[idx] + slope * dh[idx]), floor[idx])
             t_new = np.minimum(t + step, end[idx])
-            g_new, p = clearance(idx, t_new)
-            bad = ~np.isfinite(g_new)
-            if bad.any():
-                failed[idx[bad]] = True
-                fail_pts.append(p[bad, :2])
+            g_new = clearance(idx, t_new)
             crossed = np.isfinite(g_new) & (g_new <= 0)
             close = np.isfinite(g_new) & ~crossed & (g_new < tolerance * dz[idx] / np.maximum(dn[idx], 1e-300))
             lam[idx[close]] = t_new[close]
@@ -756,11 +754,8 @@ class Surface:
                 else:
                     m = b - gb * (b - a) / np.where(gb != ga, gb - ga, -1.0)
                     m = np.where((m > a) & (m < b), m, 0.5 * (a + b))
-                gm, p = clearance(bi, m)
+                gm = clearance(bi, m)
                 bad = ~np.isfinite(gm)
-                if bad.any():
-                    failed[bi[bad]] = True
-                    fail_pts.append(p[bad, :2])
                 pos = gm > 0
                 ga = np.where(pos, gm, np.where(side == -1, 0.5 * ga, ga))
                 gb = np.where(pos, np.where(side == 1, 0.5 * gb, gb), gm)
