@@ -288,11 +288,12 @@ def write_flight(plan: StorePlan, root: ArchiveRoot, workers: int | None = None,
     return resumed
 
 
-def _same_sources(store: Path, plan: StorePlan) -> bool:
-    """Whether ``store`` was ingested from the same files as ``plan``: same names and sizes, and
-    the same sha256 for the small files (headers, times, navigation, calibration); data files are
-    not re-hashed, so that a repeated ingest stays a quick no-op."""
-    recorded = read_attrs(store).get("sources", [])
+def _same_sources(attrs: dict, plan: StorePlan) -> bool:
+    """Whether the store whose attributes are ``attrs`` was ingested from the same files as
+    ``plan``: same names and sizes, and the same sha256 for the small files (headers, times,
+    navigation, calibration); data files are not re-hashed, so that a repeated ingest stays a
+    quick no-op."""
+    recorded = attrs.get("sources", [])
     if [(s["name"], s["size"]) for s in recorded] != [(plan.attrs["source_names"][p], n) for p, n in plan.sources]:
         return False
     data = set(plan.data_files)
@@ -336,18 +337,19 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
         if final.exists() and not overwrite:
             if not is_complete(final):
                 raise InputError(final, "exists but has no completion marker", "pass --overwrite to re-ingest")
-            recorded = read_attrs(final).get("navigation_params") or {}
+            attrs = read_attrs(final)
+            recorded = attrs.get("navigation_params") or {}
             wanted = plan.attrs["navigation_params"]
             if any(recorded.get(k, 0.0 if k == "sync_offset" else [0.0] * 3) != v for k, v in wanted.items()):
                 raise InputError(final, f"was ingested with other navigation parameters ({recorded or 'none'}, "
                                  f"now {wanted})", "pass --overwrite to re-ingest with the new ones")
-            old_dem = _dem_of(read_attrs(final).get("terrain"))
+            old_dem = _dem_of(attrs.get("terrain"))
             if old_dem != _dem_of(plan.attrs.get("terrain")):
                 new_dem = _dem_of(plan.attrs.get("terrain"))
                 raise InputError(final, f"was ingested with {'the DEM ' + old_dem[0] if old_dem else 'no DEM'}, "
                                  f"now {'the DEM ' + new_dem[0] if new_dem else 'none'}",
                                  "pass --overwrite to re-ingest (the catalog footprint follows the DEM)")
-            if not _same_sources(final, plan):
+            if not _same_sources(attrs, plan):
                 raise InputError(final, f"holds a different flight than {directories[plans.index(plan)]} under the "
                                  f"same id {plan.cid} (same sensor, same start second)",
                                  "pass --overwrite to replace it")
