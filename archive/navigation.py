@@ -168,7 +168,7 @@ def local_frame_for(lcf: LcfData) -> LocalFrame:
     easting and northing rounded to 1 m, and at height 0 (the ellipsoid)."""
     if len(lcf.time) == 0:
         raise NavigationError(lcf.path, "no navigation samples", "the .lcf file is empty")
-    use = getattr(lcf, "use", None)
+    use = lcf.use
     k = 0 if use is None else int(np.argmax(use))  # the first row to use
     epsg = utm_epsg_for(lcf.lon[k], lcf.lat[k])
     e, n = project(lcf.lon[k], lcf.lat[k], epsg)
@@ -214,7 +214,7 @@ def track_from_lcf(lcf: LcfData, frame: LocalFrame) -> Track:
     (``lcf.use``) left out. Raises NavigationError for
     fewer than 2 samples, non-finite values or times that do not strictly increase."""
     where = None if lcf.path is None else str(lcf.path)
-    use = getattr(lcf, "use", None)
+    use = lcf.use
     keep = slice(None) if use is None else np.asarray(use, bool)  # column 10: rows not to use
     time = np.asarray(lcf.time, float)[keep]
     _check_times(time, where)

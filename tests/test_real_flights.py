@@ -176,7 +176,7 @@ def test_poses_at_cube_starts_with_sync_offsets(tmp_path_factory, sync):
         assert (p.valid is None) == (q.valid is None)
         np.testing.assert_allclose(p.time, cube.line_time, atol=1e-6)
         # lines inside the flight's navigation (not extrapolated) are interpolated to the truth
-        _, outside = raw.navigation._locate(p.time)
+        _, outside = raw.navigation.locate(p.time)
         inside = outside == 0.0
         first_of_strip = k in [s[0] for s in truth.strips]
         if not first_of_strip or sync > 0:

@@ -111,6 +111,8 @@ class FlightNavigation:
         t = self.track.time
         cuts = np.flatnonzero(np.diff(t) > NAV_GAP) + 1
         self._segments = [(int(a), int(b)) for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(t)])]
+        self._starts = np.array([t[a] for a, _ in self._segments])     # first and last sample time
+        self._ends = np.array([t[b - 1] for _, b in self._segments])   # of each segment, s
         self._boresight = boresight_rotation(params.boresight_deg)
         self.extrapolation = NAV_TOLERANCE + min(abs(self.sync), SYNC_TOLERANCE)
         self.limit = NAV_TOLERANCE + abs(self.sync)
@@ -130,14 +132,12 @@ class FlightNavigation:
         """Exposure start of ``cube``'s first line on the .lcf scale (sync offset included), s."""
         return float(self.cubes[cube].lcf.time[0]) + self.sync
 
-    def _locate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per time: the segment to interpolate/extrapolate in, and the distance (s) outside it."""
+    def locate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per time ``t`` (s): the navigation segment to interpolate/extrapolate in, and the
+        distance (s) outside it (0 inside)."""
         t = np.asarray(t, float)
-        time = self.track.time
-        starts = np.array([time[a] for a, _ in self._segments])
-        ends = np.array([time[b - 1] for _, b in self._segments])
-        before = np.maximum(starts[None, :] - t[:, None], 0.0)
-        after = np.maximum(t[:, None] - ends[None, :], 0.0)
+        before = np.maximum(self._starts[None, :] - t[:, None], 0.0)
+        after = np.maximum(t[:, None] - self._ends[None, :], 0.0)
         outside = np.maximum(before, after)
         seg = np.argmin(outside, axis=1)
         return seg, outside[np.arange(len(t)), seg]
@@ -153,7 +153,7 @@ class FlightNavigation:
             raise NavigationError(c.where, "line times contain NaN or infinity")
         half = 0.0 if c.shutter_ms is None else c.shutter_ms / 2000.0
         need = np.array([t[0], t[-1] + half]) if len(t) > 1 else np.array([t[0]])
-        _, outside = self._locate(np.concatenate([need, t]))
+        _, outside = self.locate(np.concatenate([need, t]))
         if np.all(outside <= self.limit + _SPAN_EPS) and np.any(outside[len(need):] <= self.extrapolation + _SPAN_EPS):
             return
         own = np.asarray(c.lcf.time, float)
@@ -170,7 +170,7 @@ class FlightNavigation:
         has no navigation (see the module docstring)."""
         c = self.cubes[cube]
         t = self.line_times(cube) + float(delay)
-        seg, outside = self._locate(t)
+        seg, outside = self.locate(t)
         valid = outside <= self.extrapolation + abs(float(delay)) + _SPAN_EPS
         time = self.track.time
         margin = self.extrapolation + abs(float(delay))
@@ -202,10 +202,6 @@ class FlightNavigation:
         attitude = attitude * self._boresight
         return Poses(time=t, position=position, attitude=attitude, frame=self.frame,
                      valid=None if np.all(valid) else valid)
-
-    def __dask_tokenize__(self):
-        return ("FlightNavigation", self.frame, self.params,
-                tuple((c.camera_time.tobytes(), c.lcf.time.tobytes(), c.shutter_ms) for c in self.cubes))
 
 
 class NavigatedSource:
