@@ -41,6 +41,7 @@ from archive.formats.lcf import LcfData
 from archive.navigation import (LocalFrame, Poses, Track, boresight_rotation, interpolate_poses, line_times,
                                 span_text, track_from_lcf)
 from archive.params import NavigationParams
+from archive.sources.base import check_cube
 
 __all__ = ["NAV_GAP", "NAV_TOLERANCE", "SYNC_TOLERANCE", "CubeNavigation", "FlightNavigation", "NavigatedSource",
            "merge_tracks"]
@@ -214,8 +215,6 @@ class NavigatedSource:
     label: str
 
     def _check(self, cube: int) -> int:
-        from archive.sources.base import check_cube
-
         return check_cube(cube, self.cubes, self.label)
 
     def line_times(self, cube: int) -> np.ndarray:
