@@ -142,7 +142,8 @@ def mosaic(sources: Source | Sequence[Source], *, gsd: float, archive: Source | 
     'relative' | 'radiance' | 'reflectance' (None: radiance, raw DN without calibration);
     white_reference: (nm, radiance) text file for reflectance; sync_offset (s), boresight (roll,
     pitch, yaw deg), lever_arm (x, y, z m): None means as ingested for a collection, else 0;
-    overlap: 'last' | 'mean'; crs: the output's projected CRS ('EPSG:32616', an int...; default:
+    overlap: 'last' (the later line wins), 'nadir' (the line seen closest to nadir wins) or 'mean';
+    crs: the output's projected CRS ('EPSG:32616', an int...; default:
     the UTM zone holding most of the flights, others rendered into it); max_view_angle: degrees
     off nadir at the field-of-view edge beyond which lines are left out (turns); dem: a DEM GeoTIFF
     (any CRS) the meshes follow instead of flat ground (exclusive with a numeric ground_height; ground
@@ -172,7 +173,7 @@ def render(sources: Source | Sequence[Source], out: Source, *, gsd: float, archi
            crs=None, max_view_angle: float = 40.0, dem: Source | None = None, dem_datum: str | None = None,
            quicklook: Source | None = None, scheduler: str | None = None, workers: int | None = None,
            overwrite: bool = False, quiet: bool = True, per_flight: bool = False, format: str = "zarr",
-           threads: int | None = None) -> dict:
+           threads: int | None = None, provenance: bool = False) -> dict:
     """Render ``sources`` into ``out`` (.zarr, .tif or .hdr) exactly as ``archive render``; returns
     its summary (out, width, height, gsd, epsg, bands, wavelengths, mode, cubes, sources, renders,
     assemblies, seconds, graph_seconds).
@@ -181,12 +182,16 @@ def render(sources: Source | Sequence[Source], out: Source, *, gsd: float, archi
     scheduler address (default: a local cluster of ``workers`` processes, 1, of ``threads`` threads
     each, default the cores); overwrite: replace an
     existing output; quiet: no progress bar or notes; per_flight: one output per source,
-    ``out/<name>.<format>`` (then the summary holds ``outputs``). Nothing is left at ``out`` when
-    anything fails.
+    ``out/<name>.<format>`` (then the summary holds ``outputs``); provenance: also write the
+    per-pixel provenance layers (:mod:`archive.provenance`: variables of a Zarr output, a sibling
+    ``<stem>_provenance.tif`` / ``.hdr`` beside a COG / ENVI output; needs overlap 'last' or
+    'nadir'). Nothing is left at ``out`` when anything fails.
     """
+    import dataclasses
+
     from archive import pipeline
 
-    request = _request(sources, locals())
+    request = dataclasses.replace(_request(sources, locals()), provenance=bool(provenance))
     return pipeline.render(request, out, quicklook=quicklook, overwrite=overwrite, scheduler=scheduler,
                            workers=workers, quiet=quiet, per_flight=per_flight, format=format, threads=threads)
 
@@ -226,6 +231,7 @@ def render_keywords(args: argparse.Namespace) -> dict:
         "quicklook": args.quicklook,
         "scheduler": args.scheduler, "workers": args.workers, "overwrite": args.overwrite, "quiet": args.quiet,
         "format": args.format, "threads": getattr(args, "threads", None),
+        "provenance": getattr(args, "provenance", False),
     }
     ids = _query_ids(args)
     if ids is not None:

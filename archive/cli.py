@@ -176,7 +176,13 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dem-datum", choices=["ellipsoid", "egm96", "egm2008"], default=None,
                    help="vertical datum of the DEM's heights, required when its CRS does not declare one "
                         "(geoid heights are converted to ellipsoidal ones with PROJ's grids)")
-    p.add_argument("--overlap", choices=["last", "mean"], default="last", help="where flights overlap: the later line wins (default) or the mean")
+    p.add_argument("--overlap", choices=["last", "nadir", "mean"], default="last",
+                   help="where lines overlap: the later line wins (default), the line seen closest to nadir "
+                        "(smallest view zenith) wins, or the mean")
+    p.add_argument("--provenance", action="store_true",
+                   help="also write per-pixel provenance layers: source cube/line/sample, time, view and sun "
+                        "angles, path length, overlap count (variables of a .zarr; <stem>_provenance.tif/.hdr "
+                        "beside a .tif/.hdr); needs --overlap last or nadir")
     p.add_argument("--quicklook", metavar="PNG", help="also write an RGB preview (2%%/98%% stretch)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="Dask scheduler address, e.g. tcp://host:8786 (default: a local cluster). Workers need "
@@ -273,8 +279,12 @@ def _add_verify(sub: argparse._SubParsersAction) -> None:
 def _add_catalog(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "catalog",
-        help="search, list or rebuild an archive's catalog",
-        description="Query the archive's catalog (STAC Items + SQLite index) or rebuild the index from the Items.",
+        help="search, list, rebuild or validate an archive's catalog",
+        description=(
+            "Query the archive's catalog (STAC Items + SQLite index), rebuild the index and the STAC tree "
+            "(ARCHIVE/catalog.json -> catalog/collection.json -> catalog/items/<id>.json) from the Items, or "
+            "validate STAC files offline against the schemas shipped with archive."
+        ),
     )
     csub = p.add_subparsers(dest="catalog_command", metavar="SUBCOMMAND", required=True)
     s = csub.add_parser(
@@ -296,11 +306,20 @@ def _add_catalog(sub: argparse._SubParsersAction) -> None:
     ls = csub.add_parser("list", help="list every cataloged flight", description="List every cataloged flight.")
     ls.add_argument("--archive", required=True, metavar="ARCHIVE", help="archive directory")
     ls.add_argument("--json", action="store_true", help="print a STAC ItemCollection instead of a table")
-    r = csub.add_parser("rebuild", help="rebuild the index from the STAC Item files",
-                        description="Recreate catalog/index.sqlite from catalog/items/*.json.")
+    r = csub.add_parser("rebuild", help="rebuild the index and the STAC catalog from the STAC Item files",
+                        description="Recreate catalog/index.sqlite from catalog/items/*.json, give every Item its "
+                                    "collection and links, and rewrite the root catalog.json and "
+                                    "catalog/collection.json (extent and links of every Item).")
     r.add_argument("--archive", required=True, metavar="ARCHIVE", help="archive directory")
     r.add_argument("--items", action="store_true",
                    help="also rewrite every Item from its collection store before indexing")
+    v = csub.add_parser("validate", help="validate STAC files offline against the vendored schemas",
+                        description="Check the archive's catalog.json, collection.json and every Item, and any STAC "
+                                    "JSON files given (such as a rendered output's <out>.json), against the STAC "
+                                    "1.1.0 and extension schemas shipped with archive; no network. Exit code 0 when "
+                                    "all are valid, 1 otherwise.")
+    v.add_argument("files", nargs="*", metavar="FILE.json", help="more STAC files to validate")
+    v.add_argument("--archive", metavar="ARCHIVE", help="archive whose STAC tree to validate")
 
 
 def _add_view(sub: argparse._SubParsersAction) -> None:

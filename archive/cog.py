@@ -229,14 +229,20 @@ def _geokeys(epsg: int) -> list[int]:
     return [1, 1, 0, len(keys)] + [v for k in keys for v in k]
 
 
-def gdal_metadata(dataset: dict[str, str], bands: Sequence[dict[str, str]]) -> str:
+def gdal_metadata(dataset: dict[str, str], bands: Sequence[dict[str, str]],
+                  band_domains: Sequence[dict[str, dict[str, str]]] | None = None) -> str:
     """GDAL's GDAL_METADATA XML: dataset items, then per band (``sample`` 0-based) its items; a band
-    item named DESCRIPTION is the band description (``role="description"``)."""
+    item named DESCRIPTION is the band description (``role="description"``). ``band_domains``: per
+    band, ``{domain: {name: value}}`` written with ``domain="..."`` (e.g. GDAL's standard IMAGERY
+    items ``CENTRAL_WAVELENGTH_UM`` and ``FWHM_UM``, which GDAL >= 3.10 reports as the band's)."""
     items = [f'<Item name="{escape(k)}">{escape(v)}</Item>' for k, v in dataset.items()]
     for i, band in enumerate(bands):
         for k, v in band.items():
             role = ' role="description"' if k == "DESCRIPTION" else ""
             items.append(f'<Item name="{escape(k)}" sample="{i}"{role}>{escape(v)}</Item>')
+        for domain, domain_items in (band_domains[i] if band_domains else {}).items():
+            for k, v in domain_items.items():
+                items.append(f'<Item name="{escape(k)}" sample="{i}" domain="{escape(domain)}">{escape(v)}</Item>')
     return "<GDALMetadata>\n" + "\n".join("  " + item for item in items) + "\n</GDALMetadata>\n"
 
 

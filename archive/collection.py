@@ -18,6 +18,8 @@ Layout of ``<ARCHIVE>/collections/<id>.zarr`` (axis orders in brackets)::
     navigation_offset [cube + 1]        rows of cube k are navigation[offset[k]:offset[k+1]]
     navigation_use [sample]             1 = use, 0 = flagged 'do not use' (.lcf column 10); only when some row is
     wavelength    [band]                nm (NaN when the header has none)
+    fwhm          [band]                spectral full width at half maximum, nm (NaN when the header has
+                  none; absent in stores ingested before it was recorded)
     dark          [cube, band, sample]  calibration dark of each cube, float32 (only with a calibration)
     gain          [set, band, sample]   calibration gain, float32; cube k uses gain[gain_index[k]]
     gain_index    [cube]
@@ -222,10 +224,11 @@ class StorePlan:
         return chunk_lines_for(self.cube_lines)
 
     def token(self) -> str:
-        """Identifies what is being written (sources, shapes, parameters), to resume safely."""
+        """Identifies what is being written (sources, shapes, parameters, the small arrays' names: a
+        partial store laid out by an older version without some array is not resumed), to resume safely."""
         text = json.dumps([self.cid, self.sources, self.cube_lines, self.bands, self.samples, self.dtype.str,
                            self.attrs.get("fov_deg"), self.attrs.get("ground_height"), DN_CODEC,
-                           self.attrs.get("navigation_params")], default=str)
+                           self.attrs.get("navigation_params"), sorted(self.arrays)], default=str)
         return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -387,7 +390,9 @@ class CollectionInfo:
 
     store: the store path; attrs: every group attribute; fov_deg, ground_height (m, .lcf datum):
     as ingested; frame: the local frame; cubes: per cube; calibration: None, or {name,
-    shutter_cal, gain_cal}; plan: the plan token (identifies the stored content).
+    shutter_cal, gain_cal}; plan: the plan token (identifies the stored content); fwhm: spectral
+    full width at half maximum per band, nm (the ``fwhm`` array; a store without it: the first
+    cube's recorded header, else None).
     """
 
     store: Path
@@ -398,6 +403,7 @@ class CollectionInfo:
     cubes: tuple[StoredCube, ...]
     calibration: dict | None
     plan: str | None
+    fwhm: tuple[float, ...] | None = None
 
     @property
     def sources(self) -> list[dict]:
@@ -445,9 +451,18 @@ def read_info(store: str | os.PathLike, navigation: bool = True) -> CollectionIn
         cubes.append(StoredCube(k, c["base"], int(c["lines"]), int(c["samples"]), int(c["bands"]), l0, header,
                                 times, lcf))
     ground = attrs.get("ground_height")
+    fwhm = _band_values(group, "fwhm") if "fwhm" in group else (cubes[0].header.fwhm if cubes else None)
     return CollectionInfo(store, attrs, float(attrs["fov_deg"]), None if ground is None else float(ground),
                           frame_from_attrs(attrs["frame"]), tuple(cubes), attrs.get("calibration"),
-                          attrs.get("archive:plan"))
+                          attrs.get("archive:plan"), None if fwhm is None else tuple(fwhm))
+
+
+def _band_values(group, name: str) -> list[float] | None:
+    """A stored per-band array (``wavelength``, ``fwhm``; nm) as floats; None when absent or all NaN."""
+    if name not in group:
+        return None
+    values = group[name][...]
+    return None if np.all(np.isnan(values)) else [float(v) for v in values]
 
 
 @dataclass(frozen=True, eq=False)
@@ -455,24 +470,25 @@ class StoredPoses:
     """The per-line record of a collection: time (lines,) s on the .lcf scale; position (lines, 3)
     camera N, E, D metres and attitude (lines,) camera -> NED, both at exposure start with the
     ingest's navigation parameters; shape (bands, lines, samples) of ``dn``; wavelengths (bands,)
-    nm or None."""
+    nm or None; fwhm (bands,) spectral full width at half maximum, nm, or None (also for stores
+    ingested before it was recorded)."""
 
     time: np.ndarray
     position: np.ndarray
     attitude: object
     shape: tuple[int, int, int]
     wavelengths: list[float] | None
+    fwhm: list[float] | None = None
 
 
 def read_poses(store: str | os.PathLike) -> StoredPoses:
-    """The stored per-line times and poses, the dn shape and the wavelengths (no DN read)."""
+    """The stored per-line times and poses, the dn shape, the wavelengths and fwhm (no DN read)."""
     from scipy.spatial.transform import Rotation
 
     group = zarr.open_group(store, mode="r")
-    wl = group["wavelength"][...]
     return StoredPoses(group["time"][...], group["position"][...], Rotation.from_quat(group["attitude"][...]),
-                       tuple(int(v) for v in group["dn"].shape),
-                       None if np.all(np.isnan(wl)) else [float(w) for w in wl])
+                       tuple(int(v) for v in group["dn"].shape), _band_values(group, "wavelength"),
+                       _band_values(group, "fwhm"))
 
 
 def read_calibration(store: str | os.PathLike, cube: int, bands: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:

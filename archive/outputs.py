@@ -224,14 +224,70 @@ class Tile:
     saturated: np.ndarray | None = None
 
 
+#: CF ``units`` of the data variable by name (UDUNITS: "1" for counts and ratios); radiance has none.
+_CF_UNITS = {"dn": "1", "relative": "1", "reflectance": "1"}
+#: Zarr-conventions declarations (``zarr_conventions`` attribute) of the GeoZarr ``proj:`` and
+#: ``spatial:`` conventions, v1, as rioxarray declares and recognises them.
+_PROJ_CONVENTION = {
+    "schema_url": "https://raw.githubusercontent.com/zarr-experimental/geo-proj/refs/tags/v1/schema.json",
+    "spec_url": "https://github.com/zarr-experimental/geo-proj/blob/v1/README.md",
+    "uuid": "f17cb550-5864-4468-aeb7-f3180cfb622f",
+    "name": "proj:",
+    "description": "Coordinate reference system information for geospatial data",
+}
+_SPATIAL_CONVENTION = {
+    "schema_url": "https://raw.githubusercontent.com/zarr-conventions/spatial/refs/tags/v1/schema.json",
+    "spec_url": "https://github.com/zarr-conventions/spatial/blob/v1/README.md",
+    "uuid": "689b58e2-cf7b-45e0-9fff-9cfc0883d6b4",
+    "name": "spatial:",
+    "description": "Spatial coordinate information",
+}
+
+
+def geozarr_attrs(grid: Grid, wkt2: bool = False) -> dict:
+    """Attributes describing ``grid`` by the GeoZarr conventions (the modular Zarr conventions that
+    replaced the monolithic GeoZarr draft in 2025: ``proj:`` = zarr-experimental/geo-proj v1 and
+    ``spatial:`` = zarr-conventions/spatial v1), declared in ``zarr_conventions``.
+
+    ``proj:code`` "EPSG:<n>" (and ``proj:wkt2``, WKT2:2019, with ``wkt2``);
+    ``spatial:dimensions`` ["y", "x"]; ``spatial:transform`` the affine [a, b, c, d, e, f] (rasterio
+    order: x = a col + b row + c, y = d col + e row + f, (col, row) = (0, 0) at the north-west corner
+    of the north-west pixel); ``spatial:transform_type`` "affine"; ``spatial:shape`` [height, width];
+    ``spatial:bbox`` [xmin, ymin, xmax, ymax] in metres; ``spatial:registration`` "pixel" (values
+    are cell averages, the transform gives cell corners).
+    """
+    t = grid.transform
+    attrs: dict = {
+        "zarr_conventions": [dict(_PROJ_CONVENTION), dict(_SPATIAL_CONVENTION)],
+        "proj:code": f"EPSG:{grid.epsg}",
+    }
+    if wkt2:
+        attrs["proj:wkt2"] = grid.crs.to_wkt(version="WKT2_2019")
+    attrs.update({
+        "spatial:dimensions": ["y", "x"],
+        "spatial:transform_type": "affine",
+        "spatial:transform": [float(t.a), float(t.b), float(t.c), float(t.d), float(t.e), float(t.f)],
+        "spatial:shape": [int(grid.height), int(grid.width)],
+        "spatial:bbox": [float(v) for v in grid.bounds],
+        "spatial:registration": "pixel",
+    })
+    return attrs
+
+
 @dataclass(frozen=True)
 class MosaicStore:
     """Handle on a mosaic Zarr store (only paths and names: cheap to pickle into tasks).
 
     The store holds ``<variable>`` (band, y, x) float32 chunked (1, 1024, 1024) with NaN fill,
     ``saturated`` (y, x) uint8 chunked (1024, 1024) with 0 fill, x/y pixel-centre coordinates,
-    ``wavelength`` (band) in nm, ``spatial_ref`` (rioxarray CRS + GeoTransform) and the grid as a
-    root attribute. Reopen with ``xr.open_zarr(path, decode_coords="all")``.
+    ``wavelength`` (band) and ``fwhm`` (band, spectral full width at half maximum, when known) in nm,
+    ``spatial_ref`` (rioxarray CRS + GeoTransform) and the grid as a root attribute. Reopen with
+    ``xr.open_zarr(path, decode_coords="all")``.
+
+    Metadata conventions (see :func:`geozarr_attrs`): CF-1.10 (root ``Conventions``; ``units``,
+    ``standard_name``, ``long_name`` on coordinates and variables, ``grid_mapping`` pointing at
+    ``spatial_ref``), and the GeoZarr ``proj:`` and ``spatial:`` Zarr conventions on the root group
+    and on the two data arrays.
     """
 
     path: str
@@ -252,10 +308,12 @@ class MosaicStore:
         band_indices: Sequence[int],
         variable: str = "radiance",
         attrs: dict | None = None,
+        fwhm: Sequence[float] | None = None,
     ) -> MosaicStore:
         """Write the store's metadata and coordinates (no chunk data: unwritten chunks read as NaN).
 
-        wavelengths: nm per output band (or None); band_indices: the source band index of each output band.
+        wavelengths: nm per output band (or None); band_indices: the source band index of each output band;
+        fwhm: spectral full width at half maximum per output band, nm (or None).
         """
         import dask.array as da
         import rioxarray  # noqa: F401  (registers .rio)
@@ -264,6 +322,8 @@ class MosaicStore:
         nb = len(band_indices)
         if wavelengths is not None and len(wavelengths) != nb:
             raise ValueError(f"{len(wavelengths)} wavelengths for {nb} bands")
+        if fwhm is not None and len(fwhm) != nb:
+            raise ValueError(f"{len(fwhm)} fwhm values for {nb} bands")
         x, y = grid.xy_centres()
         values = da.full((nb, grid.height, grid.width), np.nan, dtype=np.float32,
                          chunks=(1, CHUNK, CHUNK))
@@ -271,28 +331,44 @@ class MosaicStore:
         coords = {"band": np.asarray(band_indices, dtype=np.int32), "y": y, "x": x}
         if wavelengths is not None:
             coords["wavelength"] = ("band", np.asarray(wavelengths, dtype=np.float64))
+        if fwhm is not None:
+            coords["fwhm"] = ("band", np.asarray(fwhm, dtype=np.float64))
         ds = xr.Dataset(
             {variable: (("band", "y", "x"), values), "saturated": (("y", "x"), saturated)}, coords=coords
         )
         ds[variable].attrs.update(
             {"long_name": variable, "_description": "NaN where no image line covers the pixel"}
         )
+        if variable in _CF_UNITS:  # radiance is in the calibration's units, which it does not name
+            ds[variable].attrs["units"] = _CF_UNITS[variable]
         ds["saturated"].attrs.update({"long_name": "saturated", "flag_values": [0, 1],
                                       "flag_meanings": "ok saturated_in_some_band"})
         ds["band"].attrs.update({"long_name": "source band index (0-based)"})
         if wavelengths is not None:
-            ds["wavelength"].attrs.update({"units": "nm", "long_name": "band centre wavelength"})
-        ds["x"].attrs.update({"units": "m", "standard_name": "projection_x_coordinate"})
-        ds["y"].attrs.update({"units": "m", "standard_name": "projection_y_coordinate"})
+            ds["wavelength"].attrs.update({"units": "nm", "long_name": "band centre wavelength",
+                                           "standard_name": "radiation_wavelength"})
+        if fwhm is not None:
+            ds["fwhm"].attrs.update({"units": "nm", "long_name": "band spectral full width at half maximum"})
+        ds["x"].attrs.update({"units": "m", "standard_name": "projection_x_coordinate",
+                              "long_name": "easting of the pixel centre", "axis": "X"})
+        ds["y"].attrs.update({"units": "m", "standard_name": "projection_y_coordinate",
+                              "long_name": "northing of the pixel centre", "axis": "Y"})
         ds.attrs.update(attrs or {})
+        ds.attrs.setdefault("Conventions", "CF-1.10")
         ds.attrs[_GRID_ATTR] = json.dumps(
             {"epsg": grid.epsg, "gsd": grid.gsd, "x0": grid.x0, "y0": grid.y0,
              "width": grid.width, "height": grid.height}
         )
         ds = ds.rio.write_crs(grid.epsg).rio.write_transform(grid.transform)
+        ds.attrs.update(geozarr_attrs(grid, wkt2=True))
+        for name in (variable, "saturated"):
+            ds[name].attrs.update(geozarr_attrs(grid))
         ds[variable].encoding.update({"chunks": (1, CHUNK, CHUNK), "_FillValue": np.float32(np.nan),
                                       "compressors": _values_codecs()})
         ds["saturated"].encoding.update({"chunks": (CHUNK, CHUNK)})
+        for name in ("x", "y", "wavelength", "fwhm"):
+            if name in ds.coords:  # CF: coordinate variables have no missing values
+                ds[name].encoding["_FillValue"] = None
         with warnings.catch_warnings():
             # zarr warns that consolidated metadata is not yet in the v3 spec; xarray reads it fine.
             warnings.simplefilter("ignore")
@@ -427,13 +503,15 @@ def copy_store(store: MosaicStore, sink, band_group: int = 16) -> None:
 @dataclass(frozen=True)
 class OutputMeta:
     """What an output says besides its pixels: the grid, the wavelength (nm) and source band index
-    of each band, the variable name ('radiance', 'dn'...) and the processing attributes."""
+    of each band, the variable name ('radiance', 'dn'...), the processing attributes and the spectral
+    full width at half maximum (nm) of each band (``fwhm``, None when unknown)."""
 
     grid: Grid
     band_indices: tuple[int, ...]
     wavelengths: tuple[float, ...] | None = None
     variable: str = "radiance"
     attrs: dict | None = field(default=None, compare=False)
+    fwhm: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "band_indices", tuple(int(i) for i in self.band_indices))
@@ -441,6 +519,10 @@ class OutputMeta:
             object.__setattr__(self, "wavelengths", tuple(float(w) for w in self.wavelengths))
             if len(self.wavelengths) != len(self.band_indices):
                 raise ValueError(f"{len(self.wavelengths)} wavelengths for {len(self.band_indices)} bands")
+        if self.fwhm is not None:
+            object.__setattr__(self, "fwhm", tuple(float(w) for w in self.fwhm))
+            if len(self.fwhm) != len(self.band_indices):
+                raise ValueError(f"{len(self.fwhm)} fwhm values for {len(self.band_indices)} bands")
 
     @property
     def nbands(self) -> int:
@@ -454,30 +536,52 @@ class OutputMeta:
 
 
 def _cog_metadata(meta: OutputMeta) -> str:
+    """GDAL_METADATA of a COG: dataset items (variable, source bands, wavelength and fwhm lists in nm)
+    and per band its description, ``wavelength``/``fwhm`` (nm) and, in the IMAGERY domain, GDAL's
+    standard ``CENTRAL_WAVELENGTH_UM`` and ``FWHM_UM`` (micrometres; GDAL >= 3.10)."""
     from archive.cog import gdal_metadata
 
     dataset = {"variable": meta.variable, "source_bands": ",".join(str(i) for i in meta.band_indices)}
     if meta.wavelengths is not None:
         dataset.update(wavelength="{" + ", ".join(f"{w:.4f}" for w in meta.wavelengths) + "}",
                        wavelength_units="nm")
-    bands = []
+    if meta.fwhm is not None:
+        dataset.update(fwhm="{" + ", ".join(f"{w:.4f}" for w in meta.fwhm) + "}")
+    bands, imagery = [], []
     for b, label in enumerate(meta.labels):
         items = {"DESCRIPTION": label}
+        standard = {}
         if meta.wavelengths is not None:
             items.update(wavelength=f"{meta.wavelengths[b]:.4f}", wavelength_units="nm")
+            standard["CENTRAL_WAVELENGTH_UM"] = _micrometres(meta.wavelengths[b])
+        if meta.fwhm is not None:
+            items["fwhm"] = f"{meta.fwhm[b]:.4f}"
+            standard["FWHM_UM"] = _micrometres(meta.fwhm[b])
         bands.append(items)
-    return gdal_metadata(dataset, bands)
+        imagery.append({"IMAGERY": standard} if standard else {})
+    return gdal_metadata(dataset, bands, imagery)
+
+
+def _micrometres(nm: float) -> str:
+    """``nm`` in micrometres, to 0.0001 nm (as the nm items are written)."""
+    return f"{nm / 1000.0:.7f}".rstrip("0").rstrip(".")
+
+
+def _spools(sink: CogSink) -> dict[tuple[int, int, int, int], str]:
+    """The spool files of a COG sink by (level, tile row, tile col, first band)."""
+    spools = {}
+    for name in os.listdir(sink.spool):
+        if name.endswith(".tiles") and name.startswith("L"):
+            level, r, c, band0 = (int(v) for v in name[1:-len(".tiles")].split("-"))
+            spools[level, r, c, band0] = os.path.join(sink.spool, name)
+    return spools
 
 
 def assemble_cog(sink: CogSink, meta: OutputMeta, path: str | os.PathLike) -> int:
     """Lay the spooled tiles of ``sink`` out as a COG at ``path`` (no decoding); returns its size."""
     from archive.cog import assemble
 
-    spools = {}
-    for name in os.listdir(sink.spool):
-        if name.endswith(".tiles") and name.startswith("L"):
-            level, r, c, band0 = (int(v) for v in name[1:-len(".tiles")].split("-"))
-            spools[level, r, c, band0] = os.path.join(sink.spool, name)
+    spools = _spools(sink)
     grid = meta.grid
     try:
         return assemble(path, spools, height=grid.height, width=grid.width, nbands=meta.nbands, epsg=grid.epsg,
@@ -507,7 +611,8 @@ def envi_data_path(header: str | os.PathLike) -> Path:
 
 
 def envi_header(meta: OutputMeta) -> str:
-    """The ENVI header text of a float32 little-endian BSQ output."""
+    """The ENVI header text of a float32 little-endian BSQ output (``wavelength`` and ``fwhm`` in nm
+    when known)."""
     grid = meta.grid
     lines = [
         "ENVI",
@@ -528,6 +633,10 @@ def envi_header(meta: OutputMeta) -> str:
     if meta.wavelengths is not None:
         lines += ["wavelength units = Nanometers",
                   "wavelength = {" + ", ".join(f"{w:.4f}" for w in meta.wavelengths) + "}"]
+    if meta.fwhm is not None:  # in 'wavelength units' (nm), which ENVI applies to fwhm too
+        if meta.wavelengths is None:
+            lines.append("wavelength units = Nanometers")
+        lines.append("fwhm = {" + ", ".join(f"{w:.4f}" for w in meta.fwhm) + "}")
     return "\n".join(lines) + "\n"
 
 
@@ -647,6 +756,7 @@ class Output:
     path: Path
     overwrite: bool = False
     quicklook: Path | None = None
+    provenance: bool = False   #: provenance layers: sibling file (COG, ENVI) or store variables (Zarr)
     _temps: list[Path] = field(default_factory=list, repr=False)
     _made_dirs: list[Path] = field(default_factory=list, repr=False)
 
@@ -657,6 +767,15 @@ class Output:
         if self.quicklook is not None and self.quicklook.suffix.lower() != ".png":
             raise InputError(self.quicklook, "the quicklook must be a .png file", "name it <something>.png")
         self._sink = self._meta = None
+        self._layers = self._layers_spec = None
+
+    @property
+    def provenance_path(self) -> Path | None:
+        """The provenance sibling (COG: ``<stem>_provenance.tif``; ENVI: its header), None for Zarr
+        (the layers are variables of the store) or without ``provenance``."""
+        from archive.provenance_files import sibling_path
+
+        return sibling_path(self.path, self.format) if self.provenance else None
 
     def _temp(self, final: Path, tag: str = "") -> Path:
         tmp = final.with_name(f".{final.name}.partial-{os.getpid()}{tag}")
@@ -667,6 +786,9 @@ class Output:
     def finals(self) -> list[Path]:
         """Every path this output will occupy (ENVI: data and header; plus the quicklook)."""
         paths = [envi_data_path(self.path), self.path] if self.format == "envi" else [self.path]
+        sibling = self.provenance_path
+        if sibling is not None:
+            paths += [envi_data_path(sibling), sibling] if self.format == "envi" else [sibling]
         return paths + ([self.quicklook] if self.quicklook is not None else [])
 
     def check(self) -> None:
@@ -706,7 +828,7 @@ class Output:
         try:
             if self.format == "zarr":
                 sink = MosaicStore.create(self._temp(self.path), grid, meta.wavelengths, meta.band_indices,
-                                          meta.variable, meta.attrs)
+                                          meta.variable, meta.attrs, fwhm=meta.fwhm)
             elif self.format == "envi":
                 data = envi_data_path(self.path)
                 sink = EnviSink.create(self._temp(data), meta.nbands, grid.height, grid.width)
@@ -721,12 +843,60 @@ class Output:
         self._sink, self._meta = sink, meta
         return sink
 
+    def layers_sink(self, spec):
+        """Create the temporary provenance output of the layers ``spec`` (an
+        :class:`~archive.provenance.ProvenanceSpec`; after :meth:`sink`) and return its sink: a
+        :class:`~archive.provenance_files.LayersStore` into the Zarr store, or an ENVI / COG sink
+        of one band per layer for the sibling file."""
+        from archive.provenance_files import LayersStore, add_zarr_layers
+
+        if self._sink is None or not self.provenance:
+            raise RuntimeError(f"{self.path}: layers_sink needs provenance=True and the values sink first")
+        grid = self._meta.grid
+        nb = len(spec.names)
+        try:
+            if self.format == "zarr":
+                add_zarr_layers(self._sink.path, grid, spec)
+                layers = LayersStore(self._sink.path, tuple(spec.names))
+            elif self.format == "envi":
+                layers = EnviSink.create(self._temp(envi_data_path(self.provenance_path)), nb, grid.height, grid.width)
+            else:
+                layers = CogSink.create(self._temp(self.provenance_path, ".tiles"), nb, grid.height, grid.width,
+                                        nearest=True)
+        except OSError as exc:
+            raise _unwritable(self.path.parent, exc) from None
+        self._layers, self._layers_spec = layers, spec
+        return layers
+
+    def _finish_layers(self) -> list[tuple[Path, Path]]:
+        """Moves of the provenance sibling (COG laid out, ENVI header written); none for Zarr."""
+        from archive.cog import assemble
+        from archive.provenance_files import layers_cog_metadata, layers_envi_header
+
+        layers, spec, grid = self._layers, self._layers_spec, self._meta.grid
+        if layers is None or self.format == "zarr":
+            return []
+        sibling = self.provenance_path
+        if self.format == "cog":
+            cog = self._temp(sibling)
+            try:
+                assemble(cog, _spools(layers), height=grid.height, width=grid.width, nbands=len(spec.names),
+                         epsg=grid.epsg, transform=grid.transform, metadata=layers_cog_metadata(spec),
+                         area_tiles=[CHUNK // 512] + [1] * layers.overview_levels)
+            except ValueError as exc:
+                raise RenderError(f"{sibling}: {exc}") from exc
+            _remove(Path(layers.spool))
+            return [(cog, sibling)]
+        header = self._temp(sibling)
+        header.write_text(layers_envi_header(grid, spec, _envi_map_info(grid)), encoding="ascii")
+        return [(Path(layers.data), envi_data_path(sibling)), (header, sibling)]
+
     def finalize(self, sink=None) -> None:
         """Finish the output (ENVI header, COG layout) and move everything into place."""
         sink = self._sink if sink is None else sink
         meta = self._meta
         grid = meta.grid
-        moves: list[tuple[Path, Path]] = []
+        moves: list[tuple[Path, Path]] = self._finish_layers()
         if self.format == "zarr":
             moves.append((Path(sink.path), self.path))
             values = sink._array(sink.variable)

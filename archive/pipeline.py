@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from archive.errors import ArchiveError, InputError, MissingInputError, RenderError
-from archive.graph.mosaic import RULES
+from archive.graph.mosaic import KEYED, RULES, WINNER_RULES
 from archive.outputs import Output, variable_for_mode
 from archive.navigation import DEFAULT_MAX_VIEW_ANGLE, projected_epsg
 from archive.params import NavigationParams, RenderParams
@@ -135,11 +135,12 @@ class RenderRequest:
     mode: 'raw' | 'relative' | 'radiance' | 'reflectance' (None: radiance, raw DN when a source has no
     calibration); white_reference: the (nm, radiance) text file for 'reflectance'; sync_offset (s),
     boresight (roll, pitch, yaw deg), lever_arm (x, y, z m): None means as ingested for a collection,
-    else 0; overlap: 'last' | 'mean'; crs: the output's projected CRS (None: the UTM zone holding most
+    else 0; overlap: 'last' | 'nadir' | 'mean'; crs: the output's projected CRS (None: the UTM zone holding most
     of the flights); max_view_angle: degrees off nadir at the field-of-view edge beyond which lines
     are left out of the meshes (turns); dem: a DEM GeoTIFF (any CRS) the meshes follow instead of
     the flat ground (exclusive with a numeric ground_height; :mod:`archive.dem`); dem_datum: its
-    heights' vertical datum when its CRS does not declare one ('ellipsoid' | 'egm96' | 'egm2008').
+    heights' vertical datum when its CRS does not declare one ('ellipsoid' | 'egm96' | 'egm2008');
+    provenance: also write the per-pixel provenance layers (:mod:`archive.provenance`).
 
     Build one with :meth:`create`, which normalises what callers give (a single source, CLI text
     such as ``'550,650'``, paths); checks that need files are :func:`check_request`'s.
@@ -163,12 +164,13 @@ class RenderRequest:
     max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE
     dem: str | None = None
     dem_datum: str | None = None
+    provenance: bool = False
 
     @classmethod
     def create(cls, sources, *, gsd, archive=None, fov=None, calibration=None, ground_height="auto",
                wavelengths=None, bands="all", mode=None, white_reference=None, sync_offset=None,
                boresight=None, lever_arm=None, overlap="last", crs=None,
-               max_view_angle=DEFAULT_MAX_VIEW_ANGLE, dem=None, dem_datum=None) -> RenderRequest:
+               max_view_angle=DEFAULT_MAX_VIEW_ANGLE, dem=None, dem_datum=None, provenance=False) -> RenderRequest:
         """A request from API keywords (or CLI values); InputError for malformed values."""
         if isinstance(sources, (str, os.PathLike)):
             sources = [sources]
@@ -185,7 +187,7 @@ class RenderRequest:
             boresight=_triple(boresight, "--boresight"), lever_arm=_triple(lever_arm, "--lever-arm"),
             overlap=overlap, crs=None if crs is None else str(crs),
             max_view_angle=_number(max_view_angle, "--max-view-angle", "degrees"),
-            dem=fspath(dem), dem_datum=None if dem_datum is None else str(dem_datum))
+            dem=fspath(dem), dem_datum=None if dem_datum is None else str(dem_datum), provenance=bool(provenance))
 
     def with_sources(self, sources: Sequence[str]) -> RenderRequest:
         """This request for other sources."""
@@ -337,6 +339,10 @@ def check_request(request: RenderRequest) -> NavigationParams:
         projected_epsg(request.crs)
     if request.overlap not in RULES:
         raise InputError("--overlap", f"unknown overlap rule {request.overlap!r}", f"use one of {', '.join(RULES)}")
+    if request.provenance and request.overlap not in WINNER_RULES:
+        raise InputError("--provenance", f"with --overlap {request.overlap} an output pixel has no single source "
+                         "pixel, so its provenance layers cannot be written",
+                         f"use --overlap {' or '.join(WINNER_RULES)} with --provenance")
     if request.mode == "reflectance" and not request.white_reference:
         raise InputError("--mode", "reflectance needs a white reference spectrum", "pass --white-reference FILE")
     _check_dem(request)
@@ -468,8 +474,9 @@ def open_inputs(request: RenderRequest, nav: NavigationParams, say=_quiet, mosai
 @dataclass(frozen=True, eq=False)
 class OutputPlan:
     """One output, planned (metadata only): its sources, the :class:`~archive.graph.plan.RenderPlan`
-    (grid, cube jobs, band groups), the processing parameters, the ground height (m) and the
-    wavelength (nm) of each output band (None when the cubes have none)."""
+    (grid, cube jobs, band groups), the processing parameters, the ground height (m), the
+    wavelength (nm) of each output band (None when the cubes have none) and its spectral full width
+    at half maximum (``fwhm``, nm; None when the cubes have none)."""
 
     sources: tuple
     plan: RenderPlan
@@ -479,6 +486,7 @@ class OutputPlan:
     max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE
     left_out: dict | None = None  #: lines left out of the meshes, by reason ('no navigation', 'view angle')
     dem: object = None  #: the :class:`archive.dem.DemSpec` the meshes follow (ground_height is then None)
+    fwhm: list[float] | None = None
 
     @property
     def variable(self) -> str:
@@ -491,6 +499,14 @@ class OutputPlan:
         and the GSD (the segments follow it)."""
         spec = (self.params.navigation, self.ground_height, self.max_view_angle, self.plan.grid.epsg)
         return spec if self.dem is None else (*spec, self.dem, self.params.gsd)
+
+    def layers_spec(self, nadir_only: bool = False):
+        """The :class:`~archive.provenance.ProvenanceSpec` of this output: every provenance layer,
+        or with ``nadir_only`` only the view zenith the 'nadir' rule compares."""
+        from archive.provenance import NADIR_KEY, provenance_spec
+
+        return provenance_spec(self.plan, self.sources, [self.ground_height] * len(self.sources), self.dem,
+                               (NADIR_KEY,) if nadir_only else None)
 
     @property
     def attrs(self) -> dict:
@@ -531,12 +547,15 @@ def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget:
     check_size(plan, p.gsd)
     wavelengths = sources[0].wavelengths
     out_wl = None if wavelengths is None else [wavelengths[b] for b in bands[0]]
+    fwhm = getattr(sources[0], "fwhm", None)
+    out_fwhm = None if fwhm is None else [fwhm[b] for b in bands[0]]
     left_out: dict[str, int] = {}
     for ms in meshes:
         for m in ms:
             for reason, n in (m.dropped or {}).items():
                 left_out[reason] = left_out.get(reason, 0) + int(n)
-    return OutputPlan(tuple(sources), plan, p, ground, out_wl, inputs.max_view_angle, left_out, inputs.dem)
+    return OutputPlan(tuple(sources), plan, p, ground, out_wl, inputs.max_view_angle, left_out, inputs.dem,
+                      out_fwhm)
 
 
 def build_output(output: OutputPlan, target):
@@ -551,13 +570,20 @@ def build_output(output: OutputPlan, target):
 
     p, plan = output.params, output.plan
     meta = OutputMeta(plan.grid, tuple(plan.bands[0]), None if output.wavelengths is None else tuple(output.wavelengths),
-                      output.variable, output.attrs)
+                      output.variable, output.attrs, fwhm=None if output.fwhm is None else tuple(output.fwhm))
     if isinstance(target, Output):
         sink = target.sink(meta)
     else:
-        sink = MosaicStore.create(target, plan.grid, meta.wavelengths, meta.band_indices, meta.variable, meta.attrs)
+        sink = MosaicStore.create(target, plan.grid, meta.wavelengths, meta.band_indices, meta.variable,
+                                  meta.attrs, fwhm=meta.fwhm)
+    layers = layers_sink = None
+    provenance = isinstance(target, Output) and target.provenance
+    if provenance or p.overlap in KEYED:
+        layers = output.layers_spec(nadir_only=not provenance)
+    if provenance:
+        layers_sink = target.layers_sink(layers)
     graph = build_render_graph(plan, list(output.sources), sink, mode=p.mode, overlap=p.overlap,
-                               mesh_spec=output.mesh_spec)
+                               mesh_spec=output.mesh_spec, layers=layers, layers_sink=layers_sink)
     return sink, graph
 
 
@@ -678,7 +704,8 @@ def _task_budget(client) -> int:
 # ---------------------------------------------------------------------------------------------
 # Rendering into files
 # ---------------------------------------------------------------------------------------------
-def _flight_outputs(sources: Sequence[str], out, format: str, overwrite: bool, quicklook) -> list[Output]:
+def _flight_outputs(sources: Sequence[str], out, format: str, overwrite: bool, quicklook,
+                    provenance: bool = False) -> list[Output]:
     """Per-flight batch mode: ``out/<name>.<format>`` for each source (checked now)."""
     directory = Path(out).absolute()
     if directory.exists() and not directory.is_dir():
@@ -692,7 +719,7 @@ def _flight_outputs(sources: Sequence[str], out, format: str, overwrite: bool, q
     outputs = []
     for src in sources:
         name = Path(src).name if Path(src).is_dir() else str(src)
-        output = Output(directory / f"{name}.{format}", overwrite=bool(overwrite))
+        output = Output(directory / f"{name}.{format}", overwrite=bool(overwrite), provenance=provenance)
         output.check()
         outputs.append(output)
     return outputs
@@ -736,10 +763,11 @@ def render(request: RenderRequest, out: str | os.PathLike, *, quicklook: str | o
         nav = check_request(request)
         if format not in ("zarr", "tif", "hdr"):
             raise InputError("--format", f"unknown output format {format!r}", "use zarr, tif or hdr")
-        outputs = _flight_outputs(request.sources, out, format, overwrite, quicklook)
+        outputs = _flight_outputs(request.sources, out, format, overwrite, quicklook, request.provenance)
     else:
         output = Output(Path(out).absolute(), overwrite=bool(overwrite),
-                        quicklook=None if not quicklook else Path(quicklook).absolute())
+                        quicklook=None if not quicklook else Path(quicklook).absolute(),
+                        provenance=request.provenance)
         output.check()
         outputs = [output]
         nav = check_request(request)
@@ -780,6 +808,8 @@ def render(request: RenderRequest, out: str | os.PathLike, *, quicklook: str | o
             "mode": job.planned.params.mode, "cubes": len(plan.jobs), "sources": len(job.planned.sources),
             "renders": job.graph.renders, "assemblies": job.graph.assemblies, "seconds": seconds,
             "graph_seconds": graph_seconds, "left_out": dict(job.planned.left_out or {}),
+            "provenance": (None if not job.output.provenance else
+                           str(job.output.provenance_path or job.output.path)),
         })
     if not per_flight:
         return summaries[0]
@@ -854,6 +884,7 @@ def mosaic(request: RenderRequest, *, band_group: int | None = None, quiet: bool
     planned = plan(request, band_group=band_group, budget=budget, quiet=quiet)
     p, grid = planned.params, planned.plan.grid
     values, saturated = mosaic_arrays(planned.plan, list(planned.sources), mode=p.mode, overlap=p.overlap,
+                                      layers=planned.layers_spec(nadir_only=True) if p.overlap in KEYED else None,
                                       mesh_spec=planned.mesh_spec)
     x, y = grid.xy_centres()
     coords = {"band": np.asarray(planned.plan.bands[0], dtype=np.int32), "y": y, "x": x}

@@ -162,14 +162,24 @@ class CogSink:
     nbands: int
     height: int
     width: int
+    nearest: bool = False   #: overviews by nearest neighbour (top-left of each 2 x 2) instead of averages
 
     saturation: ClassVar[bool] = False
     blank_tiles: ClassVar[bool] = True
 
     @classmethod
-    def create(cls, spool: str | os.PathLike, nbands: int, height: int, width: int) -> CogSink:
+    def create(cls, spool: str | os.PathLike, nbands: int, height: int, width: int,
+               nearest: bool = False) -> CogSink:
         os.mkdir(spool)
-        return cls(os.fspath(spool), nbands, height, width)
+        return cls(os.fspath(spool), nbands, height, width, nearest)
+
+    def downsample(self, block: np.ndarray) -> np.ndarray:
+        """One overview step of ``block`` (..., h, w) -> (..., ceil(h/2), ceil(w/2)) float32: the
+        NaN-aware 2 x 2 average (:func:`archive.cog.downsample2`), or with ``nearest`` each window's
+        top-left pixel."""
+        from archive.cog import downsample2
+
+        return np.array(block[..., ::2, ::2]) if self.nearest else downsample2(block)
 
     @property
     def levels(self) -> list[tuple[int, int]]:
@@ -212,7 +222,7 @@ class CogSink:
         <= TILE/2), in :meth:`children` order; None: all NaN or beyond the edge). Returns this
         tile's quarter of the next level (its 2 x 2 average) when there is one and some value is
         finite, else None: only quarter-size blocks travel between tasks."""
-        from archive.cog import TILE, downsample2, encode_tile, write_spool
+        from archive.cog import TILE, encode_tile, write_spool
 
         h, w = self.levels[level]
         h, w = min(TILE, h - r * TILE), min(TILE, w - c * TILE)
@@ -233,7 +243,7 @@ class CogSink:
                 tile[i * half:i * half + ch, j * half:j * half + cw] = child[b]
             encoded.append([encode_tile(tile)])
             if quarter is not None:
-                quarter[b] = downsample2(tile[:h, :w])
+                quarter[b] = self.downsample(tile[:h, :w])
         write_spool(self.spool_path(level, r, c, band0), encoded)
         return quarter if quarter is not None and np.isfinite(quarter).any() else None
 
@@ -268,7 +278,7 @@ class _CogTileWriter(TileWriter):
         self.finite = False
 
     def write(self, b: int, chunk: np.ndarray) -> None:
-        from archive.cog import TILE, downsample2, encode_tile
+        from archive.cog import TILE, encode_tile
 
         if _all_nan(chunk):
             self.encoded[b] = [_nan_tile()] * (self.rows * self.cols)
@@ -277,10 +287,10 @@ class _CogTileWriter(TileWriter):
         self.encoded[b] = [encode_tile(chunk[i * TILE:(i + 1) * TILE, j * TILE:(j + 1) * TILE])
                            for i in range(self.rows) for j in range(self.cols)]
         if self.levels >= 1:
-            down = downsample2(chunk)  # (TILE, TILE): NaN beyond the grid, as the chunk
+            down = self.sink.downsample(chunk)  # (TILE, TILE): NaN beyond the grid, as the chunk
             self.first[b] = encode_tile(down)
             if self.block is not None:
-                self.block[b] = downsample2(down[:self.oh, :self.ow])
+                self.block[b] = self.sink.downsample(down[:self.oh, :self.ow])
                 self.finite = True
 
     def close(self):

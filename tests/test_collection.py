@@ -32,6 +32,7 @@ from archive.formats.lcf import read_lcf
 from archive.formats.times import read_times, write_times
 from archive.params import NavigationParams
 from archive.simulator.command import simulate_flight
+from archive.simulator.sensor import band_fwhm
 from archive.sources import MODES, RawFlightSource
 
 FOV = 47.5
@@ -91,6 +92,7 @@ def test_id_and_layout(flight, ingested):
     assert attrs["cubes"][2]["header"]["imager serial number"] == "Pika L-SIM"
     assert attrs["cubes"][2]["line_offset"] == 200
     np.testing.assert_array_equal(group["wavelength"][...], truth.wavelengths)
+    np.testing.assert_array_equal(group["fwhm"][...], band_fwhm(truth.wavelengths))
     np.testing.assert_array_equal(group["cube"][...], np.repeat(np.arange(4), 100))
 
 
@@ -378,7 +380,7 @@ def test_real_headers_survive_the_store_attributes(resonon_samples, tmp_path):
         back = header_from_metadata(dict(zarr.open_group(tmp_path / f"{path.stem}.zarr", mode="r").attrs)["header"],
                                     path)
         for name in ("samples", "lines", "bands", "interleave", "data_type", "byte_order", "header_offset",
-                     "wavelengths", "shutter", "gain", "framerate", "bit_depth", "flip_radiometric_calibration",
+                     "wavelengths", "fwhm", "shutter", "gain", "framerate", "bit_depth", "flip_radiometric_calibration",
                      "sample_binning", "spectral_binning"):
             assert getattr(back, name) == getattr(h, name), (path.name, name)
         assert back.dtype == h.dtype

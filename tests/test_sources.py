@@ -78,7 +78,7 @@ def memory_from(raw: RawFlightSource, white: np.ndarray | None = None) -> Memory
     return MemoryFlightSource(
         [raw.read_bands(i, all_bands) for i in range(len(raw.cubes))],
         [raw.poses(i) for i in range(len(raw.cubes))],
-        id="memory-flight", wavelengths=raw.wavelengths, dark=rad[0].dark, gain=rad[0].gain,
+        id="memory-flight", wavelengths=raw.wavelengths, fwhm=raw.fwhm, dark=rad[0].dark, gain=rad[0].gain,
         responses=[r.response for r in rad], bit_depth=raw.cubes[0].bit_depth,
         framerate=raw.cubes[0].framerate, white_reference=white)
 
@@ -146,6 +146,7 @@ def test_protocol_and_cubes(source, kind, flight):
         assert (info.lines, info.samples, info.bands) == (LINES, SAMPLES, BANDS)
     assert source.cubes[0].first_time < source.cubes[1].first_time
     assert source.wavelengths is not None and len(source.wavelengths) == BANDS
+    assert source.fwhm is not None and len(source.fwhm) == BANDS
     assert source.has_calibration and source.white_reference is None
     if kind in NAVIGATED:  # the memory source's poses are given: its params change nothing
         assert source.params == PARAMS
@@ -255,7 +256,7 @@ def test_pickle_round_trip(source):
 
 def test_same_cubes_and_wavelengths(source, kind, raw):
     assert source.frame == raw.frame
-    assert source.wavelengths == raw.wavelengths
+    assert source.wavelengths == raw.wavelengths and source.fwhm == raw.fwhm
     for mine, theirs in zip(source.cubes, raw.cubes, strict=True):
         if kind == "memory":  # named after the source; one exposure for all cubes (none given here)
             theirs = dataclasses.replace(theirs, base=mine.base, shutter_ms=None, gain_db=None)
@@ -268,6 +269,7 @@ def test_same_headers(source, kind, raw):
         assert (mine.samples, mine.lines, mine.bands) == (theirs.samples, theirs.lines, theirs.bands)
         assert mine.dtype.newbyteorder("=") == theirs.dtype.newbyteorder("=")
         assert mine.wavelengths == theirs.wavelengths and mine.bit_depth == theirs.bit_depth
+        assert mine.fwhm == theirs.fwhm
         if kind == "collection":  # every key, as ingested
             assert mine.metadata == theirs.metadata
             assert (mine.shutter, mine.gain, mine.framerate) == (theirs.shutter, theirs.gain, theirs.framerate)

@@ -63,7 +63,8 @@ class EnviHeader:
     """A parsed ENVI header.
 
     ``metadata`` holds every key of the file (lower-cased, values parsed to str, int, float, bool,
-    list for ``{...}`` and tuple for ``(...)``), including the structural ones.
+    list for ``{...}`` and tuple for ``(...)``), including the structural ones. ``wavelengths`` and
+    ``fwhm`` are per band in nm (converted from ``wavelength units``, which ENVI applies to both).
     """
 
     path: Path
@@ -76,6 +77,8 @@ class EnviHeader:
     header_offset: int
     wavelengths: tuple[float, ...] | None
     metadata: dict[str, object] = field(default_factory=dict)
+    #: Full width at half maximum of each band's spectral response (``fwhm``), nm; None if absent.
+    fwhm: tuple[float, ...] | None = None
 
     @property
     def dtype(self) -> np.dtype:
@@ -269,20 +272,28 @@ def header_from_metadata(meta: dict[str, object], path: Path) -> EnviHeader:
     if byte_order not in (0, 1):
         raise FormatError(path, f"'byte order' = {byte_order} must be 0 (little) or 1 (big)")
     offset = _require_int(meta, "header offset", path) if "header offset" in meta else 0
-    wavelengths = None
-    if "wavelength" in meta:
-        values = meta["wavelength"]
-        values = values if isinstance(values, list | tuple) else [values]
-        if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
-            raise FormatError(path, "'wavelength' holds non-numeric values")
-        if len(values) != bands:
-            raise FormatError(path, f"'wavelength' lists {len(values)} values for {bands} bands")
-        units = str(meta.get("wavelength units", "nanometers")).strip().lower()
-        scale = 1000.0 if units in ("micrometers", "micrometer", "microns", "um", "µm") else 1.0
-        wavelengths = tuple(float(v) * scale for v in values)
+    units = str(meta.get("wavelength units", "nanometers")).strip().lower()
+    scale = 1000.0 if units in ("micrometers", "micrometer", "microns", "um", "µm") else 1.0
     return EnviHeader(path=path, samples=samples, lines=lines, bands=bands, interleave=interleave,
                       data_type=data_type, byte_order=byte_order, header_offset=offset,
-                      wavelengths=wavelengths, metadata=meta)
+                      wavelengths=_per_band(meta, "wavelength", bands, scale, path), metadata=meta,
+                      fwhm=_per_band(meta, "fwhm", bands, scale, path))
+
+
+def _per_band(meta: Mapping[str, object], key: str, bands: int, scale: float,
+              path: Path) -> tuple[float, ...] | None:
+    """The per-band list ``key`` (``wavelength``, ``fwhm``) times ``scale`` (to nm), None when absent;
+    FormatError naming the file and key for non-numeric values or a length other than ``bands``."""
+    if key not in meta:
+        return None
+    values = meta[key]
+    values = values if isinstance(values, list | tuple) else [values]
+    if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
+        raise FormatError(path, f"'{key}' holds non-numeric values")
+    if len(values) != bands:
+        raise FormatError(path, f"'{key}' lists {len(values)} values for {bands} bands",
+                          "give one value per band, or remove the key")
+    return tuple(float(v) * scale for v in values)
 
 
 def header_path_for(path: str | os.PathLike) -> Path:
@@ -477,7 +488,7 @@ def write_envi(path: str | os.PathLike, data: np.ndarray, metadata: Mapping[str,
     written after the structural keys (samples, lines, bands, data type, interleave, byte order,
     header offset, which are taken from the arguments and ignored in ``metadata``): lists as
     ``{a, b}``, tuples as ``(a, b)``, floats with full precision, ``map info`` as given. A
-    ``wavelength`` list must have one value per band. Both files are written under temporary
+    ``wavelength`` or ``fwhm`` list must have one value per band. Both files are written under temporary
     names and renamed at the end, the header last.
     """
     data = np.asarray(data)
@@ -506,12 +517,14 @@ def write_envi(path: str | os.PathLike, data: np.ndarray, metadata: Mapping[str,
         key = " ".join(str(key).split()).lower()
         if key not in _STRUCTURAL:
             meta[key] = value
-    if "wavelength" in meta:
-        wl = meta["wavelength"]
+    for key in ("wavelength", "fwhm"):
+        if key not in meta:
+            continue
+        wl = meta[key]
         wl = list(np.ravel(np.asarray(wl, dtype=float))) if not isinstance(wl, list) else wl
         if len(wl) != bands:
-            raise InputError(path, f"metadata 'wavelength' has {len(wl)} values for {bands} bands")
-        meta["wavelength"] = [float(v) for v in wl]
+            raise InputError(path, f"metadata '{key}' has {len(wl)} values for {bands} bands")
+        meta[key] = [float(v) for v in wl]
     data_path, hdr_path = _paths_for_write(path)
     file_order = {"bsq": (0, 1, 2), "bil": (1, 0, 2), "bip": (1, 2, 0)}[interleave]
     out = np.ascontiguousarray(data.transpose(file_order),

@@ -32,8 +32,8 @@ from dask.base import tokenize
 from dask.delayed import Delayed, delayed
 
 from archive.graph.plan import GROUP, RenderPlan, band_groups
-from archive.graph.tasks import (assemble_write_task, blank_write_task, gate_task, lookup_task, overview_task,
-                                 render_task, write_saturated_task)
+from archive.graph.tasks import (assemble_write_task, blank_write_task, gate_task, layers_task, lookup_task,
+                                 overview_task, pick_task, render_task, write_layers_task, write_saturated_task)
 from archive.outputs import CHUNK
 
 __all__ = ["RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "task_group_size", "with_task_groups"]
@@ -80,12 +80,24 @@ class RenderGraph:
 
 
 def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
-                       overlap: str, mesh_spec: object = None) -> RenderGraph:
+                       overlap: str, mesh_spec: object = None, layers=None, layers_sink=None) -> RenderGraph:
     """Dask graph rendering ``plan`` from ``sources`` into ``sink`` (:class:`~archive.outputs.MosaicStore`,
     :class:`~archive.sinks.EnviSink` or :class:`~archive.sinks.CogSink`).
 
     mesh_spec: the parameters the meshes were built from (fov, ground height...), only for keys.
+    layers: a :class:`~archive.provenance.ProvenanceSpec` when per-cube provenance layers are needed:
+    by the 'nadir' rule (its view zenith) and by ``layers_sink``, the sink the provenance layers
+    are written into (one band per layer of ``layers.names``; ``None``: not written). Per cube, one
+    layers task (CPU) computes them from the cube's lookup; per output tile one task assembles and
+    writes them, in band group 0.
     """
+    from archive.graph.mosaic import KEYED
+    from archive.provenance import NADIR_KEY
+
+    if (overlap in KEYED or layers_sink is not None) and layers is None:
+        raise ValueError(f"the '{overlap}' rule and provenance layers need a ProvenanceSpec")
+    if overlap in KEYED and NADIR_KEY not in layers.names:
+        raise ValueError(f"the '{overlap}' rule needs the {NADIR_KEY} layer")
     # every source's __dask_tokenize__ says what its renders depend on (files or stored content,
     # parameters), never its pixels
     tokens = [tokenize(s) for s in sources]
@@ -122,17 +134,39 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
         meshes[j] = (delayed(job.mesh, name=mesh_key, traverse=False), mesh_key,
                      int(sources[job.source].cubes[job.cube].samples))
     lookups: dict[tuple[int, int], Delayed] = {}
+    count = layers_sink is not None and "overlap_count" in layers.names
 
     def lookup(j: int, g: int, gate: Delayed | None) -> Delayed:
         if shared and (j, 0) in lookups:
             return lookups[j, 0]
         mesh, mesh_key, samples = meshes[j]
         window = plan.jobs[j].window
-        lkey = f"lookup-{tokenize(mesh_key, window, samples, *([] if shared else [g]))}"
+        counted = count and (shared or g == 0)   # layers come from group 0's lookups
+        lkey = f"lookup-{tokenize(mesh_key, window, samples, counted, *([] if shared else [g]))}"
         with dask.annotate(resources={"GPU": 1}, priority=priority(g, 0, j)):
             lookups[j, 0 if shared else g] = delayed(lookup_task, pure=True)(
-                mesh, window, samples, *([] if gate is None else [gate]), dask_key_name=lkey)
+                mesh, window, samples, *([] if gate is None else [gate]), count=counted, dask_key_name=lkey)
         return lookups[j, 0 if shared else g]
+
+    # Provenance layers (and the 'nadir' rule's key): per cube from group 0's lookup, on any thread.
+    cube_layers: dict[int, Delayed] = {}
+    keys: dict[int, Delayed] = {}
+    layer_writers: dict[int, Delayed] = {}   # tile number -> provenance writer
+
+    def layers_of(j: int, lk: Delayed) -> Delayed:
+        if j not in cube_layers:
+            job = plan.jobs[j]
+            ground = None if layers.dem is not None else layers.grounds[job.source]
+            lykey = f"layers-{tokenize(tokens[job.source], job.cube, j, lk.key, layers)}"
+            with dask.annotate(priority=priority(0, 0, j)):
+                cube_layers[j] = delayed(layers_task, pure=True)(source_nodes[job.source], job.cube, j, lk,
+                                                                 layers, ground, dask_key_name=lykey)
+            if overlap in KEYED:
+                pkey = f"key-{tokenize(lykey)}"
+                with dask.annotate(priority=priority(0, 0, j)):
+                    keys[j] = delayed(pick_task, pure=True)(cube_layers[j], layers.names.index(NADIR_KEY),
+                                                            dask_key_name=pkey)
+        return cube_layers[j]
 
     # Renders in (group, capture) order. Backpressure: render number s (and its lookup) waits for
     # the writers that render s - RENDERS_AHEAD completed (a token of them), so renders never run
@@ -150,6 +184,8 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
             gate = next((t for t in reversed(gates[:max(0, len(gates) - RENDERS_AHEAD + 1)]) if t is not None),
                         None)
             lk = lookup(j, g, gate)
+            if layers is not None and g == 0:
+                layers_of(j, lk)
             key = f"render-{tokenize(tokens[job.source], job.cube, bands, lk.key, mode, BANDS_PER_PASS)}"
             with dask.annotate(resources={"GPU": 1}, priority=priority(g, 0, j)):
                 renders[j, g] = delayed(render_task, pure=True)(
@@ -162,12 +198,21 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
                 boxes = tuple(plan.jobs[i].box for i in touching)
                 parts = [renders[i, g] for i in touching]
                 mask = masks.get(t) if sink.saturation else None
-                akey = tokenize(overlap, tile, b1 - b0, boxes, [p.key for p in parts])
+                tile_keys = [keys[i] for i in touching] if overlap in KEYED else None
+                akey = tokenize(overlap, tile, b1 - b0, boxes, [p.key for p in parts],
+                                None if tile_keys is None else [k.key for k in tile_keys])
                 wkey = f"write-{tokenize(sink, b0, tile, akey, None if mask is None else mask.key)}"
                 with dask.annotate(priority=priority(g, 1, j)):
                     writers[t, g] = delayed(assemble_write_task)(sink, overlap, b0, tile, b1 - b0, boxes, mask,
-                                                                 *parts, dask_key_name=wkey)
+                                                                 *parts, keys=tile_keys, dask_key_name=wkey)
                 assemblies += 1
+                if layers_sink is not None and g == 0:
+                    stacks = [cube_layers[i] for i in touching]
+                    lwkey = f"write-layers-{tokenize(layers_sink, tile, overlap, boxes, [x.key for x in stacks])}"
+                    with dask.annotate(priority=priority(g, 1, j)):
+                        layer_writers[t] = delayed(write_layers_task)(layers_sink, overlap, tile, layers.names,
+                                                                      boxes, *stacks, dask_key_name=lwkey)
+                    done.append(layer_writers[t])
                 if sink.saturation:
                     masks[t] = writers[t, g]
                 done.append(writers[t, g])
@@ -189,6 +234,17 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
                     writers[t, g] = delayed(blank_write_task)(sink, b0, tile, b1 - b0, dask_key_name=key)
                 writes.append(writers[t, g])
             firsts[tile[0] // CHUNK, tile[1] // CHUNK, g] = writers[t, g]
+    if layers_sink is not None:   # provenance: blank tiles, then overviews, as for the values
+        layer_firsts: dict[tuple[int, int, int], Delayed] = {}
+        for t, (tile, touching) in enumerate(tiles):
+            if not touching:
+                key = f"blank-layers-{tokenize(layers_sink, tile)}"
+                with dask.annotate(priority=priority(0, 1)):
+                    layer_writers[t] = delayed(blank_write_task)(layers_sink, 0, tile, len(layers.names),
+                                                                 dask_key_name=key)
+            layer_firsts[tile[0] // CHUNK, tile[1] // CHUNK, 0] = layer_writers[t]
+        writes += layer_writers.values()
+        writes += _overview_tasks(layers_sink, [(0, len(layers.names))], layer_firsts, priority)
     saturation: list[Delayed] = []
     for t, mask in masks.items():
         tile = tiles[t][0]

@@ -28,7 +28,7 @@ from dask._task_spec import DataNode, Task, TaskRef
 
 from archive.graph.build import BANDS_PER_PASS
 from archive.graph.plan import RenderPlan
-from archive.graph.tasks import assemble_task, lookup_task, render_task
+from archive.graph.tasks import assemble_task, layers_task, lookup_task, pick_task, render_task
 from archive.outputs import CHUNK
 
 __all__ = ["GL_RESOURCES", "GLTask", "mosaic_arrays", "nan_tile", "tile_saturation", "tile_values", "zero_tile"]
@@ -85,15 +85,27 @@ def _intersects(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> b
     return a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]
 
 
+def assemble_keyed(rule: str, tile, nbands: int, boxes, *renders_and_keys):
+    """:func:`~archive.graph.tasks.assemble_task` of a keyed rule ('nadir'): the renders, then
+    each render's key (view zenith), all positional."""
+    n = len(boxes)
+    return assemble_task(rule, tile, nbands, boxes, *renders_and_keys[:n], keys=renders_and_keys[n:])
+
+
 def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: str,
-                  mesh_spec: object = None):
+                  mesh_spec: object = None, layers=None):
     """(values, saturated) lazy ``dask.array`` collections of ``plan`` rendered from ``sources``.
 
     values: (nbands, grid height, grid width) float32, NaN where no line covers a pixel, chunked
     (one band group, CHUNK, CHUNK); saturated: (grid height, grid width) uint8, chunked (CHUNK,
     CHUNK). mesh_spec: the parameters the meshes were built from, only for keys (as in
-    :func:`~archive.graph.build.build_render_graph`).
+    :func:`~archive.graph.build.build_render_graph`); layers: the
+    :class:`~archive.provenance.ProvenanceSpec` of the 'nadir' rule's view zenith (its only layer).
     """
+    from archive.graph.mosaic import KEYED
+
+    if overlap in KEYED and layers is None:
+        raise ValueError(f"the '{overlap}' rule needs a ProvenanceSpec of the view zenith")
     import dask.array as da
     from dask.base import tokenize
     from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
@@ -103,6 +115,8 @@ def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: st
     source_keys = list(source_nodes)
 
     lookups: dict = {}
+    zeniths: dict = {}
+    zenith_key: dict[int, str] = {}
     renders: dict = {}
     render_key: dict[tuple[int, int], str] = {}
     for j, job in enumerate(plan.jobs):
@@ -111,6 +125,14 @@ def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: st
         samples = int(sources[job.source].cubes[job.cube].samples)
         lkey = f"lookup-{tokenize(mesh_key, job.window, samples)}"
         lookups[lkey] = GLTask(lkey, lookup_task, job.mesh, job.window, samples)
+        if overlap in KEYED:   # the view zenith of the cube's pixels (CPU, from the lookup)
+            ground = None if layers.dem is not None else layers.grounds[job.source]
+            zkey = f"zenith-{tokenize(tokens[job.source], job.cube, j, lkey, layers)}"
+            zeniths[zkey] = Task(zkey, layers_task, TaskRef(source_keys[job.source]), job.cube, j, TaskRef(lkey),
+                                 layers, ground)
+            pkey = f"key-{tokenize(zkey)}"
+            zeniths[pkey] = Task(pkey, pick_task, TaskRef(zkey), 0)
+            zenith_key[j] = pkey
         for g, (b0, b1) in enumerate(plan.groups):
             bands = plan.bands[job.source][b0:b1]
             key = f"render-{tokenize(tokens[job.source], job.cube, bands, lkey, mode, BANDS_PER_PASS)}"
@@ -136,24 +158,33 @@ def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: st
                 values[vkey] = Task(vkey, nan_tile, b1 - b0, tile[2], tile[3])
                 continue
             parts = [render_key[j, g] for j in touching]
-            akey = f"assemble-{tokenize(overlap, tile, b1 - b0, boxes, parts)}"
-            assembles[akey] = Task(akey, assemble_task, overlap, tile, b1 - b0, boxes, *map(TaskRef, parts))
+            if overlap in KEYED:
+                zkeys = [zenith_key[j] for j in touching]
+                akey = f"assemble-{tokenize(overlap, tile, b1 - b0, boxes, parts, zkeys)}"
+                assembles[akey] = Task(akey, assemble_keyed, overlap, tile, b1 - b0, boxes,
+                                       *map(TaskRef, parts + zkeys))
+            else:
+                akey = f"assemble-{tokenize(overlap, tile, b1 - b0, boxes, parts)}"
+                assembles[akey] = Task(akey, assemble_task, overlap, tile, b1 - b0, boxes, *map(TaskRef, parts))
             values[vkey] = Task(vkey, tile_values, TaskRef(akey))
             group_keys.append(akey)
         skey = (saturated_name, i, k)
         saturated[skey] = (Task(skey, tile_saturation, tile[2], tile[3], *map(TaskRef, group_keys)) if group_keys
                            else Task(skey, zero_tile, tile[2], tile[3]))
 
-    names = {kind: f"{kind}-{name}" for kind in ("sources", "lookups", "renders", "assembles")}
-    layers = {names["sources"]: MaterializedLayer(source_nodes),
-              names["lookups"]: MaterializedLayer(lookups, annotations={"resources": dict(GL_RESOURCES)}),
-              names["renders"]: MaterializedLayer(renders, annotations={"resources": dict(GL_RESOURCES)}),
-              names["assembles"]: MaterializedLayer(assembles)}
+    names = {kind: f"{kind}-{name}" for kind in ("sources", "lookups", "zeniths", "renders", "assembles")}
+    graph_layers = {names["sources"]: MaterializedLayer(source_nodes),
+                    names["lookups"]: MaterializedLayer(lookups, annotations={"resources": dict(GL_RESOURCES)}),
+                    names["zeniths"]: MaterializedLayer(zeniths),
+                    names["renders"]: MaterializedLayer(renders, annotations={"resources": dict(GL_RESOURCES)}),
+                    names["assembles"]: MaterializedLayer(assembles)}
     deps = {names["sources"]: set(), names["lookups"]: set(),
-            names["renders"]: {names["sources"], names["lookups"]}, names["assembles"]: {names["renders"]}}
+            names["zeniths"]: {names["sources"], names["lookups"]},
+            names["renders"]: {names["sources"], names["lookups"]},
+            names["assembles"]: {names["renders"], names["zeniths"]}}
 
     def array(layer_name: str, tasks: dict, chunks: tuple, dtype, ndim: int):
-        graph = HighLevelGraph({**layers, layer_name: MaterializedLayer(tasks)},
+        graph = HighLevelGraph({**graph_layers, layer_name: MaterializedLayer(tasks)},
                                {**deps, layer_name: {names["assembles"]}})
         return da.Array(graph, layer_name, chunks, dtype=dtype, meta=np.empty((0,) * ndim, dtype))
 

@@ -2,7 +2,12 @@
 
 A rule is a small strategy object: ``feed`` it the cubes' renders in capture order (source order,
 then cube order), then take ``result()``. Arrays are ``(band, y, x)`` float32 with NaN where a cube
-does not cover a pixel; ``saturated`` is ``(y, x)`` bool (some band of the group was saturated there).
+does not cover a pixel; ``saturated`` is ``(y, x)`` bool (some band of the group was saturated there);
+``key`` is ``(y, x)`` float32, the view zenith of the cube's line at each pixel (degrees, NaN where not
+covered), used by the 'nadir' rule only (``KEYED`` lists the rules that need it).
+
+Rules: 'last' (the later capture wins), 'nadir' (the capture seen closest to nadir wins, the later
+one on a tie: NEON's mosaics), 'mean' (mean of the covering captures).
 
 The 'last' rule is written once, as two functions the chunk writer also uses band by band:
 :func:`last_values` and :func:`last_saturation`; :class:`LastRule` is their strategy object.
@@ -16,7 +21,8 @@ import numpy as np
 
 from archive.errors import InputError
 
-__all__ = ["LastRule", "MeanRule", "RULES", "last_saturation", "last_values", "make_rule"]
+__all__ = ["KEYED", "LastRule", "MeanRule", "NadirRule", "RULES", "WINNER_RULES", "last_saturation", "last_values",
+           "make_rule"]
 
 
 def last_values(out: np.ndarray, parts: Sequence[tuple[np.ndarray, slice, slice]]) -> np.ndarray:
@@ -81,7 +87,8 @@ class LastRule:
         self.shape = (nbands, height, width)
         self.parts: list[tuple[np.ndarray, np.ndarray, slice, slice]] = []
 
-    def feed(self, values: np.ndarray, saturated: np.ndarray, rows: slice, cols: slice) -> None:
+    def feed(self, values: np.ndarray, saturated: np.ndarray, rows: slice, cols: slice,
+             key: np.ndarray | None = None) -> None:
         """Add one render covering ``values[:, rows, cols]`` of the tile (later ones win)."""
         self.parts.append((values, saturated, _bounded(rows, self.shape[1]), _bounded(cols, self.shape[2])))
 
@@ -112,7 +119,8 @@ class MeanRule:
         self.count_sat = np.zeros(shape, np.uint16)
         self.saturated = np.zeros((height, width), bool)
 
-    def feed(self, values: np.ndarray, saturated: np.ndarray, rows: slice, cols: slice) -> None:
+    def feed(self, values: np.ndarray, saturated: np.ndarray, rows: slice, cols: slice,
+             key: np.ndarray | None = None) -> None:
         ok = np.isfinite(values)
         good = ok & ~saturated[None]
         bad = ok & saturated[None]
@@ -130,7 +138,34 @@ class MeanRule:
         return mean.astype(np.float32), self.saturated
 
 
-RULES = {"last": LastRule, "mean": MeanRule}
+class NadirRule:
+    """The capture with the smallest view zenith at the pixel wins (all its bands and its saturation
+    flag), the later one on a tie; pixels no capture covers (key NaN) stay NaN."""
+
+    def __init__(self, nbands: int, height: int, width: int):
+        self.values = np.full((nbands, height, width), np.nan, np.float32)
+        self.saturated = np.zeros((height, width), bool)
+        self.best = np.full((height, width), np.inf, np.float32)
+
+    def feed(self, values: np.ndarray, saturated: np.ndarray, rows: slice, cols: slice,
+             key: np.ndarray | None = None) -> None:
+        if key is None:
+            raise ValueError("the 'nadir' rule needs each render's view zenith (key)")
+        best = self.best[rows, cols]
+        wins = key <= best          # NaN (not covered) never wins
+        best[wins] = key[wins]
+        np.copyto(self.values[:, rows, cols], values, where=wins[None])
+        self.saturated[rows, cols][wins] = saturated[wins]
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.values, self.saturated
+
+
+RULES = {"last": LastRule, "nadir": NadirRule, "mean": MeanRule}
+#: Rules that need each render's view zenith (``key``).
+KEYED = ("nadir",)
+#: Rules under which every output pixel comes from one raw pixel (provenance layers can be written).
+WINNER_RULES = ("last", "nadir")
 
 
 def make_rule(name: str, nbands: int, height: int, width: int):

@@ -28,8 +28,9 @@ from archive.outputs import CHUNK, MosaicStore
 
 Box = tuple[int, int, int, int]
 
-__all__ = ["Box", "assemble_task", "assemble_write_task", "blank_write_task", "gate_task", "gl_call", "lookup_task",
-           "overview_task", "render_task", "write_saturated_task", "write_values_task"]
+__all__ = ["Box", "assemble_layers", "assemble_task", "assemble_write_task", "blank_write_task", "gate_task", "gl_call",
+           "layers_task", "lookup_task", "overview_task", "pick_task", "render_task", "write_layers_task",
+           "write_saturated_task", "write_values_task"]
 
 _GL_LOCK = threading.Lock()
 _GL_EXECUTOR: list[ThreadPoolExecutor] = []
@@ -46,16 +47,32 @@ def gl_call(fn, *args, **kwargs):
     return executor.submit(fn, *args, **kwargs).result()
 
 
-def lookup_task(mesh, window: Grid, samples: int, *after):
+def lookup_task(mesh, window: Grid, samples: int, *after, count: bool = False):
     """Pass 1 of the renderer for one cube: which (line, sample) each pixel centre of ``window`` sees.
 
     Runs once per cube (GL, on a worker); returns a picklable :class:`archive.render.renderer.Lookup`
-    ((height, width) int32 line and sample, -1 where not covered) that every band group reuses.
+    ((height, width) int32 line and sample, -1 where not covered; with ``count`` also how many mesh
+    layers cover each pixel) that every band group reuses.
     ``after``: results of tasks it waits for (the graph's backpressure), not used.
     """
     from archive.render.renderer import rasterize_lookup  # GL only on workers
 
-    return gl_call(rasterize_lookup, mesh, window, samples)
+    return gl_call(rasterize_lookup, mesh, window, samples, count=count)
+
+
+def layers_task(source, cube: int, job: int, lookup, spec, ground: float | None) -> np.ndarray:
+    """The provenance layers ``spec.names`` (:mod:`archive.provenance`) of one cube on its window,
+    (layers, height, width) float32, NaN where not covered: CPU only, from the cube's lookup and
+    navigation (no pixel is read). ground: the flat ground height of its mesh, m (None with a DEM)."""
+    from archive.provenance import cube_layers
+
+    return cube_layers(source, cube, job, lookup, spec, ground)
+
+
+def pick_task(layers: np.ndarray, index: int) -> np.ndarray:
+    """Layer ``index`` of a :func:`layers_task` result, (height, width) float32 (a copy: the stack
+    can be released while this one is still needed)."""
+    return np.array(layers[index])
 
 
 def render_task(source, cube: int, bands: Sequence[int], lookup, mode: str,
@@ -109,19 +126,74 @@ def _tile_parts(tile: Box, boxes: Sequence[Box], renders) -> list:
     return parts
 
 
+def _tile_keys(tile: Box, boxes: Sequence[Box], keys: Sequence[np.ndarray] | None) -> list:
+    """Each render's key (view zenith, (h, w)) inside ``tile``, in the order of :func:`_tile_parts`."""
+    if keys is None:
+        return [None] * len(boxes)
+    if len(keys) != len(boxes):
+        raise ValueError(f"{len(boxes)} boxes for {len(keys)} keys")
+    out = []
+    for box, key in zip(boxes, keys):
+        shared = _overlap(tile, box)
+        if shared is not None:
+            out.append(key[shared[1]])
+    return out
+
+
 def assemble_task(rule: str, tile: Box, nbands: int, boxes: Sequence[Box],
-                  *renders: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Mosaic cube renders onto one output tile with the overlap ``rule`` ('last' | 'mean').
+                  *renders: tuple[np.ndarray, np.ndarray], keys: Sequence[np.ndarray] | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Mosaic cube renders onto one output tile with the overlap ``rule`` ('last' | 'nadir' | 'mean').
 
     boxes[i]: where renders[i] (values (nbands, h, w), saturated (h, w)) lies in the output grid;
-    renders in capture order. Returns values (nbands, tile h, tile w) float32, saturated (h, w) bool.
+    renders in capture order; keys[i]: the view zenith (h, w) of renders[i] (the 'nadir' rule).
+    Returns values (nbands, tile h, tile w) float32, saturated (h, w) bool.
     """
     if len(boxes) != len(renders):
         raise ValueError(f"{len(boxes)} boxes for {len(renders)} renders")
     mosaic = make_rule(rule, nbands, tile[2], tile[3])
-    for values, saturated, tr, tc in _tile_parts(tile, boxes, renders):
-        mosaic.feed(values, saturated, tr, tc)
+    for (values, saturated, tr, tc), key in zip(_tile_parts(tile, boxes, renders), _tile_keys(tile, boxes, keys)):
+        mosaic.feed(values, saturated, tr, tc, key=key)
     return mosaic.result()
+
+
+def assemble_layers(rule: str, tile: Box, names: Sequence[str], boxes: Sequence[Box],
+                    *layers: np.ndarray) -> np.ndarray:
+    """Provenance layers of one output tile, (len(names), h, w) float32: the layers of the capture
+    the mosaic ``rule`` ('last' | 'nadir') picks at each pixel (so they describe the written value),
+    except 'overlap_count', the SUM over every capture covering the pixel (NaN where none does).
+
+    layers[i]: (len(names), h, w) float32 of the cube at boxes[i] (:func:`layers_task`), capture order.
+    """
+    from archive.provenance import NADIR_KEY
+
+    names = list(names)
+    key_at = names.index(NADIR_KEY) if NADIR_KEY in names else None
+    count_at = names.index("overlap_count") if "overlap_count" in names else None
+    mosaic = make_rule(rule, len(names), tile[2], tile[3])
+    total = np.zeros(tile[2:], np.float32)
+    unflagged = np.zeros(tile[2:], bool)
+    for box, stack in zip(boxes, layers):
+        shared = _overlap(tile, box)
+        if shared is None:
+            continue
+        (tr, tc), (br, bc) = shared
+        part = stack[:, br, bc]
+        mosaic.feed(part, unflagged[tr, tc], tr, tc, key=None if key_at is None else part[key_at])
+        if count_at is not None:
+            total[tr, tc] += np.nan_to_num(part[count_at])
+    values, _ = mosaic.result()
+    if count_at is not None:
+        values[count_at] = np.where(total > 0, total, np.nan)
+    return values
+
+
+def write_layers_task(sink, rule: str, tile: Box, names: Sequence[str], boxes: Sequence[Box],
+                      *layers: np.ndarray):
+    """:func:`assemble_layers` for one output tile, written through the provenance ``sink`` (one
+    sink band per layer); returns what the sink's tile writer passes on (COG: its overview quarter)."""
+    values = assemble_layers(rule, tile, names, boxes, *layers)
+    return write_values_task(sink, 0, tile, (values, None))
 
 
 def write_values_task(sink, band0: int, tile: Box, assembled: tuple[np.ndarray, np.ndarray],
@@ -150,7 +222,7 @@ def _result(sink, saturated, saturated_before, passed):
 
 def assemble_write_task(sink, rule: str, band0: int, tile: Box, nbands: int,
                         boxes: Sequence[Box], saturated_before: np.ndarray | None,
-                        *renders: tuple[np.ndarray, np.ndarray]):
+                        *renders: tuple[np.ndarray, np.ndarray], keys: Sequence[np.ndarray] | None = None):
     """:func:`assemble_task` and :func:`write_values_task` in one: mosaic the renders of one band
     group onto one output tile (one chunk wide) and write it through ``sink``
     (:class:`~archive.outputs.MosaicStore`, :class:`~archive.sinks.EnviSink` or
@@ -163,9 +235,10 @@ def assemble_write_task(sink, rule: str, band0: int, tile: Box, nbands: int,
     Returns, for a sink that records saturation (Zarr), the tile's saturation mask (h, w) bool OR
     ``saturated_before`` (earlier band groups); for the others what the sink's tile writer passes on
     (COG: the tile's quarter of overview level 2, (nbands, ceil(h/4), ceil(w/4)) float32, or None).
+    keys: the 'nadir' rule's view zenith (h, w) of each render.
     """
     if rule != "last":
-        return write_values_task(sink, band0, tile, assemble_task(rule, tile, nbands, boxes, *renders),
+        return write_values_task(sink, band0, tile, assemble_task(rule, tile, nbands, boxes, *renders, keys=keys),
                                  saturated_before)
     if len(boxes) != len(renders):
         raise ValueError(f"{len(boxes)} boxes for {len(renders)} renders")

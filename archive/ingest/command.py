@@ -169,10 +169,11 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
         "navigation": np.concatenate([np.stack([getattr(lcf, c) for c in NAV_COLUMNS], axis=-1) for lcf in lcfs]),
         "navigation_offset": nav_offset,
         "wavelength": np.asarray(first.wavelengths if first.wavelengths else [np.nan] * first.bands, np.float64),
+        "fwhm": np.asarray(first.fwhm if first.fwhm else [np.nan] * first.bands, np.float64),
     }
     dims = {"time": ("line",), "camera_time": ("line",), "cube": ("line",), "position": ("line", "ned"),
             "attitude": ("line", "xyzw"), "response": ("line",), "navigation": ("sample", "column"),
-            "navigation_offset": ("cube_edge",), "wavelength": ("band",)}
+            "navigation_offset": ("cube_edge",), "wavelength": ("band",), "fwhm": ("band",)}
     if any(lcf.use is not None for lcf in lcfs):  # rows flagged 'do not use' (.lcf column 10 = 0)
         arrays["navigation_use"] = np.concatenate([np.ones(len(lcf.time), np.uint8) if lcf.use is None
                                                    else lcf.use.astype(np.uint8) for lcf in lcfs])

@@ -59,6 +59,9 @@ class Lookup:
     line: (height, width) int32 line index within the cube, -1 where not covered.
     sample: (height, width) int32 sample index, -1 where not covered.
     lines, samples: the cube's size. Picklable; holds no GL object.
+    count: (height, width) uint16, how many layers of the cube's mesh cover each pixel centre (1
+        in a plain strip; 2 or more where the strip folds over itself, e.g. in a turn), or None
+        when not asked for (:func:`rasterize_lookup` ``count=True``).
     """
 
     grid: Grid
@@ -66,6 +69,7 @@ class Lookup:
     sample: np.ndarray
     lines: int
     samples: int
+    count: np.ndarray | None = None
 
     @property
     def covered(self) -> np.ndarray:
@@ -149,13 +153,16 @@ class _Owned:
             self.objects.pop().release()
 
 
-def rasterize_lookup(mesh: Mesh, grid: Grid, samples: int, *, max_size: int | None = None) -> Lookup:
+def rasterize_lookup(mesh: Mesh, grid: Grid, samples: int, *, max_size: int | None = None,
+                     count: bool = False) -> Lookup:
     """Pass 1: draw ``mesh`` once onto ``grid`` and record each pixel centre's (line, sample).
 
     mesh: the cube's ground mesh (:func:`archive.render.mesh.build_mesh`), same EPSG as ``grid``.
     samples: samples per line of the cube (the mesh knows only the field of view's ends).
     max_size: largest framebuffer side in pixels (default min(4096, GL limit)); small values force
         window-by-window rendering (for tests).
+    count: also count how many layers of the mesh cover each pixel centre (a second draw of the
+        same mesh with additive blending and the same coverage rule, no depth test).
     Returns a :class:`Lookup` of (height, width) int32 arrays, north row first, -1 where not covered.
     """
     samples = int(samples)
@@ -169,7 +176,8 @@ def rasterize_lookup(mesh: Mesh, grid: Grid, samples: int, *, max_size: int | No
                           "more are not exact in the float lookup target; split the cube")
     line = np.full(grid.shape, -1, np.int32)
     sample = np.full(grid.shape, -1, np.int32)
-    lookup = Lookup(grid, line, sample, int(mesh.lines), samples)
+    counts = np.zeros(grid.shape, np.uint16) if count else None
+    lookup = Lookup(grid, line, sample, int(mesh.lines), samples, counts)
     crop = grid.crop(*mesh.bounds_utm()) if mesh.rows >= 2 else None
     if crop is None:
         return lookup
@@ -216,15 +224,25 @@ def rasterize_lookup(mesh: Mesh, grid: Grid, samples: int, *, max_size: int | No
         if terrain:
             depth_rb = keep(ctx.depth_renderbuffer((fbw, fbh)))
             fbo = keep(ctx.framebuffer(color_attachments=[index_rb], depth_attachment=depth_rb))
-            program["u_far"].value = far
             ctx.enable(moderngl.DEPTH_TEST)
             ctx.depth_func = "<"
         else:
             fbo = keep(ctx.framebuffer(color_attachments=[index_rb]))
-        program["u_inv_gsd"].value = 1.0 / grid.gsd
-        program["u_samples"].value = samples
-        program["u_lo"].value = 0
-        program["u_hi"].value = int(mesh.lines)
+        programs = [program]
+        if count:   # the same mesh, its coverage counted: additive blending into a second target
+            counter = get_program("terrain.vert.glsl" if terrain else "cube.vert.glsl", "lookup.frag.glsl",
+                                  ("COUNT",))
+            count_vao = keep(ctx.vertex_array(counter, [(vbo, "2f 3f 1f" if terrain else "2f 3f", "in_pos",
+                                                         "in_attr", *(["in_dist"] if terrain else []))],
+                                              index_buffer=ibo, index_element_size=4))
+            count_rb = keep(ctx.renderbuffer((fbw, fbh), 2, dtype="f4"))
+            count_fbo = keep(ctx.framebuffer(color_attachments=[count_rb]))
+            programs.append(counter)
+        for prog in programs:
+            for name, value in (("u_inv_gsd", 1.0 / grid.gsd), ("u_samples", samples), ("u_lo", 0),
+                                ("u_hi", int(mesh.lines)), *((("u_far", far),) if terrain else ())):
+                if name in prog:
+                    prog[name].value = value
         for wr, wc, win in windows:
             fbo.use()
             vp = (0, 0, win.width, win.height)
@@ -233,9 +251,10 @@ def rasterize_lookup(mesh: Mesh, grid: Grid, samples: int, *, max_size: int | No
                 fbo.clear(-1.0, -1.0, 0.0, 0.0, depth=1.0, viewport=vp)
             else:
                 fbo.clear(-1.0, -1.0, 0.0, 0.0, viewport=vp)
-            program["u_size"].value = (float(win.width), float(win.height))
-            program["u_centre_px"].value = (
-                (centre_e - win.x0) / grid.gsd, (win.y0 - centre_n) / grid.gsd)
+            for prog in programs:
+                prog["u_size"].value = (float(win.width), float(win.height))
+                prog["u_centre_px"].value = (
+                    (centre_e - win.x0) / grid.gsd, (win.y0 - centre_n) / grid.gsd)
             vao.render(moderngl.TRIANGLES)
             idx = np.frombuffer(fbo.read(viewport=vp, components=2, dtype="f4"), np.float32)
             idx = idx.reshape(win.height, win.width, 2)
@@ -243,6 +262,20 @@ def rasterize_lookup(mesh: Mesh, grid: Grid, samples: int, *, max_size: int | No
             cs = slice(col0 + wc, col0 + wc + win.width)
             line[rs, cs] = idx[..., 0]
             sample[rs, cs] = idx[..., 1]
+            if count:
+                count_fbo.use()
+                count_fbo.clear(0.0, 0.0, 0.0, 0.0, viewport=vp)
+                ctx.disable(moderngl.DEPTH_TEST)
+                ctx.enable(moderngl.BLEND)
+                ctx.blend_func = moderngl.ONE, moderngl.ONE
+                try:
+                    count_vao.render(moderngl.TRIANGLES)
+                finally:
+                    ctx.disable(moderngl.BLEND)
+                    if terrain:
+                        ctx.enable(moderngl.DEPTH_TEST)
+                layers = np.frombuffer(count_fbo.read(viewport=vp, components=2, dtype="f4"), np.float32)
+                counts[rs, cs] = layers.reshape(win.height, win.width, 2)[..., 0]
         _check_gl(ctx, f"rasterizing the lookup of a {mesh.lines}-line cube")
     finally:
         if terrain:

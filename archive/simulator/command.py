@@ -32,7 +32,7 @@ from archive.formats.times import write_times
 from archive.simulator.layout import layout
 from archive.simulator.mount import Mount, camera_path
 from archive.simulator.scene import MATERIALS, Scene, material_spectra, random_waves
-from archive.simulator.sensor import (EXPOSURES, GAIN_CAL, SHUTTER_CAL, Radiometry,
+from archive.simulator.sensor import (EXPOSURES, GAIN_CAL, SHUTTER_CAL, Radiometry, band_fwhm,
                                       make_radiometry, trace_abundance)
 from archive.simulator.terrain import TERRAINS, Terrain, make_terrain, write_dem
 from archive.simulator.trajectory import (FRAMERATE, INS_RATE, Trajectory, convergence,
@@ -348,6 +348,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
         spans = [(t0, min(t1, traj.segment_end(k)) if k < passes - 1 else t1)
                  for k, (t0, t1) in enumerate(spans)]
     wavelengths = np.round(np.linspace(400.0, 1000.0, bands), 3)
+    fwhm = band_fwhm(wavelengths)
     spectra = material_spectra(wavelengths)
     scene = Scene(e0, n0, int(seed), 1.2, random_waves(rng), tuple(layout(traj, spans, rng)),
                   wavelengths, spectra)
@@ -370,7 +371,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                   file=sys.stderr) as bar, ThreadPoolExecutor(workers) as pool:
             for plan in plans:
                 hdr = header_text(samples, lines, bands, wavelengths, plan.shutter_ms, plan.gain_db,
-                                  FRAMERATE, plan.lcf_t0, plan.base, GROUND_HEIGHT)
+                                  FRAMERATE, plan.lcf_t0, plan.base, GROUND_HEIGHT, fwhm=fwhm)
                 jobs = [(plan, i0, plan.line_time[i0:i0 + block]) for i0 in range(0, lines, block)]
                 with BilWriter(tmp / f"{plan.base}.bil", samples, lines, bands, hdr) as out:
                     for dn in _parallel_map(lambda job: _cube_block(job, context), jobs, pool,

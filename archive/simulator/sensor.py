@@ -26,7 +26,7 @@ from scipy.special import ndtri
 from archive.simulator.scene import Scene
 from archive.simulator.trajectory import Trajectory
 
-__all__ = ["CEILING", "EXPOSURES", "GAIN_CAL", "SHUTTER_CAL", "Radiometry", "ground_points",
+__all__ = ["CEILING", "EXPOSURES", "GAIN_CAL", "SHUTTER_CAL", "Radiometry", "band_fwhm", "ground_points",
            "trace_abundance", "make_radiometry"]
 
 CEILING = 4095
@@ -36,6 +36,22 @@ GAIN_CAL = 0.0      #: dB
 EXPOSURES = ((3.0, 0.0), (2.5, 3.0), (3.9, 0.0), (2.6, 6.0))
 WHITE_DN = 2000.0   #: DN of the white panel (reflectance 0.9) at the reference exposure, peak band
 NOISE_DN = 1.0      #: Gaussian read noise, DN
+#: Spectral FWHM (nm) of an unbinned Pika L band at 400 nm and at 1000 nm (linear in between).
+FWHM_NATIVE_NM = (2.5, 3.0)
+
+
+def band_fwhm(wavelengths: np.ndarray) -> np.ndarray:
+    """(bands,) spectral full width at half maximum in nm of bands centred at ``wavelengths`` (nm).
+
+    A Pika L band is 2.5 nm wide at 400 nm, 3.0 nm at 1000 nm; a simulated sensor with fewer
+    bands is a spectrally binned one, whose bands are as wide as their spacing when that is larger.
+    Only the headers' ``fwhm`` uses it: the scene's spectra are sampled at the centres.
+    """
+    lam = np.asarray(wavelengths, float)
+    lo, hi = FWHM_NATIVE_NM
+    native = lo + (hi - lo) * np.clip((lam - 400.0) / 600.0, 0.0, 1.0)
+    spacing = np.abs(np.gradient(lam)) if lam.size > 1 else np.zeros_like(lam)
+    return np.round(np.maximum(native, spacing), 3)
 
 
 # Standard normal quantiles at 65536 equally likely levels: indexing it with uniform 16-bit integers

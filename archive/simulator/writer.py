@@ -21,10 +21,11 @@ __all__ = ["BilWriter", "header_text"]
 
 def header_text(samples: int, lines: int, bands: int, wavelengths: np.ndarray, shutter_ms: float,
                 gain_db: float, framerate: float, gps_time: float, label: str,
-                ground_elevation: float | None = None) -> str:
+                ground_elevation: float | None = None, fwhm: np.ndarray | None = None) -> str:
     """Resonon-like raw header. ``timestamp`` is the GPS time of the first line, not UTC-corrected
     (as Resonon writes it). ``ground_elevation`` (m, same datum as the .lcf altitude), as the 2023
-    acquisition software records it, lets ``--ground-height auto`` work."""
+    acquisition software records it, lets ``--ground-height auto`` work. ``wavelengths`` and
+    ``fwhm`` (bands,) nm; ``fwhm`` (spectral full width at half maximum) is left out when None."""
     stamp = (GPS_EPOCH + timedelta(seconds=float(gps_time))).strftime("%m/%d/%Y-%Hh%Mm%Ss")
     wl = ", ".join(f"{w:.3f}" for w in np.asarray(wavelengths, float))
     rows = [
@@ -47,6 +48,7 @@ def header_text(samples: int, lines: int, bands: int, wavelengths: np.ndarray, s
         "header offset = 0",
         "wavelength units = nm",
         f"wavelength = {{{wl}}}",
+        *([] if fwhm is None else ["fwhm = {" + ", ".join(f"{w:.3f}" for w in np.asarray(fwhm, float)) + "}"]),
         "direction = logo right",
         "flip radiometric calibration = False",
         f"timestamp = {stamp}",

@@ -83,6 +83,8 @@ class FlightSource(Protocol):
     id: the flight's id (a collection id, or ``<directory name>-<first .lcf time>``);
     label: what messages name (the directory, the store path); frame: the local NED frame;
     cubes: per cube, shape and exposure; wavelengths: nm per band (None if the headers have none);
+    fwhm: full width at half maximum of each band's spectral response, nm (the first cube's
+    ``fwhm``; None if it has none);
     params: the navigation parameters poses are computed with; fov_deg: the field of view the source
     records (a collection's, as ingested), None if it records none; ground_height: the ground
     height (m, .lcf altitude datum) it records (a collection's, as ingested), None if none;
@@ -95,6 +97,7 @@ class FlightSource(Protocol):
     frame: LocalFrame
     cubes: tuple[CubeInfo, ...]
     wavelengths: tuple[float, ...] | None
+    fwhm: tuple[float, ...] | None
     params: NavigationParams
     fov_deg: float | None
     ground_height: float | None

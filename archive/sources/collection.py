@@ -47,6 +47,7 @@ class CollectionSource(NavigatedSource):
             [CubeNavigation(c.camera_time, c.lcf, c.header.shutter, self._where(c.index, c.base))
              for c in info.cubes], self.frame, params)
         self.wavelengths = self._headers[0].wavelengths
+        self.fwhm = info.fwhm
         self.cubes = tuple(
             CubeInfo(index=i, base=c.base, lines=h.lines, samples=h.samples, bands=h.bands,
                      wavelengths=h.wavelengths, shutter_ms=h.shutter, gain_db=h.gain, framerate=h.framerate,

@@ -26,11 +26,13 @@ class MemoryFlightSource:
     dark, gain: (bands, samples) calibration terms shared by all cubes (no ``gain``: no
     calibration; no ``dark``: 0); responses: per cube (lines,) exposure factors (None: 1);
     white_reference: (bands,). 'relative' uses dark (or 0), gain 1 and the responses.
+    wavelengths, fwhm: (bands,) band centres and spectral widths (full width at half maximum), nm.
     fov_deg, ground_height: what the source records (None: nothing).
     """
 
     def __init__(self, data: Sequence[np.ndarray], poses: Sequence[Poses], *, id: str = "memory",
-                 wavelengths: Sequence[float] | None = None, dark: np.ndarray | None = None,
+                 wavelengths: Sequence[float] | None = None, fwhm: Sequence[float] | None = None,
+                 dark: np.ndarray | None = None,
                  gain: np.ndarray | None = None, responses: Sequence[np.ndarray] | None = None,
                  bit_depth: int | None = None, white_reference: np.ndarray | None = None,
                  framerate: float | None = None, shutter_ms: float | None = None, gain_db: float | None = None,
@@ -55,6 +57,7 @@ class MemoryFlightSource:
             if p.frame != self.frame:
                 raise InputError(id, f"cube {i} poses are in another frame")
         self.wavelengths = None if wavelengths is None else tuple(float(w) for w in wavelengths)
+        self.fwhm = None if fwhm is None else tuple(float(w) for w in fwhm)
         self._dark = None if dark is None else np.asarray(dark, np.float32)
         self._gain = None if gain is None else np.asarray(gain, np.float32)
         self.has_calibration = self._gain is not None
@@ -66,6 +69,7 @@ class MemoryFlightSource:
                                        "data type": _ENVI_TYPES.get(d.dtype.newbyteorder("="), 4),
                                        "interleave": "bsq", "byte order": 0}
             for key, value in (("wavelength", None if wavelengths is None else list(self.wavelengths)),
+                               ("fwhm", None if fwhm is None else list(self.fwhm)),
                                ("bit depth", bit_depth), ("framerate", framerate), ("shutter", shutter_ms),
                                ("gain", gain_db)):
                 if value is not None:

@@ -88,6 +88,7 @@ class RawFlightSource(NavigatedSource):
                 raise InputError(c.header.path, f"{c.header.bands} bands, but {first.path.name} has {first.bands}",
                                  "a flight's cubes must share their bands")
         self.wavelengths: tuple[float, ...] | None = first.wavelengths
+        self.fwhm: tuple[float, ...] | None = first.fwhm
         self.navigation = FlightNavigation(nav, frame, params)
         self.cubes: tuple[CubeInfo, ...] = tuple(
             CubeInfo(index=i, base=c.files.base, lines=c.header.lines, samples=c.header.samples,

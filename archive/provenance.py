@@ -1,0 +1,207 @@
+"""Provenance layers: for every output pixel, the raw pixel it took its value from and the geometry
+it was seen under (``archive render --provenance``).
+
+The layers, all float32 on the output grid (north row first), NaN where no line covers the pixel:
+
+============== ========= ==============================================================================
+name           units     meaning
+============== ========= ==============================================================================
+cube           1         index of the cube in the job's cube table (0-based; the output's
+                         ``provenance_cubes`` attribute lists, per index, the source id — a
+                         collection id identifies the flight in its archive —, the cube's file
+                         base name and its index within the flight)
+line           1         0-based line of that cube (its exposure is the pixel's value)
+sample         1         0-based sample of that line
+time           s         exposure-start time of the line, seconds since ``time_reference`` (an ISO
+                         8601 UTC instant, the job's first line floored to the second; CF units
+                         ``seconds since <time_reference>``). UTC, leap seconds removed.
+view_zenith    degree    angle between the vertical and the ground-to-sensor direction, 0 = nadir
+view_azimuth   degree    azimuth of the ground-to-sensor direction, clockwise from TRUE north, 0..360
+path_length    m         distance from the ground point to the sensor (camera at mid-exposure)
+sun_zenith     degree    solar zenith (topocentric, no refraction: NREL SPA via pvlib) at the line's
+                         time and the camera's nadir position
+sun_azimuth    degree    solar azimuth, clockwise from true north, 0..360
+overlap_count  1         how many layers of the job's line meshes cover the pixel centre (passes; a
+                         fold at a turn counts each layer), whatever rule picked the value
+============== ========= ==============================================================================
+
+cube, line and sample are integers stored exactly (float32 holds every integer below 2^24). The
+ground point of a pixel is its centre at the ground height the meshes used (flat ground), or at the
+DEM's height there (``--dem``). The geometry is the camera's at mid-exposure of the pixel's line, in
+the output grid (projected metres; azimuths turned to true north by the grid convergence at the
+camera). Within one render the layers follow the mosaic rule: they describe exactly the written pixel.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from datetime import UTC, datetime, timedelta
+
+import numpy as np
+
+from archive.errors import InputError
+
+__all__ = ["LAYERS", "Layer", "NADIR_KEY", "ProvenanceSpec", "cube_layers", "layer_index", "provenance_spec",
+           "sun_position"]
+
+
+@dataclass(frozen=True)
+class Layer:
+    """One provenance layer: name, CF-style units and a one-line description."""
+
+    name: str
+    units: str
+    description: str
+
+
+LAYERS: tuple[Layer, ...] = (
+    Layer("cube", "1", "index of the source cube in the provenance_cubes table (0-based)"),
+    Layer("line", "1", "0-based line of the source cube"),
+    Layer("sample", "1", "0-based sample of the source line"),
+    Layer("time", "s", "exposure start of the source line, seconds since time_reference (UTC)"),
+    Layer("view_zenith", "degree", "view zenith angle, ground to sensor"),
+    Layer("view_azimuth", "degree", "view azimuth, ground to sensor, clockwise from true north"),
+    Layer("path_length", "m", "distance from the ground point to the sensor"),
+    Layer("sun_zenith", "degree", "solar zenith angle (topocentric, without refraction)"),
+    Layer("sun_azimuth", "degree", "solar azimuth, clockwise from true north"),
+    Layer("overlap_count", "1", "layers of the job's line meshes covering the pixel centre"),
+)
+#: The layer the 'nadir' overlap rule minimises.
+NADIR_KEY = "view_zenith"
+
+
+def layer_index(name: str) -> int:
+    """Position of layer ``name`` in :data:`LAYERS`."""
+    for i, layer in enumerate(LAYERS):
+        if layer.name == name:
+            return i
+    raise KeyError(name)
+
+
+@dataclass(frozen=True)
+class ProvenanceSpec:
+    """What the per-cube layers of one output need besides the cube: the output CRS, the time
+    reference (``reference_gps``: GPS seconds on the sources' .lcf scale of ``reference_utc``), the
+    cube table (one dict per job, in job order), the ground (flat height per source, m, or a
+    :class:`archive.dem.DemSpec`) and the layers to compute (all of :data:`LAYERS`, or only the
+    nadir rule's key)."""
+
+    epsg: int
+    reference_gps: float
+    reference_utc: str
+    cubes: tuple = field(default=(), compare=False)
+    grounds: tuple = ()
+    dem: object = None
+    names: tuple[str, ...] = tuple(layer.name for layer in LAYERS)
+
+    @property
+    def time_units(self) -> str:
+        """CF units of the time layer."""
+        return f"seconds since {self.reference_utc}"
+
+    def __dask_tokenize__(self):
+        return ("ProvenanceSpec", self.epsg, self.reference_gps, self.grounds, self.dem, self.names)
+
+
+def provenance_spec(plan, sources, grounds, dem=None, names: tuple[str, ...] | None = None) -> ProvenanceSpec:
+    """The :class:`ProvenanceSpec` of a render plan (:class:`archive.graph.plan.RenderPlan`):
+    time reference = the first line of the job, floored to the UTC second."""
+    from archive.formats.lcf import gps_seconds_to_datetime
+
+    first = min(float(sources[job.source].cubes[job.cube].first_time) for job in plan.jobs)
+    utc = gps_seconds_to_datetime(first)
+    fraction = utc.microsecond / 1e6
+    utc = utc.replace(microsecond=0)
+    cubes = tuple({"index": j, "source": str(sources[job.source].id), "cube": sources[job.source].cubes[job.cube].base,
+                   "cube_index": int(job.cube)} for j, job in enumerate(plan.jobs))
+    return ProvenanceSpec(int(plan.grid.epsg), first - fraction, utc.strftime("%Y-%m-%dT%H:%M:%SZ"), cubes,
+                          tuple(None if g is None else float(g) for g in grounds), dem,
+                          tuple(layer.name for layer in LAYERS) if names is None else tuple(names))
+
+
+def sun_position(unix_s: np.ndarray, lat_deg: np.ndarray, lon_deg: np.ndarray, height_m: np.ndarray,
+                 delta_t: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(zenith, azimuth) of the sun in degrees, topocentric and without atmospheric refraction,
+    azimuth clockwise from true north in 0..360, at UTC ``unix_s`` (seconds since 1970-01-01),
+    WGS-84 latitude/longitude (degrees) and height (m), all broadcast to ``unix_s``'s shape (1-D).
+    NREL's SPA (Reda & Andreas 2004, ±0.0003° over -2000..6000; pvlib's implementation); delta_t:
+    TT - UT1 in seconds (default: pvlib's estimate for the month, within ~1 s of the observed one)."""
+    from pvlib import spa
+
+    unix_s = np.atleast_1d(np.asarray(unix_s, float))
+    lat, lon, height = (np.broadcast_to(np.asarray(v, float), unix_s.shape) for v in (lat_deg, lon_deg, height_m))
+    if unix_s.size == 0:
+        return np.zeros(0), np.zeros(0)
+    if delta_t is None:
+        middle = datetime(1970, 1, 1) + timedelta(seconds=float(np.median(unix_s)))
+        delta_t = float(spa.calculate_deltat(middle.year, middle.month))
+    # pressure and temperature only enter the refraction term, which is not used here
+    _, zenith, _, _, azimuth, _ = spa.solar_position_numpy(unix_s, lat, lon, height, 1013.25, 12.0, delta_t,
+                                                           0.5667, 1)
+    return np.asarray(zenith, float), np.asarray(azimuth, float) % 360.0
+
+
+def _line_geometry(source, cube: int, spec: ProvenanceSpec):
+    """Per line of ``cube``: time (s since the reference), camera (E, N, height) in the output CRS
+    at mid-exposure, grid bearing of true north (rad) and the sun's (zenith, azimuth), degrees."""
+    from archive.navigation import grid_convergence, reproject, to_lonlat
+
+    info = source.cubes[cube]
+    poses = source.poses(cube, delay=(info.shutter_ms or 0.0) / 2000.0)
+    e, n, h = (np.asarray(v, float) for v in poses.frame.from_ned(poses.position))
+    lon, lat = to_lonlat(e, n, poses.frame.epsg)
+    if poses.frame.epsg != spec.epsg:
+        e, n = reproject(e, n, poses.frame.epsg, spec.epsg)
+    start = np.asarray(source.line_times(cube), float)
+    seconds = start - spec.reference_gps
+    reference = datetime.strptime(spec.reference_utc, "%Y-%m-%dT%H:%M:%SZ").replace(tzinfo=UTC)
+    unix = reference.timestamp() + seconds
+    north = grid_convergence(lon, lat, spec.epsg)
+    sun_zenith, sun_azimuth = sun_position(unix, lat, lon, h)
+    return seconds, np.stack([e, n, h], axis=-1), north, sun_zenith, sun_azimuth
+
+
+def cube_layers(source, cube: int, job: int, lookup, spec: ProvenanceSpec, ground: float | None = None
+                ) -> np.ndarray:
+    """The layers ``spec.names`` of one cube on its window (``lookup.grid``), (len(names), h, w)
+    float32, NaN where the cube does not cover the pixel.
+
+    lookup: the cube's :class:`archive.render.renderer.Lookup` (with ``count`` when 'overlap_count'
+    is asked); job: the cube's index in the job (the 'cube' layer); ground: the flat ground height
+    (m) the mesh used, ignored with ``spec.dem``.
+    """
+    grid = lookup.grid
+    out = np.full((len(spec.names), grid.height, grid.width), np.nan, np.float32)
+    rows, cols = np.nonzero(lookup.line >= 0)
+    if rows.size == 0:
+        return out
+    line = lookup.line[rows, cols]
+    seconds, camera, north, sun_zenith, sun_azimuth = _line_geometry(source, cube, spec)
+    x = grid.x0 + (cols + 0.5) * grid.gsd
+    y = grid.y0 - (rows + 0.5) * grid.gsd
+    if spec.dem is not None:
+        z = spec.dem.open().heights_at(spec.epsg, x, y)
+    else:
+        if ground is None or not math.isfinite(ground):
+            raise InputError("ground height", "provenance layers need the ground height of a flat mesh")
+        z = np.full(x.shape, float(ground))
+    d = camera[line] - np.stack([x, y, z], axis=-1)       # ground -> sensor, (E, N, up) metres
+    horizontal = np.hypot(d[:, 0], d[:, 1])
+    values = {
+        "cube": lambda: np.full(rows.size, job, np.float32),
+        "line": lambda: line,
+        "sample": lambda: lookup.sample[rows, cols],
+        "time": lambda: seconds[line],
+        "view_zenith": lambda: np.degrees(np.arctan2(horizontal, d[:, 2])),
+        "view_azimuth": lambda: np.degrees(np.arctan2(d[:, 0], d[:, 1]) - north[line]) % 360.0,
+        "path_length": lambda: np.sqrt(horizontal**2 + d[:, 2] ** 2),
+        "sun_zenith": lambda: sun_zenith[line],
+        "sun_azimuth": lambda: sun_azimuth[line],
+        "overlap_count": lambda: lookup.count[rows, cols],
+    }
+    for i, name in enumerate(spec.names):
+        if name == "overlap_count" and lookup.count is None:
+            raise ValueError("the lookup has no count: rasterize it with count=True")
+        out[i, rows, cols] = values[name]()
+    return out
