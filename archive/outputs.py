@@ -789,7 +789,12 @@ class Output:
         sibling = self.provenance_path
         if sibling is not None:
             paths += [envi_data_path(sibling), sibling] if self.format == "envi" else [sibling]
-        return paths + ([self.quicklook] if self.quicklook is not None else [])
+        return paths + [self.item_path] + ([self.quicklook] if self.quicklook is not None else [])
+
+    @property
+    def item_path(self) -> Path:
+        """The output's STAC Item, ``<out>.json`` (:mod:`archive.catalog.product`)."""
+        return self.path.with_name(self.path.name + ".json")
 
     def check(self) -> None:
         """OutputExistsError if a final path exists and overwrite is off; InputError for a parent
@@ -856,7 +861,7 @@ class Output:
         nb = len(spec.names)
         try:
             if self.format == "zarr":
-                add_zarr_layers(self._sink.path, grid, spec)
+                add_zarr_layers(self._sink.path, grid, spec, geozarr_attrs(grid))
                 layers = LayersStore(self._sink.path, tuple(spec.names))
             elif self.format == "envi":
                 layers = EnviSink.create(self._temp(envi_data_path(self.provenance_path)), nb, grid.height, grid.width)
@@ -891,8 +896,10 @@ class Output:
         header.write_text(layers_envi_header(grid, spec, _envi_map_info(grid)), encoding="ascii")
         return [(Path(layers.data), envi_data_path(sibling)), (header, sibling)]
 
-    def finalize(self, sink=None) -> None:
-        """Finish the output (ENVI header, COG layout) and move everything into place."""
+    def finalize(self, sink=None, item=None) -> None:
+        """Finish the output (ENVI header, COG layout) and move everything into place; then, with
+        ``item`` (a function returning the output's STAC Item, a dict, made from the files in
+        place), write ``<out>.json`` last: an Item beside an output says it is complete."""
         sink = self._sink if sink is None else sink
         meta = self._meta
         grid = meta.grid
@@ -919,6 +926,10 @@ class Output:
         self.check()  # something may have appeared meanwhile
         for tmp, final in moves:
             _replace(tmp, final)
+        if item is not None:
+            from archive.catalog.stac import write_item
+
+            write_item(self.item_path, item())
 
     def cleanup(self) -> None:
         """Remove every temporary this output created (never the final paths)."""

@@ -733,6 +733,26 @@ class _Job:
     planned: OutputPlan
     sink: object
     graph: object
+    request: RenderRequest | None = None  #: what renders this output alone again (its recipe)
+
+    def item(self) -> dict:
+        """The output's STAC Item (:func:`archive.catalog.product.product_item`): grid, bands,
+        processing attributes, time span of its lines, and the recipe (the command that renders it
+        again)."""
+        from archive.catalog.product import product_item, render_command
+        from archive.formats.lcf import gps_seconds_to_datetime
+
+        planned, output = self.planned, self.output
+        plan = planned.plan
+        first = min(float(planned.sources[j.source].line_times(j.cube)[0]) for j in plan.jobs)
+        last = max(float(planned.sources[j.source].line_times(j.cube)[-1]) for j in plan.jobs)
+        command = render_command(self.request, output.path, quicklook=output.quicklook, provenance=output.provenance)
+        return product_item(output.path, fmt=output.format, grid=plan.grid, band_indices=plan.bands[0],
+                            wavelengths=planned.wavelengths, fwhm=planned.fwhm, variable=planned.variable,
+                            attrs=planned.attrs, start=gps_seconds_to_datetime(first),
+                            end=gps_seconds_to_datetime(last), sources=list(self.request.sources),
+                            command=command, request=self.request,
+                            provenance=(output.provenance_path or output.path) if output.provenance else None)
 
 
 def _say(quiet: bool):
@@ -782,7 +802,8 @@ def render(request: RenderRequest, out: str | os.PathLike, *, quicklook: str | o
         for output, idx in zip(outputs, members):
             planned = plan_output(inputs, idx, budget=budget)
             sink, graph = build_output(planned, output)
-            jobs.append(_Job(output, planned, sink, graph))
+            recipe = request.with_sources([request.sources[i] for i in idx]) if per_flight else request
+            jobs.append(_Job(output, planned, sink, graph, recipe))
         graph = RenderGraph(tuple(w for j in jobs for w in j.graph.writes), sum(j.graph.renders for j in jobs),
                             sum(j.graph.assemblies for j in jobs))
         t = time.perf_counter()
@@ -790,7 +811,7 @@ def render(request: RenderRequest, out: str | os.PathLike, *, quicklook: str | o
             _execute(client, graph, quiet, shared=cluster is None)
         graph_seconds = time.perf_counter() - t
         for job in jobs:
-            job.output.finalize(job.sink)
+            job.output.finalize(job.sink, item=job.item)
     finally:
         if client is not None:
             client.close()
@@ -890,6 +911,8 @@ def mosaic(request: RenderRequest, *, band_group: int | None = None, quiet: bool
     coords = {"band": np.asarray(planned.plan.bands[0], dtype=np.int32), "y": y, "x": x}
     if planned.wavelengths is not None:
         coords["wavelength"] = ("band", np.asarray(planned.wavelengths, dtype=np.float64))
+    if planned.fwhm is not None:
+        coords["fwhm"] = ("band", np.asarray(planned.fwhm, dtype=np.float64))
     variable = planned.variable
     ds = xr.Dataset({variable: (("band", "y", "x"), values), "saturated": (("y", "x"), saturated)}, coords=coords)
     ds[variable].attrs.update({"long_name": variable, "_description": "NaN where no image line covers the pixel"})
@@ -902,6 +925,8 @@ def mosaic(request: RenderRequest, *, band_group: int | None = None, quiet: bool
     ds = ds.rio.write_crs(grid.epsg).rio.write_transform(grid.transform)
     if planned.wavelengths is not None:
         ds["wavelength"].attrs.update({"units": "nm", "long_name": "band centre wavelength"})
+        if planned.fwhm is not None:
+            ds["fwhm"].attrs.update({"units": "nm", "long_name": "band spectral full width at half maximum"})
         if len(set(planned.wavelengths)) == len(planned.wavelengths):
             ds = ds.set_xindex("wavelength")
     return ds

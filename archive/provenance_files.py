@@ -2,7 +2,8 @@
 
 - Zarr output: extra (y, x) float32 variables of the same store, one per layer, chunked like the
   values (1024 x 1024), NaN fill, CF attributes (``units``, ``long_name``, ``grid_mapping``; the
-  time layer's ``units`` = ``seconds since <time_reference>``, so xarray decodes it as datetime64).
+  time layer's ``units`` = ``seconds since <time_reference>``, so xarray decodes it as datetime64)
+  and the GeoZarr ``proj:`` / ``spatial:`` attributes of the values.
 - COG output ``<stem>.tif``: a sibling COG ``<stem>_provenance.tif``, one float32 band per layer
   (band descriptions = layer names), NaN nodata, overviews by nearest neighbour (an average of
   line numbers would be no line at all).
@@ -64,9 +65,10 @@ def _common(spec: ProvenanceSpec) -> dict:
             "provenance_nodata": "NaN"}
 
 
-def add_zarr_layers(path: str | os.PathLike, grid: Grid, spec: ProvenanceSpec) -> None:
+def add_zarr_layers(path: str | os.PathLike, grid: Grid, spec: ProvenanceSpec, grid_attrs: dict | None = None) -> None:
     """Add the (y, x) float32 layer variables of ``spec`` to the mosaic store at ``path`` (metadata
-    only: unwritten chunks read as NaN), with their attributes, and the cube table at the root."""
+    only: unwritten chunks read as NaN), with their attributes (plus ``grid_attrs``, the store's
+    GeoZarr attributes of ``grid``), and the cube table at the root."""
     import dask.array as da
     import xarray as xr
 
@@ -76,6 +78,7 @@ def add_zarr_layers(path: str | os.PathLike, grid: Grid, spec: ProvenanceSpec) -
     ds = xr.Dataset(data, coords={"y": y, "x": x})
     for name in spec.names:
         ds[name].attrs.update(layer_attrs(spec, name))
+        ds[name].attrs.update(grid_attrs or {})
         ds[name].encoding.update({"chunks": (CHUNK, CHUNK), "_FillValue": np.float32(np.nan)})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")   # consolidated metadata is not in the Zarr v3 spec yet

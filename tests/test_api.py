@@ -139,7 +139,7 @@ def test_render_from_python_writes_what_the_cli_writes(flight, cli_zarr, schedul
     # the same keywords as the CLI's text, and the same refusal of an existing output
     with pytest.raises(OutputExistsError):
         archive.render(str(directory), out, gsd=GSD, fov=FOV, wavelengths="520,880", scheduler=scheduler)
-    assert sorted(p.name for p in out.parent.iterdir()) == ["m.zarr"]
+    assert sorted(p.name for p in out.parent.iterdir()) == ["m.zarr", "m.zarr.json"]
 
 
 def test_bad_keywords_fail_like_the_cli(flight, tmp_path):

@@ -325,7 +325,7 @@ def test_interrupted_job_leaves_no_output_and_rerun_completes(flights, cluster, 
     _same(got_values, values)
     assert np.array_equal(got_saturated, saturated)
     # the rerun removed what the killed run left behind
-    assert [p.name for p in tmp_path.iterdir()] == ["interrupted.zarr"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["interrupted.zarr", "interrupted.zarr.json"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -417,7 +417,7 @@ def test_batch_job_over_the_catalog(flights, cluster, reference, tmp_path):
     done = subprocess.run(base + ["--query-bbox", "-89.95,35.11,-89.93,35.13", "--out", str(out)],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
-    assert sorted(p.name for p in out.iterdir()) == [f"{i}.zarr" for i in ids]
+    assert sorted(p.name for p in out.iterdir()) == sorted(f"{i}.zarr{x}" for i in ids for x in ("", ".json"))
     assert done.stdout.count("archive render: wrote ") == 2
     x_ref, y_ref = ref_ds["x"].values, ref_ds["y"].values
     for cid in ids:

@@ -179,7 +179,8 @@ def test_killed_while_writing_leaves_nothing_and_rerun_is_identical(flight, rend
     assert left and all(".partial-" in n and n.startswith(".") for n in left), left
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
-    finals = {"m.zarr": ["m.zarr"], "m.tif": ["m.tif"], "m.hdr": ["m", "m.hdr"]}[name]
+    finals = {"m.zarr": ["m.zarr", "m.zarr.json"], "m.tif": ["m.tif", "m.tif.json"],
+              "m.hdr": ["m", "m.hdr", "m.hdr.json"]}[name]  # the output and its STAC Item
     assert sorted(p.name for p in tmp_path.iterdir()) == finals  # the killed run's temporaries are gone
     if name == "m.zarr":
         got = xr.open_zarr(out)["radiance"].values

@@ -163,7 +163,7 @@ def test_cog_and_envi_with_selected_wavelengths(rendered, flight, scheduler, tmp
     text = hdr.read_text()
     assert "wavelength = {760.0000}" in text and "map info = {UTM, 1, 1," in text
     _same(np.fromfile(tmp_path / "m", "<f4").reshape(full[3:4].shape), full[3:4])
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["m", "m.hdr", "m.tif", "q.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m", "m.hdr", "m.hdr.json", "m.tif", "m.tif.json", "q.png"]
 
 
 def test_subprocess_with_its_own_local_cluster(flight, tmp_path):

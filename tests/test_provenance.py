@@ -300,3 +300,34 @@ def test_the_lazy_mosaic_applies_the_nadir_rule_as_the_render(flight, rendered):
     lazy = archive.mosaic(directory, gsd=GSD, fov=FOV, mode="raw", overlap="nadir")
     written = _open(rendered["nadir"])
     assert np.array_equal(lazy["dn"].values, written["dn"].values, equal_nan=True)
+
+
+def test_view_zenith_over_terrain_uses_the_dem_heights(tmp_path_factory):
+    """Over hills rendered with --dem, the ground point of a pixel is the DEM's: view zenith and
+    path length match the true camera and the true terrain height at the pixel."""
+    from archive.simulator.command import simulate_flight
+
+    directory = tmp_path_factory.mktemp("provenance-hills") / "flight"
+    truth = simulate_flight(directory, terrain="hills", cubes=2, cubes_per_pass=2, bands=3, samples=64,
+                            lines=150, seed=21)
+    out = directory.parent / "hills.zarr"
+    assert main(["render", str(directory), "--fov", str(FOV), "--gsd", str(GSD), "--dem", str(directory / "dem.tif"),
+                 "--mode", "raw", "--out", str(out), "--quiet", "--provenance"]) == 0
+    ds = _open(out)
+    rows, cols = _covered(ds)
+    pick = np.random.default_rng(2).choice(rows.size, 3000, replace=False)
+    rows, cols = rows[pick], cols[pick]
+    x, y = _pixel_xy(ds, rows, cols)
+    table = _cubes(directory, ds)
+    cube_index = np.array([table[int(c)]["cube_index"] for c in ds["cube"].values[rows, cols]])
+    line = ds["line"].values[rows, cols].astype(int)
+    camera = np.empty((rows.size, 3))
+    for c in np.unique(cube_index):
+        at = cube_index == c
+        camera[at] = _true_camera(truth, c, line[at])
+    ground = truth.ground_height_at(x, y)
+    assert np.ptp(ground) > 2.0                     # real relief under the checked pixels
+    d = camera - np.stack([x, y, ground], axis=1)
+    zenith = np.degrees(np.arctan2(np.hypot(d[:, 0], d[:, 1]), d[:, 2]))
+    assert np.max(np.abs(ds["view_zenith"].values[rows, cols] - zenith)) < 0.05
+    assert np.max(np.abs(ds["path_length"].values[rows, cols] - np.linalg.norm(d, axis=1))) < 0.05

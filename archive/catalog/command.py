@@ -1,4 +1,4 @@
-"""``archive catalog search|list|rebuild``."""
+"""``archive catalog search|list|rebuild|validate``."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 import json
 
 from archive.catalog.index import (IndexRow, ensure_index, parse_bbox, parse_datetime_range, read_item_file,
-                                   rebuild_index, search)
+                                   search)
 from archive.catalog.root import ArchiveRoot, open_archive
 from archive.catalog.stac import item_collection
 
@@ -36,6 +36,34 @@ def _print(root: ArchiveRoot, rows: list[IndexRow], as_json: bool) -> None:
         print(format_table(rows))
 
 
+def _validate(args: argparse.Namespace) -> int:
+    """``archive catalog validate``: every STAC file of the archive (root Catalog, Collection,
+    Items) and the files given, against the vendored schemas; exit 1 when any fails."""
+    from pathlib import Path
+
+    from archive.catalog.validate import validation_errors
+    from archive.errors import ArchiveError, InputError
+
+    files = [Path(f) for f in args.files]
+    if args.archive is not None:
+        root = open_archive(args.archive)
+        files = [root.catalog_path, root.collection_path, *sorted(root.items.glob("*.json")), *files]
+    if not files:
+        raise InputError(None, "nothing to validate", "give --archive ARCHIVE and/or STAC JSON files")
+    bad = 0
+    for path in files:
+        try:
+            errors = validation_errors(path)
+        except ArchiveError as exc:  # missing or unreadable
+            errors = [f"{exc} (run 'archive catalog rebuild')" if args.archive is not None else str(exc)]
+        bad += bool(errors)
+        print(f"{path}: {'INVALID' if errors else 'valid'}")
+        for e in errors[:20]:
+            print(f"  {e}")
+    print(f"{len(files) - bad} of {len(files)} valid")
+    return 1 if bad else 0
+
+
 def run(args: argparse.Namespace) -> int:
     """CLI handler of ``archive catalog``."""
     # Parse the filters before touching the archive, so that a malformed query fails the same way
@@ -48,16 +76,22 @@ def run(args: argparse.Namespace) -> int:
             from archive.errors import InputError
 
             raise InputError("--wavelength", f"{wavelength} is not a positive wavelength in nm")
+    if args.catalog_command == "validate":
+        return _validate(args)
     root = open_archive(args.archive)
     if args.catalog_command == "rebuild":
+        from archive.catalog.tree import write_catalog
+
         if getattr(args, "items", False):
             from archive.catalog.describe import item_for_collection
             from archive.catalog.stac import write_item
 
             for cid in root.collection_ids():
                 write_item(root.item_path(cid), item_for_collection(root, cid))
-        n = rebuild_index(root)
+        catalog = write_catalog(root, rescan=True)  # links the Items, rebuilds the index from them
+        n = len(search(root.index_path))
         print(f"{root.index_path}: {n} item{'s' if n != 1 else ''} indexed")
+        print(f"{catalog}: STAC catalog of {n} item{'s' if n != 1 else ''}")
         return 0
     index = ensure_index(root)
     if args.catalog_command == "list":

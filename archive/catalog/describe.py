@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from datetime import datetime
 
+import numpy as np
 
 from archive.catalog.footprint import flight_footprint, recorded_footprint
 from archive.catalog.index import add_rows, rebuild_index, row_from_item
 from archive.catalog.root import ArchiveRoot
 from archive.catalog.stac import make_item, write_item
+from archive.catalog.tree import COLLECTION_ID, item_links, write_catalog
 from archive.collection import read_info, read_poses
 from archive.errors import FormatError
 
@@ -16,7 +18,8 @@ from archive.errors import FormatError
 def item_for_collection(root: ArchiveRoot, cid: str) -> dict:
     """The STAC Item of collection ``cid``: footprint from the stored per-line poses (with the
     ingest's navigation parameters) at the stored ground height, or as traced on the DEM at ingest
-    (``archive ingest --dem``), times, wavelengths, sensor, nominal GSD."""
+    (``archive ingest --dem``), times, wavelengths and FWHM, sensor, nominal GSD, DN data type,
+    the software version that ingested it, and its place in the archive's STAC tree."""
     store = root.require_collection(cid)
     info = read_info(store, navigation=False)
     attrs = info.attrs
@@ -46,14 +49,19 @@ def item_for_collection(root: ArchiveRoot, cid: str) -> dict:
     if terrain:
         extra["archive:dem"] = terrain.get("dem")
         extra["archive:dem_datum"] = terrain.get("datum")
+    software = str(attrs.get("archive:software") or "")
     return make_item(
         cid, fp.geometry(), fp.bbox(), datetime.fromisoformat(attrs["start_datetime"]),
         datetime.fromisoformat(attrs["end_datetime"]), wavelengths, bands,
-        attrs.get("sensor"), fp.gsd, f"../../collections/{cid}.zarr", extra)
+        attrs.get("sensor"), fp.gsd, f"../../collections/{cid}.zarr", extra,
+        fwhm=getattr(rec, "fwhm", None), data_type=np.dtype(attrs["dtype"]).name if attrs.get("dtype") else None,
+        collection=COLLECTION_ID, links=item_links(),
+        software=software.removeprefix("archive ").strip() or None)
 
 
 def catalog_collection(root: ArchiveRoot, cid: str) -> dict:
-    """Write (or rewrite) the Item of ``cid`` and upsert its index row. Returns the Item."""
+    """Write (or rewrite) the Item of ``cid``, upsert its index row and rewrite the archive's root
+    Catalog and Collection (:func:`archive.catalog.tree.write_catalog`). Returns the Item."""
     item = item_for_collection(root, cid)
     path = write_item(root.item_path(cid), item)
     rel = path.relative_to(root.path).as_posix()
@@ -61,4 +69,5 @@ def catalog_collection(root: ArchiveRoot, cid: str) -> dict:
         add_rows(root.index_path, [row_from_item(item, rel)])
     else:  # a lost index: rebuild it from every Item (this one included)
         rebuild_index(root)
+    write_catalog(root)
     return item

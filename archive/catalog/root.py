@@ -5,6 +5,8 @@ Layout::
     <ARCHIVE>/archive.json                   {"format": "archive", "version": 1}
     <ARCHIVE>/collections/<id>.zarr          completed collections (Zarr v3)
     <ARCHIVE>/collections/<id>.zarr.partial  an ingest in progress (never listed)
+    <ARCHIVE>/catalog.json                   STAC Catalog, the root (links to the Collection)
+    <ARCHIVE>/catalog/collection.json        STAC Collection of the archive (links to every Item)
     <ARCHIVE>/catalog/items/<id>.json        one STAC Item per completed collection
     <ARCHIVE>/catalog/index.sqlite           the query index, rebuildable from the Items
 """
@@ -53,6 +55,16 @@ class ArchiveRoot:
     @property
     def index_path(self) -> Path:
         return self.path / "catalog" / "index.sqlite"
+
+    @property
+    def catalog_path(self) -> Path:
+        """The root STAC Catalog, ``<ARCHIVE>/catalog.json``."""
+        return self.path / "catalog.json"
+
+    @property
+    def collection_path(self) -> Path:
+        """The archive's STAC Collection, ``<ARCHIVE>/catalog/collection.json``."""
+        return self.path / "catalog" / "collection.json"
 
     def store(self, cid: str) -> Path:
         """Path of the completed collection store ``<id>.zarr``."""

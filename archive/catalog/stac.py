@@ -1,10 +1,16 @@
 """STAC Items describing collections: one JSON file per completed collection.
 
-An Item (STAC 1.0/1.1 core, plain dicts, no pystac needed to write them) carries: the footprint
-polygon in lon/lat (one ring per strip), its bbox, ``start_datetime``/``end_datetime`` (and
-``datetime`` = start), ``instruments`` (the sensor), ``gsd`` (nominal, m), ``eo:bands`` (centre
-wavelengths in micrometres as the eo extension wants) and ``archive:wavelengths`` (nm), and one asset
-``data`` pointing at the Zarr store by a relative href.
+An Item (STAC 1.1.0, plain dicts, no pystac needed to write them) carries: the footprint polygon in
+lon/lat (one ring per strip), its bbox, ``start_datetime``/``end_datetime`` (and ``datetime`` =
+start), ``instruments`` (the sensor), ``gsd`` (nominal, m), ``eo:bands`` (centre wavelengths and,
+where the headers give ``fwhm``, full widths at half maximum, both in micrometres as the eo
+extension wants) and ``archive:wavelengths`` (nm), the processing extension's level ('L0': raw DN
+as recorded, with navigation and calibration) and software, the ``collection`` it belongs to with
+``root``/``parent``/``collection`` links (relative, see :mod:`archive.catalog.tree`), and one asset
+``data`` pointing at the Zarr store by a relative href, with its ``eo:bands`` and ``raster:bands``
+(the stored DN data type). The raw store is in sensor geometry (band, line, sample), not on a map
+grid, so these Items claim no projection (``proj:*``) fields; rendered products do
+(:mod:`archive.catalog.product`).
 """
 
 from __future__ import annotations
@@ -17,9 +23,35 @@ from typing import Any
 
 from archive.errors import FormatError
 
-STAC_VERSION = "1.0.0"
+STAC_VERSION = "1.1.0"
 EO_EXTENSION = "https://stac-extensions.github.io/eo/v1.1.0/schema.json"
+RASTER_EXTENSION = "https://stac-extensions.github.io/raster/v1.1.0/schema.json"
+PROJECTION_EXTENSION = "https://stac-extensions.github.io/projection/v2.0.0/schema.json"
+PROCESSING_EXTENSION = "https://stac-extensions.github.io/processing/v1.2.0/schema.json"
 ZARR_MEDIA_TYPE = "application/vnd+zarr"
+#: processing:level of a collection (raw DN as recorded, sensor geometry, with navigation).
+RAW_LEVEL = "L0"
+
+
+def software_version() -> str:
+    """This software's version (the installed distribution's, as ``archive.__version__``)."""
+    import archive
+
+    return archive.__version__
+
+
+def eo_bands(wavelengths, fwhm=None, names=None) -> list[dict]:
+    """eo:bands entries: ``name`` (default ``b<i>``), ``center_wavelength`` and, where ``fwhm`` has
+    a finite positive value, ``full_width_half_max``, both converted from nm to micrometres.
+    wavelengths, fwhm: (bands,) nm; names: (bands,) strings."""
+    out = []
+    for i, w in enumerate(wavelengths):
+        band: dict[str, Any] = {"name": names[i] if names is not None else f"b{i}",
+                                "center_wavelength": round(float(w) / 1000.0, 6)}
+        if fwhm is not None and fwhm[i] is not None and float(fwhm[i]) > 0:  # NaN > 0 is False
+            band["full_width_half_max"] = round(float(fwhm[i]) / 1000.0, 6)
+        out.append(band)
+    return out
 
 
 def rfc3339(moment: datetime) -> str:
@@ -33,10 +65,16 @@ def rfc3339(moment: datetime) -> str:
 
 def make_item(cid: str, geometry: dict, bbox: list[float], start: datetime, end: datetime,
               wavelengths: list[float] | None, bands: int, sensor: str | None, gsd: float,
-              store_href: str, extra: dict[str, Any] | None = None) -> dict:
+              store_href: str, extra: dict[str, Any] | None = None, *, fwhm: list[float] | None = None,
+              data_type: str | None = None, collection: str | None = None, links: list[dict] | None = None,
+              software: str | None = None) -> dict:
     """A STAC Item dict. geometry: GeoJSON (lon/lat); bbox [west, south, east, north] degrees;
-    start/end: UTC datetimes of the first and last line; wavelengths nm (bands,) or None;
-    store_href: the Zarr store relative to the Item file; extra: more ``archive:*`` properties."""
+    start/end: UTC datetimes of the first and last line; wavelengths nm (bands,) or None; fwhm nm
+    (bands,) or None (NaN for a band without); store_href: the Zarr store relative to the Item
+    file; extra: more ``archive:*`` properties; data_type: numpy name of the stored DN type
+    ('uint16'...), for ``raster:bands``; collection: id of the STAC Collection it belongs to, with
+    its ``links`` (relative hrefs); software: the version of archive that ingested it (default this
+    one)."""
     props: dict[str, Any] = {
         "datetime": rfc3339(start),
         "start_datetime": rfc3339(start),
@@ -44,16 +82,30 @@ def make_item(cid: str, geometry: dict, bbox: list[float], start: datetime, end:
         "instruments": [sensor] if sensor else [],
         "gsd": round(float(gsd), 4),
         "archive:bands": int(bands),
+        "processing:level": RAW_LEVEL,
+        "processing:lineage": "raw DN as recorded (band, line, sample), with the navigation, line times and "
+                              "calibration of the flight; ingested by archive",
+        "processing:software": {"archive": software or software_version()},
+    }
+    asset: dict[str, Any] = {
+        "href": store_href,
+        "type": ZARR_MEDIA_TYPE,
+        "title": "Raw DN, navigation and calibration (Zarr v3 collection)",
+        "roles": ["data"],
     }
     extensions = []
     if wavelengths is not None:
         props["archive:wavelengths"] = [float(w) for w in wavelengths]
-        props["eo:bands"] = [{"name": f"b{i}", "center_wavelength": round(float(w) / 1000.0, 6)}
-                             for i, w in enumerate(wavelengths)]
+        props["eo:bands"] = eo_bands(wavelengths, fwhm)
+        asset["eo:bands"] = [dict(b) for b in props["eo:bands"]]
         extensions.append(EO_EXTENSION)
+    if data_type is not None:
+        asset["raster:bands"] = [{"data_type": str(data_type), "unit": "DN"} for _ in range(int(bands))]
+        extensions.append(RASTER_EXTENSION)
+    extensions.append(PROCESSING_EXTENSION)
     if extra:
         props.update(extra)
-    return {
+    item = {
         "type": "Feature",
         "stac_version": STAC_VERSION,
         "stac_extensions": extensions,
@@ -61,16 +113,12 @@ def make_item(cid: str, geometry: dict, bbox: list[float], start: datetime, end:
         "geometry": geometry,
         "bbox": [float(v) for v in bbox],
         "properties": props,
-        "links": [],
-        "assets": {
-            "data": {
-                "href": store_href,
-                "type": ZARR_MEDIA_TYPE,
-                "title": "Raw DN, navigation and calibration (Zarr v3 collection)",
-                "roles": ["data"],
-            }
-        },
+        "links": list(links or []),
+        "assets": {"data": asset},
     }
+    if collection is not None:
+        item["collection"] = collection
+    return item
 
 
 def write_item(path: str | os.PathLike, item: dict) -> Path:

@@ -305,8 +305,8 @@ def _same_sources(attrs: dict, plan: StorePlan) -> bool:
 def _cataloged(root: ArchiveRoot, cid: str) -> bool:
     from archive.catalog.index import search
 
-    if not root.item_path(cid).exists() or not root.index_path.exists():
-        return False
+    if not root.item_path(cid).exists() or not root.index_path.exists() or not root.catalog_path.exists():
+        return False  # (an archive made before the root catalog.json existed gets one)
     return bool(search(root.index_path, ids=[cid]))
 
 

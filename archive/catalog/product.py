@@ -1,0 +1,352 @@
+"""The STAC Item of a rendered output: a sidecar ``<out>.json`` saying what the output is and how
+to make it again.
+
+The Item (STAC 1.1.0; extensions projection v2.0.0, raster v1.1.0, eo v1.1.0, processing v1.2.0;
+valid against the schemas vendored in ``catalogs/schemas/``) holds:
+
+- ``geometry``/``bbox``: the output grid's bounds reprojected to lon/lat (degrees), edges densified;
+- properties: ``datetime`` (= ``start_datetime``, the first line) and ``end_datetime`` (the last),
+  ``gsd`` (m), the grid (``proj:code`` ``EPSG:<n>``, ``proj:bbox`` west, south, east, north in CRS
+  metres, ``proj:shape`` [rows, cols], ``proj:transform`` the affine [a, b, c, d, e, f] of pixel
+  corners), ``eo:bands``, ``processing:*`` (level by variable, lineage, software, datetime), the
+  processing attributes as ``archive:<name>`` (mode, gsd_m, fov_deg, ground_height_m or dem,
+  sync_offset_s, overlap, sources...), ``archive:source_bands``/``archive:wavelengths`` (nm), and
+  ``archive:recipe``: {command, request, sources, software {name, version}}, the one command that
+  renders the same output again;
+- assets, hrefs relative to the Item file: ``data`` (the COG, the ENVI data file, or the Zarr
+  store) with ``proj:*``, ``raster:bands`` (float32, nodata NaN, unit) and ``eo:bands`` on it so
+  that a loader reads it without looking further (odc-stac names its bands ``data.1``... and
+  aliases them by the eo:bands names ``b<source band>``); ``header`` (ENVI ``.hdr``); ``provenance``
+  (the sibling provenance raster, when there is one: a Zarr output keeps its provenance layers as
+  variables of the same store, then listed in ``archive:provenance`` only).
+
+Processing levels: ``L1A`` orthorectified DN (modes raw and relative), ``L1B`` orthorectified
+radiance, ``L2A`` orthorectified reflectance (collections themselves are ``L0``).
+
+Loaders: odc-stac opens the COG from its Item as is. ENVI has no registered media type, so the
+data asset has none (loaders go by its ``data`` role); GDAL finds the header beside the data file
+only when it may list the folder, which odc-stac forbids by default, so call
+``odc.stac.configure_rio(GDAL_DISABLE_READDIR_ON_OPEN="FALSE")`` first. A Zarr output is read with
+xarray (``xr.open_zarr(href, decode_coords="all")``), not through rasterio-based loaders.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import shlex
+from collections.abc import Sequence
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from archive.catalog.stac import (EO_EXTENSION, PROCESSING_EXTENSION, PROJECTION_EXTENSION, RASTER_EXTENSION,
+                                  STAC_VERSION, ZARR_MEDIA_TYPE, eo_bands, rfc3339, software_version, write_item)
+from archive.errors import InputError, MissingInputError
+
+COG_MEDIA_TYPE = "image/tiff; application=geotiff; profile=cloud-optimized"
+GEOTIFF_MEDIA_TYPE = "image/tiff; application=geotiff"
+TEXT_MEDIA_TYPE = "text/plain"
+#: Output format names (as :data:`archive.outputs.FORMATS` gives them) -> file suffix.
+FORMATS = {"zarr": ".zarr", "cog": ".tif", "envi": ".hdr"}
+#: processing:level of a rendered output, by its data variable.
+LEVELS = {"dn": "L1A", "relative": "L1A", "radiance": "L1B", "reflectance": "L2A"}
+#: raster:bands unit of each data variable (an output's ``units`` attribute overrides it).
+UNITS = {"dn": "DN", "relative": "DN (exposure-normalised)", "radiance": "calibration radiance units",
+         "reflectance": "1"}
+# Variables of a Zarr output that are not provenance layers.
+_NOT_PROVENANCE = {"x", "y", "band", "wavelength", "fwhm", "spatial_ref", "saturated"}
+
+
+def product_item_path(out: str | os.PathLike) -> Path:
+    """Where the Item of output ``out`` goes: ``<out>.json`` beside it (``mosaic.tif.json``,
+    ``mosaic.zarr.json``, ``mosaic.hdr.json``)."""
+    out = Path(out)
+    return out.with_name(out.name + ".json")
+
+
+def grid_footprint(grid, points_per_edge: int = 21) -> tuple[dict, list[float]]:
+    """(GeoJSON Polygon, bbox [west, south, east, north]) in lon/lat degrees of a grid's bounds
+    (:class:`archive.grid.Grid`): each edge densified to ``points_per_edge`` points before the
+    reprojection, the ring counter-clockwise (RFC 7946) and closed. Grids across the antimeridian
+    are not handled."""
+    from pyproj import Transformer
+
+    w, s, e, n = grid.bounds
+    t = np.linspace(0.0, 1.0, points_per_edge, endpoint=False)
+    x = np.concatenate([w + (e - w) * t, np.full_like(t, e), e - (e - w) * t, np.full_like(t, w)])
+    y = np.concatenate([np.full_like(t, s), s + (n - s) * t, np.full_like(t, n), n - (n - s) * t])
+    lon, lat = Transformer.from_crs(int(grid.epsg), 4326, always_xy=True).transform(x, y)
+    lon, lat = np.asarray(lon, float), np.asarray(lat, float)
+    if not (np.isfinite(lon).all() and np.isfinite(lat).all()):
+        raise InputError("grid", f"its bounds {grid.bounds} in EPSG:{grid.epsg} do not map to longitude/latitude")
+    ring = [[round(float(a), 9), round(float(b), 9)] for a, b in zip(lon, lat, strict=True)]
+    ring.append(ring[0])
+    bbox = [round(float(lon.min()), 9), round(float(lat.min()), 9), round(float(lon.max()), 9),
+            round(float(lat.max()), 9)]
+    return {"type": "Polygon", "coordinates": [ring]}, bbox
+
+
+def _href(target: Path, item_dir: Path) -> str:
+    """``target`` relative to the Item's folder, POSIX separators, './' first."""
+    rel = Path(os.path.relpath(Path(target).absolute(), Path(item_dir).absolute())).as_posix()
+    return rel if rel.startswith("../") else "./" + rel
+
+
+def _jsonable(value: Any) -> Any:
+    """Plain JSON values of a request or attributes: tuples as lists, paths as text, numpy scalars
+    as numbers, NaN/inf as null, dataclasses as dicts."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        value = {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if value is None or isinstance(value, str | int | float | bool):
+        return value
+    return str(value)
+
+
+def _grid_fields(grid) -> dict:
+    return {"proj:code": f"EPSG:{int(grid.epsg)}", "proj:bbox": [float(v) for v in grid.bounds],
+            "proj:shape": [int(grid.height), int(grid.width)],
+            "proj:transform": [float(v) for v in tuple(grid.transform)[:6]]}
+
+
+def _raster_file_bands(path: Path) -> tuple[list[dict], list[str]]:
+    """raster:bands and band descriptions of a raster file, read from it (rasterio)."""
+    import rasterio
+
+    try:
+        with rasterio.open(path) as ds:
+            bands = []
+            for b in range(ds.count):
+                band: dict[str, Any] = {"data_type": str(ds.dtypes[b])}
+                if ds.nodata is not None:
+                    band["nodata"] = "nan" if math.isnan(ds.nodata) else float(ds.nodata)
+                if ds.units and ds.units[b]:
+                    band["unit"] = ds.units[b]
+                bands.append(band)
+            names = [d or f"band {b + 1}" for b, d in enumerate(ds.descriptions)]
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputError(path, f"not a readable raster: {exc}", "give the provenance file the render wrote") from exc
+    return bands, names
+
+
+def _zarr_layers(store: Path, variable: str) -> list[dict]:
+    """The provenance layers kept in a Zarr output: [{name, units}] of its other variables."""
+    import zarr
+
+    group = zarr.open_group(store, mode="r")
+    layers = []
+    for name, array in sorted(group.arrays()):
+        if name in _NOT_PROVENANCE or name == variable:
+            continue
+        units = array.attrs.get("units")
+        layers.append({"name": name, **({"units": str(units)} if units is not None else {})})
+    return layers
+
+
+def _provenance(provenance: Path, out: Path, fmt: str, variable: str, grid, item_dir: Path
+                ) -> tuple[dict[str, dict], dict]:
+    """(assets, properties) describing the provenance layers of an output."""
+    provenance = Path(provenance)
+    if not provenance.exists():
+        raise MissingInputError(provenance, "provenance output")
+    if fmt == "zarr" and provenance.absolute() == out.absolute():
+        return {}, {"archive:provenance": {"asset": "data", "layers": _zarr_layers(out, variable)}}
+    if provenance.suffix == ".hdr":
+        data = provenance.with_suffix("")
+        bands, names = _raster_file_bands(data)
+        assets = {
+            "provenance": {"href": _href(data, item_dir), "title": "Provenance layers (ENVI BSQ data)",
+                           "roles": ["metadata"], **_grid_fields(grid), "raster:bands": bands, "archive:layers": names},
+            "provenance_header": {"href": _href(provenance, item_dir), "type": TEXT_MEDIA_TYPE,
+                                  "title": "ENVI header of the provenance layers", "roles": ["metadata"]},
+        }
+    elif provenance.suffix in (".tif", ".tiff"):
+        bands, names = _raster_file_bands(provenance)
+        assets = {"provenance": {"href": _href(provenance, item_dir), "type": COG_MEDIA_TYPE,
+                                 "title": "Provenance layers (Cloud-Optimized GeoTIFF)", "roles": ["metadata"],
+                                 **_grid_fields(grid), "raster:bands": bands, "archive:layers": names}}
+    elif provenance.suffix == ".zarr":
+        assets = {"provenance": {"href": _href(provenance, item_dir), "type": ZARR_MEDIA_TYPE,
+                                 "title": "Provenance layers (Zarr)", "roles": ["metadata"], **_grid_fields(grid),
+                                 "archive:layers": [ly["name"] for ly in _zarr_layers(provenance, variable)]}}
+    else:
+        raise InputError(provenance, "unknown provenance format", "expected .tif, .hdr or .zarr")
+    return assets, {}
+
+
+def product_item(out: str | os.PathLike, *, fmt: str, grid, band_indices: Sequence[int],
+                 wavelengths: Sequence[float] | None, fwhm: Sequence[float] | None, variable: str, attrs: dict,
+                 start: datetime, end: datetime, sources: Sequence[str], command: str, request: dict,
+                 provenance: str | os.PathLike | None = None, created: datetime | None = None) -> dict:
+    """The STAC Item (a dict) of the output written at ``out`` (see the module docstring).
+
+    out: the final output path, ``.zarr`` store, ``.tif`` COG or ENVI ``.hdr`` (its data file is
+    ``out`` without ``.hdr``); fmt: 'zarr' | 'cog' | 'envi'; grid: the output
+    :class:`archive.grid.Grid`; band_indices: source band (0-based) of each output band;
+    wavelengths, fwhm: nm per output band, or None; variable: the data variable ('radiance',
+    'dn'...); attrs: the output's processing attributes; start, end: UTC times of its first and
+    last line; sources: the flights (directories or collection ids); command: the shell command
+    that renders it again (:func:`render_command`); request: the render request (JSON-able dict,
+    or the request dataclass); provenance: the provenance output (a sibling ``.tif``/``.hdr``, or
+    ``out`` itself for a Zarr output holding the layers); created: when it was made (default now).
+    The Item is meant to be written to :func:`product_item_path` (``write_product_item``).
+    """
+    out = Path(out)
+    if fmt not in FORMATS:
+        raise InputError(out, f"unknown output format {fmt!r}", f"one of {', '.join(FORMATS)}")
+    nb = len(band_indices)
+    for name, values in (("wavelengths", wavelengths), ("fwhm", fwhm)):
+        if values is not None and len(values) != nb:
+            raise InputError(out, f"{len(values)} {name} for {nb} bands")
+    if nb == 0:
+        raise InputError(out, "an output has at least one band")
+    item_dir = out.absolute().parent
+    created = (created or datetime.now(UTC)).astimezone(UTC)
+    version = software_version()
+    geometry, bbox = grid_footprint(grid)
+    grid_fields = _grid_fields(grid)
+    unit = str(attrs.get("units") or UNITS.get(variable, ""))
+    raster_bands = [{"data_type": "float32", "nodata": "nan", "sampling": "area",
+                     "spatial_resolution": float(grid.gsd), **({"unit": unit} if unit else {})}
+                    for _ in range(nb)]
+    bands_eo = None if wavelengths is None else eo_bands(wavelengths, fwhm, [f"b{int(i)}" for i in band_indices])
+    data: dict[str, Any] = {"roles": ["data"], **grid_fields, "raster:bands": raster_bands}
+    if bands_eo is not None:
+        data["eo:bands"] = bands_eo
+    assets: dict[str, dict] = {}
+    if fmt == "cog":
+        assets["data"] = {"href": _href(out, item_dir), "type": COG_MEDIA_TYPE,
+                          "title": f"{variable} (Cloud-Optimized GeoTIFF, float32, NaN where not covered)", **data}
+    elif fmt == "envi":
+        if out.suffix != ".hdr":
+            raise InputError(out, "an ENVI output is named by its header, PATH.hdr")
+        # No registered media type for ENVI: left out, so that loaders go by the 'data' role (GDAL's
+        # ENVI driver finds the header beside the data file).
+        assets["data"] = {"href": _href(out.with_suffix(""), item_dir),
+                          "title": f"{variable} (ENVI BSQ, float32 little-endian, NaN where not covered)", **data}
+        assets["header"] = {"href": _href(out, item_dir), "type": TEXT_MEDIA_TYPE, "title": "ENVI header",
+                            "roles": ["metadata"]}
+    else:
+        assets["data"] = {"href": _href(out, item_dir), "type": ZARR_MEDIA_TYPE,
+                          "title": f"{variable} (Zarr v3, variable '{variable}' (band, y, x), float32, NaN where "
+                                   "not covered)", "archive:variable": variable, **data}
+    props: dict[str, Any] = {f"archive:{k}": _jsonable(v) for k, v in (attrs or {}).items()}
+    props.update({
+        "datetime": rfc3339(start),
+        "start_datetime": rfc3339(start),
+        "end_datetime": rfc3339(end),
+        "created": rfc3339(created),
+        "gsd": float(grid.gsd),
+        **grid_fields,
+        "processing:level": LEVELS.get(variable, "L1"),
+        "processing:lineage": f"{variable} of {len(sources)} flight{'s' if len(sources) != 1 else ''} orthorectified "
+                              f"onto EPSG:{int(grid.epsg)} at {float(grid.gsd):g} m by inverse (mesh + OpenGL) "
+                              "georectification; archive:recipe.command renders it again",
+        "processing:software": {"archive": version},
+        "processing:datetime": rfc3339(created),
+        "archive:format": fmt,
+        "archive:variable": variable,
+        "archive:source_bands": [int(i) for i in band_indices],
+        "archive:recipe": {"command": str(command), "request": _jsonable(request),
+                           "sources": [str(s) for s in sources],
+                           "software": {"name": "archive", "version": version}},
+    })
+    if wavelengths is not None:
+        props["archive:wavelengths"] = [float(w) for w in wavelengths]
+        props["eo:bands"] = [dict(b) for b in bands_eo]
+    extensions = [PROJECTION_EXTENSION, RASTER_EXTENSION, *([EO_EXTENSION] if bands_eo else []),
+                  PROCESSING_EXTENSION]
+    if provenance is not None:
+        more_assets, more_props = _provenance(Path(provenance), out, fmt, variable, grid, item_dir)
+        assets.update(more_assets)
+        props.update(more_props)
+    return {
+        "type": "Feature",
+        "stac_version": STAC_VERSION,
+        "stac_extensions": extensions,
+        "id": out.name,
+        "geometry": geometry,
+        "bbox": bbox,
+        "properties": props,
+        "links": [],
+        "assets": assets,
+    }
+
+
+def write_product_item(out: str | os.PathLike, item: dict) -> Path:
+    """Write ``item`` to :func:`product_item_path` of ``out`` (temporary name, then rename)."""
+    return write_item(product_item_path(out), item)
+
+
+# ---------------------------------------------------------------------------------------------
+# The command that renders an output again
+# ---------------------------------------------------------------------------------------------
+#: Request fields that name files: made absolute, so that the command works from any folder.
+_PATH_FIELDS = ("archive", "calibration", "white_reference", "dem")
+
+
+def _number(value: float) -> str:
+    text = repr(float(value))
+    return text[:-2] if text.endswith(".0") else text
+
+
+def _cli_value(name: str, value: Any) -> str:
+    if isinstance(value, int | float | np.integer | np.floating):
+        return _number(value)
+    if isinstance(value, list | tuple):
+        return ",".join(_cli_value(name, v) for v in value)
+    if isinstance(value, str | os.PathLike):
+        return os.fspath(value)
+    raise InputError("request", f"field {name}={value!r} has no command-line form")
+
+
+def render_command(request, out: str | os.PathLike, *, quicklook: str | os.PathLike | None = None,
+                   provenance: bool = False, overwrite: bool = False) -> str:
+    """The ``archive render`` command line (shell-quoted) that renders ``request`` (an
+    :class:`archive.pipeline.RenderRequest`) into ``out`` again: SOURCE... then ``--out``, then
+    one option per request field that differs from its default (``--ground-height``,
+    ``--wavelengths``, ``--sync-offset``...; a field ``x_y`` is option ``--x-y``). Paths (sources
+    that exist, ``out``, archive, calibration, white reference, DEM, quicklook) are made absolute;
+    collection ids stay as they are. quicklook/provenance/overwrite: the render options of those
+    names. How it runs (scheduler, workers, threads, progress) is left out: it does not change the
+    output."""
+    if not dataclasses.is_dataclass(request) or isinstance(request, type):
+        raise InputError("request", f"expected a render request (RenderRequest), got {type(request).__name__}")
+    words = ["archive", "render"]
+    options: list[str] = ["--out", os.path.abspath(out)]
+    for f in dataclasses.fields(request):
+        value = getattr(request, f.name)
+        if f.name == "sources":
+            words += [os.path.abspath(s) if os.path.exists(s) else str(s) for s in value]
+            continue
+        default = f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
+        if value is None or (default is not dataclasses.MISSING and value == default):
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        if isinstance(value, bool):
+            if value:
+                options.append(flag)
+            continue
+        text = os.path.abspath(value) if f.name in _PATH_FIELDS else _cli_value(f.name, value)
+        # '--boresight=-0.5,1,0': a value starting with '-' would read as an option
+        options += [f"{flag}={text}"] if text.startswith("-") else [flag, text]
+    if quicklook is not None:
+        options += ["--quicklook", os.path.abspath(quicklook)]
+    if provenance and "--provenance" not in options:
+        options.append("--provenance")
+    if overwrite:
+        options.append("--overwrite")
+    return shlex.join(words + options)
