@@ -40,8 +40,9 @@ case "${1:-}" in
         python_env ""
         "$VENV/bin/archive" simulate demo/flight --overwrite
         "$VENV/bin/archive" render demo/flight --fov 47.5 --gsd 0.25 --out demo/mosaic.tif \
-            --quicklook demo/quicklook.png --overwrite
-        echo "demo: mosaic in demo/mosaic.tif, preview in demo/quicklook.png"
+            --quicklook demo/quicklook.png --provenance --overwrite
+        echo "demo: mosaic in demo/mosaic.tif (STAC Item demo/mosaic.tif.json, provenance layers" \
+             "demo/mosaic_provenance.tif), preview in demo/quicklook.png"
         "$VENV/bin/archive" ingest demo/flight --archive demo/archive --fov 47.5 --overwrite --quiet >/dev/null
         echo "demo: browse the demo archive in a web browser: $VENV/bin/archive view --archive demo/archive"
         ;;

@@ -10,7 +10,7 @@ example within 0.01 degrees; overlap_count the number of true strip footprints c
 from __future__ import annotations
 
 import json
-import math
+import tempfile
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
@@ -331,3 +331,45 @@ def test_view_zenith_over_terrain_uses_the_dem_heights(tmp_path_factory):
     zenith = np.degrees(np.arctan2(np.hypot(d[:, 0], d[:, 1]), d[:, 2]))
     assert np.max(np.abs(ds["view_zenith"].values[rows, cols] - zenith)) < 0.05
     assert np.max(np.abs(ds["path_length"].values[rows, cols] - np.linalg.norm(d, axis=1))) < 0.05
+
+
+def test_nadir_rule_strategy_and_the_writers_fast_path_agree():
+    """Smallest key wins, the later part on a tie, NaN keys never win; saturation follows the winner;
+    the writer's band-by-band path writes what the strategy object assembles."""
+    from archive.graph.tasks import assemble_task, assemble_write_task
+    from archive.grid import Grid
+    from archive.outputs import MosaicStore
+
+    rng = np.random.default_rng(4)
+    boxes = [(0, 0, 6, 5), (2, 1, 6, 6), (1, 3, 4, 4)]
+    renders, keys = [], []
+    for i, (_, _, h, w) in enumerate(boxes):
+        values = rng.normal(size=(3, h, w)).astype(np.float32)
+        key = rng.choice([1.0, 2.0, 3.0], size=(h, w)).astype(np.float32)
+        key[0, 0] = np.nan
+        values[:, 0, 0] = np.nan
+        renders.append((values, rng.random((h, w)) < 0.3))
+        keys.append(key)
+    tile = (0, 0, 9, 8)
+    values, saturated = assemble_task("nadir", tile, 3, boxes, *renders, keys=keys)
+    # brute force: per pixel, the last part with the smallest finite key
+    for r in range(9):
+        for c in range(8):
+            best, pick = np.inf, None
+            for k, (r0, c0, h, w) in enumerate(boxes):
+                if r0 <= r < r0 + h and c0 <= c < c0 + w:
+                    key = keys[k][r - r0, c - c0]
+                    if key <= best:
+                        best, pick = key, (k, r - r0, c - c0)
+            if pick is None:
+                assert np.isnan(values[:, r, c]).all() and not saturated[r, c]
+            else:
+                k, i, j = pick
+                assert np.array_equal(values[:, r, c], renders[k][0][:, i, j])
+                assert saturated[r, c] == renders[k][1][i, j]
+    with tempfile.TemporaryDirectory() as folder:
+        store = MosaicStore.create(f"{folder}/m.zarr", Grid(32616, 1.0, 0.0, 100.0, 8, 9), None, [0, 1, 2])
+        sat = assemble_write_task(store, "nadir", 0, tile, 3, boxes, None, *renders, keys=keys)
+        written = store._array(store.variable)[:, :9, :8]
+        assert np.array_equal(written, values, equal_nan=True)
+        assert np.array_equal(sat, saturated)

@@ -22,7 +22,7 @@ import numpy as np
 from archive.errors import InputError
 
 __all__ = ["KEYED", "LastRule", "MeanRule", "NadirRule", "RULES", "WINNER_RULES", "last_saturation", "last_values",
-           "make_rule"]
+           "make_rule", "nadir_values", "nadir_winners"]
 
 
 def last_values(out: np.ndarray, parts: Sequence[tuple[np.ndarray, slice, slice]]) -> np.ndarray:
@@ -138,27 +138,60 @@ class MeanRule:
         return mean.astype(np.float32), self.saturated
 
 
+def nadir_winners(height: int, width: int, keys: Sequence[tuple[np.ndarray, slice, slice]]) -> np.ndarray:
+    """The 'nadir' rule's choice: (height, width) int32, per pixel the index of the part with the
+    smallest key (view zenith), the later one on a tie, -1 where no key is finite.
+
+    keys: (key (h, w) float32, NaN where the part does not cover the pixel; rows, cols) in capture
+    order, ``key`` landing at ``[rows, cols]``.
+    """
+    best = np.full((height, width), np.inf, np.float32)
+    winner = np.full((height, width), -1, np.int32)
+    for k, (key, rows, cols) in enumerate(keys):
+        wins = key <= best[rows, cols]         # NaN (not covered) never wins
+        best[rows, cols][wins] = key[wins]
+        winner[rows, cols][wins] = k
+    return winner
+
+
+def nadir_values(out: np.ndarray, winner: np.ndarray, parts: Sequence[tuple[np.ndarray, slice, slice]],
+                 fill=np.nan) -> np.ndarray:
+    """The 'nadir' rule's values, written into ``out`` (..., H, W) and returned: each pixel's value
+    from the part :func:`nadir_winners` chose (``winner``), ``fill`` where none.
+
+    parts: (values (..., h, w), rows, cols) in the order of the winners' keys.
+    """
+    out[...] = fill
+    for k, (values, rows, cols) in enumerate(parts):
+        np.copyto(out[..., rows, cols], values, where=winner[rows, cols] == k)
+    return out
+
+
 class NadirRule:
-    """The capture with the smallest view zenith at the pixel wins (all its bands and its saturation
-    flag), the later one on a tie; pixels no capture covers (key NaN) stay NaN."""
+    """The capture with the smallest view zenith (``key``) at the pixel wins (all its bands and its
+    saturation flag), the later one on a tie; pixels no capture covers (key NaN) stay NaN.
+
+    Renders are only collected by ``feed``; ``result`` picks with :func:`nadir_winners` and
+    :func:`nadir_values`.
+    """
 
     def __init__(self, nbands: int, height: int, width: int):
-        self.values = np.full((nbands, height, width), np.nan, np.float32)
-        self.saturated = np.zeros((height, width), bool)
-        self.best = np.full((height, width), np.inf, np.float32)
+        self.shape = (nbands, height, width)
+        self.parts: list[tuple[np.ndarray, np.ndarray, slice, slice, np.ndarray]] = []
 
     def feed(self, values: np.ndarray, saturated: np.ndarray, rows: slice, cols: slice,
              key: np.ndarray | None = None) -> None:
         if key is None:
             raise ValueError("the 'nadir' rule needs each render's view zenith (key)")
-        best = self.best[rows, cols]
-        wins = key <= best          # NaN (not covered) never wins
-        best[wins] = key[wins]
-        np.copyto(self.values[:, rows, cols], values, where=wins[None])
-        self.saturated[rows, cols][wins] = saturated[wins]
+        rows, cols = _bounded(rows, self.shape[1]), _bounded(cols, self.shape[2])
+        self.parts.append((values, saturated, rows, cols, key))
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.values, self.saturated
+        winner = nadir_winners(self.shape[1], self.shape[2], [(k, r, c) for _, _, r, c, k in self.parts])
+        values = nadir_values(np.empty(self.shape, np.float32), winner, [(v, r, c) for v, _, r, c, _ in self.parts])
+        saturated = np.zeros(self.shape[1:], bool)
+        nadir_values(saturated, winner, [(s, r, c) for _, s, r, c, _ in self.parts], fill=False)
+        return values, saturated
 
 
 RULES = {"last": LastRule, "nadir": NadirRule, "mean": MeanRule}

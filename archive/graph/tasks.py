@@ -22,7 +22,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from archive.errors import InputError, RenderError
-from archive.graph.mosaic import last_saturation, last_values, make_rule
+from archive.graph.mosaic import last_saturation, last_values, make_rule, nadir_values, nadir_winners
 from archive.grid import Grid
 from archive.outputs import CHUNK, MosaicStore
 
@@ -235,8 +235,11 @@ def assemble_write_task(sink, rule: str, band0: int, tile: Box, nbands: int,
     Returns, for a sink that records saturation (Zarr), the tile's saturation mask (h, w) bool OR
     ``saturated_before`` (earlier band groups); for the others what the sink's tile writer passes on
     (COG: the tile's quarter of overview level 2, (nbands, ceil(h/4), ceil(w/4)) float32, or None).
-    keys: the 'nadir' rule's view zenith (h, w) of each render.
+    keys: the 'nadir' rule's view zenith (h, w) of each render; as for 'last', each band is written
+    straight from the renders (:func:`~archive.graph.mosaic.nadir_values`, the winners chosen once).
     """
+    if rule == "nadir":
+        return _write_nadir(sink, band0, tile, nbands, boxes, saturated_before, renders, keys)
     if rule != "last":
         return write_values_task(sink, band0, tile, assemble_task(rule, tile, nbands, boxes, *renders, keys=keys),
                                  saturated_before)
@@ -252,6 +255,26 @@ def assemble_write_task(sink, rule: str, band0: int, tile: Box, nbands: int,
             writer.write(b, buffer)
         passed = writer.close()
     saturated = last_saturation(tile[2], tile[3], parts) if sink.saturation else None
+    return _result(sink, saturated, saturated_before, passed)
+
+
+def _write_nadir(sink, band0: int, tile: Box, nbands: int, boxes: Sequence[Box], saturated_before, renders, keys):
+    """The 'nadir' branch of :func:`assemble_write_task`."""
+    if keys is None or len(keys) != len(boxes) or len(boxes) != len(renders):
+        raise ValueError(f"{len(boxes)} boxes, {len(renders)} renders and {None if keys is None else len(keys)} keys")
+    parts = _tile_parts(tile, boxes, renders)
+    parts_keys = _tile_keys(tile, boxes, keys)
+    winner = nadir_winners(tile[2], tile[3], [(k, tr, tc) for k, (_, _, tr, tc) in zip(parts_keys, parts)])
+    with sink.open_tile(band0, tile, nbands) as writer:
+        buffer = writer.buffer()
+        buffer[...] = np.nan   # the grid's outside part (zarr's padding of edge chunks)
+        for b in range(nbands):
+            nadir_values(buffer[:tile[2], :tile[3]], winner, [(values[b], tr, tc) for values, _, tr, tc in parts])
+            writer.write(b, buffer)
+        passed = writer.close()
+    saturated = None
+    if sink.saturation:
+        saturated = nadir_values(np.empty(tile[2:], bool), winner, [(s, tr, tc) for _, s, tr, tc in parts], fill=False)
     return _result(sink, saturated, saturated_before, passed)
 
 
