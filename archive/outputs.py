@@ -476,7 +476,7 @@ def copy_store(store: MosaicStore, sink, band_group: int = 16) -> None:
     nb = values.shape[0]
     grid = store.grid
     blocks: dict[tuple[int, int, int], np.ndarray | None] = {}
-    for row0, col0, g in grid.tiles(CHUNK):
+    for row0, col0, g in grid.tiles(getattr(sink, "tile_size", (CHUNK, CHUNK))):
         tile = (row0, col0, g.height, g.width)
         for b0 in range(0, nb, band_group):
             n = min(band_group, nb - b0)

@@ -25,11 +25,18 @@ CHUNK = 1024
 _local = threading.local()
 
 
-def chunk_buffer() -> np.ndarray:
-    """This thread's reusable (CHUNK, CHUNK) float32 chunk buffer (contents undefined)."""
-    buffer = getattr(_local, "buffer", None)
+def chunk_buffer(width: int = CHUNK) -> np.ndarray:
+    """This thread's reusable (CHUNK, width) float32 C-contiguous tile buffer (contents undefined):
+    one per thread and width (CHUNK for chunk tiles, a row strip's width for ENVI)."""
+    buffers = getattr(_local, "buffers", None)
+    if buffers is None:
+        buffers = _local.buffers = {}
+    buffer = buffers.get(width)
     if buffer is None:
-        buffer = _local.buffer = np.empty((CHUNK, CHUNK), np.float32)
+        if len(buffers) > 2:   # strips of several outputs' widths: keep the chunk buffer only
+            for w in [w for w in buffers if w != CHUNK]:
+                del buffers[w]
+        buffer = buffers[width] = np.empty((CHUNK, width), np.float32)
     return buffer
 
 
@@ -39,17 +46,17 @@ def chunk_buffer() -> np.ndarray:
 class TileWriter:
     """Writes one output tile (row0, col0, height, width) of ``nbands`` bands from band ``band0``.
 
-    ``buffer()`` is this thread's reusable (CHUNK, CHUNK) float32 buffer; ``write(b, chunk)`` takes
-    band ``band0 + b`` as a (CHUNK, CHUNK) float32 C-contiguous array whose part outside the grid is
-    NaN; ``close()`` finishes the tile and returns what the graph passes on (COG: the tile's first
-    overview level; others: None). Usable as a context manager (closed on success only).
+    ``buffer()`` is this thread's reusable (CHUNK, CHUNK) float32 buffer (an ENVI row strip's:
+    (CHUNK, strip width)); ``write(b, chunk)`` takes band ``band0 + b`` as such a float32
+    C-contiguous array whose part outside the grid is NaN; ``close()`` finishes the tile and returns
+    what the graph passes on (COG: the tile's first overview level; others: None). Usable as a
+    context manager (closed on success only).
     """
 
     def __init__(self, band0: int, tile: tuple[int, int, int, int]):
         self.band0, self.tile = band0, tile
 
-    @staticmethod
-    def buffer() -> np.ndarray:
+    def buffer(self) -> np.ndarray:
         return chunk_buffer()
 
     def write(self, b: int, chunk: np.ndarray) -> None:
@@ -73,20 +80,27 @@ def _all_nan(chunk: np.ndarray) -> bool:
     return bool(np.isnan(chunk[CHUNK // 2]).all() and np.isnan(chunk).all())
 
 
-def _check_tile(tile, height: int, width: int) -> None:
+def _check_tile(tile, height: int, width: int, size: tuple[int, int] = (CHUNK, CHUNK)) -> None:
     row0, col0, h, w = tile
-    if row0 % CHUNK or col0 % CHUNK or not (0 < h <= CHUNK and 0 < w <= CHUNK) \
-            or h != min(CHUNK, height - row0) or w != min(CHUNK, width - col0):
-        raise ValueError(f"tile {tile} is not one {CHUNK} px chunk of a {height} x {width} mosaic")
+    th, tw = size
+    if row0 % th or col0 % tw or not (0 < h <= th and 0 < w <= tw) \
+            or h != min(th, height - row0) or w != min(tw, width - col0):
+        raise ValueError(f"tile {tile} is not one {th} x {tw} px tile of a {height} x {width} mosaic")
+
+
+#: Widest ENVI output written in whole-width row strips (px); wider ones go in CHUNK x CHUNK tiles.
+ENVI_STRIP_MAX = 16384
 
 
 @dataclass(frozen=True)
 class EnviSink:
     """ENVI BSQ data file being written: float32 little-endian (band, y, x), preallocated.
 
-    Tasks write a tile band by band: one ``os.pwrite`` per tile row (a row of a band is contiguous
-    in BSQ), or one per band when the tile spans the whole width. Nothing is memory-mapped: the
-    written pages are the page cache's, not the process's.
+    Its tiles are row strips (CHUNK rows x the whole width, :attr:`tile_size`) while the width is at
+    most ENVI_STRIP_MAX: a task writes each band of its strip with ONE ``os.pwrite`` (a band's rows
+    are contiguous in BSQ; a 1024-px tile of a wider mosaic would take one call per row, ~5 us each:
+    seconds of CPU for a 300-band mosaic). Wider mosaics: CHUNK x CHUNK tiles, one call per row.
+    Nothing is memory-mapped: the written pages are the page cache's, not the process's.
     """
 
     data: str
@@ -97,6 +111,11 @@ class EnviSink:
     saturation: ClassVar[bool] = False
     blank_tiles: ClassVar[bool] = True
     overview_levels: ClassVar[int] = 0
+
+    @property
+    def tile_size(self) -> tuple[int, int]:
+        """(height, width) of the graph's output tiles for this sink, pixels."""
+        return (CHUNK, self.width) if self.width <= ENVI_STRIP_MAX else (CHUNK, CHUNK)
 
     @classmethod
     def create(cls, data: str | os.PathLike, nbands: int, height: int, width: int) -> EnviSink:
@@ -116,7 +135,7 @@ class EnviSink:
         return cls(os.fspath(data), nbands, height, width)
 
     def open_tile(self, band0: int, tile, nbands: int) -> _EnviTileWriter:
-        _check_tile(tile, self.height, self.width)
+        _check_tile(tile, self.height, self.width, self.tile_size)
         if not 0 <= band0 < band0 + nbands <= self.nbands:
             raise ValueError(f"bands {band0}..{band0 + nbands - 1} of a {self.nbands}-band ENVI file")
         return _EnviTileWriter(self, band0, tile)
@@ -128,6 +147,9 @@ class _EnviTileWriter(TileWriter):
         self.sink = sink
         self.fd = os.open(sink.data, os.O_WRONLY)
 
+    def buffer(self) -> np.ndarray:
+        return chunk_buffer(self.sink.tile_size[1])
+
     def write(self, b: int, chunk: np.ndarray) -> None:
         row0, col0, h, w = self.tile
         s = self.sink
@@ -135,7 +157,7 @@ class _EnviTileWriter(TileWriter):
             chunk = chunk.astype("<f4")
         base = (((self.band0 + b) * s.height + row0) * s.width + col0) * 4
         if w == s.width:  # whole rows: one contiguous range
-            os.pwrite(self.fd, chunk[:h, :w] if w == CHUNK else np.ascontiguousarray(chunk[:h, :w]), base)
+            os.pwrite(self.fd, chunk[:h, :w] if w == chunk.shape[1] else np.ascontiguousarray(chunk[:h, :w]), base)
             return
         stride = s.width * 4
         for r in range(h):
@@ -229,7 +251,7 @@ class CogSink:
         further = level + 1 <= self.overview_levels
         present = [(k, child) for k, child in enumerate(children) if child is not None]
         quarter = np.full((nbands, -(-h // 2), -(-w // 2)), np.nan, np.float32) if further and present else None
-        tile = TileWriter.buffer()[:TILE, :TILE]
+        tile = chunk_buffer()[:TILE, :TILE]
         encoded = []
         for b in range(nbands):
             if not present:

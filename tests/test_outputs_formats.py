@@ -249,7 +249,12 @@ def test_sinks_refuse_tiles_off_the_chunk_grid(tmp_path):
     envi = EnviSink.create(tmp_path / "e", 2, 1500, 1100)
     cog = CogSink.create(tmp_path / "c", 2, 1500, 1100)
     for sink in (envi, cog):
-        with pytest.raises(ValueError, match="not one 1024 px chunk"):
+        with pytest.raises(ValueError, match="is not one 1024 x 1[01][02][04] px tile"):
             sink.open_tile(0, (512, 0, 1024, 1024), 2)
+        whole = (0, 0, 1024, sink.tile_size[1] if sink is envi else 1024)
         with pytest.raises(ValueError, match="bands"):
-            sink.open_tile(1, (0, 0, 1024, 1024), 2)
+            sink.open_tile(1, whole, 2)
+    # ENVI tiles are whole-width row strips (one write per band); a chunk-wide tile is refused
+    assert envi.tile_size == (1024, 1100)
+    with pytest.raises(ValueError, match="not one 1024 x 1100 px tile"):
+        envi.open_tile(0, (0, 0, 1024, 1024), 2)

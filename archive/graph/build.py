@@ -113,7 +113,7 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
 
     # The tiles to write, and for each cube the tiles it completes (their last touching cube).
     tiles = []
-    for row0, col0, tile_grid in plan.grid.tiles(CHUNK):
+    for row0, col0, tile_grid in plan.grid.tiles(getattr(sink, "tile_size", (CHUNK, CHUNK))):
         tile = (row0, col0, tile_grid.height, tile_grid.width)
         touching = [j for j, job in enumerate(plan.jobs) if _intersects(tile, job.box)]
         if touching or sink.blank_tiles:

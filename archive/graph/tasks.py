@@ -245,11 +245,11 @@ def assemble_write_task(sink, rule: str, band0: int, tile: Box, nbands: int,
                                  saturated_before)
     if len(boxes) != len(renders):
         raise ValueError(f"{len(boxes)} boxes for {len(renders)} renders")
-    if tile[0] % CHUNK or tile[1] % CHUNK or tile[2] > CHUNK or tile[3] > CHUNK:
-        raise ValueError(f"tile {tile} is not one {CHUNK} px chunk")
     parts = _tile_parts(tile, boxes, renders)
     with sink.open_tile(band0, tile, nbands) as writer:
         buffer = writer.buffer()
+        if tile[2] > buffer.shape[0] or tile[3] > buffer.shape[1]:
+            raise ValueError(f"tile {tile} is larger than the sink's {buffer.shape} tile buffer")
         for b in range(nbands):
             last_values(buffer, [(values[b], tr, tc) for values, _, tr, tc in parts])
             writer.write(b, buffer)
