@@ -362,3 +362,26 @@ def test_mosaic_rules_last_and_mean_with_saturation():
     # a render offset into the tile lands at its box
     off, _ = assemble_task("last", (1024, 0, 10, 10), 2, [(1030, 2, 4, 4)], (a, sat_a))
     assert np.isfinite(off[0, 6:10, 2:5]).all() and np.isfinite(off).sum() == 2 * 12
+
+
+def test_local_workers_start_with_the_malloc_threshold():
+    """glibc reads MALLOC_MMAP_THRESHOLD_ at process start: the local cluster's worker processes
+    must be spawned with it (Dask's pre-spawn environment), and the command's own Dask config is left
+    as it was."""
+    import os
+
+    import dask
+    import distributed  # noqa: F401  (loads Dask's distributed config)
+
+    from archive.pipeline import MALLOC_MMAP_THRESHOLD, _cluster
+
+    before = dict(dask.config.get("distributed.nanny.pre-spawn-environ"))
+    client, cluster = _cluster(None, 1, lambda text: None, threads=2)
+    try:
+        seen = client.run(lambda: os.environ.get("MALLOC_MMAP_THRESHOLD_"))
+        assert list(seen.values()) == [str(MALLOC_MMAP_THRESHOLD)]
+        assert all((w.get("resources") or {}).get("GPU") == 2 for w in client.scheduler_info()["workers"].values())
+    finally:
+        client.close()
+        cluster.close()
+    assert dict(dask.config.get("distributed.nanny.pre-spawn-environ")) == before
