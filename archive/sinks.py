@@ -88,19 +88,21 @@ def _check_tile(tile, height: int, width: int, size: tuple[int, int] = (CHUNK, C
         raise ValueError(f"tile {tile} is not one {th} x {tw} px tile of a {height} x {width} mosaic")
 
 
-#: Widest ENVI output written in whole-width row strips (px); wider ones go in CHUNK x CHUNK tiles.
-ENVI_STRIP_MAX = 16384
+#: Widest ENVI tile (px): tiles are CHUNK rows x up to this many columns. Mosaics up to this wide are
+#: written in whole-width row strips; wider ones in strips of this width, so that the renders a tile
+#: waits for stay those near it (a whole-width strip of a wide flight would touch every pass).
+ENVI_STRIP_MAX = 4 * CHUNK
 
 
 @dataclass(frozen=True)
 class EnviSink:
     """ENVI BSQ data file being written: float32 little-endian (band, y, x), preallocated.
 
-    Its tiles are row strips (CHUNK rows x the whole width, :attr:`tile_size`) while the width is at
-    most ENVI_STRIP_MAX: a task writes each band of its strip with ONE ``os.pwrite`` (a band's rows
-    are contiguous in BSQ; a 1024-px tile of a wider mosaic would take one call per row, ~5 us each:
-    seconds of CPU for a 300-band mosaic). Wider mosaics: CHUNK x CHUNK tiles, one call per row.
-    Nothing is memory-mapped: the written pages are the page cache's, not the process's.
+    Its tiles are CHUNK rows x up to ENVI_STRIP_MAX columns (:attr:`tile_size`): a mosaic at most
+    that wide is written in whole-width row strips, each band of a strip with ONE ``os.pwrite`` (a
+    band's rows are contiguous in BSQ; a 1024-px tile took one call per row, ~5 us each: seconds of
+    CPU for a 300-band mosaic); wider mosaics one call per row of 4 x 1024 px. Nothing is
+    memory-mapped: the written pages are the page cache's, not the process's.
     """
 
     data: str
@@ -115,7 +117,7 @@ class EnviSink:
     @property
     def tile_size(self) -> tuple[int, int]:
         """(height, width) of the graph's output tiles for this sink, pixels."""
-        return (CHUNK, self.width) if self.width <= ENVI_STRIP_MAX else (CHUNK, CHUNK)
+        return (CHUNK, min(self.width, ENVI_STRIP_MAX))
 
     @classmethod
     def create(cls, data: str | os.PathLike, nbands: int, height: int, width: int) -> EnviSink:
