@@ -108,14 +108,9 @@ def scaling_flight(workdir: Path, cubes: int) -> Path:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cubes", type=int, default=2)
-    ap.add_argument("--bands", type=int, default=100)
-    ap.add_argument("--samples", type=int, default=900)
-    ap.add_argument("--lines", type=int, default=1000)
-    ap.add_argument("--gsd", type=float, default=0.04)
+    br.add_flight_arguments(ap, bands=100, workdir="/tmp/archive-bench-outputs")
     ap.add_argument("--scaling", default="8,16", help="cube counts of the memory-vs-length flights ('' to skip)")
     ap.add_argument("--formats", default=",".join(FORMATS))
-    ap.add_argument("--workdir", default="/tmp/archive-bench-outputs")
     ap.add_argument("--no-gdal", action="store_true")
     ap.add_argument("--json", metavar="FILE")
     args = ap.parse_args(argv)

@@ -1,6 +1,6 @@
 """What ``--provenance`` adds to a render (issue 12: at most 15 % of the same job's render time).
 
-    python bench/bench_provenance.py [--cubes 2] [--bands 100] [--samples 900] [--lines 1000]
+    python bench/bench_provenance.py [--cubes 2] [--bands 300] [--samples 900] [--lines 1000]
                                      [--gsd 0.04] [--formats zarr,tif] [--repeats 2] [--workdir DIR]
 
 On one simulated flight (bench_render's flights: simulated once into --workdir, reused), for each
@@ -25,14 +25,9 @@ import bench_render as br  # noqa: E402  (flights, machine, load)
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cubes", type=int, default=2)
-    ap.add_argument("--bands", type=int, default=100)
-    ap.add_argument("--samples", type=int, default=900)
-    ap.add_argument("--lines", type=int, default=1000)
-    ap.add_argument("--gsd", type=float, default=0.04)
+    br.add_flight_arguments(ap, bands=300, workdir="/tmp/archive-bench-outputs")
     ap.add_argument("--formats", default="zarr,tif")
     ap.add_argument("--repeats", type=int, default=2, help="pairs of runs per variant and format")
-    ap.add_argument("--workdir", default="/tmp/archive-bench-outputs")
     args = ap.parse_args(argv)
     work = Path(args.workdir)
     work.mkdir(parents=True, exist_ok=True)

@@ -117,6 +117,16 @@ class MemoryPoll:
 # ---------------------------------------------------------------------------------------------
 # Data
 # ---------------------------------------------------------------------------------------------
+def add_flight_arguments(ap: argparse.ArgumentParser, bands: int, workdir: str) -> None:
+    """The options of the simulated flight (--cubes, --bands, --samples, --lines), --gsd and --workdir."""
+    ap.add_argument("--cubes", type=int, default=2)
+    ap.add_argument("--bands", type=int, default=bands)
+    ap.add_argument("--samples", type=int, default=900)
+    ap.add_argument("--lines", type=int, default=1000)
+    ap.add_argument("--gsd", type=float, default=0.04)
+    ap.add_argument("--workdir", default=workdir)
+
+
 def flight_dir(args) -> Path:
     """Simulate the flight into --workdir once; reuse it while its completion marker exists."""
     d = Path(args.workdir) / f"flight_c{args.cubes}_b{args.bands}_s{args.samples}_l{args.lines}"
@@ -518,12 +528,7 @@ def fmt_gb(b: float | None) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--cubes", type=int, default=2)
-    ap.add_argument("--bands", type=int, default=300)
-    ap.add_argument("--samples", type=int, default=900)
-    ap.add_argument("--lines", type=int, default=1000)
-    ap.add_argument("--gsd", type=float, default=0.04)
-    ap.add_argument("--workdir", default="/tmp/archive-bench")
+    add_flight_arguments(ap, bands=300, workdir="/tmp/archive-bench")
     ap.add_argument("--keep", action="store_true", help="keep the outputs (the simulated flight is always kept)")
     ap.add_argument("--gdal-group", type=int, default=0,
                     help="bands per reproject call (default: probe 4/16/64 on cube 0 and take the fastest)")
