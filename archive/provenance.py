@@ -28,8 +28,8 @@ overlap_count  1         how many layers of the job's line meshes cover the pixe
 cube, line and sample are integers stored exactly (float32 holds every integer below 2^24). The
 ground point of a pixel is its centre at the ground height the meshes used (flat ground), or at the
 DEM's height there (``--dem``). The geometry is the camera's at mid-exposure of the pixel's line, in
-the output grid (projected metres; azimuths turned to true north by the grid convergence at the
-camera). Within one render the layers follow the mosaic rule: they describe exactly the written pixel.
+the flight's own UTM zone (whose metres are ground metres, whatever the output CRS; azimuths turned
+to true north by that zone's grid convergence at the camera). Within one render the layers follow the mosaic rule: they describe exactly the written pixel.
 """
 
 from __future__ import annotations
@@ -143,23 +143,23 @@ def sun_position(unix_s: np.ndarray, lat_deg: np.ndarray, lon_deg: np.ndarray, h
 
 
 def _line_geometry(source, cube: int, spec: ProvenanceSpec):
-    """Per line of ``cube``: time (s since the reference), camera (E, N, height) in the output CRS
-    at mid-exposure, grid bearing of true north (rad) and the sun's (zenith, azimuth), degrees."""
-    from archive.navigation import grid_convergence, reproject, to_lonlat
+    """Per line of ``cube``: time (s since the reference), camera (E, N, height) at mid-exposure in
+    the flight's own UTM zone (its local frame's: conformal, scale within 0.04 %, so its metres are
+    ground metres whatever the output CRS), that zone's EPSG, the grid bearing of true north there
+    (rad) and the sun's (zenith, azimuth), degrees."""
+    from archive.navigation import grid_convergence, to_lonlat
 
     info = source.cubes[cube]
     poses = source.poses(cube, delay=(info.shutter_ms or 0.0) / 2000.0)
     e, n, h = (np.asarray(v, float) for v in poses.frame.from_ned(poses.position))
     lon, lat = to_lonlat(e, n, poses.frame.epsg)
-    if poses.frame.epsg != spec.epsg:
-        e, n = reproject(e, n, poses.frame.epsg, spec.epsg)
     start = np.asarray(source.line_times(cube), float)
     seconds = start - spec.reference_gps
     reference = datetime.strptime(spec.reference_utc, "%Y-%m-%dT%H:%M:%SZ").replace(tzinfo=UTC)
     unix = reference.timestamp() + seconds
-    north = grid_convergence(lon, lat, spec.epsg)
+    north = grid_convergence(lon, lat, poses.frame.epsg)
     sun_zenith, sun_azimuth = sun_position(unix, lat, lon, h)
-    return seconds, np.stack([e, n, h], axis=-1), north, sun_zenith, sun_azimuth
+    return seconds, np.stack([e, n, h], axis=-1), int(poses.frame.epsg), north, sun_zenith, sun_azimuth
 
 
 def cube_layers(source, cube: int, job: int, lookup, spec: ProvenanceSpec, ground: float | None = None
@@ -181,11 +181,13 @@ def cube_layers(source, cube: int, job: int, lookup, spec: ProvenanceSpec, groun
     # Dense over the window (no gather/scatter of the covered pixels), float32 in metres relative
     # to the window's north-west corner (float32 keeps 0.5 mm at 4 km).
     line = np.where(covered, lookup.line, 0)
-    seconds, camera, north, sun_zenith, sun_azimuth = _line_geometry(source, cube, spec)
+    seconds, camera, frame_epsg, north, sun_zenith, sun_azimuth = _line_geometry(source, cube, spec)
     x = ((np.arange(grid.width) + 0.5) * grid.gsd).astype(np.float32)[None, :]
     y = (-(np.arange(grid.height) + 0.5) * grid.gsd).astype(np.float32)[:, None]
-    if spec.dem is not None:
+    rows = cols = None
+    if spec.dem is not None or frame_epsg != spec.epsg:
         rows, cols = np.nonzero(covered)
+    if spec.dem is not None:
         z = np.zeros(grid.shape, np.float32)
         z[rows, cols] = spec.dem.open().heights_at(spec.epsg, grid.x0 + x[0, cols].astype(float),
                                                    grid.y0 + y[rows, 0].astype(float))
@@ -193,8 +195,22 @@ def cube_layers(source, cube: int, job: int, lookup, spec: ProvenanceSpec, groun
         if ground is None or not math.isfinite(ground):
             raise InputError("ground height", "provenance layers need the ground height of a flat mesh")
         z = np.float32(ground)
-    dx = (camera[:, 0] - grid.x0).astype(np.float32)[line] - x     # ground -> sensor, (E, N, up) m
-    dy = (camera[:, 1] - grid.y0).astype(np.float32)[line] - y
+    x0, y0 = grid.x0, grid.y0
+    if frame_epsg != spec.epsg:
+        # another output CRS (--crs, a flight of another zone): the pixel centres in the flight's
+        # zone, whose metres are ground metres (an output CRS's may not be: Web Mercator's are 1.2
+        # ground metres at 35 degrees)
+        from archive.navigation import reproject
+
+        e, n = reproject(grid.x0 + x[0, cols].astype(float), grid.y0 + y[rows, 0].astype(float),
+                         spec.epsg, frame_epsg)
+        x0, y0 = float(np.mean(e)), float(np.mean(n))
+        x = np.zeros(grid.shape, np.float32)
+        y = np.zeros(grid.shape, np.float32)
+        x[rows, cols] = e - x0
+        y[rows, cols] = n - y0
+    dx = (camera[:, 0] - x0).astype(np.float32)[line] - x     # ground -> sensor, (E, N, up) m
+    dy = (camera[:, 1] - y0).astype(np.float32)[line] - y
     dz = camera[:, 2].astype(np.float32)[line] - z
     horizontal = np.hypot(dx, dy)
     values = {

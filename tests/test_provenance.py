@@ -373,3 +373,33 @@ def test_nadir_rule_strategy_and_the_writers_fast_path_agree():
         written = store._array(store.variable)[:, :9, :8]
         assert np.array_equal(written, values, equal_nan=True)
         assert np.array_equal(sat, saturated)
+
+
+def test_view_geometry_in_another_output_crs_is_in_ground_metres(flight, tmp_path):
+    """With --crs EPSG:3857 (whose metres are ~1.22 ground metres at 35 degrees N) the layers still
+    give the true view zenith and path length: geometry is computed in the flight's UTM zone."""
+    directory, truth = flight
+    out = tmp_path / "mercator.zarr"
+    assert _render(directory, out, "--provenance", "--crs", "EPSG:3857") == 0
+    ds = _open(out)
+    assert ds.rio.crs.to_epsg() == 3857
+    rows, cols = _covered(ds)
+    pick = np.random.default_rng(3).choice(rows.size, 3000, replace=False)
+    rows, cols = rows[pick], cols[pick]
+    x, y = truth.to_utm(*_pixel_xy(ds, rows, cols), crs=3857)
+    table = _cubes(directory, ds)
+    cube_index = np.array([table[int(c)]["cube_index"] for c in ds["cube"].values[rows, cols]])
+    line = ds["line"].values[rows, cols].astype(int)
+    camera = np.empty((rows.size, 3))
+    for c in np.unique(cube_index):
+        at = cube_index == c
+        camera[at] = _true_camera(truth, c, line[at])
+    d = camera - np.stack([x, y, truth.ground_height_at(x, y)], axis=1)
+    zenith = np.degrees(np.arctan2(np.hypot(d[:, 0], d[:, 1]), d[:, 2]))
+    assert zenith.max() > 15.0
+    assert np.max(np.abs(ds["view_zenith"].values[rows, cols] - zenith)) < 0.05
+    assert np.max(np.abs(ds["path_length"].values[rows, cols] - np.linalg.norm(d, axis=1))) < 0.05
+    off = zenith > 2.0
+    azimuth = (np.degrees(np.arctan2(d[:, 0], d[:, 1]) - truth.convergence)) % 360.0
+    diff = (ds["view_azimuth"].values[rows, cols][off] - azimuth[off] + 180.0) % 360.0 - 180.0
+    assert np.max(np.abs(diff)) < 0.5
