@@ -113,15 +113,15 @@ class LayersStore:
 
 class _LayersTileWriter(TileWriter):
     def __init__(self, sink: LayersStore, band0: int, tile):
-        super().__init__(band0, tile)
-        self.sink = sink
-
-    def write(self, b: int, chunk: np.ndarray) -> None:
         import zarr
 
+        super().__init__(band0, tile)
+        self.sink = sink
+        self.group = zarr.open_group(sink.path, mode="r+")   # the metadata read once per tile
+
+    def write(self, b: int, chunk: np.ndarray) -> None:
         row0, col0, h, w = self.tile
-        array = zarr.open_array(self.sink.path, path=self.sink.names[self.band0 + b], mode="r+")
-        array[row0:row0 + h, col0:col0 + w] = chunk[:h, :w]
+        self.group[self.sink.names[self.band0 + b]][row0:row0 + h, col0:col0 + w] = chunk[:h, :w]
 
 
 def layers_cog_metadata(spec: ProvenanceSpec) -> str:

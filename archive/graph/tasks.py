@@ -24,7 +24,7 @@ import numpy as np
 from archive.errors import InputError, RenderError
 from archive.graph.mosaic import last_saturation, last_values, make_rule, nadir_values, nadir_winners
 from archive.grid import Grid
-from archive.outputs import CHUNK, MosaicStore
+from archive.outputs import MosaicStore
 
 Box = tuple[int, int, int, int]
 

@@ -186,7 +186,8 @@ def rasterize_lookup(mesh: Mesh, grid: Grid, samples: int, *, max_size: int | No
     ctx = get_context()
     _, window = _limits(max_size)
     terrain = mesh.distance is not None   # terrain mesh: depth test on the distance from the camera
-    program = get_program("terrain.vert.glsl" if terrain else "cube.vert.glsl", "lookup.frag.glsl")
+    vertex_shader = "terrain.vert.glsl" if terrain else "cube.vert.glsl"
+    program = get_program(vertex_shader, "lookup.frag.glsl")
 
     # Vertex data: float32 metres relative to the mesh centre (float64 offsets go in uniforms).
     pos, attr = mesh.vertex_attributes()
@@ -214,12 +215,12 @@ def rasterize_lookup(mesh: Mesh, grid: Grid, samples: int, *, max_size: int | No
         ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST | moderngl.CULL_FACE)
         vbo = keep(ctx.buffer(vdata.tobytes()))
         ibo = keep(ctx.buffer(triangles.tobytes()))
-        if terrain:
-            vao = keep(ctx.vertex_array(program, [(vbo, "2f 3f 1f", "in_pos", "in_attr", "in_dist")],
-                                        index_buffer=ibo, index_element_size=4))
-        else:
-            vao = keep(ctx.vertex_array(program, [(vbo, "2f 3f", "in_pos", "in_attr")],
-                                        index_buffer=ibo, index_element_size=4))
+        layout = (vbo, "2f 3f 1f", "in_pos", "in_attr", "in_dist") if terrain else (vbo, "2f 3f", "in_pos", "in_attr")
+
+        def mesh_vao(prog):
+            return keep(ctx.vertex_array(prog, [layout], index_buffer=ibo, index_element_size=4))
+
+        vao = mesh_vao(program)
         index_rb = keep(ctx.renderbuffer((fbw, fbh), 2, dtype="f4"))
         if terrain:
             depth_rb = keep(ctx.depth_renderbuffer((fbw, fbh)))
@@ -230,11 +231,8 @@ def rasterize_lookup(mesh: Mesh, grid: Grid, samples: int, *, max_size: int | No
             fbo = keep(ctx.framebuffer(color_attachments=[index_rb]))
         programs = [program]
         if count:   # the same mesh, its coverage counted: additive blending into a second target
-            counter = get_program("terrain.vert.glsl" if terrain else "cube.vert.glsl", "lookup.frag.glsl",
-                                  ("COUNT",))
-            count_vao = keep(ctx.vertex_array(counter, [(vbo, "2f 3f 1f" if terrain else "2f 3f", "in_pos",
-                                                         "in_attr", *(["in_dist"] if terrain else []))],
-                                              index_buffer=ibo, index_element_size=4))
+            counter = get_program(vertex_shader, "lookup.frag.glsl", ("COUNT",))
+            count_vao = mesh_vao(counter)
             count_rb = keep(ctx.renderbuffer((fbw, fbh), 2, dtype="f4"))
             count_fbo = keep(ctx.framebuffer(color_attachments=[count_rb]))
             programs.append(counter)
