@@ -35,6 +35,8 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
+from archive.files import write_atomic
+
 __all__ = ["COMPRESSION", "GHOST", "PREDICTOR", "TILE", "ZSTD_LEVEL", "Spool", "assemble", "decode_tile",
            "downsample2", "encode_tile", "frame", "level_shapes", "read_spool", "write_spool"]
 
@@ -140,17 +142,7 @@ def write_spool(path: str | os.PathLike, tiles: Sequence[Sequence[bytes]]) -> No
     for band in tiles:
         for t in band:
             parts.extend(frame(t))
-    tmp = f"{os.fspath(path)}.{os.getpid()}.{id(parts):x}.tmp"
-    try:
-        with open(tmp, "wb") as f:
-            f.writelines(parts)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.remove(tmp)
-        except OSError:
-            pass
-        raise
+    write_atomic(path, parts)
 
 
 @dataclass(frozen=True)

@@ -24,14 +24,12 @@ once the new one is complete.
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import json
 import math
 import os
 import shutil
 import sys
-import uuid
 import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -41,6 +39,7 @@ from typing import ClassVar
 import numpy as np
 
 from archive.errors import InputError, OutputExistsError, RenderError
+from archive.files import write_atomic
 from archive.grid import Grid
 from archive.sinks import CHUNK, CogSink, EnviSink, TileWriter, chunk_buffer
 
@@ -198,15 +197,7 @@ class ChunkWriter:
         if parent not in self._made:
             os.makedirs(parent, exist_ok=True)
             self._made.add(parent)
-        tmp = f"{path}.{uuid.uuid4().hex}.partial"
-        try:
-            with open(tmp, "wb") as f:
-                f.write(data)
-            os.replace(tmp, path)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.remove(tmp)
-            raise
+        write_atomic(path, data)
 
 
 @dataclass(frozen=True)
@@ -274,6 +265,48 @@ def geozarr_attrs(grid: Grid, wkt2: bool = False) -> dict:
     return attrs
 
 
+def mosaic_dataset(grid: Grid, values, saturated, band_indices: Sequence[int],
+                   wavelengths: Sequence[float] | None, fwhm: Sequence[float] | None, variable: str,
+                   attrs: dict | None = None):
+    """The ``xarray.Dataset`` of a mosaic (the Zarr output's layout, also :func:`archive.mosaic`'s):
+    ``variable`` (band, y, x) = ``values`` and ``saturated`` (y, x), any array kind (numpy, dask);
+    coordinates ``band`` (source band index), x/y pixel centres (m), ``wavelength`` and ``fwhm`` (nm,
+    when known); CF attributes, the CRS (rioxarray ``spatial_ref``) and the GeoZarr attributes
+    (:func:`geozarr_attrs`) of ``grid``; ``attrs`` at the root."""
+    import rioxarray  # noqa: F401  (registers .rio)
+    import xarray as xr
+
+    x, y = grid.xy_centres()
+    coords = {"band": np.asarray(band_indices, dtype=np.int32), "y": y, "x": x}
+    if wavelengths is not None:
+        coords["wavelength"] = ("band", np.asarray(wavelengths, dtype=np.float64))
+    if fwhm is not None:
+        coords["fwhm"] = ("band", np.asarray(fwhm, dtype=np.float64))
+    ds = xr.Dataset({variable: (("band", "y", "x"), values), "saturated": (("y", "x"), saturated)}, coords=coords)
+    ds[variable].attrs.update({"long_name": variable, "_description": "NaN where no image line covers the pixel"})
+    if variable in _CF_UNITS:  # radiance is in the calibration's units, which it does not name
+        ds[variable].attrs["units"] = _CF_UNITS[variable]
+    ds["saturated"].attrs.update({"long_name": "saturated", "flag_values": [0, 1],
+                                  "flag_meanings": "ok saturated_in_some_band"})
+    ds["band"].attrs.update({"long_name": "source band index (0-based)"})
+    if wavelengths is not None:
+        ds["wavelength"].attrs.update({"units": "nm", "long_name": "band centre wavelength",
+                                       "standard_name": "radiation_wavelength"})
+    if fwhm is not None:
+        ds["fwhm"].attrs.update({"units": "nm", "long_name": "band spectral full width at half maximum"})
+    ds["x"].attrs.update({"units": "m", "standard_name": "projection_x_coordinate",
+                          "long_name": "easting of the pixel centre", "axis": "X"})
+    ds["y"].attrs.update({"units": "m", "standard_name": "projection_y_coordinate",
+                          "long_name": "northing of the pixel centre", "axis": "Y"})
+    ds.attrs.update(attrs or {})
+    ds.attrs.setdefault("Conventions", "CF-1.10")
+    ds = ds.rio.write_crs(grid.epsg).rio.write_transform(grid.transform)
+    ds.attrs.update(geozarr_attrs(grid, wkt2=True))
+    for name in (variable, "saturated"):
+        ds[name].attrs.update(geozarr_attrs(grid))
+    return ds
+
+
 @dataclass(frozen=True)
 class MosaicStore:
     """Handle on a mosaic Zarr store (only paths and names: cheap to pickle into tasks).
@@ -316,53 +349,20 @@ class MosaicStore:
         fwhm: spectral full width at half maximum per output band, nm (or None).
         """
         import dask.array as da
-        import rioxarray  # noqa: F401  (registers .rio)
-        import xarray as xr
 
         nb = len(band_indices)
         if wavelengths is not None and len(wavelengths) != nb:
             raise ValueError(f"{len(wavelengths)} wavelengths for {nb} bands")
         if fwhm is not None and len(fwhm) != nb:
             raise ValueError(f"{len(fwhm)} fwhm values for {nb} bands")
-        x, y = grid.xy_centres()
         values = da.full((nb, grid.height, grid.width), np.nan, dtype=np.float32,
                          chunks=(1, CHUNK, CHUNK))
         saturated = da.zeros(grid.shape, dtype=np.uint8, chunks=(CHUNK, CHUNK))
-        coords = {"band": np.asarray(band_indices, dtype=np.int32), "y": y, "x": x}
-        if wavelengths is not None:
-            coords["wavelength"] = ("band", np.asarray(wavelengths, dtype=np.float64))
-        if fwhm is not None:
-            coords["fwhm"] = ("band", np.asarray(fwhm, dtype=np.float64))
-        ds = xr.Dataset(
-            {variable: (("band", "y", "x"), values), "saturated": (("y", "x"), saturated)}, coords=coords
-        )
-        ds[variable].attrs.update(
-            {"long_name": variable, "_description": "NaN where no image line covers the pixel"}
-        )
-        if variable in _CF_UNITS:  # radiance is in the calibration's units, which it does not name
-            ds[variable].attrs["units"] = _CF_UNITS[variable]
-        ds["saturated"].attrs.update({"long_name": "saturated", "flag_values": [0, 1],
-                                      "flag_meanings": "ok saturated_in_some_band"})
-        ds["band"].attrs.update({"long_name": "source band index (0-based)"})
-        if wavelengths is not None:
-            ds["wavelength"].attrs.update({"units": "nm", "long_name": "band centre wavelength",
-                                           "standard_name": "radiation_wavelength"})
-        if fwhm is not None:
-            ds["fwhm"].attrs.update({"units": "nm", "long_name": "band spectral full width at half maximum"})
-        ds["x"].attrs.update({"units": "m", "standard_name": "projection_x_coordinate",
-                              "long_name": "easting of the pixel centre", "axis": "X"})
-        ds["y"].attrs.update({"units": "m", "standard_name": "projection_y_coordinate",
-                              "long_name": "northing of the pixel centre", "axis": "Y"})
-        ds.attrs.update(attrs or {})
-        ds.attrs.setdefault("Conventions", "CF-1.10")
+        ds = mosaic_dataset(grid, values, saturated, band_indices, wavelengths, fwhm, variable, attrs)
         ds.attrs[_GRID_ATTR] = json.dumps(
             {"epsg": grid.epsg, "gsd": grid.gsd, "x0": grid.x0, "y0": grid.y0,
              "width": grid.width, "height": grid.height}
         )
-        ds = ds.rio.write_crs(grid.epsg).rio.write_transform(grid.transform)
-        ds.attrs.update(geozarr_attrs(grid, wkt2=True))
-        for name in (variable, "saturated"):
-            ds[name].attrs.update(geozarr_attrs(grid))
         ds[variable].encoding.update({"chunks": (1, CHUNK, CHUNK), "_FillValue": np.float32(np.nan),
                                       "compressors": _values_codecs()})
         ds["saturated"].encoding.update({"chunks": (CHUNK, CHUNK)})

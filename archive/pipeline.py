@@ -35,7 +35,7 @@ import numpy as np
 
 from archive.errors import ArchiveError, InputError, MissingInputError, RenderError
 from archive.graph.mosaic import KEYED, RULES, WINNER_RULES
-from archive.outputs import Output, variable_for_mode
+from archive.outputs import Output, mosaic_dataset, variable_for_mode
 from archive.navigation import DEFAULT_MAX_VIEW_ANGLE, projected_epsg
 from archive.params import NavigationParams, RenderParams
 from archive.sources.base import MODES
@@ -903,9 +903,6 @@ def mosaic(request: RenderRequest, *, band_group: int | None = None, quiet: bool
     index, ``wavelength`` in nm, indexed for ``.sel(wavelength=..., method="nearest")``), with the
     CRS set (rioxarray ``spatial_ref``).
     """
-    import rioxarray  # noqa: F401  (registers .rio)
-    import xarray as xr
-
     from archive.graph.lazy import mosaic_arrays
 
     client = _active_client()
@@ -918,26 +915,8 @@ def mosaic(request: RenderRequest, *, band_group: int | None = None, quiet: bool
     values, saturated = mosaic_arrays(planned.plan, list(planned.sources), mode=p.mode, overlap=p.overlap,
                                       layers=planned.layers_spec(nadir_only=True) if p.overlap in KEYED else None,
                                       mesh_spec=planned.mesh_spec)
-    x, y = grid.xy_centres()
-    coords = {"band": np.asarray(planned.plan.bands[0], dtype=np.int32), "y": y, "x": x}
-    if planned.wavelengths is not None:
-        coords["wavelength"] = ("band", np.asarray(planned.wavelengths, dtype=np.float64))
-    if planned.fwhm is not None:
-        coords["fwhm"] = ("band", np.asarray(planned.fwhm, dtype=np.float64))
-    variable = planned.variable
-    ds = xr.Dataset({variable: (("band", "y", "x"), values), "saturated": (("y", "x"), saturated)}, coords=coords)
-    ds[variable].attrs.update({"long_name": variable, "_description": "NaN where no image line covers the pixel"})
-    ds["saturated"].attrs.update({"long_name": "saturated", "flag_values": [0, 1],
-                                  "flag_meanings": "ok saturated_in_some_band"})
-    ds["band"].attrs.update({"long_name": "source band index (0-based)"})
-    ds["x"].attrs.update({"units": "m", "standard_name": "projection_x_coordinate"})
-    ds["y"].attrs.update({"units": "m", "standard_name": "projection_y_coordinate"})
-    ds.attrs.update(planned.attrs)
-    ds = ds.rio.write_crs(grid.epsg).rio.write_transform(grid.transform)
-    if planned.wavelengths is not None:
-        ds["wavelength"].attrs.update({"units": "nm", "long_name": "band centre wavelength"})
-        if planned.fwhm is not None:
-            ds["fwhm"].attrs.update({"units": "nm", "long_name": "band spectral full width at half maximum"})
-        if len(set(planned.wavelengths)) == len(planned.wavelengths):
-            ds = ds.set_xindex("wavelength")
+    ds = mosaic_dataset(grid, values, saturated, planned.plan.bands[0], planned.wavelengths, planned.fwhm,
+                        planned.variable, planned.attrs)
+    if planned.wavelengths is not None and len(set(planned.wavelengths)) == len(planned.wavelengths):
+        ds = ds.set_xindex("wavelength")
     return ds

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from archive.errors import FormatError
+from archive.files import write_atomic
 
 STAC_VERSION = "1.1.0"
 EO_EXTENSION = "https://stac-extensions.github.io/eo/v1.1.0/schema.json"
@@ -125,9 +126,7 @@ def write_item(path: str | os.PathLike, item: dict) -> Path:
     """Write an Item as JSON (temporary name, then rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(item, indent=1) + "\n")
-    os.replace(tmp, path)
+    write_atomic(path, (json.dumps(item, indent=1) + "\n").encode())
     return path
 
 
