@@ -28,26 +28,22 @@ import argparse
 import json
 import logging
 import os
-import platform
 import shutil
 import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_render as br  # noqa: E402  (machine)
+
 FOV = 47.5
 
 
 def machine() -> dict:
-    cpu = "?"
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            cpu = line.split(":", 1)[1].strip()
-            break
     import dask
     import distributed
 
-    return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
-            "dask": dask.__version__, "distributed": distributed.__version__,
+    return {**br.machine(), "dask": dask.__version__, "distributed": distributed.__version__,
             "load_avg_1min": round(os.getloadavg()[0], 2)}
 
 

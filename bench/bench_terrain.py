@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -35,22 +34,17 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_render as br  # noqa: E402  (machine)
+
 FOV = 47.5
 MODE = "radiance"
 GROUP = 32
 
 
 def machine() -> str:
-    cpu = "?"
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            cpu = line.split(":", 1)[1].strip()
-            break
-    mem = 0
-    for line in Path("/proc/meminfo").read_text().splitlines():
-        if line.startswith("MemTotal"):
-            mem = int(line.split()[1]) * 1024
-    return f"{cpu}, {os.cpu_count()} cores, {mem / 1e9:.1f} GB RAM, Python {platform.python_version()}"
+    m = br.machine()
+    return f"{m['cpu']}, {m['cores']} cores, {m['ram_gb']:.1f} GB RAM, Python {m['python']}"
 
 
 def gl_text() -> str:

@@ -41,25 +41,18 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_render as br  # noqa: E402  (machine)
+
 ROOT = Path(__file__).resolve().parents[1]
 FOV = 47.5
 HALF_WORLD = math.pi * 6378137.0
 
 
 def machine() -> dict:
-    cpu = "?"
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            cpu = line.split(":", 1)[1].strip()
-            break
-    mem = 0
-    for line in Path("/proc/meminfo").read_text().splitlines():
-        if line.startswith("MemTotal"):
-            mem = int(line.split()[1]) * 1024
     gl = subprocess.run([sys.executable, "-c", "from archive.render.context import gl_info; i = gl_info(); "
                          "print(i['renderer'], '|', i['version'])"], capture_output=True, text=True, cwd=ROOT)
-    return {"cpu": cpu, "cores": os.cpu_count(), "ram_gb": round(mem / 1e9, 1),
-            "gl": gl.stdout.strip() or gl.stderr.strip()[-200:], "load": os.getloadavg()}
+    return {**br.machine(), "gl": gl.stdout.strip() or gl.stderr.strip()[-200:], "load": os.getloadavg()}
 
 
 def rss(pid: int) -> int:

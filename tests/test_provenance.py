@@ -98,30 +98,30 @@ def test_gathering_raw_dn_through_the_glt_gives_the_raw_mosaic_bit_for_bit(fligh
     assert np.array_equal(gathered.view(np.uint32), dn.view(np.uint32))  # bit for bit, NaN included
 
 
-def _true_camera(truth, cube_index: int, lines: np.ndarray) -> np.ndarray:
-    """(n, 3) true camera E, N, alt at mid-exposure of ``lines`` of cube ``cube_index``."""
-    c = truth.cubes[cube_index]
-    position, _ = truth.trajectory(c.line_time[lines] + c.shutter_ms / 2000.0)
-    return np.asarray(position)
+def _sampled_truth(directory: Path, truth, ds: xr.Dataset, count: int, seed: int):
+    """``count`` random covered pixels of ``ds``: (rows, cols, the true camera E, N, alt (n, 3) at
+    mid-exposure of the line each came from, that line's true start time (n,))."""
+    rows, cols = _covered(ds)
+    pick = np.random.default_rng(seed).choice(rows.size, count, replace=False)
+    rows, cols = rows[pick], cols[pick]
+    table = _cubes(directory, ds)
+    cube_index = np.array([table[int(c)]["cube_index"] for c in ds["cube"].values[rows, cols]])
+    line = ds["line"].values[rows, cols].astype(int)
+    camera = np.empty((rows.size, 3))
+    true_time = np.empty(rows.size)
+    for c in np.unique(cube_index):
+        at = cube_index == c
+        cube = truth.cubes[c]
+        true_time[at] = cube.line_time[line[at]]
+        camera[at] = np.asarray(truth.trajectory(true_time[at] + cube.shutter_ms / 2000.0)[0])
+    return rows, cols, camera, true_time
 
 
 def test_view_geometry_time_and_sun_match_the_truth(flight, rendered):
     directory, truth = flight
     ds = _open(rendered["last"])
-    rows, cols = _covered(ds)
-    pick = np.random.default_rng(0).choice(rows.size, 4000, replace=False)
-    rows, cols = rows[pick], cols[pick]
+    rows, cols, camera, true_time = _sampled_truth(directory, truth, ds, 4000, seed=0)
     x, y = _pixel_xy(ds, rows, cols)
-    table = _cubes(directory, ds)
-    cube = ds["cube"].values[rows, cols].astype(int)
-    line = ds["line"].values[rows, cols].astype(int)
-    cube_index = np.array([table[c]["cube_index"] for c in cube])
-    camera = np.empty((rows.size, 3))
-    true_time = np.empty(rows.size)
-    for c in np.unique(cube_index):
-        at = cube_index == c
-        camera[at] = _true_camera(truth, c, line[at])
-        true_time[at] = truth.cubes[c].line_time[line[at]]
     ground = truth.ground_height_at(x, y)
     d = camera - np.stack([x, y, ground], axis=1)
     horizontal = np.hypot(d[:, 0], d[:, 1])
@@ -314,17 +314,8 @@ def test_view_zenith_over_terrain_uses_the_dem_heights(tmp_path_factory):
     assert main(["render", str(directory), "--fov", str(FOV), "--gsd", str(GSD), "--dem", str(directory / "dem.tif"),
                  "--mode", "raw", "--out", str(out), "--quiet", "--provenance"]) == 0
     ds = _open(out)
-    rows, cols = _covered(ds)
-    pick = np.random.default_rng(2).choice(rows.size, 3000, replace=False)
-    rows, cols = rows[pick], cols[pick]
+    rows, cols, camera, _ = _sampled_truth(directory, truth, ds, 3000, seed=2)
     x, y = _pixel_xy(ds, rows, cols)
-    table = _cubes(directory, ds)
-    cube_index = np.array([table[int(c)]["cube_index"] for c in ds["cube"].values[rows, cols]])
-    line = ds["line"].values[rows, cols].astype(int)
-    camera = np.empty((rows.size, 3))
-    for c in np.unique(cube_index):
-        at = cube_index == c
-        camera[at] = _true_camera(truth, c, line[at])
     ground = truth.ground_height_at(x, y)
     assert np.ptp(ground) > 2.0                     # real relief under the checked pixels
     d = camera - np.stack([x, y, ground], axis=1)
@@ -383,17 +374,8 @@ def test_view_geometry_in_another_output_crs_is_in_ground_metres(flight, tmp_pat
     assert _render(directory, out, "--provenance", "--crs", "EPSG:3857") == 0
     ds = _open(out)
     assert ds.rio.crs.to_epsg() == 3857
-    rows, cols = _covered(ds)
-    pick = np.random.default_rng(3).choice(rows.size, 3000, replace=False)
-    rows, cols = rows[pick], cols[pick]
+    rows, cols, camera, _ = _sampled_truth(directory, truth, ds, 3000, seed=3)
     x, y = truth.to_utm(*_pixel_xy(ds, rows, cols), crs=3857)
-    table = _cubes(directory, ds)
-    cube_index = np.array([table[int(c)]["cube_index"] for c in ds["cube"].values[rows, cols]])
-    line = ds["line"].values[rows, cols].astype(int)
-    camera = np.empty((rows.size, 3))
-    for c in np.unique(cube_index):
-        at = cube_index == c
-        camera[at] = _true_camera(truth, c, line[at])
     d = camera - np.stack([x, y, truth.ground_height_at(x, y)], axis=1)
     zenith = np.degrees(np.arctan2(np.hypot(d[:, 0], d[:, 1]), d[:, 2]))
     assert zenith.max() > 15.0
