@@ -227,27 +227,10 @@ def test_no_smear_across_a_pause(tmp_path_factory):
 
 
 def _shifts(values, grid, truth_of, band=2):
-    """Lucas-Kanade shifts (dy, dx) px of textured windows against the truth radiance."""
-    from tests.test_render_truth import lucas_kanade
+    """Lucas-Kanade shifts (dy, dx) px of textured 16 px windows against the truth radiance."""
+    from tests.test_render_truth import textured_shifts
 
-    x, y = grid.xy_centres()
-    size = 16
-    out = []
-    for r in range(0, grid.height - size + 1, size // 2):
-        for c in range(0, grid.width - size + 1, size // 2):
-            image = values[band, r:r + size, c:c + size]
-            if np.isnan(image).any():
-                continue
-            gy, gx = np.gradient(image)
-            if np.sqrt(np.mean(gx**2 + gy**2)) < 0.02 * np.mean(image):
-                continue
-            xx, yy = np.meshgrid(x[c:c + size], y[r:r + size])
-            truth = truth_of(xx, yy)
-            if truth is None:
-                continue
-            reference = truth.radiance_box(xx, yy, grid.gsd, supersample=4, crs=grid.epsg)[band]
-            out.append(lucas_kanade(reference, image))
-    return np.array(out)
+    return textured_shifts(values[band], grid, truth_of, band, 16)
 
 
 def _shift_ok(shifts) -> bool:

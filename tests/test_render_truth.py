@@ -142,26 +142,36 @@ def test_lucas_kanade_measures_known_shifts():
         np.testing.assert_allclose(lucas_kanade(texture, shifted)[[0, 1]], true, atol=0.02)
 
 
+def textured_shifts(image: np.ndarray, grid, truth_of, band: int, size: int) -> np.ndarray:
+    """(n, 2) Lucas-Kanade shifts (dy, dx), px, of ``image`` (height, width: one band of a mosaic on
+    ``grid``) against the truth's radiance of ``band`` box-averaged over each pixel, on the textured,
+    fully covered ``size`` x ``size`` windows (half overlapping). truth_of(xx, yy): the Truth that
+    holds those points (None: skip the window)."""
+    x, y = grid.xy_centres()
+    out = []
+    for r in range(0, grid.height - size + 1, size // 2):
+        for c in range(0, grid.width - size + 1, size // 2):
+            window = image[r:r + size, c:c + size]
+            if np.isnan(window).any():
+                continue
+            gy, gx = np.gradient(window)
+            if np.sqrt(np.mean(gx**2 + gy**2)) < 0.02 * np.mean(window):
+                continue                                  # too flat to measure a shift
+            xx, yy = np.meshgrid(x[c:c + size], y[r:r + size])
+            truth = truth_of(xx, yy)
+            if truth is None:
+                continue
+            reference = truth.radiance_box(xx, yy, grid.gsd, supersample=4, crs=grid.epsg)[band]
+            out.append(lucas_kanade(reference, window))
+    return np.array(out)
+
+
 def test_geometry_has_no_subpixel_shift(flight, rendered):
     """Rendered radiance vs the truth box-averaged over each pixel, on textured 32 x 32 windows."""
     truth = flight[0]
     grid = rendered["grid"]
-    mosaic = rendered["radiance_mosaic"][3]
-    x, y = grid.xy_centres()
     size = 32 if grid.gsd < truth.nominal_gsd * 0.75 else 24
-    shifts = []
-    for r in range(0, grid.height - size + 1, size // 2):
-        for c in range(0, grid.width - size + 1, size // 2):
-            image = mosaic[r:r + size, c:c + size]
-            if np.isnan(image).any():
-                continue
-            gy, gx = np.gradient(image)
-            if np.sqrt(np.mean(gx**2 + gy**2)) < 0.02 * np.mean(image):
-                continue                                  # too flat to measure a shift
-            xx, yy = np.meshgrid(x[c:c + size], y[r:r + size])
-            reference = truth.radiance_box(xx, yy, grid.gsd, supersample=4)[3]
-            shifts.append(lucas_kanade(reference, image))
-    shifts = np.array(shifts)
+    shifts = textured_shifts(rendered["radiance_mosaic"][3], grid, lambda xx, yy: truth, 3, size)
     assert len(shifts) >= 15
     size_px = np.hypot(shifts[:, 0], shifts[:, 1])
     assert np.median(size_px) <= 0.2, np.median(size_px)

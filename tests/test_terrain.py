@@ -20,7 +20,7 @@ import math
 import numpy as np
 import pytest
 
-from tests.test_render_truth import lucas_kanade
+from tests.test_render_truth import textured_shifts
 
 FOV = 47.5
 HILLS = dict(terrain="hills", cubes=4, cubes_per_pass=2, bands=4, samples=128, lines=200, seed=21)
@@ -78,21 +78,8 @@ def visible_masks(truth, grid, d_px=1.5):
 
 def shifts(values, grid, truth, band=BAND, size=None):
     """Lucas-Kanade shifts (dy, dx) px of textured, fully covered windows against the truth."""
-    x, y = grid.xy_centres()
     size = size or (32 if grid.gsd < truth.nominal_gsd * 0.75 else 24)
-    out = []
-    for r in range(0, grid.height - size + 1, size // 2):
-        for c in range(0, grid.width - size + 1, size // 2):
-            image = values[band, r:r + size, c:c + size]
-            if np.isnan(image).any():
-                continue
-            gy, gx = np.gradient(image)
-            if np.sqrt(np.mean(gx**2 + gy**2)) < 0.02 * np.mean(image):
-                continue
-            xx, yy = np.meshgrid(x[c:c + size], y[r:r + size])
-            reference = truth.radiance_box(xx, yy, grid.gsd, supersample=4, crs=grid.epsg)[band]
-            out.append(lucas_kanade(reference, image))
-    return np.array(out)
+    return textured_shifts(values[band], grid, lambda xx, yy: truth, band, size)
 
 
 def shift_stats(s) -> tuple[float, float, np.ndarray]:
