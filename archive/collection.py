@@ -43,7 +43,6 @@ import hashlib
 import json
 import os
 import shutil
-import threading
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -55,6 +54,7 @@ import zarr
 from zarr.codecs import BloscCodec
 
 from archive.errors import FormatError, MissingInputError
+from archive.files import replace_path, write_atomic
 from archive.formats.envi import EnviCube, EnviHeader, header_from_metadata
 from archive.formats.lcf import LcfData
 from archive.navigation import LocalFrame
@@ -184,9 +184,7 @@ def write_chunk(store: str, task: ChunkTask, chunk_lines: int, resume: bool) -> 
         padded[: data.shape[0]] = data
         data = padded
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_name(f"{target.name}.{os.getpid()}.{threading.get_ident()}.partial")
-    tmp.write_bytes(codec.encode(data))
-    os.replace(tmp, target)
+    write_atomic(target, codec.encode(data))
     return task.band, task.chunk, digest.hex()
 
 
@@ -298,15 +296,7 @@ def finish_store(partial: Path, plan: StorePlan, chunk_digests: dict[tuple[int, 
 
 def publish(partial: Path, final: Path) -> None:
     """Rename the finished partial store to its final name (replacing an older store)."""
-    if final.exists():
-        old = final.with_name(final.name + ".replaced")
-        if old.exists():
-            shutil.rmtree(old)
-        os.rename(final, old)
-        os.rename(partial, final)
-        shutil.rmtree(old)
-    else:
-        os.rename(partial, final)
+    replace_path(partial, final)
 
 
 # ----------------------------------------------------------------------------------------------

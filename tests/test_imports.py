@@ -248,7 +248,7 @@ def test_no_private_names_imported_across_modules():
 # DESIGN 1: "formats know nothing of sources, sources nothing of the catalog (only the open_source
 # function resolves an archive id), the catalog nothing of rendering".
 LAYERS = [
-    ("archive.formats.", ("archive.",), ("archive.errors", "archive.formats.")),
+    ("archive.formats.", ("archive.",), ("archive.errors", "archive.files", "archive.formats.")),
     ("archive.sources.", ("archive.catalog", "archive.pipeline", "archive.graph", "archive.render", "archive.ingest"),
      ()),
     ("archive.catalog", ("archive.render", "archive.graph", "archive.pipeline", "archive.sources", "archive.ingest"),

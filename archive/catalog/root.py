@@ -21,6 +21,7 @@ from pathlib import Path
 
 from archive.collection import is_complete
 from archive.errors import InputError, MissingInputError
+from archive.files import write_atomic
 
 MARKER = "archive.json"
 FORMAT = "archive"
@@ -135,7 +136,5 @@ def create_archive(path: str | os.PathLike) -> ArchiveRoot:
     root.mkdir(parents=True, exist_ok=True)
     (root / "collections").mkdir(exist_ok=True)
     (root / "catalog" / "items").mkdir(parents=True, exist_ok=True)
-    tmp = root / f".{MARKER}.tmp"
-    tmp.write_text(json.dumps({"format": FORMAT, "version": VERSION}, indent=2) + "\n")
-    os.replace(tmp, root / MARKER)
+    write_atomic(root / MARKER, json.dumps({"format": FORMAT, "version": VERSION}, indent=2) + "\n")
     return ArchiveRoot(root)

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from archive.errors import FormatError, InputError, MissingInputError
+from archive.files import atomic_path
 
 __all__ = [
     "DTYPES",
@@ -475,10 +476,6 @@ def _paths_for_write(path: str | os.PathLike) -> tuple[Path, Path]:
     return path, path.with_suffix(".hdr")
 
 
-def _tmp(path: Path) -> Path:
-    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
-
-
 def write_envi(path: str | os.PathLike, data: np.ndarray, metadata: Mapping[str, object] | None = None,
                interleave: str = "bsq", byte_order: int = 0, header_offset: int = 0) -> Path:
     """Write ``data`` ``(bands, lines, samples)`` as an ENVI cube and return the data file path.
@@ -529,16 +526,11 @@ def write_envi(path: str | os.PathLike, data: np.ndarray, metadata: Mapping[str,
     file_order = {"bsq": (0, 1, 2), "bil": (1, 0, 2), "bip": (1, 2, 0)}[interleave]
     out = np.ascontiguousarray(data.transpose(file_order),
                                dtype=data.dtype.newbyteorder(">" if byte_order else "<"))
-    tmp_data, tmp_hdr = _tmp(data_path), _tmp(hdr_path)
-    try:
-        with open(tmp_data, "wb") as f:
+    # the data file is renamed into place first, the header (what readers open) last
+    with atomic_path(hdr_path) as tmp_hdr:
+        with atomic_path(data_path) as tmp_data, open(tmp_data, "wb") as f:
             if header_offset:
                 f.write(b"\0" * header_offset)
             out.tofile(f)
         tmp_hdr.write_text(_header_text(meta), encoding="utf-8")
-        os.replace(tmp_data, data_path)
-        os.replace(tmp_hdr, hdr_path)
-    finally:
-        for tmp in (tmp_data, tmp_hdr):
-            tmp.unlink(missing_ok=True)
     return data_path

@@ -19,6 +19,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from archive.errors import FormatError, InputError, MissingInputError
+from archive.files import atomic_path
 from archive.formats.envi import (EnviHeader, array_from_bytes, header_from_metadata,
                                  parse_header_text, write_envi)
 
@@ -228,15 +229,10 @@ def write_icp(path: str | os.PathLike, calibration: Calibration) -> None:
         members.append((name, data.astype(np.uint16) if exact else data,
                         {"shutter": float(dark.shutter_ms), "shutter units": "milliseconds",
                          "gain": float(dark.gain_db), "ceiling": 4095}))
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with tempfile.TemporaryDirectory() as scratch, \
-                zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as zf:
-            for name, data, meta in members:
-                file = Path(scratch) / name
-                write_envi(file, data[:, None, :], {**base_meta, **meta}, interleave="bip")
-                zf.write(file, name)
-                zf.write(file.with_name(name + ".hdr"), name + ".hdr")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_path(path) as tmp, tempfile.TemporaryDirectory() as scratch, \
+            zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as zf:
+        for name, data, meta in members:
+            file = Path(scratch) / name
+            write_envi(file, data[:, None, :], {**base_meta, **meta}, interleave="bip")
+            zf.write(file, name)
+            zf.write(file.with_name(name + ".hdr"), name + ".hdr")

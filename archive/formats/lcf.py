@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from archive.errors import FormatError, InputError, MissingInputError
+from archive.files import write_atomic
 
 __all__ = ["GPS_EPOCH", "LcfData", "fix_gps_week", "gps_seconds_to_datetime", "read_lcf",
            "write_lcf"]
@@ -132,12 +133,7 @@ def write_lcf(path: str | os.PathLike, data: LcfData) -> None:
         raise InputError(path, "no navigation rows to write")
     lines = ["\t".join([*(repr(float(c[i])) for c in columns), "0", "0", "5", "4"])
              for i in range(n)]
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        tmp.write_text("\n".join(lines) + "\n", encoding="ascii")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    write_atomic(path, ("\n".join(lines) + "\n").encode("ascii"))
 
 
 def fix_gps_week(t: float, near: datetime | None = None) -> float:

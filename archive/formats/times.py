@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from archive.errors import FormatError, InputError, MissingInputError
+from archive.files import write_atomic
 
 __all__ = ["first_time", "read_times", "write_times"]
 
@@ -82,9 +83,4 @@ def write_times(path: str | os.PathLike, times: np.ndarray) -> None:
         raise InputError(path, f"times must be a non-empty 1-D array, got shape {values.shape}")
     if not np.all(np.isfinite(values)):
         raise InputError(path, "times contain NaN or inf")
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        tmp.write_text("".join(f"{v:.9f}\n" for v in values), encoding="ascii")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    write_atomic(path, "".join(f"{v:.9f}\n" for v in values).encode("ascii"))
