@@ -24,12 +24,15 @@ CREATE TABLE IF NOT EXISTS items (
     north          REAL NOT NULL,
     sensor         TEXT,
     gsd            REAL,                  -- m, nominal
-    item_path      TEXT NOT NULL          -- relative to the archive root
+    item_path      TEXT NOT NULL,         -- relative to the archive root
+    geometry       BLOB                   -- footprint (lon/lat degrees) as WKB: exact spatial tests after the R*Tree
 );
 
 CREATE INDEX IF NOT EXISTS items_start ON items (start_time);
 CREATE INDEX IF NOT EXISTS items_end ON items (end_time);
 CREATE INDEX IF NOT EXISTS items_wavelength ON items (min_wavelength, max_wavelength);
+CREATE INDEX IF NOT EXISTS items_wavelength_max ON items (max_wavelength);
+CREATE INDEX IF NOT EXISTS items_gsd ON items (gsd);
 
 CREATE VIRTUAL TABLE IF NOT EXISTS items_bbox USING rtree (
     id,

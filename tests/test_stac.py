@@ -24,7 +24,8 @@ from pyproj import Transformer
 from archive.catalog.product import (COG_MEDIA_TYPE, grid_footprint, product_item, product_item_path, render_command,
                                      write_product_item)
 from archive.catalog.pystac_validator import use_with_pystac
-from archive.catalog.stac import EO_EXTENSION, PROCESSING_EXTENSION, PROJECTION_EXTENSION, RASTER_EXTENSION
+from archive.catalog.stac import (EO_EXTENSION, PROCESSING_EXTENSION, PROJECTION_EXTENSION, RASTER_EXTENSION,
+                                  ZARR_EXTENSION)
 from archive.catalog.tree import COLLECTION_ID, write_catalog
 from archive.catalog.validate import CORE_SCHEMAS, schema_registry, validate, validation_errors, vendored_schemas
 from archive.cli import build_parser, main
@@ -119,7 +120,7 @@ def test_pystac_walks_the_archive_and_every_object_validates(stac_archive):
         assert item.get_parent().id == COLLECTION_ID
         store = Path(item.assets["data"].get_absolute_href())
         assert store == (archive_dir / "collections" / f"{item.id}.zarr").resolve() and store.is_dir()
-        assert set(item.stac_extensions) == {EO_EXTENSION, RASTER_EXTENSION, PROCESSING_EXTENSION}
+        assert set(item.stac_extensions) == {EO_EXTENSION, RASTER_EXTENSION, PROCESSING_EXTENSION, ZARR_EXTENSION}
         assert not any(k.startswith("proj:") for k in item.properties)  # the raw store has no map grid
         bands = item.assets["data"].extra_fields["eo:bands"]
         assert len(bands) == 4 and all(0.3 < b["center_wavelength"] < 2.6 for b in bands)  # micrometres

@@ -7,7 +7,7 @@ from datetime import datetime
 import numpy as np
 
 from archive.catalog.footprint import flight_footprint, recorded_footprint
-from archive.catalog.index import add_rows, rebuild_index, row_from_item
+from archive.catalog.index import SCHEMA_VERSION, add_rows, ensure_index, row_from_item, schema_version
 from archive.catalog.root import ArchiveRoot
 from archive.catalog.stac import make_item, write_item
 from archive.catalog.tree import COLLECTION_ID, item_links, write_catalog
@@ -65,9 +65,9 @@ def catalog_collection(root: ArchiveRoot, cid: str) -> dict:
     item = item_for_collection(root, cid)
     path = write_item(root.item_path(cid), item)
     rel = path.relative_to(root.path).as_posix()
-    if root.index_path.exists():
+    if schema_version(root.index_path) == SCHEMA_VERSION:
         add_rows(root.index_path, [row_from_item(item, rel)])
-    else:  # a lost index: rebuild it from every Item (this one included)
-        rebuild_index(root)
+    else:  # a lost or older index: rebuild it from every Item (this one included)
+        ensure_index(root)
     write_catalog(root)
     return item

@@ -1,8 +1,14 @@
-"""SQLite index of an archive's STAC Items: bbox (R*Tree), time range and wavelength range.
+"""SQLite index of an archive's STAC Items: bbox (R*Tree), footprint, time range and wavelength range.
 
 The index is a cache of ``<ARCHIVE>/catalog/items/*.json``: :func:`rebuild_index` recreates it from
-those files. Every statement is parameterised. The schema is :data:`SCHEMA`, read from
-``catalogs/schema.sql`` (shipped as the package ``archive.catalogs``).
+those files (and :func:`ensure_index` does when it is missing or of an older schema version). Every
+statement is parameterised. The schema is :data:`SCHEMA`, read from ``catalogs/schema.sql`` (shipped
+as the package ``archive.catalogs``).
+
+Spatial queries are exact: the R*Tree (float32 boxes rounded outward) picks candidates, the exact
+bbox keeps those inside the query box, and the footprint itself (WKB, tested with shapely in the
+SQL function ``archive_intersects``) decides the rest. Every connection made by :func:`connect` has
+that function.
 """
 
 from __future__ import annotations
@@ -15,6 +21,8 @@ import sqlite3
 from collections.abc import Iterable, Sequence
 from contextlib import closing
 from dataclasses import dataclass
+from dataclasses import field as dataclass_field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +30,7 @@ import numpy as np
 from archive.catalog.root import ArchiveRoot
 from archive.errors import FormatError, InputError
 
-SCHEMA_VERSION = "1"
+SCHEMA_VERSION = "2"
 
 # The schema lives in catalogs/schema.sql (the agreed place for it), shipped as archive.catalogs.
 SCHEMA = (importlib.resources.files("archive.catalogs") / "schema.sql").read_text(encoding="utf-8")
@@ -45,6 +53,7 @@ class IndexRow:
     sensor: str | None
     gsd: float | None
     item_path: str
+    geometry: bytes | None = dataclass_field(default=None, repr=False, compare=False)  # footprint, WKB
 
 
 _COLUMNS = ("id, start_time, end_time, start_iso, end_iso, bands, min_wavelength, max_wavelength, "
@@ -66,9 +75,71 @@ def _f32_up(x: float) -> float:
     return float(v if float(v) >= x else np.nextafter(v, np.float32(np.inf)))
 
 
+@lru_cache(maxsize=64)
+def _prepared(wkb: bytes):
+    """A query geometry from its WKB, prepared for repeated predicates (cached: one per query)."""
+    import shapely
+
+    geom = shapely.from_wkb(wkb)
+    shapely.prepare(geom)
+    return geom
+
+
+def _intersects(footprint: bytes | None, query: bytes) -> int:
+    """SQL function ``archive_intersects(footprint WKB, query WKB)``: 1 when they intersect (touching
+    counts); a row without a footprint counts as its bbox, which the caller has already tested."""
+    if footprint is None:
+        return 1
+    import shapely
+
+    return int(_prepared(query).intersects(shapely.from_wkb(footprint)))
+
+
+def geometry_wkb(geometry: dict) -> bytes:
+    """WKB of a GeoJSON geometry (lon/lat degrees); InputError when it is not one."""
+    import shapely
+
+    try:
+        geom = shapely.geometry.shape(geometry)
+    except Exception as exc:  # shapely raises several kinds for malformed GeoJSON
+        raise InputError("geometry", f"not a GeoJSON geometry: {exc}") from None
+    if geom.is_empty:
+        raise InputError("geometry", "the geometry is empty")
+    return shapely.to_wkb(geom)
+
+
+def box_wkb(bbox: Sequence[float]) -> bytes:
+    """WKB of the polygon of a (west, south, east, north) box in degrees."""
+    import shapely
+
+    return shapely.to_wkb(shapely.box(*(float(v) for v in bbox)))
+
+
+def spatial_clause(bbox: Sequence[float], wkb: bytes | None = None, alias: str = "i") -> tuple[str, list]:
+    """SQL (and its parameters) true for the rows of ``items AS alias`` whose footprint intersects
+    the geometry ``wkb`` whose bbox is ``bbox`` (W, S, E, N degrees; ``wkb`` None: the box itself).
+    Uses the R*Tree; the caller joins nothing."""
+    w, s, e, n = (float(v) for v in bbox)
+    query = box_wkb((w, s, e, n)) if wkb is None else wkb
+    a = alias
+    sql = (f"{a}.rowid IN (SELECT id FROM items_bbox WHERE west <= ? AND east >= ? AND south <= ? AND north >= ?)"
+           f" AND {a}.west <= ? AND {a}.east >= ? AND {a}.south <= ? AND {a}.north >= ?")
+    params: list = [_f32_up(e), _f32_down(w), _f32_up(n), _f32_down(s), e, w, n, s]
+    if wkb is None:
+        # a footprint whose bbox lies inside the query box meets it: no geometry test needed
+        sql += (f" AND (({a}.west >= ? AND {a}.east <= ? AND {a}.south >= ? AND {a}.north <= ?)"
+                f" OR archive_intersects({a}.geometry, ?))")
+        params += [w, e, s, n, query]
+    else:
+        sql += f" AND archive_intersects({a}.geometry, ?)"
+        params.append(query)
+    return f"({sql})", params
+
+
 def connect(path: str | os.PathLike) -> sqlite3.Connection:
     """Open (creating if needed) an index database and make sure its schema exists."""
     con = sqlite3.connect(str(path), timeout=30.0)
+    con.create_function("archive_intersects", 2, _intersects, deterministic=True)
     try:
         con.executescript(SCHEMA)
         with con:
@@ -89,9 +160,14 @@ def row_from_item(item: dict, item_path: str) -> IndexRow:
     from archive.catalog.stac import item_summary
 
     s = item_summary(item, where=item_path)
+    geometry = item.get("geometry")
+    try:
+        wkb = geometry_wkb(geometry) if geometry else None
+    except InputError as exc:
+        raise FormatError(item_path, f"bad Item geometry: {exc}", "re-ingest its flight") from None
     return IndexRow(s["id"], s["start_time"], s["end_time"], s["start_iso"], s["end_iso"], s["bands"],
                     s["min_wavelength"], s["max_wavelength"], tuple(s["bbox"]), s["sensor"], s["gsd"],
-                    item_path)
+                    item_path, wkb)
 
 
 def _insert(con: sqlite3.Connection, row: IndexRow) -> None:
@@ -101,9 +177,9 @@ def _insert(con: sqlite3.Connection, row: IndexRow) -> None:
         con.execute("DELETE FROM items WHERE rowid = ?", (old[0],))
     w, s, e, n = row.bbox
     cur = con.execute(
-        f"INSERT INTO items ({_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        f"INSERT INTO items ({_COLUMNS}, geometry) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         (row.id, row.start_time, row.end_time, row.start_iso, row.end_iso, row.bands, row.min_wavelength,
-         row.max_wavelength, w, s, e, n, row.sensor, row.gsd, row.item_path))
+         row.max_wavelength, w, s, e, n, row.sensor, row.gsd, row.item_path, row.geometry))
     con.execute("INSERT INTO items_bbox (id, west, east, south, north) VALUES (?, ?, ?, ?, ?)",
                 (cur.lastrowid, _f32_down(w), _f32_up(e), _f32_down(s), _f32_up(n)))
 
@@ -160,9 +236,24 @@ def rebuild_index(root: ArchiveRoot) -> int:
     return len(rows)
 
 
+def schema_version(path: str | os.PathLike) -> str | None:
+    """The schema version an index file records (None: no such file, or no version in it)."""
+    if not Path(path).exists():
+        return None
+    try:
+        with closing(sqlite3.connect(f"file:{Path(path).absolute()}?mode=ro", uri=True, timeout=30.0)) as con:
+            found = con.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+    except sqlite3.DatabaseError:
+        return "unreadable"
+    return found[0] if found else None
+
+
 def ensure_index(root: ArchiveRoot) -> Path:
-    """The index path, rebuilt from the Items first when it does not exist."""
-    if not root.index_path.exists():
+    """The index path, rebuilt from the Items first when it does not exist or has an older schema
+    version (the index is a cache of the Items; a damaged file is left for connect to report)."""
+    version = schema_version(root.index_path)
+    if version is None or (version != "unreadable" and version != SCHEMA_VERSION and version.isdigit()
+                           and int(version) < int(SCHEMA_VERSION)):
         rebuild_index(root)
     return root.index_path
 
@@ -172,25 +263,20 @@ def search(path: str | os.PathLike, bbox: tuple[float, float, float, float] | No
            ids: Sequence[str] | None = None) -> list[IndexRow]:
     """Items whose bbox intersects ``bbox`` (west, south, east, north degrees), whose time range
     [start_time, end_time] intersects [start, end] (epoch s; None = open), and whose wavelength range
-    contains ``wavelength`` (nm). Sorted by start time, then id."""
-    longest = _longest(path) if start is not None else 0.0
+    contains ``wavelength`` (nm). Sorted by start time, then id.
+
+    bbox: the footprint (not only its bbox) must meet the box (touching counts)."""
     sql = f"SELECT {', '.join('i.' + c.strip() for c in _COLUMNS.split(','))} FROM items AS i"
     where: list[str] = []
     params: list[object] = []
     if bbox is not None:
-        w, s, e, n = (float(v) for v in bbox)
-        sql += " JOIN items_bbox AS r ON r.id = i.rowid"
-        where += ["r.west <= ?", "r.east >= ?", "r.south <= ?", "r.north >= ?",
-                  "i.west <= ?", "i.east >= ?", "i.south <= ?", "i.north >= ?"]
-        params += [_f32_up(e), _f32_down(w), _f32_up(n), _f32_down(s), e, w, n, s]
-    if start is not None:
-        # end_time >= start, and start_time >= start - longest duration: lets SQLite range-scan the
-        # start_time index from both sides instead of reading every later flight.
-        where += ["i.end_time >= ?", "i.start_time >= ?"]
-        params += [float(start), float(start) - longest - 1.0]
-    if end is not None:
-        where.append("i.start_time <= ?")
-        params.append(float(end))
+        clause, more = spatial_clause(bbox)
+        where.append(clause)
+        params += more
+    if start is not None or end is not None:
+        clause, more = time_clause(path, start, end)
+        where.append(clause)
+        params += more
     if wavelength is not None:
         where += ["i.min_wavelength <= ?", "i.max_wavelength >= ?"]
         params += [float(wavelength), float(wavelength)]
@@ -206,12 +292,30 @@ def search(path: str | os.PathLike, bbox: tuple[float, float, float, float] | No
         return [_row(r) for r in con.execute(sql, params)]
 
 
-def _longest(path) -> float:
-    """Longest flight duration in the index, s (recorded by add_rows; computed if absent)."""
-    with closing(connect(path)) as con:
-        found = con.execute("SELECT value FROM meta WHERE key = 'max_duration'").fetchone()
-        if found is None:
-            found = con.execute("SELECT max(end_time - start_time) FROM items").fetchone()
+def time_clause(source, start: float | None, end: float | None, alias: str = "i") -> tuple[str, list]:
+    """SQL (and parameters) true for the rows whose [start_time, end_time] meets [start, end]
+    (epoch s, None = open); source: the index (path or open connection)."""
+    where, params = [], []
+    if start is not None:
+        # end_time >= start, and start_time >= start - longest duration: lets SQLite range-scan the
+        # start_time index from both sides instead of reading every later flight.
+        where += [f"{alias}.end_time >= ?", f"{alias}.start_time >= ?"]
+        params += [float(start), float(start) - _longest(source) - 1.0]
+    if end is not None:
+        where.append(f"{alias}.start_time <= ?")
+        params.append(float(end))
+    return "(" + (" AND ".join(where) or "1") + ")", params
+
+
+def _longest(source) -> float:
+    """Longest flight duration in the index (a path or an open connection), s (recorded by
+    add_rows; computed if absent)."""
+    if not isinstance(source, sqlite3.Connection):
+        with closing(connect(source)) as con:
+            return _longest(con)
+    found = source.execute("SELECT value FROM meta WHERE key = 'max_duration'").fetchone()
+    if found is None:
+        found = source.execute("SELECT max(end_time - start_time) FROM items").fetchone()
     return float(found[0]) if found and found[0] is not None else 0.0
 
 

@@ -11,6 +11,12 @@ as recorded, with navigation and calibration) and software, the ``collection`` i
 (the stored DN data type). The raw store is in sensor geometry (band, line, sample), not on a map
 grid, so these Items claim no projection (``proj:*``) fields; rendered products do
 (:mod:`archive.catalog.product`).
+
+``hsi:wavelength_min`` / ``hsi:wavelength_max`` (nm) give the flight's wavelength range as two
+numbers, so that "flights whose wavelengths span 650 nm" is one comparison of each (the index and
+the STAC API's CQL2 filter use them). The store asset says how to open it
+(:func:`store_asset_fields`): media type, the zarr extension's ``zarr:*`` fields and
+``xarray:open_kwargs`` (the xarray-assets extension's field: ``xr.open_zarr(href, **open_kwargs)``).
 """
 
 from __future__ import annotations
@@ -29,7 +35,12 @@ EO_EXTENSION = "https://stac-extensions.github.io/eo/v1.1.0/schema.json"
 RASTER_EXTENSION = "https://stac-extensions.github.io/raster/v1.1.0/schema.json"
 PROJECTION_EXTENSION = "https://stac-extensions.github.io/projection/v2.0.0/schema.json"
 PROCESSING_EXTENSION = "https://stac-extensions.github.io/processing/v1.2.0/schema.json"
+ZARR_EXTENSION = "https://stac-extensions.github.io/zarr/v1.0.0/schema.json"
 ZARR_MEDIA_TYPE = "application/vnd+zarr"
+#: Keyword arguments of ``xr.open_zarr`` (or ``xr.open_dataset(..., engine="zarr")``) for a
+#: collection store: its raw navigation table names its rows 'sample' like the DN's pixel columns,
+#: so xarray would refuse the two sizes; it is left out (read it with zarr: ``group["navigation"]``).
+STORE_OPEN_KWARGS = {"consolidated": False, "drop_variables": ["navigation"]}
 #: processing:level of a collection (raw DN as recorded, sensor geometry, with navigation).
 RAW_LEVEL = "L0"
 
@@ -53,6 +64,20 @@ def eo_bands(wavelengths, fwhm=None, names=None) -> list[dict]:
             band["full_width_half_max"] = round(float(fwhm[i]) / 1000.0, 6)
         out.append(band)
     return out
+
+
+def store_asset_fields() -> dict[str, Any]:
+    """How to open a collection store (Zarr v3 group, no consolidated metadata): the fields its
+    asset carries besides href, title and roles."""
+    return {"type": ZARR_MEDIA_TYPE, "zarr:zarr_format": 3, "zarr:node_type": "group", "zarr:consolidated": False,
+            "xarray:open_kwargs": json.loads(json.dumps(STORE_OPEN_KWARGS))}
+
+
+def wavelength_range(wavelengths) -> dict[str, float]:
+    """``hsi:wavelength_min`` / ``hsi:wavelength_max`` (nm) of band centres; empty without any."""
+    if wavelengths is None or len(wavelengths) == 0:
+        return {}
+    return {"hsi:wavelength_min": float(min(wavelengths)), "hsi:wavelength_max": float(max(wavelengths))}
 
 
 def rfc3339(moment: datetime) -> str:
@@ -90,20 +115,21 @@ def make_item(cid: str, geometry: dict, bbox: list[float], start: datetime, end:
     }
     asset: dict[str, Any] = {
         "href": store_href,
-        "type": ZARR_MEDIA_TYPE,
         "title": "Raw DN, navigation and calibration (Zarr v3 collection)",
         "roles": ["data"],
+        **store_asset_fields(),
     }
     extensions = []
     if wavelengths is not None:
         props["archive:wavelengths"] = [float(w) for w in wavelengths]
+        props.update(wavelength_range(wavelengths))
         props["eo:bands"] = eo_bands(wavelengths, fwhm)
         asset["eo:bands"] = [dict(b) for b in props["eo:bands"]]
         extensions.append(EO_EXTENSION)
     if data_type is not None:
         asset["raster:bands"] = [{"data_type": str(data_type), "unit": "DN"} for _ in range(int(bands))]
         extensions.append(RASTER_EXTENSION)
-    extensions.append(PROCESSING_EXTENSION)
+    extensions += [PROCESSING_EXTENSION, ZARR_EXTENSION]
     if extra:
         props.update(extra)
     item = {
