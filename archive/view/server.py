@@ -14,7 +14,8 @@ trace):
   at that point (the pixel of ``archive render --gsd GSD``'s grid), with cube, line, sample, time;
 - ``GET /api/collections/{id}/stats?bbox=&wavelengths=&mode=&percentiles=2,98`` per band
   percentiles of the view;
-- ``GET /api/status`` counters, cache sizes and the server's resident memory.
+- ``GET /api/status`` counters, cache sizes and the server's resident memory;
+- ``/stac/...`` the STAC API of the archive's catalog (:mod:`archive.catalog.api`).
 
 All drawing runs on one render thread (:class:`~archive.view.worker.RenderThread`); a request whose
 client has gone is cancelled before it draws. Binding anything but a loopback address needs
@@ -32,6 +33,8 @@ import time
 from importlib.resources import files
 from pathlib import Path
 
+from archive.catalog.api import stac_routes
+from archive.catalog.root import ArchiveRoot
 from archive.errors import ArchiveError, InputError, MissingInputError, RenderError
 from archive.view.cache import ByteLRU
 from archive.view.flights import FlightRegistry
@@ -250,6 +253,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
         Route("/api/collections/{cid}/point", point),
         Route("/api/collections/{cid}/stats", stats),
         Mount("/static", StaticFiles(directory=str(static)), name="static"),
+        *stac_routes(None if registry.archive is None else ArchiveRoot(registry.archive.path)),
     ]
     handlers = {ArchiveError: on_archive_error, HTTPException: on_http_error, Cancelled: on_cancelled,
                 Exception: on_crash}
