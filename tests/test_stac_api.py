@@ -229,3 +229,33 @@ def test_errors_and_404s(stac):
             assert exc.code == status and doc["code"] and doc["description"], (path, doc)
     status, doc = _post(f"{base}/search", {"bbox": [0, 0, 1, 1], "intersects": {"type": "Point", "coordinates": [0, 0]}})
     assert status == 400
+
+
+def test_catalog_add_links_a_rendered_output(stac, tmp_path, capsys):
+    """``archive catalog add OUT.json``: the output becomes an asset of its source flight's Item
+    (served by the API with an absolute href), kept when the Item is rewritten; an output of raw
+    directories is refused."""
+    from archive.catalog.describe import catalog_collection
+    from archive.catalog.root import open_archive
+
+    base, archive_dir, ids = stac
+    m = ids["memphis"]
+    out = tmp_path / "mosaic.tif"
+    out.write_bytes(b"not really a COG")
+    product = {"type": "Feature", "stac_version": "1.1.0", "id": "mosaic.tif", "geometry": None,
+               "properties": {"datetime": "2024-06-12T16:00:00Z",
+                              "archive:recipe": {"sources": [m, "/some/raw/flight"], "command": "archive render"}},
+               "links": [], "assets": {"data": {"href": "./mosaic.tif", "roles": ["data"], "title": "radiance",
+                                                "type": "image/tiff; application=geotiff; profile=cloud-optimized"}}}
+    (tmp_path / "mosaic.tif.json").write_text(json.dumps(product))
+    capsys.readouterr()
+    assert main(["catalog", "add", str(tmp_path / "mosaic.tif.json"), "--archive", str(archive_dir)]) == 0
+    assert m in capsys.readouterr().out
+    asset = _get(f"{base}/collections/flights/items/{m}")["assets"]["output-mosaic.tif"]
+    assert Path(asset["href"]) == out.absolute() and "archive:output" in asset["roles"]
+    catalog_collection(open_archive(archive_dir), m)  # as a re-ingest does
+    assert "output-mosaic.tif" in _get(f"{base}/collections/flights/items/{m}")["assets"]
+    product["properties"]["archive:recipe"]["sources"] = ["/some/raw/flight"]
+    (tmp_path / "raw.tif.json").write_text(json.dumps(product))
+    assert main(["catalog", "add", str(tmp_path / "raw.tif.json"), "--archive", str(archive_dir)]) == 2
+    assert "is a collection of" in capsys.readouterr().err

@@ -1,4 +1,4 @@
-"""``archive catalog search|list|rebuild|validate``."""
+"""``archive catalog search|list|rebuild|validate|add``."""
 
 from __future__ import annotations
 
@@ -86,12 +86,23 @@ def run(args: argparse.Namespace) -> int:
             from archive.catalog.describe import item_for_collection
             from archive.catalog.stac import write_item
 
+            from archive.catalog.register import carry_outputs
+
             for cid in root.collection_ids():
-                write_item(root.item_path(cid), item_for_collection(root, cid))
+                path = root.item_path(cid)
+                old = read_item_file(path) if path.is_file() else None
+                write_item(path, carry_outputs(old, item_for_collection(root, cid)))
         catalog = write_catalog(root, rescan=True)  # links the Items, rebuilds the index from them
         n = len(search(root.index_path))
         print(f"{root.index_path}: {n} item{'s' if n != 1 else ''} indexed")
         print(f"{catalog}: STAC catalog of {n} item{'s' if n != 1 else ''}")
+        return 0
+    if args.catalog_command == "add":
+        from archive.catalog.register import register_output
+
+        for out in args.items_json:
+            ids = register_output(root, out)
+            print(f"{out}: linked from {', '.join(ids)}")
         return 0
     index = ensure_index(root)
     if args.catalog_command == "list":

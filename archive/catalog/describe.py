@@ -62,7 +62,13 @@ def item_for_collection(root: ArchiveRoot, cid: str) -> dict:
 def catalog_collection(root: ArchiveRoot, cid: str) -> dict:
     """Write (or rewrite) the Item of ``cid``, upsert its index row and rewrite the archive's root
     Catalog and Collection (:func:`archive.catalog.tree.write_catalog`). Returns the Item."""
+    from archive.catalog.index import read_item_file
+    from archive.catalog.register import carry_outputs
+
     item = item_for_collection(root, cid)
+    previous = root.item_path(cid)
+    if previous.is_file():  # registered outputs (archive catalog add) stay linked
+        item = carry_outputs(read_item_file(previous), item)
     path = write_item(root.item_path(cid), item)
     rel = path.relative_to(root.path).as_posix()
     if schema_version(root.index_path) == SCHEMA_VERSION:
