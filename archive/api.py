@@ -5,19 +5,17 @@
     ids = arc.search(bbox=(-90, 35, -89.9, 35.2), datetime="2024-06/2024-07", wavelength=650)
     ds = archive.mosaic(ids, archive="demo/archive", gsd=0.25, wavelengths=[650, 550, 450])  # lazy
     ds.radiance.sel(wavelength=650, method="nearest").compute()    # renders only that band's group
-    archive.render(["demo/flight"], "demo/mosaic.zarr", gsd=0.25, fov=47.5)  # what the CLI does
+    archive.georectify(["demo/flight"], "demo/mosaic.zarr", gsd=0.25, fov=47.5)  # what `archive render` does
 
-Keyword names are the options of ``archive render`` (``--ground-height`` is ``ground_height``);
-values may be Python values or the CLI's text (``wavelengths="650,550"``, ``bands="2,4"``). Errors
-are :class:`~archive.errors.ArchiveError` subclasses with the CLI's one-line messages.
-
-:func:`run_render` is the ``archive render`` command: it turns the parsed options into these
-keywords once and calls :func:`render` (batch jobs over the catalog too).
+Render options are keywords named as the options of ``archive render`` (``--ground-height`` is
+``ground_height``; every name of :data:`archive.options.KEYWORDS`), made into one
+:class:`~archive.options.RenderOptions` (values may be Python values or the CLI's text:
+``wavelengths="650,550"``, ``bands="2,4"``). Errors are :class:`~archive.errors.ArchiveError`
+subclasses with the CLI's one-line messages. The command itself is :mod:`archive.render_command`.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 from collections.abc import Sequence
@@ -26,7 +24,7 @@ from dataclasses import dataclass
 from archive.catalog.root import ArchiveRoot
 from archive.errors import InputError
 
-__all__ = ["Archive", "mosaic", "open_archive", "plan", "render", "render_keywords", "run_render"]
+__all__ = ["Archive", "georectify", "mosaic", "open_archive", "plan"]
 
 Source = str | os.PathLike
 
@@ -96,60 +94,46 @@ def open_archive(path: Source) -> Archive:
 # ---------------------------------------------------------------------------------------------
 # Rendering
 # ---------------------------------------------------------------------------------------------
-#: The keywords of :func:`plan`, :func:`mosaic` and :func:`render` that make the render request.
-REQUEST_KEYWORDS = ("gsd", "archive", "fov", "calibration", "ground_height", "wavelengths", "bands", "mode",
-                    "white_reference", "sync_offset", "boresight", "lever_arm", "overlap", "crs",
-                    "max_view_angle", "dem", "dem_datum")
+def _options(sources, options: dict):
+    """The :class:`~archive.options.RenderOptions` of an API call (an opened :class:`Archive` stands
+    for its path). TypeError for a keyword that is no render option."""
+    from archive.options import RenderOptions
+
+    if isinstance(options.get("archive"), ArchiveRoot):
+        options = {**options, "archive": options["archive"].path}
+    return RenderOptions.create(sources, **options)
 
 
-def _request(sources, values: dict):
-    """The :class:`~archive.pipeline.RenderRequest` of an API call's ``values`` (its ``locals()``)."""
-    from archive.pipeline import RenderRequest
-
-    keywords = {name: values[name] for name in REQUEST_KEYWORDS}
-    if isinstance(keywords.get("archive"), ArchiveRoot):
-        keywords["archive"] = keywords["archive"].path
-    return RenderRequest.create(sources, **keywords)
-
-
-def plan(sources: Source | Sequence[Source], *, gsd: float, archive: Source | None = None,
-         fov: float | None = None, calibration: Source | None = None, ground_height: float | str = "auto",
-         wavelengths=None, bands="all", mode: str | None = None, white_reference: Source | None = None,
-         sync_offset: float | None = None, boresight=None, lever_arm=None, overlap: str = "last",
-         crs=None, max_view_angle: float = 40.0, dem: Source | None = None, dem_datum: str | None = None,
-         band_group: int | None = None, quiet: bool = True):
+def plan(sources: Source | Sequence[Source], *, band_group: int | None = None, quiet: bool = True, **options):
     """The plan of a mosaic of ``sources`` (:class:`archive.pipeline.OutputPlan`: opened sources,
     grid, cube meshes and windows, band groups), from metadata only: no pixel read, no GL.
     Keywords as :func:`mosaic`."""
     from archive import pipeline
 
-    request = _request(sources, locals())
-    return pipeline.plan(request, band_group=band_group, quiet=quiet)
+    return pipeline.plan(_options(sources, options), band_group=band_group, quiet=quiet)
 
 
-def mosaic(sources: Source | Sequence[Source], *, gsd: float, archive: Source | None = None,
-           fov: float | None = None, calibration: Source | None = None, ground_height: float | str = "auto",
-           wavelengths=None, bands="all", mode: str | None = None, white_reference: Source | None = None,
-           sync_offset: float | None = None, boresight=None, lever_arm=None, overlap: str = "last",
-           crs=None, max_view_angle: float = 40.0, dem: Source | None = None, dem_datum: str | None = None,
-           band_group: int | None = None, quiet: bool = True):
+def mosaic(sources: Source | Sequence[Source], *, band_group: int | None = None, quiet: bool = True, **options):
     """A lazy ``xarray.Dataset`` of the mosaic of ``sources``: nothing is rendered until computed.
 
-    sources: raw flight directories and/or collection ids of ``archive`` (one, or a list); gsd:
-    output pixel size, m; fov: field of view, degrees (required for raw directories; a collection's
-    is the one ingested); calibration: .icp for raw sources; ground_height: m above the ellipsoid or
-    'auto'; wavelengths: nm (nearest bands), else bands: 'all' or 0-based indices; mode: 'raw' |
-    'relative' | 'radiance' | 'reflectance' (None: radiance, raw DN without calibration);
-    white_reference: (nm, radiance) text file for reflectance; sync_offset (s), boresight (roll,
-    pitch, yaw deg), lever_arm (x, y, z m): None means as ingested for a collection, else 0;
-    overlap: 'last' (the later line wins), 'nadir' (the line seen closest to nadir wins) or 'mean';
-    crs: the output's projected CRS ('EPSG:32616', an int...; default:
-    the UTM zone holding most of the flights, others rendered into it); max_view_angle: degrees
-    off nadir at the field-of-view edge beyond which lines are left out (turns); dem: a DEM GeoTIFF
-    (any CRS) the meshes follow instead of flat ground (exclusive with a numeric ground_height; ground
-    no line sees is NaN); dem_datum: 'ellipsoid' | 'egm96' | 'egm2008', required when the DEM's CRS
-    does not declare its vertical datum; band_group: bands per render task and per band chunk (default sized
-    to the task memory budget); quiet: no notes on stderr.
+    sources: raw flight directories and/or collection ids of ``archive`` (one, or a list).
+    Render options (:class:`~archive.options.RenderOptions`, the names of ``archive render``'s
+    options): gsd (required): output pixel size, m; archive: the archive of the collection ids (a
+    path or an opened :class:`Archive`); fov: field of view, degrees (required for raw directories;
+    a collection's is the one ingested); calibration: .icp for raw sources; ground_height: m above
+    the ellipsoid or 'auto'; wavelengths: nm (nearest bands), else bands: 'all' or 0-based indices;
+    mode: 'raw' | 'relative' | 'radiance' | 'reflectance' (None: radiance, raw DN without
+    calibration); white_reference: (nm, radiance) text file for reflectance; sync_offset (s),
+    boresight (roll, pitch, yaw deg), lever_arm (x, y, z m): None means as ingested for a
+    collection, else 0; overlap: 'last' (the later line wins), 'nadir' (the line seen closest to
+    nadir wins) or 'mean'; crs: the output's projected CRS ('EPSG:32616', an int...; default: the
+    UTM zone holding most of the flights, others rendered into it); max_view_angle: degrees off
+    nadir at the field-of-view edge beyond which lines are left out (turns; default
+    :data:`~archive.params.DEFAULT_MAX_VIEW_ANGLE`); dem: a DEM GeoTIFF (any CRS) the meshes follow
+    instead of flat ground (exclusive with a numeric ground_height; ground no line sees is NaN);
+    dem_datum: 'ellipsoid' | 'egm96' | 'egm2008', required when the DEM's CRS does not declare its
+    vertical datum. And: band_group: bands per render task and per band chunk (default sized to the
+    task memory budget); quiet: no notes on stderr.
 
     The data variable is named by mode ('radiance', 'dn', 'relative', 'reflectance'), (band, y, x)
     float32 with NaN where no line covers a pixel, a dask array chunked (band group, 1024, 1024) like
@@ -157,101 +141,33 @@ def mosaic(sources: Source | Sequence[Source], *, gsd: float, archive: Source | 
     ``band`` (source band index) and ``wavelength`` (nm, indexed: ``.sel(wavelength=650,
     method="nearest")``); ``.rio.crs`` is set. Computing it runs the render graph's task bodies
     (GL in the computing threads, each with its own context; on the active distributed Client if
-    there is one) and gives the values ``archive render`` writes, bit for bit. Computing some bands
+    there is one) and gives the values :func:`georectify` writes, bit for bit. Computing some bands
     renders only their band groups.
     """
     from archive import pipeline
 
-    request = _request(sources, locals())
-    return pipeline.mosaic(request, band_group=band_group, quiet=quiet)
+    return pipeline.mosaic(_options(sources, options), band_group=band_group, quiet=quiet)
 
 
-def render(sources: Source | Sequence[Source], out: Source, *, gsd: float, archive: Source | None = None,
-           fov: float | None = None, calibration: Source | None = None, ground_height: float | str = "auto",
-           wavelengths=None, bands="all", mode: str | None = None, white_reference: Source | None = None,
-           sync_offset: float | None = None, boresight=None, lever_arm=None, overlap: str = "last",
-           crs=None, max_view_angle: float = 40.0, dem: Source | None = None, dem_datum: str | None = None,
-           quicklook: Source | None = None, scheduler: str | None = None, workers: int | None = None,
-           overwrite: bool = False, quiet: bool = True, per_flight: bool = False, format: str = "zarr",
-           threads: int | None = None, provenance: bool = False) -> dict:
-    """Render ``sources`` into ``out`` (.zarr, .tif or .hdr) exactly as ``archive render``; returns
-    its summary (out, width, height, gsd, epsg, bands, wavelengths, mode, cubes, sources, renders,
-    assemblies, seconds, graph_seconds).
+def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: Source | None = None,
+               scheduler: str | None = None, workers: int | None = None, threads: int | None = None,
+               overwrite: bool = False, quiet: bool = True, per_flight: bool = False, format: str = "zarr",
+               **options) -> dict:
+    """Georectify ``sources`` into ``out`` (.zarr, .tif or .hdr) exactly as ``archive render``;
+    returns its summary (out, width, height, gsd, epsg, bands, wavelengths, mode, cubes, sources,
+    renders, assemblies, seconds, graph_seconds, left_out, provenance).
 
-    Keywords as :func:`mosaic`, plus: quicklook: also write an RGB .png; scheduler: a Dask
-    scheduler address (default: a local cluster of ``workers`` processes, 1, of ``threads`` threads
-    each, default the cores); overwrite: replace an
-    existing output; quiet: no progress bar or notes; per_flight: one output per source,
-    ``out/<name>.<format>`` (then the summary holds ``outputs``); provenance: also write the
-    per-pixel provenance layers (:mod:`archive.provenance`: variables of a Zarr output, a sibling
-    ``<stem>_provenance.tif`` / ``.hdr`` beside a COG / ENVI output; needs overlap 'last' or
-    'nadir'). Nothing is left at ``out`` when anything fails.
+    Render options as :func:`mosaic`, plus provenance: also write the per-pixel provenance layers
+    (:mod:`archive.provenance`: variables of a Zarr output, a sibling ``<stem>_provenance.tif`` /
+    ``.hdr`` beside a COG / ENVI output; needs overlap 'last' or 'nadir'). And: quicklook: also
+    write an RGB .png; scheduler: a Dask scheduler address (default: a local cluster of ``workers``
+    processes, 1, of ``threads`` threads each, default the cores); overwrite: replace an existing
+    output; quiet: no progress bar or notes; per_flight: one output per source,
+    ``out/<name>.<format>`` (then the summary holds ``outputs``). Nothing is left at ``out`` when
+    anything fails; the output's STAC Item, ``<out>.json``, is written last.
     """
-    import dataclasses
-
     from archive import pipeline
 
-    request = dataclasses.replace(_request(sources, locals()), provenance=bool(provenance))
-    return pipeline.render(request, out, quicklook=quicklook, overwrite=overwrite, scheduler=scheduler,
-                           workers=workers, quiet=quiet, per_flight=per_flight, format=format, threads=threads)
-
-
-# ---------------------------------------------------------------------------------------------
-# The command
-# ---------------------------------------------------------------------------------------------
-def _query_ids(args: argparse.Namespace) -> list[str] | None:
-    """Collection ids of ``--archive`` matching the ``--query-*`` filters (None when none is given)."""
-    bbox, when = args.query_bbox, args.query_datetime
-    wavelength = args.query_wavelength
-    if bbox is None and when is None and wavelength is None:
-        return None
-    if not args.archive:
-        raise InputError("--query-*", "a catalog query needs the archive to search", "pass --archive ARCHIVE")
-    if wavelength is not None and not (math.isfinite(wavelength) and wavelength > 0):
-        raise InputError("--query-wavelength", f"{wavelength} is not a positive wavelength in nm")
-    ids = open_archive(args.archive).search(bbox=bbox, datetime=when, wavelength=wavelength)
-    if not ids:
-        asked = ", ".join(f"{k} {v}" for k, v in (("--query-bbox", bbox), ("--query-datetime", when),
-                                                   ("--query-wavelength", wavelength)) if v is not None)
-        raise InputError(args.archive, f"no flight in the catalog matches {asked}",
-                         "check the filters with 'archive catalog search'")
-    return ids
-
-
-def render_keywords(args: argparse.Namespace) -> dict:
-    """The :func:`render` keywords of parsed ``archive render`` options (catalog queries resolved:
-    matching ids added to the sources; one output per flight unless ``--mosaic``)."""
-    keywords = {
-        "sources": list(args.sources or []), "out": args.out, "gsd": args.gsd, "archive": args.archive,
-        "fov": args.fov, "calibration": args.calibration, "ground_height": args.ground_height,
-        "wavelengths": args.wavelengths, "bands": args.bands, "mode": args.mode,
-        "white_reference": args.white_reference, "sync_offset": args.sync_offset, "boresight": args.boresight,
-        "lever_arm": args.lever_arm, "overlap": args.overlap, "crs": args.crs,
-        "max_view_angle": args.max_view_angle, "dem": args.dem, "dem_datum": args.dem_datum,
-        "quicklook": args.quicklook,
-        "scheduler": args.scheduler, "workers": args.workers, "overwrite": args.overwrite, "quiet": args.quiet,
-        "format": args.format, "threads": getattr(args, "threads", None),
-        "provenance": getattr(args, "provenance", False),
-    }
-    ids = _query_ids(args)
-    if ids is not None:
-        keywords["sources"] += [i for i in ids if i not in keywords["sources"]]
-        keywords["per_flight"] = not args.mosaic
-    return keywords
-
-
-def run_render(args: argparse.Namespace) -> int:
-    """``archive render``: :func:`render` with the parsed options; prints a one-paragraph summary
-    (batch mode: one line per output, then the total)."""
-    from archive.pipeline import describe
-
-    s = render(**render_keywords(args))
-    if "outputs" in s:
-        for one in s["outputs"]:
-            print(f"archive render: wrote {describe(one)}.")
-        n = len(s["outputs"])
-        print(f"archive render: {n} output{'s' if n != 1 else ''} in {s['seconds']:.1f} s.")
-        return 0
-    print(f"archive render: wrote {describe(s)} in {s['seconds']:.1f} s.")
-    return 0
-
+    return pipeline.georectify(_options(sources, options), out, quicklook=quicklook, overwrite=overwrite,
+                               scheduler=scheduler, workers=workers, quiet=quiet, per_flight=per_flight,
+                               format=format, threads=threads)

@@ -15,11 +15,12 @@ from collections.abc import Sequence
 
 from archive import __version__
 from archive.errors import ArchiveError
+from archive.params import DEFAULT_MAX_VIEW_ANGLE
 
 # command name -> "module:function" taking the parsed argparse.Namespace and returning an exit code
 HANDLERS = {
     "simulate": "archive.simulator.command:run",
-    "render": "archive.api:run_render",
+    "render": "archive.render_command:run",
     "info": "archive.ingest.summary:run",
     "ingest": "archive.ingest.command:run",
     "verify": "archive.ingest.command:run_verify",
@@ -93,8 +94,6 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
             return values
         return parse
 
-    # accept negative number lists such as --boresight -0.5,1,0
-    p._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-[\d.]+(,\s*-?[\d.]+)+$")
     r = p.add_argument_group("recorder realism (each off by default: an ideal recorder)")
     r.add_argument("--dropped-frames", type=int, default=0, choices=range(11), metavar="N",
                    help="frames dropped at each cube switch within a pass: the next cube starts N+1 frame "
@@ -138,7 +137,8 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
             "Georectify one or more flights by the inverse (mesh + OpenGL) method and write one "
             "mosaic: Zarr (.zarr), Cloud-Optimized GeoTIFF (.tif) or ENVI BSQ (.hdr), float32 with NaN "
             "where no line covers a pixel. SOURCE is a raw flight directory (rendered without "
-            "intermediate files)."
+            "intermediate files). From Python: archive.georectify(sources, out, gsd=..., ...), keyword "
+            "names as these options (--ground-height is ground_height)."
         ),
     )
     p.add_argument("sources", nargs="*", metavar="SOURCE",
@@ -163,9 +163,9 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sync-offset", type=float, default=None, metavar="S",
                    help="camera-to-navigation time offset, seconds (default: as ingested for a collection, else 0)")
     _add_mounting(p, recorded=True)
-    p.add_argument("--max-view-angle", type=float, default=40.0, metavar="DEG",
+    p.add_argument("--max-view-angle", type=float, default=DEFAULT_MAX_VIEW_ANGLE, metavar="DEG",
                    help="leave out lines whose field-of-view edge looks further than this off nadir, degrees "
-                        "(turns; default 40; the summary says how many)")
+                        f"(turns; default {DEFAULT_MAX_VIEW_ANGLE:g}; the summary says how many)")
     p.add_argument("--crs", metavar="EPSG:XXXX",
                    help="projected CRS of the output (default: the UTM zone holding most of the flights; "
                         "flights of other zones are rendered into it)")
@@ -192,7 +192,6 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
                    help="threads per local worker (default: the cores divided among the workers, at least 2): "
                         "render tasks draw on the worker's GL thread while the others mosaic, compress and write")
     # Batch jobs over the catalog: every flight of --archive that matches, rendered in one graph.
-    p._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-[\d.]+(,\s*-?[\d.]+)+$")
     q = p.add_argument_group("batch jobs over the catalog of --archive (every given filter must match)")
     q.add_argument("--query-bbox", metavar="W,S,E,N", help="flights whose footprint meets this lon/lat box, degrees")
     q.add_argument("--query-datetime", metavar="A/B", help="flights flown in this ISO 8601 range ('..': open end)")
@@ -295,8 +294,6 @@ def _add_catalog(sub: argparse._SubParsersAction) -> None:
             "and whose wavelength range holds --wavelength (all given filters must match)."
         ),
     )
-    # Let '--bbox -90.1,35,-89.8,35.3' through: argparse would take the negative west for an option.
-    s._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-[\d.]+(,\s*-?[\d.]+)+$")
     s.add_argument("--archive", required=True, metavar="ARCHIVE", help="archive directory")
     s.add_argument("--bbox", metavar="W,S,E,N", help="longitude/latitude box, degrees (west, south, east, north)")
     s.add_argument("--datetime", metavar="A/B",
@@ -372,9 +369,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: A negative number or a comma-separated list starting with one ('-0.5,1,0', '-90.1,35,-89.8,35.3').
+NEGATIVE_VALUE = re.compile(r"^-\d+$|^-\d*\.\d+$|^-[\d.]+(,\s*-?[\d.]+)+$")
+
+
+def join_negative_values(argv: Sequence[str]) -> list[str]:
+    """``--option -0.5,1,0`` -> ``--option=-0.5,1,0``: argparse would take a negative value after an
+    option for another option (``--boresight``, ``--lever-arm``, ``--bbox``, ``--query-bbox``...)."""
+    out: list[str] = []
+    for word in argv:
+        if out and out[-1].startswith("--") and "=" not in out[-1] and NEGATIVE_VALUE.match(word):
+            out[-1] = f"{out[-1]}={word}"
+        else:
+            out.append(word)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(join_negative_values(sys.argv[1:] if argv is None else argv))
     module_name, func_name = HANDLERS[args.command].split(":")
     try:
         handler = getattr(importlib.import_module(module_name), func_name)

@@ -165,3 +165,8 @@ class Grid:
 
     def __dask_tokenize__(self):
         return ("archive.grid.Grid", self.epsg, self.gsd, self.x0, self.y0, self.width, self.height)
+
+
+def boxes_intersect(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
+    """Whether two pixel boxes ``(row0, col0, height, width)`` of one grid share a pixel."""
+    return a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]

@@ -26,6 +26,7 @@ from pyproj import Transformer
 from scipy.spatial.transform import Rotation, Slerp
 
 from archive.errors import InputError, NavigationError
+from archive.params import DEFAULT_MAX_VIEW_ANGLE  # noqa: F401  (the meshes' and footprints' default)
 
 if TYPE_CHECKING:
     from archive.formats.lcf import LcfData
@@ -373,11 +374,6 @@ def interpolate_poses(track: Track, t: np.ndarray, frame: LocalFrame, boresight:
 #: Juvika pair _12 -> _13: 1.7 intervals on the .lcf scale, 1.9 on the camera clock), is a seam.
 #: The one strip rule of the project: meshes, the catalog footprint and 'archive info' use it.
 MAX_JOIN_FRAMES = 3.5
-#: Lines whose field-of-view edge looks further than this from nadir (degrees) are left out of the
-#: mesh (turns). 23.75 deg is the edge of a level Pika L (47.5 deg field of view); 40 leaves room
-#: for wobble and a boresight in straight flight while a banked turn's lines (which would stretch
-#: one line over tens of metres to kilometres) are dropped.
-DEFAULT_MAX_VIEW_ANGLE = 40.0
 
 
 def frame_interval(framerate: float | None, times: np.ndarray | None = None) -> float:

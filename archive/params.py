@@ -4,6 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+#: Lines whose field-of-view edge looks further than this from nadir (degrees) are left out of the
+#: mesh (turns). 23.75 deg is the edge of a level Pika L (47.5 deg field of view); 40 leaves room
+#: for wobble and a boresight in straight flight while a banked turn's lines (which would stretch
+#: one line over tens of metres to kilometres) are dropped. The default of ``--max-view-angle``.
+DEFAULT_MAX_VIEW_ANGLE = 40.0
+
 
 @dataclass(frozen=True)
 class NavigationParams:

@@ -42,7 +42,7 @@ import numpy as np
 
 from archive.errors import InputError
 
-__all__ = ["LAYERS", "Layer", "NADIR_KEY", "ProvenanceSpec", "cube_layers", "layer_index", "provenance_spec",
+__all__ = ["LAYERS", "Layer", "ProvenanceSpec", "cube_layers", "layer_index", "provenance_spec",
            "sun_position"]
 
 
@@ -67,8 +67,6 @@ LAYERS: tuple[Layer, ...] = (
     Layer("sun_azimuth", "degree", "solar azimuth, clockwise from true north"),
     Layer("overlap_count", "1", "layers of the job's line meshes covering the pixel centre"),
 )
-#: The layer the 'nadir' overlap rule minimises.
-NADIR_KEY = "view_zenith"
 
 
 def layer_index(name: str) -> int:

@@ -5,7 +5,7 @@
     python bench/bench_cluster.py overhead [--cubes 40] [--bands 300] [--lines 1000] [--gsd 0.04]
                                            [--workers 2] [--workdir DIR] [--json FILE]
 
-scaling: one simulated flight rendered (all bands, radiance) by ``archive.render`` (the library call
+scaling: one simulated flight rendered (all bands, radiance) by ``archive.georectify`` (the library call
 under ``archive render``) on a LocalCluster of 1, then 2, ... spawned worker processes (1 thread,
 ``resources={"GPU": 1}``, ``LP_NUM_THREADS`` = cores / workers). Each cluster first renders the
 flight once (warm-up: imports, GL context, page cache), then the timed run renders it again into a fresh store; the seconds are the summary's
@@ -13,7 +13,7 @@ flight once (warm-up: imports, GL context, page cache), then the timed run rende
 band-pixels/s and the ratio to one worker. The GL renderer is whatever EGL gives the workers
 (Mesa llvmpipe on a CPU machine, the NVIDIA driver on a GPU machine: printed).
 
-overhead: the graph ``archive.render`` builds (:func:`archive.pipeline.build_output` on the plan of
+overhead: the graph ``archive.georectify`` builds (:func:`archive.pipeline.build_output` on the plan of
 :func:`archive.api.plan`) for a paper-size flight description (default 40 cubes x 1000 lines, 300
 bands, 4 cm): the flight's geometry is simulated with few samples and one band (the graph depends on
 the footprints, the grid and the number of band groups, not on the pixels); the plan asks for 300
@@ -66,7 +66,7 @@ def _plan(directory: Path, ground: float, gsd: float, nbands: int | None = None,
     """The library's plan of a raw flight (:func:`archive.api.plan`: metadata and geometry only).
 
     nbands: plan that many output bands whatever the flight holds (the overhead bench's hollow
-    graph never reads them), in band groups sized as ``archive.render`` sizes them.
+    graph never reads them), in band groups sized as ``archive.georectify`` sizes them.
     """
     import dataclasses
 
@@ -82,10 +82,16 @@ def _plan(directory: Path, ground: float, gsd: float, nbands: int | None = None,
 
 
 def _graph(planned, store_path: Path):
-    """The render graph ``archive.render`` builds for ``planned``, into a new store at ``store_path``."""
+    """The render graph ``archive.georectify`` builds for ``planned``, into a new store at ``store_path``
+    (created under its temporary name and removed again: the overhead bench never writes it)."""
+    from archive.outputs.publish import Output
     from archive.pipeline import build_output
 
-    return build_output(planned, store_path)[1]
+    output = Output(store_path, overwrite=True)
+    try:
+        return build_output(planned, output)[1]
+    finally:
+        output.cleanup()
 
 
 def _cluster(workers: int):
@@ -126,7 +132,7 @@ def scaling(args) -> dict:
                 store = workdir / f"out-{n}-{attempt}.zarr"
                 shutil.rmtree(store, ignore_errors=True)
                 # what `archive render` runs; its graph_seconds time the graph alone, as before
-                summary = archive.render([directory], store, gsd=args.gsd, fov=FOV, ground_height=truth.ground_height,
+                summary = archive.georectify([directory], store, gsd=args.gsd, fov=FOV, ground_height=truth.ground_height,
                                          scheduler=cluster.scheduler_address, overwrite=True)
                 seconds = summary["graph_seconds"]
                 shutil.rmtree(store, ignore_errors=True)

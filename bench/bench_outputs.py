@@ -160,7 +160,7 @@ def main(argv=None) -> int:
              f"tree RSS {br.fmt_gb(r['peak_tree_rss'])}, {r['out_mb']:.0f} MB")
         if fmt == "tif":
             R["cog_reads"] = cog_window_reads(out)
-            from archive.cog import check_cog
+            from archive.outputs.tiff import check_cog
 
             R["cog_errors"] = check_cog(out)
             _say(f"COG window reads {R['cog_reads']}; layout errors {R['cog_errors']}")

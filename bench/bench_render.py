@@ -7,11 +7,11 @@ Defaults are the paper shape: 2 cubes of 900 samples x 1000 lines x 300 bands (u
 540 MB each), rendered at 4 cm with all bands, radiance mode. One run measures, on the same
 simulated flight (simulated once into --workdir and reused while its marker file exists):
 
-1. ours, end-to-end: ``archive.render([FLIGHT], "X.zarr", ...)`` (what ``archive render`` runs) in a
+1. ours, end-to-end: ``archive.georectify([FLIGHT], "X.zarr", ...)`` (what ``archive render`` runs) in a
    subprocess (Dask local cluster, Zarr writer included); peak memory = max over time of the summed
    RSS of the whole process tree (Dask nanny + worker included), polled every 0.1 s with psutil,
    and the largest single process (``/usr/bin/time -v``).
-2. ours, render core: in-process, on the plan ``archive.api.plan`` makes (the one ``archive.render``
+2. ours, render core: in-process, on the plan ``archive.api.plan`` makes (the one ``archive.georectify``
    renders), per cube: ``rasterize_lookup`` once on the cube's window of the output grid, then per group of 32 bands (the pipeline's task size): read bands + radiometry,
    ``render_lookup`` (8 bands per GL pass), write into a .npy memmap (flushed).
 3. GDAL direct method: ``rasterio.warp.reproject(src_geoloc_array=(X, Y), nearest)`` per cube
@@ -190,7 +190,7 @@ def io_floor(flight: Path, out_bytes: int, work: Path) -> dict:
 # ---------------------------------------------------------------------------------------------
 def end_to_end(flight: Path, args, work: Path, ground: float, tag: str = "e2e") -> dict:
     out = work / f"{tag}.zarr"
-    call = (f"archive.render([{str(flight)!r}], {str(out)!r}, gsd={args.gsd!r}, fov={FOV!r}, "
+    call = (f"archive.georectify([{str(flight)!r}], {str(out)!r}, gsd={args.gsd!r}, fov={FOV!r}, "
             f"ground_height={ground!r}, mode={MODE!r}, overwrite=True)")
     code = f"import json, archive\nprint(json.dumps({call}))"
     cmd = [sys.executable, "-c", code]
@@ -235,7 +235,7 @@ def one_cube_flight(flight: Path, work: Path) -> Path:
 # Plan (shared by 2 and 3): the library's plan, the same grid and cube windows as the pipeline
 # ---------------------------------------------------------------------------------------------
 def make_plan(flight: Path, gsd: float, ground: float):
-    """(source, plan, seconds): the plan ``archive.render`` renders (sources opened, cube meshes,
+    """(source, plan, seconds): the plan ``archive.georectify`` renders (sources opened, cube meshes,
     grid, windows; no GL), and the seconds it took (mostly the meshes)."""
     from archive.api import plan
 

@@ -9,7 +9,7 @@ the same GSD and radiance mode; "flat" puts the ground at the mean DEM height un
 output grid is then about the same size). Measured, alternating flat and DEM, ``--repeat`` times each
 (medians reported):
 
-1. end-to-end: ``archive.render([FLIGHT], OUT.zarr, ...)`` in a subprocess (Dask local cluster,
+1. end-to-end: ``archive.georectify([FLIGHT], OUT.zarr, ...)`` in a subprocess (Dask local cluster,
    Zarr writer; what ``archive render`` runs), wall time and the peak summed RSS of its process tree
    (polled every 0.1 s);
 2. render core, in this process: the plan (``archive.api.plan``: sources, meshes, grid; the DEM's
@@ -123,7 +123,7 @@ def end_to_end(directory: Path, args, kind: str, ground: float) -> dict:
     out = Path(args.workdir) / f"bench_terrain_{kind}.zarr"
     keywords = ground_keywords(directory, kind, ground)
     extra = ", ".join(f"{k}={v!r}" for k, v in keywords.items())
-    call = (f"archive.render([{str(directory)!r}], {str(out)!r}, gsd={args.gsd!r}, fov={FOV!r}, {extra}, "
+    call = (f"archive.georectify([{str(directory)!r}], {str(out)!r}, gsd={args.gsd!r}, fov={FOV!r}, {extra}, "
             f"mode={MODE!r}, overwrite=True)")
     code = f"import json, archive\nprint(json.dumps({call}))"
     t = time.perf_counter()

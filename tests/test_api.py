@@ -1,4 +1,4 @@
-"""The library API (``archive.open_archive``, ``archive.mosaic``, ``archive.render``) against the CLI.
+"""The library API (``archive.open_archive``, ``archive.mosaic``, ``archive.georectify``) against the CLI.
 
 A small simulated flight (4 cubes in 2 strips, 6 bands, 2 output tiles at 4 cm) rendered by the CLI
 into Zarr; the lazy mosaic must give the same float32 values bit for bit, computing one band must
@@ -129,7 +129,7 @@ def test_one_band_renders_only_its_group(flight, cli_zarr):
 def test_render_from_python_writes_what_the_cli_writes(flight, cli_zarr, scheduler, tmp_path):
     directory, _ = flight
     out = tmp_path / "out" / "m.zarr"
-    summary = archive.render([directory], out, gsd=GSD, fov=FOV, wavelengths=[520, 880], scheduler=scheduler)
+    summary = archive.georectify([directory], out, gsd=GSD, fov=FOV, wavelengths=[520, 880], scheduler=scheduler)
     assert summary["out"] == str(out) and summary["bands"] == 2 and summary["wavelengths"] == [520.0, 880.0]
     assert (summary["width"], summary["height"], summary["cubes"]) == (1570, 780, 4)
     assert summary["renders"] == 4 and summary["graph_seconds"] <= summary["seconds"]
@@ -138,7 +138,7 @@ def test_render_from_python_writes_what_the_cli_writes(flight, cli_zarr, schedul
     np.testing.assert_array_equal(_bits(written["radiance"].values), _bits(cli_zarr["radiance"].values[[1, 4]]))
     # the same keywords as the CLI's text, and the same refusal of an existing output
     with pytest.raises(OutputExistsError):
-        archive.render(str(directory), out, gsd=GSD, fov=FOV, wavelengths="520,880", scheduler=scheduler)
+        archive.georectify(str(directory), out, gsd=GSD, fov=FOV, wavelengths="520,880", scheduler=scheduler)
     assert sorted(p.name for p in out.parent.iterdir()) == ["m.zarr", "m.zarr.json"]
 
 
@@ -153,7 +153,7 @@ def test_bad_keywords_fail_like_the_cli(flight, tmp_path):
     with pytest.raises(InputError, match="--mode"):
         archive.mosaic([directory], gsd=GSD, fov=FOV, mode="dn")
     with pytest.raises(InputError, match="--overlap"):
-        archive.render([directory], tmp_path / "x.zarr", gsd=GSD, fov=FOV, overlap="first")
+        archive.georectify([directory], tmp_path / "x.zarr", gsd=GSD, fov=FOV, overlap="first")
     assert not (tmp_path / "x.zarr").exists()
 
 
@@ -248,10 +248,13 @@ def test_distributed_client_runs_the_mosaic(flight, cli_zarr, cluster):
     np.testing.assert_array_equal(_bits(got), _bits(cli_zarr["radiance"].values[3:4]))
 
 
-def test_import_archive_stays_light_and_render_stays_callable():
-    code = ("import sys, archive; archive.open_archive; light = not any(m in sys.modules for m in "
+def test_import_archive_stays_light_and_georectify_is_the_library_function():
+    """``archive.georectify`` writes outputs; ``archive.render`` is the GL package, a plain module
+    (no class swap), whatever the import order."""
+    code = ("import sys, types, archive; archive.open_archive; light = not any(m in sys.modules for m in "
             "('dask', 'moderngl', 'xarray')); import archive.render.mesh, archive.render.renderer; "
-            "print(light, callable(archive.render), archive.render.mesh.__name__, archive.mosaic.__module__)")
+            "print(light, callable(archive.render), type(archive.render) is types.ModuleType, "
+            "archive.render.mesh.__name__, archive.georectify.__module__, archive.mosaic.__module__)")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0, done.stderr
-    assert done.stdout.split() == ["True", "True", "archive.render.mesh", "archive.api"]
+    assert done.stdout.split() == ["True", "False", "True", "archive.render.mesh", "archive.api", "archive.api"]

@@ -10,15 +10,12 @@ from PIL import Image
 
 from archive.errors import InputError, OutputExistsError
 from archive.grid import Grid
-from archive.outputs import (
-    CHUNK,
-    MosaicStore,
-    Output,
-    Tile,
-    output_format,
-    quicklook_bands,
-    write_mosaic,
-)
+from archive.outputs.base import CHUNK
+from archive.outputs.publish import Output
+from archive.outputs.quicklook import quicklook_bands
+from archive.outputs.registry import output_format
+from archive.outputs.zarr import MosaicStore
+from mosaic_writing import Tile, write_mosaic, write_quicklook, write_tile, write_values
 
 # 1300 x 1100 px: 2 x 2 chunks with ragged edges; big enough for COG overviews (512 px blocks).
 GRID = Grid(epsg=32616, gsd=0.5, x0=771000.0, y0=3891500.0, width=1100, height=1300)
@@ -91,13 +88,13 @@ def test_zarr_roundtrip_with_crs_transform_wavelengths(tmp_path):
 
 def test_unwritten_chunks_read_as_nan(tmp_path):
     store = MosaicStore.create(tmp_path / "s.zarr", GRID, WAVELENGTHS, BANDS, "dn")
-    store.write_values(1, 1024, 0, np.ones((1, GRID.height - 1024, CHUNK), np.float32))
+    write_values(store, 1, 1024, 0, np.ones((1, GRID.height - 1024, CHUNK), np.float32))
     ds = xr.open_zarr(tmp_path / "s.zarr", decode_coords="all")
     assert np.isnan(ds["dn"].values[0]).all()
     assert np.nansum(ds["dn"].values[1]) == (GRID.height - 1024) * CHUNK
     assert int(ds["saturated"].values.sum()) == 0
     with pytest.raises(ValueError, match="not aligned"):
-        store.write_values(0, 512, 0, np.ones((1, 512, CHUNK), np.float32))
+        write_values(store, 0, 512, 0, np.ones((1, 512, CHUNK), np.float32))
 
 
 def test_cog_is_tiled_with_overviews_and_metadata(tmp_path):
@@ -167,8 +164,7 @@ def test_quicklook_is_decimated(tmp_path):
     values, saturated = _mosaic()
     store = MosaicStore.create(tmp_path / "s.zarr", GRID, WAVELENGTHS, BANDS)
     for t in _tiles(values, saturated):
-        store.write_tile(t)
-    from archive.outputs import write_quicklook
+        write_tile(store, t)
 
     write_quicklook(store, ql, max_size=512)
     assert Image.open(ql).size == (367, 434)  # every 3rd pixel of 1100 x 1300

@@ -26,9 +26,12 @@ import rasterio
 import xarray as xr
 
 from archive.cli import main
-from archive.cog import check_cog, downsample2, file_layout, level_shapes
+from archive.outputs.tiff import check_cog, downsample2, file_layout, level_shapes
 from archive.grid import Grid
-from archive.outputs import CHUNK, CogSink, EnviSink, Output, OutputMeta
+from archive.outputs.base import CHUNK, OutputMeta
+from archive.outputs.cog import CogSink
+from archive.outputs.envi import EnviSink
+from archive.outputs.publish import Output
 
 FOV = 47.5
 GSD = 0.015  # 4185 x 2079 px: 15 output tiles, 2 of them touched by no cube; 4 COG overview levels

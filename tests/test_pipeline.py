@@ -274,7 +274,7 @@ def test_scheduler_without_gpu_workers_is_refused(flight, tmp_path, capsys):
 
 
 def test_ground_height_auto_reads_headers(flight, tmp_path):
-    from archive.pipeline import resolve_ground_height
+    from archive.sources.select import resolve_ground_height
     from archive.sources import RawFlightSource
 
     directory, truth = flight
@@ -287,7 +287,7 @@ def test_ground_height_auto_reads_headers(flight, tmp_path):
 
 
 def test_select_bands(flight):
-    from archive.pipeline import select_bands
+    from archive.sources.select import select_bands
     from archive.sources import RawFlightSource
 
     src = RawFlightSource(flight[0], NavigationParams(fov_deg=FOV))
@@ -304,7 +304,7 @@ def test_select_bands(flight):
 def test_graph_is_deterministic_and_annotated(flight, tmp_path):
     from archive.graph.build import build_render_graph
     from archive.graph.plan import cube_meshes, plan_render
-    from archive.outputs import MosaicStore
+    from archive.outputs.zarr import MosaicStore
     from archive.sources import RawFlightSource
 
     directory, truth = flight
@@ -373,10 +373,10 @@ def test_local_workers_start_with_the_malloc_threshold():
     import dask
     import distributed  # noqa: F401  (loads Dask's distributed config)
 
-    from archive.pipeline import MALLOC_MMAP_THRESHOLD, _cluster
+    from archive.cluster import MALLOC_MMAP_THRESHOLD, start_cluster
 
     before = dict(dask.config.get("distributed.nanny.pre-spawn-environ"))
-    client, cluster = _cluster(None, 1, lambda text: None, threads=2)
+    client, cluster = start_cluster(None, 1, lambda text: None, threads=2)
     try:
         seen = client.run(lambda: os.environ.get("MALLOC_MMAP_THRESHOLD_"))
         assert list(seen.values()) == [str(MALLOC_MMAP_THRESHOLD)]

@@ -270,7 +270,7 @@ def test_cog_and_envi_siblings_hold_the_zarr_layers(flight, rendered, tmp_path):
         for b, name in enumerate(NAMES, start=1):
             assert np.array_equal(src.read(b), zarr_ds[name].values, equal_nan=True), name
     assert "band names = {cube, line, sample, time" in (tmp_path / "m_provenance.hdr").read_text()
-    from archive.cog import check_cog
+    from archive.outputs.tiff import check_cog
 
     assert check_cog(sibling) == []
 
@@ -329,7 +329,7 @@ def test_nadir_rule_strategy_and_the_writers_fast_path_agree():
     the writer's band-by-band path writes what the strategy object assembles."""
     from archive.graph.tasks import assemble_task, assemble_write_task
     from archive.grid import Grid
-    from archive.outputs import MosaicStore
+    from archive.outputs.zarr import MosaicStore
 
     rng = np.random.default_rng(4)
     boxes = [(0, 0, 6, 5), (2, 1, 6, 6), (1, 3, 4, 4)]

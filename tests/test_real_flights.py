@@ -204,7 +204,7 @@ def test_turns_up_to_70_degrees_keep_the_output_bounded(tmp_path_factory):
     out = directory.parent / "out.zarr"
     import archive
 
-    s = archive.render([str(directory)], out, gsd=2 * truth.nominal_gsd, fov=FOV, ground_height=truth.ground_height,
+    s = archive.georectify([str(directory)], out, gsd=2 * truth.nominal_gsd, fov=FOV, ground_height=truth.ground_height,
                        mode="radiance", quiet=True)
     assert s["left_out"].get("view angle", 0) > 0
     assert "line" in pipeline.describe(s) and "beyond the view-angle limit" in pipeline.describe(s)

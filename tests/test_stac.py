@@ -268,21 +268,21 @@ def rendered(tmp_path_factory):
     import archive
     from archive.api import plan
     from archive.formats.lcf import gps_seconds_to_datetime
-    from archive.pipeline import RenderRequest
+    from archive.options import RenderOptions
 
     base = tmp_path_factory.mktemp("product")
     flight = base / "flight"
     simulate_flight(flight, cubes=2, bands=5, samples=48, lines=120, cubes_per_pass=2, seed=1)
     keywords = dict(gsd=0.1, fov=FOV, wavelengths=[450.0, 550.0, 650.0])
     planned = plan([str(flight)], **keywords)
-    request = RenderRequest.create([str(flight)], **keywords)
+    request = RenderOptions.create([str(flight)], **keywords)
     source = planned.sources[0]
     times = np.concatenate([source.line_times(i) for i in range(len(source.cubes))])
     start, end = gps_seconds_to_datetime(float(times.min())), gps_seconds_to_datetime(float(times.max()))
     outputs = {}
     for fmt, name in (("cog", "mosaic.tif"), ("envi", "mosaic.hdr")):
         out = base / name
-        archive.render([str(flight)], out, workers=1, threads=2, **keywords)
+        archive.georectify([str(flight)], out, workers=1, threads=2, **keywords)
         item = product_item(out, fmt=fmt, grid=planned.plan.grid, band_indices=planned.plan.bands[0],
                             wavelengths=planned.wavelengths, fwhm=getattr(planned, "fwhm", None),
                             variable=planned.variable, attrs=planned.attrs, start=start, end=end,
@@ -462,21 +462,22 @@ def test_product_items_of_every_format(tmp_path):
 # The command in the recipe
 # ---------------------------------------------------------------------------------------------
 def _round_trip(command: str):
-    """The RenderRequest that ``archive render`` would build from ``command``."""
-    from archive.api import REQUEST_KEYWORDS, render_keywords
-    from archive.pipeline import RenderRequest
+    """The RenderOptions that ``archive render`` would build from ``command``."""
+    from archive.options import KEYWORDS
+    from archive.render_command import render_keywords
+    from archive.options import RenderOptions
 
     args = build_parser().parse_args(shlex.split(command)[1:])
     keywords = render_keywords(args)
-    return RenderRequest.create(keywords["sources"], **{k: keywords[k] for k in REQUEST_KEYWORDS}), keywords
+    return RenderOptions.create(keywords["sources"], **{k: keywords[k] for k in KEYWORDS}), keywords
 
 
 def test_render_command_leaves_out_defaults(tmp_path):
-    from archive.pipeline import RenderRequest
+    from archive.options import RenderOptions
 
     flight = tmp_path / "my flight"
     flight.mkdir()
-    request = RenderRequest.create([str(flight)], gsd=0.25, fov=47.5)
+    request = RenderOptions.create([str(flight)], gsd=0.25, fov=47.5)
     command = render_command(request, tmp_path / "out.tif")
     assert command == shlex.join(["archive", "render", str(flight), "--out", str(tmp_path / "out.tif"),
                                   "--gsd", "0.25", "--fov", "47.5"])
@@ -485,13 +486,13 @@ def test_render_command_leaves_out_defaults(tmp_path):
 
 
 def test_render_command_round_trips_every_option(tmp_path, monkeypatch):
-    from archive.pipeline import RenderRequest
+    from archive.options import RenderOptions
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "arc").mkdir()
     (tmp_path / "dem.tif").touch()
     (tmp_path / "white.txt").touch()
-    request = RenderRequest.create(
+    request = RenderOptions.create(
         ["Pika-L-SIM_20240612T160000"], gsd=0.2, archive="arc", fov=30.0, ground_height=81.5,
         bands=[0, 2, 5], mode="reflectance", white_reference="white.txt", sync_offset=-0.012,
         boresight=(-0.5, 1.25, 0.0), lever_arm=(0.1, -0.2, 0.3), overlap="mean", crs="EPSG:32615",
@@ -503,7 +504,7 @@ def test_render_command_round_trips_every_option(tmp_path, monkeypatch):
     assert {"--provenance", "--overwrite"} <= set(words)
     again, keywords = _round_trip(command)
     expected = dataclasses.replace(request, archive=str(tmp_path / "arc"), dem=str(tmp_path / "dem.tif"),
-                                   white_reference=str(tmp_path / "white.txt"))
+                                   white_reference=str(tmp_path / "white.txt"), provenance=True)  # --provenance
     assert dataclasses.replace(again, ground_height=float(again.ground_height)) == expected
     assert keywords["out"] == str(tmp_path / "out dir" / "m.zarr") and keywords["quicklook"] == str(tmp_path / "q.png")
     with pytest.raises(InputError, match="render request"):

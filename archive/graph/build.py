@@ -5,7 +5,8 @@ sample) each pixel of the cube's window sees; per cube and band group, one rende
 draws the group's bands through that lookup, 8 bands per GL pass. Per output tile (1024 x 1024, the
 Zarr chunks) and band group, one writer task (no resource: any thread of any worker) mosaics the
 renders that touch the tile in capture order and writes the result through the output's *sink*
-(:mod:`archive.outputs`): Zarr chunks, ENVI rows, or compressed COG tiles; no two tasks write the
+(:mod:`archive.outputs`; the graph reads only the capabilities of :class:`~archive.outputs.base.Sink`,
+never which format it is): Zarr chunks, ENVI rows, or compressed COG tiles; no two tasks write the
 same bytes. Zarr: each writer also ORs its saturation mask into the previous group's (a chain per
 tile); one last task per tile writes it; tiles no cube touches get no task (their chunks read back
 as NaN). ENVI and COG: tiles no cube touches get a task writing NaN. COG: each writer also spools
@@ -31,10 +32,12 @@ import dask
 from dask.base import tokenize
 from dask.delayed import Delayed, delayed
 
+from archive.grid import boxes_intersect
+from archive.outputs.base import CHUNK
+from archive.graph.nodes import BANDS_PER_PASS, GL_RESOURCES, Node, Ref, RenderNodes
 from archive.graph.plan import GROUP, RenderPlan, band_groups
-from archive.graph.tasks import (assemble_write_task, blank_write_task, gate_task, layers_task, lookup_task,
-                                 overview_task, pick_task, render_task, write_layers_task, write_saturated_task)
-from archive.outputs import CHUNK
+from archive.graph.tasks import (assemble_write_task, blank_write_task, gate_task, overview_task, write_layers_task,
+                                 write_saturated_task)
 
 __all__ = ["RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "task_group_size", "with_task_groups"]
 
@@ -43,8 +46,6 @@ __all__ = ["RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "task_group
 TASK_VALUES_BYTES = 192 * 1024**2
 #: Most bands per render task (and per assembly / writer task).
 MAX_GROUP = 64
-#: Bands per GL pass in render tasks (8 = the renderer's most per pass).
-BANDS_PER_PASS = 8
 #: Renders that may run ahead of the writers consuming earlier renders (in (group, capture)
 #: order): bounds the renders held in memory whatever the flight length and GPU speed.
 RENDERS_AHEAD = 3
@@ -81,8 +82,8 @@ class RenderGraph:
 
 def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
                        overlap: str, mesh_spec: object = None, layers=None, layers_sink=None) -> RenderGraph:
-    """Dask graph rendering ``plan`` from ``sources`` into ``sink`` (:class:`~archive.outputs.MosaicStore`,
-    :class:`~archive.sinks.EnviSink` or :class:`~archive.sinks.CogSink`).
+    """Dask graph rendering ``plan`` from ``sources`` into ``sink`` (:class:`~archive.outputs.zarr.MosaicStore`,
+    :class:`~archive.outputs.envi.EnviSink` or :class:`~archive.outputs.cog.CogSink`).
 
     mesh_spec: the parameters the meshes were built from (fov, ground height...), only for keys.
     layers: a :class:`~archive.provenance.ProvenanceSpec` when per-cube provenance layers are needed:
@@ -91,17 +92,15 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
     layers task (CPU) computes them from the cube's lookup; per output tile one task assembles and
     writes them, in band group 0.
     """
-    from archive.graph.mosaic import KEYED
-    from archive.provenance import NADIR_KEY
+    from archive.graph.mosaic import rule_key
 
-    if (overlap in KEYED or layers_sink is not None) and layers is None:
+    key_layer = rule_key(overlap)   # the layer the overlap rule compares, if any
+    if (key_layer is not None or layers_sink is not None) and layers is None:
         raise ValueError(f"the '{overlap}' rule and provenance layers need a ProvenanceSpec")
-    if overlap in KEYED and NADIR_KEY not in layers.names:
-        raise ValueError(f"the '{overlap}' rule needs the {NADIR_KEY} layer")
-    # every source's __dask_tokenize__ says what its renders depend on (files or stored content,
-    # parameters), never its pixels
-    tokens = [tokenize(s) for s in sources]
-    source_nodes = [delayed(s, name=f"source-{t}", traverse=False) for s, t in zip(sources, tokens)]
+    if key_layer is not None and key_layer not in layers.names:
+        raise ValueError(f"the '{overlap}' rule needs the {key_layer} layer")
+    nodes = RenderNodes(plan, sources, mode=mode, mesh_spec=mesh_spec, layers=layers)
+    made: dict[str, Delayed] = {key: delayed(value, name=key, traverse=False) for key, value in nodes.data().items()}
 
     # Priorities (higher runs first) finish one band group before starting the next, and write a
     # tile as soon as its renders exist, its overviews as soon as their tiles are written.
@@ -111,11 +110,18 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
         """Group first, then stage (renders 0 < writers 1 < overviews 2), then capture order."""
         return (3 * (ngroups - g) + stage) * (njobs + 1) + (njobs - j)
 
+    def task(node: Node, priority: int) -> Delayed:
+        """The Delayed of ``node`` (its references resolved to the Delayed made before)."""
+        args = [made[a.key] if isinstance(a, Ref) else a for a in node.args]
+        with dask.annotate(**({"resources": dict(GL_RESOURCES)} if node.gl else {}), priority=priority):
+            made[node.key] = delayed(node.func, pure=True)(*args, dask_key_name=node.key, **node.kwargs)
+        return made[node.key]
+
     # The tiles to write, and for each cube the tiles it completes (their last touching cube).
     tiles = []
     for row0, col0, tile_grid in plan.grid.tiles(getattr(sink, "tile_size", (CHUNK, CHUNK))):
         tile = (row0, col0, tile_grid.height, tile_grid.width)
-        touching = [j for j, job in enumerate(plan.jobs) if _intersects(tile, job.box)]
+        touching = [j for j, job in enumerate(plan.jobs) if boxes_intersect(tile, job.box)]
         if touching or sink.blank_tiles:
             tiles.append((tile, touching))
     completes: dict[int, list[int]] = {}  # job index -> tiles whose last touching render it is
@@ -128,44 +134,27 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
     # makes its own, so that held lookups do not grow with the flight either.
     shared = len(plan.groups) == 1 or 8 * sum(job.window.width * job.window.height
                                               for job in plan.jobs) <= LOOKUP_BYTES
-    meshes: dict[int, tuple[Delayed, str, int]] = {}
-    for j, job in enumerate(plan.jobs):
-        mesh_key = f"mesh-{tokenize(tokens[job.source], job.cube, mesh_spec)}"
-        meshes[j] = (delayed(job.mesh, name=mesh_key, traverse=False), mesh_key,
-                     int(sources[job.source].cubes[job.cube].samples))
     lookups: dict[tuple[int, int], Delayed] = {}
     count = layers_sink is not None and "overlap_count" in layers.names
 
     def lookup(j: int, g: int, gate: Delayed | None) -> Delayed:
         if shared and (j, 0) in lookups:
             return lookups[j, 0]
-        mesh, mesh_key, samples = meshes[j]
-        window = plan.jobs[j].window
-        counted = count and (shared or g == 0)   # layers come from group 0's lookups
-        lkey = f"lookup-{tokenize(mesh_key, window, samples, counted, *([] if shared else [g]))}"
-        with dask.annotate(resources={"GPU": 1}, priority=priority(g, 0, j)):
-            lookups[j, 0 if shared else g] = delayed(lookup_task, pure=True)(
-                mesh, window, samples, *([] if gate is None else [gate]), count=counted, dask_key_name=lkey)
+        node = nodes.lookup(j, count=count and (shared or g == 0),   # layers come from group 0's lookups
+                            group=None if shared else g, after=None if gate is None else gate.key)
+        lookups[j, 0 if shared else g] = task(node, priority(g, 0, j))
         return lookups[j, 0 if shared else g]
 
-    # Provenance layers (and the 'nadir' rule's key): per cube from group 0's lookup, on any thread.
+    # Provenance layers (and the overlap rule's key): per cube from group 0's lookup, on any thread.
     cube_layers: dict[int, Delayed] = {}
     keys: dict[int, Delayed] = {}
     layer_writers: dict[int, Delayed] = {}   # tile number -> provenance writer
 
     def layers_of(j: int, lk: Delayed) -> Delayed:
         if j not in cube_layers:
-            job = plan.jobs[j]
-            ground = None if layers.dem is not None else layers.grounds[job.source]
-            lykey = f"layers-{tokenize(tokens[job.source], job.cube, j, lk.key, layers)}"
-            with dask.annotate(priority=priority(0, 0, j)):
-                cube_layers[j] = delayed(layers_task, pure=True)(source_nodes[job.source], job.cube, j, lk,
-                                                                 layers, ground, dask_key_name=lykey)
-            if overlap in KEYED:
-                pkey = f"key-{tokenize(lykey)}"
-                with dask.annotate(priority=priority(0, 0, j)):
-                    keys[j] = delayed(pick_task, pure=True)(cube_layers[j], layers.names.index(NADIR_KEY),
-                                                            dask_key_name=pkey)
+            cube_layers[j] = task(nodes.cube_layers(j, lk.key), priority(0, 0, j))
+            if key_layer is not None:
+                keys[j] = task(nodes.rule_key(cube_layers[j].key, key_layer), priority(0, 0, j))
         return cube_layers[j]
 
     # Renders in (group, capture) order. Backpressure: render number s (and its lookup) waits for
@@ -178,7 +167,6 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
     assemblies = 0
     for g, (b0, b1) in enumerate(plan.groups):
         for j, job in enumerate(plan.jobs):
-            bands = plan.bands[job.source][b0:b1]
             # the latest writers' token at or before s - RENDERS_AHEAD: each render waits at least
             # for what the render before it waited for
             gate = next((t for t in reversed(gates[:max(0, len(gates) - RENDERS_AHEAD + 1)]) if t is not None),
@@ -186,19 +174,15 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
             lk = lookup(j, g, gate)
             if layers is not None and g == 0:
                 layers_of(j, lk)
-            key = f"render-{tokenize(tokens[job.source], job.cube, bands, lk.key, mode, BANDS_PER_PASS)}"
-            with dask.annotate(resources={"GPU": 1}, priority=priority(g, 0, j)):
-                renders[j, g] = delayed(render_task, pure=True)(
-                    source_nodes[job.source], job.cube, bands, lk, mode, BANDS_PER_PASS,
-                    *([] if gate is None else [gate]), dask_key_name=key
-                )
+            renders[j, g] = task(nodes.render(j, g, lk.key, after=None if gate is None else gate.key),
+                                 priority(g, 0, j))
             done = []
             for t in completes.get(j, []):
                 tile, touching = tiles[t]
                 boxes = tuple(plan.jobs[i].box for i in touching)
                 parts = [renders[i, g] for i in touching]
                 mask = masks.get(t) if sink.saturation else None
-                tile_keys = [keys[i] for i in touching] if overlap in KEYED else None
+                tile_keys = [keys[i] for i in touching] if key_layer is not None else None
                 akey = tokenize(overlap, tile, b1 - b0, boxes, [p.key for p in parts],
                                 None if tile_keys is None else [k.key for k in tile_keys])
                 wkey = f"write-{tokenize(sink, b0, tile, akey, None if mask is None else mask.key)}"
@@ -220,7 +204,7 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
             if done:
                 gkey = f"gate-{tokenize([d.key for d in done])}"
                 with dask.annotate(priority=priority(g, 1, j)):
-                    gate = delayed(gate_task)(*done, dask_key_name=gkey)
+                    gate = made[gkey] = delayed(gate_task)(*done, dask_key_name=gkey)
             gates.append(gate)
 
     writes: list[Delayed] = [writers[t, g] for t in range(len(tiles)) for g in range(len(plan.groups))
@@ -276,5 +260,3 @@ def _overview_tasks(sink, groups, firsts: dict, priority) -> list[Delayed]:
     return tasks
 
 
-def _intersects(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
-    return a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]

@@ -9,9 +9,10 @@ per cube and band group, one :func:`~archive.graph.tasks.assemble_task` (the mos
 :mod:`archive.graph.mosaic`) per tile and band group. Computing some bands runs only their groups'
 renders (and the lookups); tiles no cube touches are NaN without any render.
 
-Keys are ``<kind>-<dask.base.tokenize(inputs)>``; lookup and render keys are those of
-:func:`archive.graph.build.build_render_graph` for the same inputs when its band groups share the
-lookups (they do unless the lookups exceed its ``LOOKUP_BYTES``). GL tasks (lookups and renders)
+The sources, meshes, lookups, renders and rule keys are the nodes of :mod:`archive.graph.nodes`,
+as in :func:`archive.graph.build.build_render_graph`: the same keys for the same request (when its
+band groups share the lookups, as they do unless the lookups exceed its ``LOOKUP_BYTES``, and no
+provenance layer is written). GL tasks (lookups and renders)
 are annotated ``resources={"GPU": 1}`` like the render graph's, and never fused with other tasks
 (``block_fusion``): they keep their keys and run as tasks of their own, in the worker thread that
 owns the GL context. Dask's array optimizer drops layer annotations when it fuses (dask/dask#7036),
@@ -24,17 +25,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from dask._task_spec import DataNode, Task, TaskRef
+from dask.task_spec import DataNode, Task, TaskRef
 
-from archive.graph.build import BANDS_PER_PASS
+from archive.graph.nodes import GL_RESOURCES, Node, Ref, RenderNodes
 from archive.graph.plan import RenderPlan
-from archive.graph.tasks import assemble_task, layers_task, lookup_task, pick_task, render_task
-from archive.outputs import CHUNK
+from archive.graph.tasks import assemble_task
+from archive.grid import boxes_intersect
+from archive.outputs.base import CHUNK
 
-__all__ = ["GL_RESOURCES", "GLTask", "mosaic_arrays", "nan_tile", "tile_saturation", "tile_values", "zero_tile"]
-
-#: Annotation of the GL tasks (as in the render graph).
-GL_RESOURCES = {"GPU": 1}
+__all__ = ["GLTask", "mosaic_arrays", "nan_tile", "tile_saturation", "tile_values", "zero_tile"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -81,13 +80,16 @@ def _sizes(total: int, size: int) -> tuple[int, ...]:
     return tuple(min(size, total - start) for start in range(0, total, size))
 
 
-def _intersects(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
-    return a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]
+def _task(node: Node) -> Task:
+    """The task spec of ``node`` (a :class:`GLTask` for the GL nodes)."""
+    kind = GLTask if node.gl else Task
+    return kind(node.key, node.func, *[TaskRef(a.key) if isinstance(a, Ref) else a for a in node.args],
+                **node.kwargs)
 
 
 def assemble_keyed(rule: str, tile, nbands: int, boxes, *renders_and_keys):
-    """:func:`~archive.graph.tasks.assemble_task` of a keyed rule ('nadir'): the renders, then
-    each render's key (view zenith), all positional."""
+    """:func:`~archive.graph.tasks.assemble_task` of a rule that compares a key
+    (:func:`~archive.graph.mosaic.rule_key`): the renders, then each render's key, all positional."""
     n = len(boxes)
     return assemble_task(rule, tile, nbands, boxes, *renders_and_keys[:n], keys=renders_and_keys[n:])
 
@@ -100,45 +102,36 @@ def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: st
     (one band group, CHUNK, CHUNK); saturated: (grid height, grid width) uint8, chunked (CHUNK,
     CHUNK). mesh_spec: the parameters the meshes were built from, only for keys (as in
     :func:`~archive.graph.build.build_render_graph`); layers: the
-    :class:`~archive.provenance.ProvenanceSpec` of the 'nadir' rule's view zenith (its only layer).
+    :class:`~archive.provenance.ProvenanceSpec` of the layer the overlap rule compares (its only layer).
     """
-    from archive.graph.mosaic import KEYED
+    from archive.graph.mosaic import rule_key
 
-    if overlap in KEYED and layers is None:
-        raise ValueError(f"the '{overlap}' rule needs a ProvenanceSpec of the view zenith")
+    key_layer = rule_key(overlap)
+    if key_layer is not None and layers is None:
+        raise ValueError(f"the '{overlap}' rule needs a ProvenanceSpec of its {key_layer} layer")
     import dask.array as da
     from dask.base import tokenize
     from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
 
-    tokens = [tokenize(s) for s in sources]
-    source_nodes = {f"source-{t}": DataNode(f"source-{t}", s) for s, t in zip(sources, tokens)}
-    source_keys = list(source_nodes)
-
+    nodes = RenderNodes(plan, sources, mode=mode, mesh_spec=mesh_spec, layers=layers)
+    source_nodes = {key: DataNode(key, value) for key, value in nodes.data().items()}
     lookups: dict = {}
     zeniths: dict = {}
     zenith_key: dict[int, str] = {}
     renders: dict = {}
     render_key: dict[tuple[int, int], str] = {}
-    for j, job in enumerate(plan.jobs):
-        # the mesh travels inside its lookup task (no node of its own)
-        mesh_key = f"mesh-{tokenize(tokens[job.source], job.cube, mesh_spec)}"
-        samples = int(sources[job.source].cubes[job.cube].samples)
-        lkey = f"lookup-{tokenize(mesh_key, job.window, samples)}"
-        lookups[lkey] = GLTask(lkey, lookup_task, job.mesh, job.window, samples)
-        if overlap in KEYED:   # the view zenith of the cube's pixels (CPU, from the lookup)
-            ground = None if layers.dem is not None else layers.grounds[job.source]
-            zkey = f"zenith-{tokenize(tokens[job.source], job.cube, j, lkey, layers)}"
-            zeniths[zkey] = Task(zkey, layers_task, TaskRef(source_keys[job.source]), job.cube, j, TaskRef(lkey),
-                                 layers, ground)
-            pkey = f"key-{tokenize(zkey)}"
-            zeniths[pkey] = Task(pkey, pick_task, TaskRef(zkey), 0)
-            zenith_key[j] = pkey
-        for g, (b0, b1) in enumerate(plan.groups):
-            bands = plan.bands[job.source][b0:b1]
-            key = f"render-{tokenize(tokens[job.source], job.cube, bands, lkey, mode, BANDS_PER_PASS)}"
-            renders[key] = GLTask(key, render_task, TaskRef(source_keys[job.source]), job.cube, bands,
-                                  TaskRef(lkey), mode, BANDS_PER_PASS)
-            render_key[j, g] = key
+    for j in range(len(plan.jobs)):
+        lookup = nodes.lookup(j)
+        lookups[lookup.key] = _task(lookup)
+        if key_layer is not None:   # the compared layer of the cube's pixels (CPU, from the lookup)
+            stack = nodes.cube_layers(j, lookup.key)
+            pick = nodes.rule_key(stack.key, key_layer)
+            zeniths[stack.key], zeniths[pick.key] = _task(stack), _task(pick)
+            zenith_key[j] = pick.key
+        for g in range(len(plan.groups)):
+            render = nodes.render(j, g, lookup.key)
+            renders[render.key] = _task(render)
+            render_key[j, g] = render.key
 
     grid = plan.grid
     name = tokenize(grid, plan.groups, overlap, [render_key[k] for k in sorted(render_key)], mode)
@@ -149,7 +142,7 @@ def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: st
     for row0, col0, tile_grid in grid.tiles(CHUNK):
         i, k = row0 // CHUNK, col0 // CHUNK
         tile = (row0, col0, tile_grid.height, tile_grid.width)
-        touching = [j for j, job in enumerate(plan.jobs) if _intersects(tile, job.box)]
+        touching = [j for j, job in enumerate(plan.jobs) if boxes_intersect(tile, job.box)]
         boxes = tuple(plan.jobs[j].box for j in touching)
         group_keys = []
         for g, (b0, b1) in enumerate(plan.groups):
@@ -158,7 +151,7 @@ def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: st
                 values[vkey] = Task(vkey, nan_tile, b1 - b0, tile[2], tile[3])
                 continue
             parts = [render_key[j, g] for j in touching]
-            if overlap in KEYED:
+            if key_layer is not None:
                 zkeys = [zenith_key[j] for j in touching]
                 akey = f"assemble-{tokenize(overlap, tile, b1 - b0, boxes, parts, zkeys)}"
                 assembles[akey] = Task(akey, assemble_keyed, overlap, tile, b1 - b0, boxes,
@@ -178,7 +171,7 @@ def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: st
                     names["zeniths"]: MaterializedLayer(zeniths),
                     names["renders"]: MaterializedLayer(renders, annotations={"resources": dict(GL_RESOURCES)}),
                     names["assembles"]: MaterializedLayer(assembles)}
-    deps = {names["sources"]: set(), names["lookups"]: set(),
+    deps = {names["sources"]: set(), names["lookups"]: {names["sources"]},   # meshes are data nodes
             names["zeniths"]: {names["sources"], names["lookups"]},
             names["renders"]: {names["sources"], names["lookups"]},
             names["assembles"]: {names["renders"], names["zeniths"]}}

@@ -4,7 +4,12 @@ A rule is a small strategy object: ``feed`` it the cubes' renders in capture ord
 then cube order), then take ``result()``. Arrays are ``(band, y, x)`` float32 with NaN where a cube
 does not cover a pixel; ``saturated`` is ``(y, x)`` bool (some band of the group was saturated there);
 ``key`` is ``(y, x)`` float32, the view zenith of the cube's line at each pixel (degrees, NaN where not
-covered), used by the 'nadir' rule only (``KEYED`` lists the rules that need it).
+covered), fed only to rules that declare they need it.
+
+Every rule declares what it needs besides the renders and what it gives: ``needs`` names the
+provenance layer it compares (:mod:`archive.provenance`; the 'nadir' rule: ``view_zenith``, empty
+for the others), ``single_source`` says whether each output pixel comes from one raw pixel (then
+provenance layers can be written). Graph builders ask :func:`rule_key` instead of testing names.
 
 Rules: 'last' (the later capture wins), 'nadir' (the capture seen closest to nadir wins, the later
 one on a tie: NEON's mosaics), 'mean' (mean of the covering captures).
@@ -16,13 +21,14 @@ The 'last' rule is written once, as two functions the chunk writer also uses ban
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import ClassVar
 
 import numpy as np
 
 from archive.errors import InputError
 
-__all__ = ["KEYED", "LastRule", "MeanRule", "NadirRule", "RULES", "WINNER_RULES", "last_saturation", "last_values",
-           "make_rule", "nadir_values", "nadir_winners"]
+__all__ = ["LastRule", "MeanRule", "NadirRule", "RULES", "WINNER_RULES", "last_saturation", "last_values",
+           "make_rule", "nadir_values", "nadir_winners", "rule_key"]
 
 
 def last_values(out: np.ndarray, parts: Sequence[tuple[np.ndarray, slice, slice]]) -> np.ndarray:
@@ -83,6 +89,9 @@ class LastRule:
     :func:`last_saturation`.
     """
 
+    needs: ClassVar[tuple[str, ...]] = ()
+    single_source: ClassVar[bool] = True
+
     def __init__(self, nbands: int, height: int, width: int):
         self.shape = (nbands, height, width)
         self.parts: list[tuple[np.ndarray, np.ndarray, slice, slice]] = []
@@ -110,6 +119,9 @@ class MeanRule:
 
     The saturation flag is the OR over every capture covering the pixel.
     """
+
+    needs: ClassVar[tuple[str, ...]] = ()
+    single_source: ClassVar[bool] = False
 
     def __init__(self, nbands: int, height: int, width: int):
         shape = (nbands, height, width)
@@ -175,6 +187,9 @@ class NadirRule:
     :func:`nadir_values`.
     """
 
+    needs: ClassVar[tuple[str, ...]] = ("view_zenith",)
+    single_source: ClassVar[bool] = True
+
     def __init__(self, nbands: int, height: int, width: int):
         self.shape = (nbands, height, width)
         self.parts: list[tuple[np.ndarray, np.ndarray, slice, slice, np.ndarray]] = []
@@ -195,10 +210,15 @@ class NadirRule:
 
 
 RULES = {"last": LastRule, "nadir": NadirRule, "mean": MeanRule}
-#: Rules that need each render's view zenith (``key``).
-KEYED = ("nadir",)
 #: Rules under which every output pixel comes from one raw pixel (provenance layers can be written).
-WINNER_RULES = ("last", "nadir")
+WINNER_RULES = tuple(name for name, rule in RULES.items() if rule.single_source)
+
+
+def rule_key(name: str) -> str | None:
+    """The provenance layer the rule ``name`` compares (fed to it as each render's ``key``), or None
+    when it needs none."""
+    needs = RULES[name].needs if name in RULES else ()
+    return needs[0] if needs else None
 
 
 def make_rule(name: str, nbands: int, height: int, width: int):

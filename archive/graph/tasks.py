@@ -22,9 +22,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from archive.errors import InputError, RenderError
-from archive.graph.mosaic import last_saturation, last_values, make_rule, nadir_values, nadir_winners
+from archive.graph.mosaic import last_saturation, last_values, make_rule, nadir_values, nadir_winners, rule_key
 from archive.grid import Grid
-from archive.outputs import MosaicStore
 
 Box = tuple[int, int, int, int]
 
@@ -165,10 +164,9 @@ def assemble_layers(rule: str, tile: Box, names: Sequence[str], boxes: Sequence[
 
     layers[i]: (len(names), h, w) float32 of the cube at boxes[i] (:func:`layers_task`), capture order.
     """
-    from archive.provenance import NADIR_KEY
-
     names = list(names)
-    key_at = names.index(NADIR_KEY) if NADIR_KEY in names else None
+    compared = rule_key(rule)
+    key_at = names.index(compared) if compared in names else None
     count_at = names.index("overlap_count") if "overlap_count" in names else None
     mosaic = make_rule(rule, len(names), tile[2], tile[3])
     total = np.zeros(tile[2:], np.float32)
@@ -225,8 +223,8 @@ def assemble_write_task(sink, rule: str, band0: int, tile: Box, nbands: int,
                         *renders: tuple[np.ndarray, np.ndarray], keys: Sequence[np.ndarray] | None = None):
     """:func:`assemble_task` and :func:`write_values_task` in one: mosaic the renders of one band
     group onto one output tile (one chunk wide) and write it through ``sink``
-    (:class:`~archive.outputs.MosaicStore`, :class:`~archive.sinks.EnviSink` or
-    :class:`~archive.sinks.CogSink`), band by band.
+    (:class:`~archive.outputs.zarr.MosaicStore`, :class:`~archive.outputs.envi.EnviSink` or
+    :class:`~archive.outputs.cog.CogSink`), band by band.
 
     For the 'last' rule no tile is built: each band is mosaicked by
     :func:`~archive.graph.mosaic.last_values` straight into this thread's reusable chunk buffer (the
@@ -297,13 +295,14 @@ def blank_write_task(sink, band0: int, tile: Box, nbands: int):
 def overview_task(sink, level: int, row: int, col: int, band0: int, nbands: int, *children):
     """Tile (row, col) of overview ``level`` >= 2 of a COG, for bands band0..: the quarters its
     children of the level below computed (their NaN-aware 2 x 2 averages, in
-    :meth:`~archive.sinks.CogSink.children` order; None: all NaN or absent), compressed into the
+    :meth:`~archive.outputs.cog.CogSink.children` order; None: all NaN or absent), compressed into the
     sink's spool. Returns its own quarter of the next level (or None)."""
     return sink.overview(level, row, col, band0, nbands, children)
 
 
-def write_saturated_task(store: MosaicStore, tile: Box, *masks: np.ndarray) -> int:
-    """OR the saturation masks of one tile and write them; returns the saturated pixel count."""
+def write_saturated_task(store, tile: Box, *masks: np.ndarray) -> int:
+    """OR the saturation masks of one tile and write them through ``store`` (a sink that records
+    saturation: its ``write_saturated``); returns the saturated pixel count."""
     mask = np.zeros(tile[2:], bool)
     for m in masks:
         mask |= m

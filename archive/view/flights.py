@@ -163,7 +163,7 @@ class Flight:
             self._geometries.move_to_end(key)
             return found
         from archive.graph.plan import cube_meshes, job_epsg
-        from archive.pipeline import resolve_ground_height
+        from archive.sources.select import resolve_ground_height
 
         source = self.source(sync_offset)
         ground = resolve_ground_height("auto" if ground_height is None else ground_height, [source])
@@ -185,7 +185,7 @@ class Flight:
 
     def bands(self, query: ViewQuery) -> list[int]:
         """Source band indices of the channels of ``query`` (default: true colour)."""
-        from archive.pipeline import select_bands
+        from archive.sources.select import select_bands
 
         nbands = self.cubes[0].bands
         if query.band is not None:
@@ -200,7 +200,7 @@ class Flight:
     def default_bands(self) -> list[int]:
         """True colour (the bands nearest 640, 550, 460 nm) when the flight spans it, else three
         bands at 3/4, 1/2 and 1/4 of its range."""
-        from archive.pipeline import select_bands
+        from archive.sources.select import select_bands
 
         try:
             return [select_bands(self.source(None), [w])[0] for w in DEFAULT_RGB_NM]

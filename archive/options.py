@@ -1,0 +1,231 @@
+"""The options of one render, typed and checked once: :class:`RenderOptions`.
+
+``archive render`` (:mod:`archive.render_command`), the library (:func:`archive.georectify`,
+:func:`archive.mosaic`, :func:`archive.api.plan`) build the same object with
+:meth:`RenderOptions.create`, from Python values or the command line's text; its defaults are the
+defaults (:data:`~archive.params.DEFAULT_MAX_VIEW_ANGLE` for the view-angle limit). Checks that read
+no pixels (:meth:`RenderOptions.check`) run before anything starts and give the
+:class:`~archive.params.NavigationParams` the sources are opened with.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from archive.errors import InputError, MissingInputError
+from archive.graph.mosaic import RULES, WINNER_RULES
+from archive.navigation import projected_epsg
+from archive.params import DEFAULT_MAX_VIEW_ANGLE, NavigationParams
+from archive.sources.base import MODES
+from archive.sources.select import parse_bands
+
+__all__ = ["DEFAULT_MAX_VIEW_ANGLE", "KEYWORDS", "RenderOptions", "check_gsd"]
+
+
+def _parse_floats(text: str, option: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.replace(" ", "").split(",") if v]
+    except ValueError:
+        raise InputError(option, f"expected comma-separated numbers, got {text!r}", f"e.g. {option} 550,650") from None
+    if not values or not all(math.isfinite(v) for v in values):
+        raise InputError(option, f"expected comma-separated numbers, got {text!r}", f"e.g. {option} 550,650")
+    return values
+
+
+def _wavelength_list(value) -> tuple[float, ...] | None:
+    """None, 'NM,NM,...' (the CLI's text), one number or a sequence of numbers -> nm tuple."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        return tuple(_parse_floats(value, "--wavelengths"))
+    items = [value] if isinstance(value, (int, float, np.number)) else list(value)
+    try:
+        values = tuple(float(v) for v in items)
+    except (TypeError, ValueError):
+        raise InputError("--wavelengths", f"expected wavelengths in nm, got {value!r}", "e.g. [650, 550, 450]") from None
+    if not values or not all(math.isfinite(v) for v in values):
+        raise InputError("--wavelengths", f"expected finite wavelengths in nm, got {value!r}", "e.g. [650, 550, 450]")
+    return values
+
+
+def _number(value, option: str, what: str) -> float | None:
+    if value is None:
+        return None
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise InputError(option, f"expected {what}, got {value!r}") from None
+
+
+def _triple(value, option: str) -> tuple[float, float, float] | None:
+    if value is None:
+        return None
+    try:
+        out = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        out = ()
+    if len(out) != 3 or not all(math.isfinite(v) for v in out):
+        raise InputError(option, f"expected three numbers, got {value!r}")
+    return out  # type: ignore[return-value]
+
+
+def check_gsd(gsd) -> None:
+    if not (isinstance(gsd, (int, float)) and not isinstance(gsd, bool) and math.isfinite(gsd) and gsd > 0):
+        raise InputError("--gsd", f"must be a positive number of metres, got {gsd!r}", "e.g. --gsd 0.25")
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """What to render and how: the options of ``archive render``, the keywords of
+    :func:`archive.georectify`, :func:`archive.mosaic` and :func:`archive.api.plan` (same names).
+
+    sources: raw flight directories and/or collection ids of ``archive``; gsd: output pixel size,
+    m; fov: across-track field of view, degrees (None: the one the collections were ingested with;
+    required for raw directories); calibration: a .icp file for raw sources; ground_height: metres
+    above the ellipsoid, or 'auto' (the headers' 'ground elevation', a collection's ingest value);
+    wavelengths: nm, the nearest bands are rendered (else ``bands``: 'all' or 0-based indices);
+    mode: 'raw' | 'relative' | 'radiance' | 'reflectance' (None: radiance, raw DN when a source has no
+    calibration); white_reference: the (nm, radiance) text file for 'reflectance'; sync_offset (s),
+    boresight (roll, pitch, yaw deg), lever_arm (x, y, z m): None means as ingested for a collection,
+    else 0; overlap: 'last' | 'nadir' | 'mean'; crs: the output's projected CRS (None: the UTM zone holding most
+    of the flights); max_view_angle: degrees off nadir at the field-of-view edge beyond which lines
+    are left out of the meshes (turns); dem: a DEM GeoTIFF (any CRS) the meshes follow instead of
+    the flat ground (exclusive with a numeric ground_height; :mod:`archive.dem`); dem_datum: its
+    heights' vertical datum when its CRS does not declare one ('ellipsoid' | 'egm96' | 'egm2008');
+    provenance: also write the per-pixel provenance layers (:mod:`archive.provenance`; written
+    outputs only).
+
+    Build one with :meth:`create`, which normalises what callers give (a single source, CLI text
+    such as ``'550,650'``, paths); checks that need files are :func:`check_request`'s.
+    """
+
+    sources: tuple[str, ...]
+    gsd: float
+    archive: str | None = None
+    fov: float | None = None
+    calibration: str | None = None
+    ground_height: float | str = "auto"
+    wavelengths: tuple[float, ...] | None = None
+    bands: str | tuple[int, ...] = "all"
+    mode: str | None = None
+    white_reference: str | None = None
+    sync_offset: float | None = None
+    boresight: tuple[float, float, float] | None = None
+    lever_arm: tuple[float, float, float] | None = None
+    overlap: str = "last"
+    crs: str | None = None
+    max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE
+    dem: str | None = None
+    dem_datum: str | None = None
+    provenance: bool = False
+
+    @classmethod
+    def create(cls, sources, *, gsd, archive=None, fov=None, calibration=None, ground_height="auto",
+               wavelengths=None, bands="all", mode=None, white_reference=None, sync_offset=None,
+               boresight=None, lever_arm=None, overlap="last", crs=None,
+               max_view_angle=DEFAULT_MAX_VIEW_ANGLE, dem=None, dem_datum=None, provenance=False) -> RenderOptions:
+        """A request from API keywords (or CLI values); InputError for malformed values."""
+        if isinstance(sources, (str, os.PathLike)):
+            sources = [sources]
+        def fspath(p):
+            return None if p is None else os.fspath(p)
+
+        return cls(
+            sources=tuple(os.fspath(s) for s in (sources or ())), gsd=gsd, archive=fspath(archive),
+            fov=_number(fov, "--fov", "degrees"), calibration=fspath(calibration),
+            ground_height="auto" if ground_height is None else ground_height,
+            wavelengths=_wavelength_list(wavelengths), bands=parse_bands(bands), mode=mode,
+            white_reference=fspath(white_reference),
+            sync_offset=_number(sync_offset, "--sync-offset", "seconds"),
+            boresight=_triple(boresight, "--boresight"), lever_arm=_triple(lever_arm, "--lever-arm"),
+            overlap=overlap, crs=None if crs is None else str(crs),
+            max_view_angle=_number(max_view_angle, "--max-view-angle", "degrees"),
+            dem=fspath(dem), dem_datum=None if dem_datum is None else str(dem_datum), provenance=bool(provenance))
+
+    def with_sources(self, sources: Sequence[str]) -> RenderOptions:
+        """This request for other sources."""
+        return dataclasses.replace(self, sources=tuple(os.fspath(s) for s in sources))
+
+    def check(self) -> NavigationParams:
+        """Checks that read no pixels (fast, before anything starts); the navigation parameters the
+        sources are opened with (the field of view of collections read from their records)."""
+        check_gsd(self.gsd)
+        if not self.sources:
+            raise InputError("SOURCE", "nothing to render",
+                             "give flight directories or collection ids, or --archive A with --query-bbox/"
+                             "--query-datetime/--query-wavelength")
+        collections = [src for src in self.sources if not Path(src).is_dir()]
+        if collections and self.archive is None:
+            raise MissingInputError(collections[0], "flight directory",
+                                    "give a raw flight directory, or a collection id together with --archive ARCHIVE")
+        fov = self.fov
+        if fov is None and len(collections) < len(self.sources):
+            raise InputError("--fov", "the field of view is required for raw flight directories",
+                             "pass --fov DEG (47.5 for a Pika L and for 'archive simulate' flights)")
+        if fov is None:
+            fov = _collection_fov(self.archive, collections)
+        if not (math.isfinite(fov) and 0 < fov < 180):
+            raise InputError("--fov", f"must be between 0 and 180 degrees, got {fov:g}")
+        if self.sync_offset is not None and not math.isfinite(self.sync_offset):
+            raise InputError("--sync-offset", f"must be a finite number of seconds, got {self.sync_offset!r}")
+        if self.mode is not None and self.mode not in MODES:
+            raise InputError("--mode", f"unknown radiometric mode {self.mode!r}", f"use one of {', '.join(MODES)}")
+        if not (self.max_view_angle is not None and 0 < self.max_view_angle < 90):
+            raise InputError("--max-view-angle", f"must be between 0 and 90 degrees, got {self.max_view_angle!r}",
+                             f"the default is {DEFAULT_MAX_VIEW_ANGLE:g}")
+        if self.crs is not None:
+            projected_epsg(self.crs)
+        if self.overlap not in RULES:
+            raise InputError("--overlap", f"unknown overlap rule {self.overlap!r}", f"use one of {', '.join(RULES)}")
+        if self.provenance and self.overlap not in WINNER_RULES:
+            raise InputError("--provenance", f"with --overlap {self.overlap} an output pixel has no single source "
+                             "pixel, so its provenance layers cannot be written",
+                             f"use --overlap {' or '.join(WINNER_RULES)} with --provenance")
+        if self.mode == "reflectance" and not self.white_reference:
+            raise InputError("--mode", "reflectance needs a white reference spectrum", "pass --white-reference FILE")
+        _check_dem(self)
+        return NavigationParams(fov_deg=float(fov),
+                                sync_offset=None if self.sync_offset is None else float(self.sync_offset),
+                                boresight_deg=self.boresight, lever_arm_m=self.lever_arm)
+
+
+def _check_dem(options: RenderOptions) -> None:
+    """--dem / --dem-datum: exclusive with a numeric --ground-height; the DEM opens (a raster with a
+    CRS, whose vertical datum is declared or given, and whose geoid grid PROJ finds): metadata only."""
+    if options.dem is None:
+        if options.dem_datum is not None:
+            raise InputError("--dem-datum", "gives the vertical datum of a DEM, but no --dem was given",
+                             "add --dem FILE, or leave --dem-datum out")
+        return
+    if str(options.ground_height).strip().lower() != "auto":
+        raise InputError("--dem", f"--dem and --ground-height {options.ground_height} are exclusive: the DEM "
+                         "gives the ground", "leave --ground-height out")
+    from archive.dem import open_dem
+
+    open_dem(options.dem, options.dem_datum)
+
+
+def _collection_fov(archive, ids: Sequence[str]) -> float:
+    """The field of view the collections were ingested with (they must agree); reads their records
+    (attributes only)."""
+    from archive.catalog.root import open_archive
+    from archive.collection import read_info
+
+    root = open_archive(archive)
+    fovs = {read_info(root.require_collection(i), navigation=False).fov_deg for i in ids}
+    if len(fovs) != 1:
+        raise InputError("--fov", f"the collections were ingested with different fields of view {sorted(fovs)}",
+                         "pass --fov DEG")
+    return fovs.pop()
+
+
+#: The keyword names of :class:`RenderOptions` besides ``sources``: what :func:`archive.mosaic` and
+#: :func:`archive.georectify` accept as render options.
+KEYWORDS = tuple(f.name for f in dataclasses.fields(RenderOptions) if f.name != "sources")

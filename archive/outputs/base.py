@@ -1,0 +1,158 @@
+"""What every output writer shares: the tile grid, the sink interface and the output's metadata.
+
+A *sink* is the small picklable handle through which the render graph's tile tasks write one
+output format, one output tile (CHUNK x CHUNK px, chunk-aligned; ENVI: row strips) of a range of
+bands at a time; tiles never share bytes, so tasks need no locks. Every sink derives from
+:class:`Sink` and declares what it can do (its capabilities, read by the graph builder instead of
+testing which format it is):
+
+- ``saturation``: it records the saturation flags (``write_saturated``; Zarr);
+- ``blank_tiles``: tiles no cube touches must be written (NaN), having no fill value (ENVI, COG);
+- ``overview_levels``: overview levels the graph computes (``tiles``, ``children``, ``overview``; COG);
+- ``tile_size``: (height, width) of the graph's output tiles for it.
+
+``open_tile(band0, tile, nbands)`` returns a :class:`TileWriter`. Rasters are ``(band, y, x)``
+float32, NaN where no line covers a pixel; ``y`` grows southwards (row 0 is the northern edge).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+
+from archive.errors import InputError
+from archive.grid import Grid
+
+__all__ = ["CHUNK", "OutputMeta", "Sink", "TileWriter", "all_nan", "check_tile", "chunk_buffer", "variable_for_mode"]
+
+#: Output tile = Zarr chunk edge, pixels.
+CHUNK = 1024
+
+_local = threading.local()
+
+
+def chunk_buffer(width: int = CHUNK) -> np.ndarray:
+    """This thread's reusable (CHUNK, width) float32 C-contiguous tile buffer (contents undefined):
+    one per thread and width (CHUNK for chunk tiles, a row strip's width for ENVI)."""
+    buffers = getattr(_local, "buffers", None)
+    if buffers is None:
+        buffers = _local.buffers = {}
+    buffer = buffers.get(width)
+    if buffer is None:
+        if len(buffers) > 2:   # strips of several outputs' widths: keep the chunk buffer only
+            for w in [w for w in buffers if w != CHUNK]:
+                del buffers[w]
+        buffer = buffers[width] = np.empty((CHUNK, width), np.float32)
+    return buffer
+
+
+class Sink:
+    """The capabilities of a sink, as the graph builder reads them (the defaults: a format without
+    fill value, without saturation flags and overviews, in CHUNK x CHUNK tiles). Subclasses override
+    what differs and implement ``open_tile``."""
+
+    saturation: ClassVar[bool] = False
+    blank_tiles: ClassVar[bool] = True
+    overview_levels: ClassVar[int] = 0
+
+    @property
+    def tile_size(self) -> tuple[int, int]:
+        """(height, width) of the graph's output tiles for this sink, pixels."""
+        return (CHUNK, CHUNK)
+
+    def open_tile(self, band0: int, tile: tuple[int, int, int, int], nbands: int) -> TileWriter:
+        raise NotImplementedError
+
+
+class TileWriter:
+    """Writes one output tile (row0, col0, height, width) of ``nbands`` bands from band ``band0``.
+
+    ``buffer()`` is this thread's reusable (CHUNK, CHUNK) float32 buffer (an ENVI row strip's:
+    (CHUNK, strip width)); ``write(b, chunk)`` takes band ``band0 + b`` as such a float32
+    C-contiguous array whose part outside the grid is NaN; ``close()`` finishes the tile and returns
+    what the graph passes on (COG: the tile's first overview level; others: None). Usable as a
+    context manager (closed on success only).
+    """
+
+    def __init__(self, band0: int, tile: tuple[int, int, int, int]):
+        self.band0, self.tile = band0, tile
+
+    def buffer(self) -> np.ndarray:
+        return chunk_buffer()
+
+    def write(self, b: int, chunk: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def close(self):
+        return None
+
+    def abort(self) -> None:
+        """Release what the writer holds without finishing the tile (after an error)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, value, tb) -> None:
+        if kind is not None:
+            self.abort()
+
+
+def all_nan(chunk: np.ndarray) -> bool:
+    return bool(np.isnan(chunk[CHUNK // 2]).all() and np.isnan(chunk).all())
+
+
+def check_tile(tile, height: int, width: int, size: tuple[int, int] = (CHUNK, CHUNK)) -> None:
+    row0, col0, h, w = tile
+    th, tw = size
+    if row0 % th or col0 % tw or not (0 < h <= th and 0 < w <= tw) \
+            or h != min(th, height - row0) or w != min(tw, width - col0):
+        raise ValueError(f"tile {tile} is not one {th} x {tw} px tile of a {height} x {width} mosaic")
+
+
+_VARIABLES = {"raw": "dn", "relative": "relative", "radiance": "radiance", "reflectance": "reflectance"}
+
+
+def variable_for_mode(mode: str) -> str:
+    """Name of the data variable for a radiometric mode ('raw' -> 'dn', 'radiance' -> 'radiance'...)."""
+    try:
+        return _VARIABLES[mode]
+    except KeyError:
+        raise InputError("--mode", f"unknown mode {mode!r}", f"use one of {', '.join(_VARIABLES)}") from None
+
+
+@dataclass(frozen=True)
+class OutputMeta:
+    """What an output says besides its pixels: the grid, the wavelength (nm) and source band index
+    of each band, the variable name ('radiance', 'dn'...), the processing attributes and the spectral
+    full width at half maximum (nm) of each band (``fwhm``, None when unknown)."""
+
+    grid: Grid
+    band_indices: tuple[int, ...]
+    wavelengths: tuple[float, ...] | None = None
+    variable: str = "radiance"
+    attrs: dict | None = field(default=None, compare=False)
+    fwhm: tuple[float, ...] | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "band_indices", tuple(int(i) for i in self.band_indices))
+        if self.wavelengths is not None:
+            object.__setattr__(self, "wavelengths", tuple(float(w) for w in self.wavelengths))
+            if len(self.wavelengths) != len(self.band_indices):
+                raise ValueError(f"{len(self.wavelengths)} wavelengths for {len(self.band_indices)} bands")
+        if self.fwhm is not None:
+            object.__setattr__(self, "fwhm", tuple(float(w) for w in self.fwhm))
+            if len(self.fwhm) != len(self.band_indices):
+                raise ValueError(f"{len(self.fwhm)} fwhm values for {len(self.band_indices)} bands")
+
+    @property
+    def nbands(self) -> int:
+        return len(self.band_indices)
+
+    @property
+    def labels(self) -> list[str]:
+        if self.wavelengths is None:
+            return [f"band {i}" for i in self.band_indices]
+        return [f"band {i}: {w:.1f} nm" for i, w in zip(self.band_indices, self.wavelengths)]

@@ -1,0 +1,202 @@
+"""Publishing an output: written under temporary names, renamed into place when complete.
+
+Nothing is ever half-written at the requested path: :class:`Output` creates the format's sinks
+(:mod:`archive.outputs.registry`) under hidden temporary siblings (``.<name>.partial-<pid>...``),
+renames them into place only when complete (:func:`archive.files.replace_path`: an existing output
+is replaced only once the new one is complete, and only with ``overwrite``), and removes them on
+failure. Temporaries a killed run left are removed by the next run's check.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from archive.errors import InputError, OutputExistsError
+from archive.files import path_exists, remove_path, replace_path
+from archive.outputs.base import OutputMeta
+from archive.outputs.quicklook import quicklook_png
+from archive.outputs.registry import output_format, writer
+
+__all__ = ["Output"]
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def _remove_stale_temps(final: Path) -> None:
+    """Remove ``.<name>.partial-<pid>...`` siblings of ``final`` whose process is gone."""
+    if not final.parent.is_dir():
+        return
+    prefix = f".{final.name}.partial-"
+    for tmp in final.parent.glob(f"{prefix}*"):
+        digits = ""
+        for ch in tmp.name[len(prefix):]:
+            if not ch.isdigit():
+                break
+            digits += ch
+        if digits and int(digits) != os.getpid() and not _pid_alive(int(digits)):
+            remove_path(tmp)
+
+
+@dataclass
+class Output:
+    """One requested output (plus an optional quicklook) and the temporary files that build it.
+
+    Use: ``out.check()`` early; ``sink = out.sink(meta)`` creates the format's sink under temporary
+    names (its writer's, :mod:`archive.outputs.registry`); write every tile through it (the render
+    graph's tasks do); then ``out.finalize()``; always ``out.cleanup()`` in a ``finally`` (it removes
+    temporaries only). The STAC Item at :attr:`item_path` is the pipeline's to write, last.
+    """
+
+    path: Path
+    overwrite: bool = False
+    quicklook: Path | None = None
+    provenance: bool = False   #: provenance layers: sibling file (COG, ENVI) or store variables (Zarr)
+    _temps: list[Path] = field(default_factory=list, repr=False)
+    _made_dirs: list[Path] = field(default_factory=list, repr=False)
+
+    def __post_init__(self) -> None:
+        self.path = Path(self.path)
+        self.quicklook = None if self.quicklook is None else Path(self.quicklook)
+        self.format = output_format(self.path)
+        self.writer = writer(self.format)
+        if self.quicklook is not None and self.quicklook.suffix.lower() != ".png":
+            raise InputError(self.quicklook, "the quicklook must be a .png file", "name it <something>.png")
+        self._sink = self._meta = None
+        self._layers = self._layers_spec = None
+
+    @property
+    def provenance_path(self) -> Path | None:
+        """The provenance sibling (COG: ``<stem>_provenance.tif``; ENVI: its header), None for Zarr
+        (the layers are variables of the store) or without ``provenance``."""
+        return self.writer.sibling(self.path) if self.provenance else None
+
+    def _temp(self, final: Path, tag: str = "") -> Path:
+        tmp = final.with_name(f".{final.name}.partial-{os.getpid()}{tag}")
+        self._temps.append(tmp)
+        return tmp
+
+    @property
+    def finals(self) -> list[Path]:
+        """Every path this output will occupy (ENVI: data and header; plus the quicklook)."""
+        paths = self.writer.files(self.path)
+        sibling = self.provenance_path
+        if sibling is not None:
+            paths += self.writer.files(sibling)
+        return paths + [self.item_path] + ([self.quicklook] if self.quicklook is not None else [])
+
+    @property
+    def item_path(self) -> Path:
+        """The output's STAC Item, ``<out>.json`` (:mod:`archive.catalog.product`)."""
+        return self.path.with_name(self.path.name + ".json")
+
+    def check(self) -> None:
+        """OutputExistsError if a final path exists and overwrite is off; InputError for a parent
+        that is not a directory or not writable.
+
+        Also removes the temporaries a killed earlier run left beside a final path (their process,
+        named in the temporary's name, no longer runs on this machine).
+        """
+        for final in self.finals:
+            _remove_stale_temps(final)
+            if final.parent.exists() and not final.parent.is_dir():
+                raise InputError(final.parent, "is not a directory", "choose another output path")
+            if path_exists(final) and not self.overwrite:
+                raise OutputExistsError(final)
+            if path_exists(final) and final.is_dir() != (final.suffix.lower() == ".zarr"):
+                raise InputError(final, "exists and is of another kind (file vs directory)",
+                                 "remove it or choose another output path")
+            _check_writable(final.parent)
+
+    def _make_dirs(self) -> None:
+        for final in self.finals:
+            missing = [d for d in (final.parent, *final.parent.parents) if not d.exists()]
+            try:
+                final.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise _unwritable(final.parent, exc) from None
+            self._made_dirs.extend(missing)  # deepest first: removed again if left empty
+
+    def sink(self, meta: OutputMeta):
+        """Create the temporary output of ``meta`` (metadata only, no pixels) and return its sink."""
+        if self._sink is not None:
+            raise RuntimeError(f"{self.path}: sink created twice")
+        self.check()
+        self._make_dirs()
+        grid = meta.grid
+        try:
+            sink = self.writer.create(self._temp, self.path, meta)
+        except OSError as exc:
+            if exc.errno == errno.ENOSPC:
+                size = meta.nbands * grid.height * grid.width * 4
+                raise InputError(self.path.parent, f"not enough free space for a {size / 1e9:.1f} GB output",
+                                 "free some space or choose another folder") from None
+            raise _unwritable(self.path.parent, exc) from None
+        self._sink, self._meta = sink, meta
+        return sink
+
+    def layers_sink(self, spec):
+        """Create the temporary provenance output of the layers ``spec`` (an
+        :class:`~archive.provenance.ProvenanceSpec`; after :meth:`sink`) and return its sink: layer
+        variables of a Zarr store, or an ENVI / COG sink of one band per layer for the sibling file."""
+        if self._sink is None or not self.provenance:
+            raise RuntimeError(f"{self.path}: layers_sink needs provenance=True and the values sink first")
+        try:
+            layers = self.writer.create_layers(self._temp, self.path, self._sink, self._meta, spec)
+        except OSError as exc:
+            raise _unwritable(self.path.parent, exc) from None
+        self._layers, self._layers_spec = layers, spec
+        return layers
+
+    def finalize(self, sink=None) -> None:
+        """Finish the output (its writer's: ENVI header, COG layout; the quicklook) and rename
+        everything into place."""
+        sink = self._sink if sink is None else sink
+        meta = self._meta
+        moves: list[tuple[Path, Path]] = []
+        if self._layers is not None:
+            moves += self.writer.finish_layers(self._temp, self.path, self._layers, meta, self._layers_spec)
+        done, read_band = self.writer.finish(self._temp, self.path, sink, meta)
+        moves += done
+        if self.quicklook is not None:
+            tmp = self._temp(self.quicklook)
+            quicklook_png(read_band, meta.grid, meta.wavelengths, meta.nbands, tmp)
+            moves.append((tmp, self.quicklook))
+        self.check()  # something may have appeared meanwhile
+        for tmp, final in moves:
+            replace_path(tmp, final)
+
+    def cleanup(self) -> None:
+        """Remove every temporary this output created (never the final paths)."""
+        for tmp in self._temps:
+            remove_path(tmp)
+        self._temps.clear()
+        for d in self._made_dirs:
+            try:
+                d.rmdir()  # only when empty: after a failure, leave no trace at all
+            except OSError:
+                pass
+        self._made_dirs.clear()
+
+
+def _unwritable(where: Path, exc: OSError) -> InputError:
+    return InputError(where, f"cannot write there ({exc.strerror or exc})",
+                      "choose an output folder you can write to")
+
+
+def _check_writable(folder: Path) -> None:
+    """InputError unless ``folder`` (or, when it does not exist yet, its nearest existing parent)
+    lets this process create files."""
+    existing = next((d for d in (folder, *folder.parents) if d.exists()), None)
+    if existing is not None and existing.is_dir() and not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(existing, "is not writable", "choose an output folder you can write to")

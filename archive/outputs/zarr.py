@@ -1,0 +1,437 @@
+"""The Zarr output: a mosaic store written chunk by chunk by the render graph's tile tasks.
+
+:class:`MosaicStore` is the values' sink (one chunk is one band of one tile, encoded and written
+whole by :class:`ChunkWriter`); :class:`LayersStore` writes the provenance layers into variables of
+the same store (:func:`add_zarr_layers`); :func:`mosaic_dataset` is the dataset layout both the
+store and :func:`archive.mosaic` have (CF and GeoZarr attributes, :func:`geozarr_attrs`);
+:class:`ZarrWriter` is the format's entry of the registry (:mod:`archive.outputs.registry`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+
+from archive.files import write_atomic
+from archive.grid import Grid
+from archive.outputs.base import CHUNK, OutputMeta, Sink, TileWriter, chunk_buffer
+from archive.outputs.layers import layer_attrs, layers_metadata
+
+__all__ = ["ChunkWriter", "LayersStore", "MosaicStore", "ZarrWriter", "add_zarr_layers", "geozarr_attrs",
+           "mosaic_dataset"]
+
+_GRID_ATTR = "archive_grid"
+
+
+def _values_codecs() -> tuple:
+    """Compressor of the float32 mosaic chunks: Blosc LZ4 with byte shuffle.
+
+    Measured on rendered 1024^2 radiance chunks (25 % NaN; bench/RESULTS.md "Render (issue 4)"):
+    about 560 MB/s to write at ratio 1.7, against 130 MB/s (ratio 2.1) for zarr's default zstd
+    level 0 and 260 MB/s (ratio 1.9) for zstd level 1: writing is on the render's critical path.
+    """
+    from zarr.codecs import BloscCodec
+
+    return (BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"),)
+
+
+def _direct_codec(array, directory: str):
+    """The numcodecs Blosc that encodes a chunk of ``array`` exactly as zarr does, or None when
+    ``array`` is not the layout :class:`ChunkWriter` writes directly: a local Zarr v3 float32 array
+    with NaN fill, (1, CHUNK, CHUNK) chunks and the codecs little-endian bytes + Blosc, on a
+    little-endian machine.
+
+    Built from the codec's public description (``BloscCodec.to_dict()``, the same configuration
+    zarr gives numcodecs, typesize included), not from zarr's internals.
+    """
+    import inspect
+
+    import numcodecs
+    import zarr
+    from zarr.codecs import BloscCodec, BytesCodec
+
+    meta = array.metadata
+    codecs = tuple(getattr(meta, "codecs", ()))
+    if not (meta.zarr_format == 3 and sys.byteorder == "little" and len(codecs) == 2
+            and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
+            and array.dtype == np.float32 and tuple(array.chunks) == (1, CHUNK, CHUNK)
+            and np.isnan(array.fill_value) and isinstance(array.store, zarr.storage.LocalStore)
+            and os.path.isdir(directory)):
+        return None
+    endian = codecs[0].to_dict().get("configuration", {}).get("endian", "little")
+    if endian != "little" or "typesize" not in inspect.signature(numcodecs.Blosc).parameters:
+        return None  # numcodecs < 0.16: zarr compresses with typesize 1 there; let zarr write
+    config = codecs[1].to_dict()["configuration"]
+    shuffle = {"noshuffle": numcodecs.Blosc.NOSHUFFLE, "shuffle": numcodecs.Blosc.SHUFFLE,
+               "bitshuffle": numcodecs.Blosc.BITSHUFFLE}[config["shuffle"]]
+    return numcodecs.Blosc(cname=config["cname"], clevel=config["clevel"], shuffle=shuffle,
+                           blocksize=config["blocksize"], typesize=config["typesize"])
+
+
+class ChunkWriter:
+    """Writes whole (1, CHUNK, CHUNK) float32 chunks of one local Zarr v3 array, one call per chunk.
+
+    The bytes are those zarr itself writes (little-endian, then the array's Blosc codec, in a
+    temporary file renamed into place), without zarr's per-chunk pipeline, which costs about as
+    much again as the compression (measured: 540-630 MB/s direct vs 255 MB/s through
+    ``zarr.Array.__setitem__``, one thread). A chunk that is all NaN (the fill value) is not
+    written, and an older file of it is removed, as zarr does. Arrays of any other layout (codecs,
+    dtype, chunk shape, store) go through zarr's ``__setitem__``. Checked byte for byte against zarr
+    (bench/RESULTS.md "Render (issue 4)").
+    """
+
+    def __init__(self, array, directory: str):
+        self.array, self.directory, self.meta = array, directory, array.metadata
+        self.codec = _direct_codec(array, directory)
+        self._made: set[str] = set()  # chunk directories known to exist
+
+    @staticmethod
+    def buffer() -> np.ndarray:
+        """This thread's reusable (CHUNK, CHUNK) float32 chunk buffer (contents undefined)."""
+        return chunk_buffer()
+
+    def write(self, band: int, row: int, col: int, chunk: np.ndarray) -> None:
+        """Write chunk (band, row, col) (chunk indices): ``chunk`` (CHUNK, CHUNK) float32 C-contiguous,
+        the grid's outside part NaN (zarr's padding of edge chunks)."""
+        if self.codec is None:
+            h = min(CHUNK, self.array.shape[1] - row * CHUNK)
+            w = min(CHUNK, self.array.shape[2] - col * CHUNK)
+            self.array[band, row * CHUNK:row * CHUNK + h, col * CHUNK:col * CHUNK + w] = chunk[:h, :w]
+            return
+        path = os.path.join(self.directory, self.meta.encode_chunk_key((band, row, col)))
+        middle = chunk[CHUNK // 2]
+        if np.isnan(middle).all() and np.isnan(chunk).all():
+            try:
+                os.remove(path)
+            except FileNotFoundError:
+                pass
+            return
+        data = self.codec.encode(chunk)
+        parent = os.path.dirname(path)
+        if parent not in self._made:
+            os.makedirs(parent, exist_ok=True)
+            self._made.add(parent)
+        write_atomic(path, data)
+
+
+#: CF ``units`` of the data variable by name (UDUNITS: "1" for counts and ratios); radiance has none.
+_CF_UNITS = {"dn": "1", "relative": "1", "reflectance": "1"}
+
+
+#: Zarr-conventions declarations (``zarr_conventions`` attribute) of the GeoZarr ``proj:`` and
+#: ``spatial:`` conventions, v1, as rioxarray declares and recognises them.
+_PROJ_CONVENTION = {
+    "schema_url": "https://raw.githubusercontent.com/zarr-experimental/geo-proj/refs/tags/v1/schema.json",
+    "spec_url": "https://github.com/zarr-experimental/geo-proj/blob/v1/README.md",
+    "uuid": "f17cb550-5864-4468-aeb7-f3180cfb622f",
+    "name": "proj:",
+    "description": "Coordinate reference system information for geospatial data",
+}
+
+
+_SPATIAL_CONVENTION = {
+    "schema_url": "https://raw.githubusercontent.com/zarr-conventions/spatial/refs/tags/v1/schema.json",
+    "spec_url": "https://github.com/zarr-conventions/spatial/blob/v1/README.md",
+    "uuid": "689b58e2-cf7b-45e0-9fff-9cfc0883d6b4",
+    "name": "spatial:",
+    "description": "Spatial coordinate information",
+}
+
+
+def geozarr_attrs(grid: Grid, wkt2: bool = False) -> dict:
+    """Attributes describing ``grid`` by the GeoZarr conventions (the modular Zarr conventions that
+    replaced the monolithic GeoZarr draft in 2025: ``proj:`` = zarr-experimental/geo-proj v1 and
+    ``spatial:`` = zarr-conventions/spatial v1), declared in ``zarr_conventions``.
+
+    ``proj:code`` "EPSG:<n>" (and ``proj:wkt2``, WKT2:2019, with ``wkt2``);
+    ``spatial:dimensions`` ["y", "x"]; ``spatial:transform`` the affine [a, b, c, d, e, f] (rasterio
+    order: x = a col + b row + c, y = d col + e row + f, (col, row) = (0, 0) at the north-west corner
+    of the north-west pixel); ``spatial:transform_type`` "affine"; ``spatial:shape`` [height, width];
+    ``spatial:bbox`` [xmin, ymin, xmax, ymax] in metres; ``spatial:registration`` "pixel" (values
+    are cell averages, the transform gives cell corners).
+    """
+    t = grid.transform
+    attrs: dict = {
+        "zarr_conventions": [dict(_PROJ_CONVENTION), dict(_SPATIAL_CONVENTION)],
+        "proj:code": f"EPSG:{grid.epsg}",
+    }
+    if wkt2:
+        attrs["proj:wkt2"] = grid.crs.to_wkt(version="WKT2_2019")
+    attrs.update({
+        "spatial:dimensions": ["y", "x"],
+        "spatial:transform_type": "affine",
+        "spatial:transform": [float(t.a), float(t.b), float(t.c), float(t.d), float(t.e), float(t.f)],
+        "spatial:shape": [int(grid.height), int(grid.width)],
+        "spatial:bbox": [float(v) for v in grid.bounds],
+        "spatial:registration": "pixel",
+    })
+    return attrs
+
+
+def mosaic_dataset(grid: Grid, values, saturated, band_indices: Sequence[int],
+                   wavelengths: Sequence[float] | None, fwhm: Sequence[float] | None, variable: str,
+                   attrs: dict | None = None):
+    """The ``xarray.Dataset`` of a mosaic (the Zarr output's layout, also :func:`archive.mosaic`'s):
+    ``variable`` (band, y, x) = ``values`` and ``saturated`` (y, x), any array kind (numpy, dask);
+    coordinates ``band`` (source band index), x/y pixel centres (m), ``wavelength`` and ``fwhm`` (nm,
+    when known); CF attributes, the CRS (rioxarray ``spatial_ref``) and the GeoZarr attributes
+    (:func:`geozarr_attrs`) of ``grid``; ``attrs`` at the root."""
+    import rioxarray  # noqa: F401  (registers .rio)
+    import xarray as xr
+
+    x, y = grid.xy_centres()
+    coords = {"band": np.asarray(band_indices, dtype=np.int32), "y": y, "x": x}
+    if wavelengths is not None:
+        coords["wavelength"] = ("band", np.asarray(wavelengths, dtype=np.float64))
+    if fwhm is not None:
+        coords["fwhm"] = ("band", np.asarray(fwhm, dtype=np.float64))
+    ds = xr.Dataset({variable: (("band", "y", "x"), values), "saturated": (("y", "x"), saturated)}, coords=coords)
+    ds[variable].attrs.update({"long_name": variable, "_description": "NaN where no image line covers the pixel"})
+    if variable in _CF_UNITS:  # radiance is in the calibration's units, which it does not name
+        ds[variable].attrs["units"] = _CF_UNITS[variable]
+    ds["saturated"].attrs.update({"long_name": "saturated", "flag_values": [0, 1],
+                                  "flag_meanings": "ok saturated_in_some_band"})
+    ds["band"].attrs.update({"long_name": "source band index (0-based)"})
+    if wavelengths is not None:
+        ds["wavelength"].attrs.update({"units": "nm", "long_name": "band centre wavelength",
+                                       "standard_name": "radiation_wavelength"})
+    if fwhm is not None:
+        ds["fwhm"].attrs.update({"units": "nm", "long_name": "band spectral full width at half maximum"})
+    ds["x"].attrs.update({"units": "m", "standard_name": "projection_x_coordinate",
+                          "long_name": "easting of the pixel centre", "axis": "X"})
+    ds["y"].attrs.update({"units": "m", "standard_name": "projection_y_coordinate",
+                          "long_name": "northing of the pixel centre", "axis": "Y"})
+    ds.attrs.update(attrs or {})
+    ds.attrs.setdefault("Conventions", "CF-1.10")
+    ds = ds.rio.write_crs(grid.epsg).rio.write_transform(grid.transform)
+    ds.attrs.update(geozarr_attrs(grid, wkt2=True))
+    for name in (variable, "saturated"):
+        ds[name].attrs.update(geozarr_attrs(grid))
+    return ds
+
+
+@dataclass(frozen=True)
+class MosaicStore(Sink):
+    """Handle on a mosaic Zarr store (only paths and names: cheap to pickle into tasks).
+
+    The store holds ``<variable>`` (band, y, x) float32 chunked (1, 1024, 1024) with NaN fill,
+    ``saturated`` (y, x) uint8 chunked (1024, 1024) with 0 fill, x/y pixel-centre coordinates,
+    ``wavelength`` (band) and ``fwhm`` (band, spectral full width at half maximum, when known) in nm,
+    ``spatial_ref`` (rioxarray CRS + GeoTransform) and the grid as a root attribute. Reopen with
+    ``xr.open_zarr(path, decode_coords="all")``.
+
+    Metadata conventions (see :func:`geozarr_attrs`): CF-1.10 (root ``Conventions``; ``units``,
+    ``standard_name``, ``long_name`` on coordinates and variables, ``grid_mapping`` pointing at
+    ``spatial_ref``), and the GeoZarr ``proj:`` and ``spatial:`` Zarr conventions on the root group
+    and on the two data arrays.
+    """
+
+    path: str
+    variable: str
+
+    #: Capabilities (:class:`~archive.outputs.base.Sink`): it records saturation flags; tiles no
+    #: cube touches are not written (unwritten chunks read as NaN).
+    saturation: ClassVar[bool] = True
+    blank_tiles: ClassVar[bool] = False
+
+    @classmethod
+    def create(
+        cls,
+        path: str | os.PathLike,
+        grid: Grid,
+        wavelengths: Sequence[float] | None,
+        band_indices: Sequence[int],
+        variable: str = "radiance",
+        attrs: dict | None = None,
+        fwhm: Sequence[float] | None = None,
+    ) -> MosaicStore:
+        """Write the store's metadata and coordinates (no chunk data: unwritten chunks read as NaN).
+
+        wavelengths: nm per output band (or None); band_indices: the source band index of each output band;
+        fwhm: spectral full width at half maximum per output band, nm (or None).
+        """
+        import dask.array as da
+
+        nb = len(band_indices)
+        if wavelengths is not None and len(wavelengths) != nb:
+            raise ValueError(f"{len(wavelengths)} wavelengths for {nb} bands")
+        if fwhm is not None and len(fwhm) != nb:
+            raise ValueError(f"{len(fwhm)} fwhm values for {nb} bands")
+        values = da.full((nb, grid.height, grid.width), np.nan, dtype=np.float32,
+                         chunks=(1, CHUNK, CHUNK))
+        saturated = da.zeros(grid.shape, dtype=np.uint8, chunks=(CHUNK, CHUNK))
+        ds = mosaic_dataset(grid, values, saturated, band_indices, wavelengths, fwhm, variable, attrs)
+        ds.attrs[_GRID_ATTR] = json.dumps(
+            {"epsg": grid.epsg, "gsd": grid.gsd, "x0": grid.x0, "y0": grid.y0,
+             "width": grid.width, "height": grid.height}
+        )
+        ds[variable].encoding.update({"chunks": (1, CHUNK, CHUNK), "_FillValue": np.float32(np.nan),
+                                      "compressors": _values_codecs()})
+        ds["saturated"].encoding.update({"chunks": (CHUNK, CHUNK)})
+        for name in ("x", "y", "wavelength", "fwhm"):
+            if name in ds.coords:  # CF: coordinate variables have no missing values
+                ds[name].encoding["_FillValue"] = None
+        with warnings.catch_warnings():
+            # zarr warns that consolidated metadata is not yet in the v3 spec; xarray reads it fine.
+            warnings.simplefilter("ignore")
+            ds.to_zarr(os.fspath(path), mode="w-", compute=False, zarr_format=3, consolidated=True)
+        return cls(os.fspath(path), variable)
+
+    # ---- reading back ------------------------------------------------------------------------
+    def _array(self, name: str, mode: str = "r"):
+        import zarr
+
+        return zarr.open_array(self.path, path=name, mode=mode)
+
+    @property
+    def grid(self) -> Grid:
+        import zarr
+
+        meta = json.loads(zarr.open_group(self.path, mode="r").attrs[_GRID_ATTR])
+        return Grid(**meta)
+
+    @property
+    def wavelengths(self) -> np.ndarray | None:
+        import zarr
+
+        group = zarr.open_group(self.path, mode="r")
+        return np.asarray(group["wavelength"][:]) if "wavelength" in group else None
+
+    @property
+    def band_indices(self) -> np.ndarray:
+        return np.asarray(self._array("band")[:])
+
+    # ---- writing tiles -----------------------------------------------------------------------
+    def check_aligned(self, shape: tuple[int, ...], row0: int, col0: int) -> None:
+        """ValueError unless a (..., height, width) tile at pixel (row0, col0) covers whole chunks
+        (edge chunks: up to the mosaic's edge)."""
+        height, width = shape[-2:]
+        full_h, full_w = self._array(self.variable).shape[1:]
+        for start, size, full in ((row0, height, full_h), (col0, width, full_w)):
+            if start % CHUNK or not (size == CHUNK or start + size == full) or start + size > full:
+                raise ValueError(
+                    f"{self.path}: tile at ({row0}, {col0}) of {height} x {width} px is not aligned to "
+                    f"the {CHUNK} px chunks of a {full_h} x {full_w} mosaic"
+                )
+
+    def open_tile(self, band0: int, tile: tuple[int, int, int, int], nbands: int) -> _ZarrTileWriter:
+        """A writer of one output tile (row0, col0, height, width) of bands band0.. (see :class:`~archive.outputs.base.TileWriter`)."""
+        self.check_aligned(tile[2:], tile[0], tile[1])
+        return _ZarrTileWriter(self.chunk_writer(), band0, tile)
+
+    def chunk_writer(self) -> ChunkWriter:
+        """A :class:`ChunkWriter` on the values array (it checks no tile alignment: see :meth:`check_aligned`)."""
+        return ChunkWriter(self._array(self.variable, "r+"), os.path.join(self.path, self.variable))
+
+    def write_saturated(self, row0: int, col0: int, mask: np.ndarray) -> None:
+        """Write whole chunks of the saturation flags: mask (h, w) bool at pixel (row0, col0)."""
+        mask = np.asarray(mask)
+        self.check_aligned(mask.shape, row0, col0)
+        h, w = mask.shape
+        self._array("saturated", "r+")[row0:row0 + h, col0:col0 + w] = mask.astype(np.uint8)
+
+
+
+class _ZarrTileWriter(TileWriter):
+    def __init__(self, writer: ChunkWriter, band0: int, tile):
+        super().__init__(band0, tile)
+        self.writer = writer
+
+    def write(self, b: int, chunk: np.ndarray) -> None:
+        self.writer.write(self.band0 + b, self.tile[0] // CHUNK, self.tile[1] // CHUNK, chunk)
+
+
+def add_zarr_layers(path: str | os.PathLike, grid: Grid, spec, grid_attrs: dict | None = None) -> None:
+    """Add the (y, x) float32 layer variables of ``spec`` to the mosaic store at ``path`` (metadata
+    only: unwritten chunks read as NaN), with their attributes (plus ``grid_attrs``, the store's
+    GeoZarr attributes of ``grid``), and the cube table at the root."""
+    import dask.array as da
+    import xarray as xr
+
+    x, y = grid.xy_centres()
+    data = {name: (("y", "x"), da.full(grid.shape, np.nan, dtype=np.float32, chunks=(CHUNK, CHUNK)))
+            for name in spec.names}
+    ds = xr.Dataset(data, coords={"y": y, "x": x})
+    for name in spec.names:
+        ds[name].attrs.update(layer_attrs(spec, name))
+        ds[name].attrs.update(grid_attrs or {})
+        ds[name].encoding.update({"chunks": (CHUNK, CHUNK), "_FillValue": np.float32(np.nan)})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")   # consolidated metadata is not in the Zarr v3 spec yet
+        ds.drop_vars(["x", "y"]).to_zarr(os.fspath(path), mode="a", compute=False, zarr_format=3,
+                                         consolidated=True)
+    import zarr
+
+    group = zarr.open_group(os.fspath(path), mode="r+")
+    group.attrs.update(layers_metadata(spec))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        zarr.consolidate_metadata(os.fspath(path))
+
+
+@dataclass(frozen=True)
+class LayersStore(Sink):
+    """Sink writing provenance layers into the variables ``names`` of a mosaic Zarr store: band b
+    of a tile is layer ``names[band0 + b]``."""
+
+    path: str
+    names: tuple[str, ...]
+
+    blank_tiles: ClassVar[bool] = False   # unwritten chunks read as NaN
+
+    def open_tile(self, band0: int, tile, nbands: int) -> _LayersTileWriter:
+        if not 0 <= band0 < band0 + nbands <= len(self.names):
+            raise ValueError(f"layers {band0}..{band0 + nbands - 1} of {len(self.names)}")
+        return _LayersTileWriter(self, band0, tile)
+
+
+class _LayersTileWriter(TileWriter):
+    def __init__(self, sink: LayersStore, band0: int, tile):
+        import zarr
+
+        super().__init__(band0, tile)
+        self.sink = sink
+        self.group = zarr.open_group(sink.path, mode="r+")   # the metadata read once per tile
+
+    def write(self, b: int, chunk: np.ndarray) -> None:
+        row0, col0, h, w = self.tile
+        self.group[self.sink.names[self.band0 + b]][row0:row0 + h, col0:col0 + w] = chunk[:h, :w]
+
+
+class ZarrWriter:
+    """The Zarr format in the registry: a store directory; provenance layers are its variables."""
+
+    @staticmethod
+    def files(path: Path) -> list[Path]:
+        return [path]
+
+    @staticmethod
+    def sibling(path: Path) -> Path | None:
+        return None   # the layers are variables of the store
+
+    @staticmethod
+    def create(temp, path: Path, meta: OutputMeta) -> MosaicStore:
+        return MosaicStore.create(temp(path), meta.grid, meta.wavelengths, meta.band_indices, meta.variable,
+                                  meta.attrs, fwhm=meta.fwhm)
+
+    @staticmethod
+    def create_layers(temp, path: Path, sink: MosaicStore, meta: OutputMeta, spec) -> LayersStore:
+        add_zarr_layers(sink.path, meta.grid, spec, geozarr_attrs(meta.grid))
+        return LayersStore(sink.path, tuple(spec.names))
+
+    @staticmethod
+    def finish(temp, path: Path, sink: MosaicStore, meta: OutputMeta):
+        values = sink._array(sink.variable)
+        return [(Path(sink.path), path)], lambda b, step: np.asarray(values[b, ::step, ::step], np.float32)
+
+    @staticmethod
+    def finish_layers(temp, path: Path, layers, meta: OutputMeta, spec) -> list:
+        return []   # written into the store, which moves with the values
