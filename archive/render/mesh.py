@@ -64,6 +64,30 @@ any row are halved until its rays are OCCLUSION_PX apart on the ground, so the v
 out beside an occlusion is under half a pixel wide. Where one line's remaining triangles still
 fold over each other on the map, the GL depth test keeps the nearest (depth = distance from the
 camera, :attr:`Mesh.distance`). Ground no line sees is never drawn: NaN in the output.
+
+Watertight seams (the invariant; :mod:`archive.render.terrain` builds terrain meshes)
+----------------------------------------------------------------------------------
+
+**Every edge of a drawn triangle is either on the mesh's outer boundary or shared, vertex for
+vertex, by exactly one other drawn triangle (of the same cube or of its strip neighbour); no vertex
+lies on another triangle's edge (no T-junction).** Flat meshes have two vertices per row and hold it
+trivially. Terrain meshes hold it so:
+
+- Within a cube, every row uses the cube's split, except the two rows of each *seam* (the cube's line
+  0 with its opening row, its last line with its closing row).
+- The two rows of a seam are the same two image lines, at the same poses, in both cubes that share
+  it. Their split and their ray hits are computed from those two rows only (their own DEM surface,
+  :meth:`archive.dem.Dem.surface_under` of just their rays, refined by the same rule as a cube's), so
+  both cubes get the same vertices, bit for bit, and the same quads between them: the half each cube
+  draws (L below lines - 0.5, or from -0.5) meets the other half along the same line.
+- Where consecutive rows use different splits (a seam row next to a row on the cube's split), the
+  strip between them is stitched by a zipper (:func:`archive.render.terrain.zipper`): every segment
+  of both rows is an edge of exactly one triangle of the strip.
+
+A mesh stores every row on the union of its splits (:attr:`Mesh.active` says which columns a row
+uses) and its triangles explicitly (:attr:`Mesh.faces`). tests/test_terrain_seams.py checks, in
+float64 without GL, that the cubes of a strip cover every pixel centre inside the strip's outline,
+and through GL that a render leaves no empty pixel on visible ground.
 """
 
 from __future__ import annotations
@@ -80,7 +104,7 @@ from archive.errors import InputError, RenderError
 from archive.navigation import DEFAULT_MAX_VIEW_ANGLE, frame_interval, ground_hits, joined, view_angles
 
 #: Terrain meshes: the straight-edge error bound, output pixels (checked at segment midpoints
-#: against half of it, see :func:`_terrain_mesh`).
+#: against half of it, see :func:`archive.render.terrain.terrain_mesh`).
 EDGE_ERROR_PX = 0.1
 #: Terrain meshes: an edge within this angle of the line of sight (the surface between its ends
 #: would be seen at more than 90 - GRAZING_DEG degrees of incidence) spans an occlusion.
@@ -118,7 +142,12 @@ class Mesh:
     columns: (V,) normalised sample coordinate s of each vertex column (None: [0, 1], the flat mesh);
     distance: (rows, V) metres from the camera to each vertex's ground point (the GL depth), or None;
     hidden: (rows - 1, V - 1, 2) bool, triangles left out because they span an occlusion, or None;
-    edge_error: the largest straight-edge deviation measured at segment midpoints, metres (0 flat).
+    edge_error: the largest straight-edge deviation measured at segment midpoints, metres (0 flat);
+    active: (rows, V) bool, the columns each row uses, or None (every row uses every column): a
+        cube's seam rows use the seam's split, its other rows the cube's ("Watertight seams" in the
+        module docstring); vertices of unused columns repeat the row's previous used vertex;
+    faces: (triangles, 3) int32 vertex indices drawn (stitched meshes), or None: the quads of
+        :meth:`triangles`. A stitched mesh has ``hidden`` None (its hidden triangles are not in faces).
     """
 
     frame: LocalFrame
@@ -134,6 +163,8 @@ class Mesh:
     distance: np.ndarray | None = None
     hidden: np.ndarray | None = None
     edge_error: float = 0.0
+    active: np.ndarray | None = None
+    faces: np.ndarray | None = None
 
     @property
     def rows(self) -> int:
@@ -182,8 +213,10 @@ class Mesh:
         end, 2k + 1 its right end). The first triangle of each quad has row k's edge, the second
         row k+1's edge, so each row's segment is a triangle edge. Quads between rows that are not
         joined (``breaks``) and triangles of terrain meshes that span an occlusion (``hidden``) are
-        left out.
+        left out. A stitched terrain mesh returns its explicit :attr:`faces` (same order: by row pair).
         """
+        if self.faces is not None:
+            return self.faces
         v = self.per_row
         k = np.arange(max(self.rows - 1, 0), dtype=np.int32)
         if self.breaks is not None:
@@ -345,8 +378,10 @@ def build_mesh(
         keep &= ~too_far
 
     if terrain is not None:
-        return _terrain_mesh(frame, mid_pos, mid_att, keep, link, line, lines, first, float(fov_deg),
-                             ground_height, terrain, gsd, no_navigation, oblique)
+        from archive.render.terrain import terrain_mesh
+
+        return terrain_mesh(frame, mid_pos, mid_att, keep, link, line, lines, first, float(fov_deg),
+                            terrain, gsd, no_navigation, oblique)
     t = math.tan(math.radians(fov_deg) / 2)
     d_ground = float(frame.origin_alt) - float(ground_height)
     below = keep & (mid_pos[:, 2] >= d_ground)
@@ -381,141 +416,3 @@ def build_mesh(
     return Mesh(frame, ground[rows], depth[rows], line[rows], lines, float(fov_deg), float(ground_height),
                 breaks=None if joined_rows.all() else ~joined_rows,
                 dropped={"no navigation": no_navigation, "view angle": oblique})
-
-
-# ---------------------------------------------------------------------------------------------
-# Terrain
-# ---------------------------------------------------------------------------------------------
-
-
-def _enu(d: np.ndarray) -> np.ndarray:
-    """(n, 3) N, E, D vectors -> E, N, Up."""
-    return np.stack([d[:, 1], d[:, 0], -d[:, 2]], axis=1)
-
-
-def _edge_hidden(pa: np.ndarray, pb: np.ndarray, da: np.ndarray, db: np.ndarray, min_map: float) -> np.ndarray:
-    """Edges (..., 3) from ground points pa to pb (N, E, D m) seen along unit rays da, db: True where
-    the edge is within GRAZING_DEG of the mean line of sight and longer than ``min_map`` m on the map."""
-    v = pb - pa
-    length = np.linalg.norm(v, axis=-1)
-    m = da + db
-    m = m / np.linalg.norm(m, axis=-1, keepdims=True)
-    sin = np.linalg.norm(np.cross(v, m), axis=-1) / np.where(length > 0, length, 1.0)
-    return (length > 0) & (sin < np.sin(np.radians(GRAZING_DEG))) & (np.hypot(v[..., 0], v[..., 1]) > min_map)
-
-
-def _terrain_mesh(frame, mid_pos, mid_att, keep, link, line, lines, first, fov_deg, ground_height, terrain,
-                  gsd, no_navigation, oblique) -> Mesh:
-    """The terrain part of :func:`build_mesh` (module docstring, "Terrain meshes")."""
-    if gsd is None or not (math.isfinite(gsd) and gsd > 0):
-        raise InputError("gsd", f"a terrain mesh needs the output pixel size, got {gsd!r}")
-    t = math.tan(math.radians(fov_deg) / 2)
-    rows = np.flatnonzero(keep)
-
-    def empty() -> Mesh:
-        return Mesh(frame, np.zeros((0, 2, 2)), np.ones((0, 2)), np.zeros(0), lines, fov_deg, math.nan,
-                    dropped={"no navigation": no_navigation, "view angle": oblique},
-                    columns=np.array([0.0, 1.0]), distance=np.zeros((0, 2)))
-
-    if rows.size == 0:
-        return empty()
-    pos = mid_pos[rows]
-    att = mid_att[rows]
-    origin = np.stack([pos[:, 1] + frame.origin_e, pos[:, 0] + frame.origin_n,
-                       float(frame.origin_alt) - pos[:, 2]], axis=1)
-    edges = [att.apply(np.array([0.0, u, 1.0])) for u in (-t, t)]
-    surface = terrain.surface_under(frame.epsg, origin, [_enu(d) for d in edges])
-    cache: dict[float, tuple[np.ndarray, np.ndarray]] = {}
-    matrix = att.as_matrix()                                     # (R, 3, 3) camera -> NED
-
-    def trace(us) -> None:
-        """Intersect the rays of every focal-plane coordinate of ``us`` not traced yet (one call)."""
-        todo = [float(u) for u in dict.fromkeys(us) if float(u) not in cache]
-        if not todo:
-            return
-        u = np.array(todo)
-        d = matrix[:, None, :, 1] * u[None, :, None] + matrix[:, None, :, 2]     # (R, U, 3) N, E, D
-        o = np.broadcast_to(origin[:, None, :], d.shape).reshape(-1, 3)
-        lam, under = surface.intersect(o, _enu(d.reshape(-1, 3)))
-        if under.any():
-            r = int(np.argmax(under)) // u.size
-            raise RenderError(f"line {int(line[rows[r]])}: the camera ({origin[r, 2]:.1f} m) is at or below "
-                              f"the DEM's ground ({surface.height(origin[r, 0], origin[r, 1]):.1f} m); "
-                              "check the DEM, its vertical datum (--dem-datum) and the altitudes")
-        lam = lam.reshape(d.shape[:2])
-        for k, key in enumerate(todo):
-            cache[key] = (lam[:, k], d[:, k])
-
-    def hits(u: float):
-        """(lam (R,), ray (R, 3) N, E, D) of focal-plane coordinate u for the rows kept."""
-        trace([u])
-        return cache[float(u)]
-
-    # rows whose field-of-view edges miss the terrain (rays at or above the horizon) are left out
-    missed = ~(np.isfinite(hits(-t)[0]) & np.isfinite(hits(t)[0]))
-    if missed.any():
-        oblique += int(np.count_nonzero((rows[missed] >= first) & (rows[missed] < first + lines)))
-        good = ~missed
-        rows, pos, att, origin, matrix = rows[good], pos[good], att[good], origin[good], matrix[good]
-        for u, (lam, d) in list(cache.items()):
-            cache[u] = (lam[good], d[good])
-        if rows.size == 0:
-            return empty()
-
-    def ground(u: float) -> np.ndarray:
-        lam, d = hits(u)
-        return pos + lam[:, None] * d
-
-    width = float(np.median(np.hypot(*(ground(t) - ground(-t))[:, :2].T)))
-    pixel = surface.dem.pixel_m if getattr(surface, "dem", None) is not None else 2.0 * surface.res
-    start = START_COLUMN * max(pixel, gsd)
-    k0 = int(min(max(math.ceil(width / start), 2), MAX_COLUMNS - 1))
-    us = np.linspace(-t, t, k0 + 1)
-    us[0], us[-1] = -t, t
-    tol = 0.5 * EDGE_ERROR_PX * gsd
-    worst = 0.0
-    for level in range(MAX_LEVELS + 1):
-        mids = 0.5 * (us[:-1] + us[1:])
-        trace(np.concatenate([us, mids]))
-        lam_v = np.stack([hits(u)[0] for u in us], axis=1)              # (R, V)
-        ray_v = np.stack([hits(u)[1] for u in us], axis=1)              # (R, V, 3)
-        lam_m = np.stack([hits(u)[0] for u in mids], axis=1)            # (R, V - 1)
-        ray_m = np.stack([hits(u)[1] for u in mids], axis=1)
-        la, lb = lam_v[:, :-1], lam_v[:, 1:]
-        chord = 2.0 * la * lb / (la + lb)                  # lambda of the chord point on the middle ray
-        err = np.abs(lam_m - chord) * np.hypot(ray_m[..., 0], ray_m[..., 1])
-        pts = pos[:, None, :] + lam_v[..., None] * ray_v
-        unit = ray_v / np.linalg.norm(ray_v, axis=-1, keepdims=True)
-        occluded = _edge_hidden(pts[:, :-1], pts[:, 1:], unit[:, :-1], unit[:, 1:], 0.5 * gsd)
-        rng = np.linalg.norm(lam_v[..., None] * ray_v, axis=-1)
-        angle = np.linalg.norm(np.cross(unit[:, :-1], unit[:, 1:]), axis=-1)
-        spread = np.maximum(rng[:, :-1], rng[:, 1:]) * angle
-        need = (~occluded & (err > tol)) | (occluded & (spread > OCCLUSION_PX * gsd))
-        worst = float(np.max(np.where(occluded, 0.0, err), initial=0.0))
-        split = need.any(axis=0)
-        if not split.any() or level == MAX_LEVELS or us.size + int(split.sum()) > MAX_COLUMNS:
-            break
-        us = np.sort(np.concatenate([us, mids[split]]))
-
-    # rows and their joins, as on flat ground
-    joined_rows = np.ones(max(len(rows) - 1, 0), bool)
-    if len(rows) > 1:
-        joined_rows = (np.diff(rows) == 1) & link[rows[:-1]]
-    hidden = None
-    if len(rows) > 1:
-        a, b = pts[:-1], pts[1:]                           # rows k and k + 1
-        ua, ub = unit[:-1], unit[1:]
-        across = occluded                                  # (R, V - 1) along each row
-        down = _edge_hidden(a, b, ua, ub, 0.5 * gsd)       # (R - 1, V): column edges
-        diag = _edge_hidden(a[:, 1:], b[:, :-1], ua[:, 1:], ub[:, :-1], 0.5 * gsd)   # (R - 1, V - 1)
-        tri1 = across[:-1] | diag | down[:, :-1]
-        tri2 = down[:, 1:] | across[1:] | diag
-        hidden = np.stack([tri1, tri2], axis=-1)
-    ground_ne = pts[..., :2]
-    distance = rng
-    columns = (us + t) / (2.0 * t)
-    columns[0], columns[-1] = 0.0, 1.0
-    return Mesh(frame, ground_ne, lam_v, line[rows], lines, fov_deg, math.nan,
-                breaks=None if joined_rows.all() else ~joined_rows,
-                dropped={"no navigation": no_navigation, "view angle": oblique},
-                columns=columns, distance=distance, hidden=hidden, edge_error=worst)

@@ -272,7 +272,8 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                     shutter_steps: bool = False, sync_offset: float = 0.0,
                     bank_deg: float | None = None, record_turns: bool = False, pause_s: float = 0.0,
                     pause_cube: int = 0, boresight_deg: Sequence[float] = (0.0, 0.0, 0.0),
-                    lever_arm_m: Sequence[float] = (0.0, 0.0, 0.0), terrain: str | None = None) -> Truth:
+                    lever_arm_m: Sequence[float] = (0.0, 0.0, 0.0), terrain: str | None = None,
+                    heading_deg: float = HEADING_DEG) -> Truth:
     """Write a simulated flight into ``directory`` and return its :class:`Truth`.
 
     ``cubes`` cubes of ``lines`` lines x ``samples`` samples x ``bands`` bands (400-1000 nm,
@@ -308,7 +309,12 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
     ``dem.tif``: the heights above the ellipsoid every ``DEM_RESOLUTION`` m over the footprint (in
     the site's UTM zone, its 3-D CRS declaring ellipsoidal heights). The truth knows which ground no
     line sees (:meth:`Truth.visible`).
+
+    ``heading_deg``: grid heading of the even passes (degrees clockwise from grid north; odd passes
+    fly the opposite way).
     """
+    if not math.isfinite(heading_deg):
+        raise InputError("simulate", f"heading must be a finite number of degrees, got {heading_deg!r}")
     _check(cubes, bands, samples, lines, cubes_per_pass, lat, lon, fov_deg)
     if terrain is not None and terrain not in TERRAINS:
         raise InputError("simulate", f"terrain {terrain!r}, expected one of {', '.join(TERRAINS)}")
@@ -335,12 +341,12 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
         else:
             into_turn = 0.5 * math.pi * (SPACING / 2.0) / SPEED
         into_turn = min(into_turn, RECORD_TURN_FRACTION * record_s)
-    traj = Trajectory(epsg, e0, n0, HEADING_DEG, SPEED, SPACING, HEIGHT, GROUND_HEIGHT, T_START_GPS,
+    traj = Trajectory(epsg, e0, n0, float(heading_deg), SPEED, SPACING, HEIGHT, GROUND_HEIGHT, T_START_GPS,
                       RUN_S, record_s, passes, default_wobble(rng), bank_deg=recorder.bank_deg,
                       record_into_turn_s=into_turn)
     camera = camera_path(traj, recorder.mount)
     relief = None if terrain is None else make_terrain(
-        terrain, GROUND_HEIGHT, e0, n0, HEADING_DEG, [float(traj.pass_c(k)) for k in range(passes)])
+        terrain, GROUND_HEIGHT, e0, n0, float(heading_deg), [float(traj.pass_c(k)) for k in range(passes)])
     plans = _plan(cubes, lines, cubes_per_pass, traj, recorder)
     spans = [(min(p.line_time[0] for p in plans if p.pass_index == k),
               max(p.line_time[-1] for p in plans if p.pass_index == k)) for k in range(passes)]
