@@ -33,7 +33,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 FOV = 47.5
-GSD = 0.25
+GSD = 0.03   # 2100 x 1250 px: several output tiles (1024 px), COG tiles (512 px) and overview levels
 
 #: (name, flight, extra options, formats)
 CASES = [
