@@ -47,6 +47,26 @@ def _triple(text: str) -> tuple[float, float, float]:
     return values  # type: ignore[return-value]
 
 
+def _command(sub: argparse._SubParsersAction, name: str, help: str, description: str) -> argparse.ArgumentParser:
+    return sub.add_parser(name, help=help, description=description)
+
+
+def _add_run_flags(p: argparse.ArgumentParser, overwrite: str) -> None:
+    """--overwrite (``overwrite`` says what it replaces) and --quiet."""
+    p.add_argument("--overwrite", action="store_true", help=overwrite)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _add_dem(p: argparse.ArgumentParser, use: str) -> None:
+    """--dem (``use``: what the command does with it) and --dem-datum."""
+    p.add_argument("--dem", metavar="FILE",
+                   help="digital elevation model, a GeoTIFF in any CRS and resolution (only the part under the "
+                        f"flight is read): {use}")
+    p.add_argument("--dem-datum", choices=["ellipsoid", "egm96", "egm2008"], default=None,
+                   help="vertical datum of the DEM's heights, required when its CRS does not declare one "
+                        "(geoid heights are converted to ellipsoidal ones with PROJ's grids)")
+
+
 def _add_mounting(p: argparse.ArgumentParser, recorded: bool) -> None:
     """--boresight and --lever-arm (and --sync-offset for ingest)."""
     default = "default: as ingested for a collection, else 0" if recorded else "default 0"
@@ -58,17 +78,12 @@ def _add_mounting(p: argparse.ArgumentParser, recorded: bool) -> None:
 
 
 def _add_simulate(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "simulate",
-        help="write a simulated Resonon flight with its ground truth",
-        description=(
-            "Write a simulated airborne pushbroom flight in the Resonon layout (<base>.bil, .bil.hdr, "
-            ".lcf, .bil.times per cube, plus calibration.icp) and its ground truth (truth/: scene, "
-            "true per-line poses, footprint). Lawn-mower passes at ~10 m/s, ~40 m above flat ground, "
-            "near Memphis (35.12 N, 89.94 W), 249 lines/s, INS at 200 Hz. Defaults are small (test "
-            "size); paper scale is --samples 900 --lines 1000 --bands 300 --cubes 40."
-        ),
-    )
+    p = _command(sub, "simulate", "write a simulated Resonon flight with its ground truth", (
+        "Write a simulated airborne pushbroom flight in the Resonon layout (<base>.bil, .bil.hdr, "
+        ".lcf, .bil.times per cube, plus calibration.icp) and its ground truth (truth/: scene, "
+        "true per-line poses, footprint). Lawn-mower passes at ~10 m/s, ~40 m above flat ground, "
+        "near Memphis (35.12 N, 89.94 W), 249 lines/s, INS at 200 Hz. Defaults are small (test "
+        "size); paper scale is --samples 900 --lines 1000 --bands 300 --cubes 40."))
     p.add_argument("directory", metavar="DIR", help="output directory (created; must be empty unless --overwrite)")
     p.add_argument("--cubes", type=_positive_int, default=4, help="number of cubes (default 4)")
     p.add_argument("--bands", type=_positive_int, default=8, help="spectral bands per cube (default 8)")
@@ -125,22 +140,16 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--terrain", choices=["hills", "ridge"],
                    help="terrain instead of flat ground: 'hills' (>= 10 m relief) or 'ridge' (with ground hidden "
                         "from some lines); writes dem.tif (ellipsoidal heights) beside the flight")
-    p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_run_flags(p, "replace DIR if it exists")
 
 
 def _add_render(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "render",
-        help="georectify flights into a mosaicked, georeferenced cube",
-        description=(
-            "Georectify one or more flights by the inverse (mesh + OpenGL) method and write one "
-            "mosaic: Zarr (.zarr), Cloud-Optimized GeoTIFF (.tif) or ENVI BSQ (.hdr), float32 with NaN "
-            "where no line covers a pixel. SOURCE is a raw flight directory (rendered without "
-            "intermediate files). From Python: archive.georectify(sources, out, gsd=..., ...), keyword "
-            "names as these options (--ground-height is ground_height)."
-        ),
-    )
+    p = _command(sub, "render", "georectify flights into a mosaicked, georeferenced cube", (
+        "Georectify one or more flights by the inverse (mesh + OpenGL) method and write one "
+        "mosaic: Zarr (.zarr), Cloud-Optimized GeoTIFF (.tif) or ENVI BSQ (.hdr), float32 with NaN "
+        "where no line covers a pixel. SOURCE is a raw flight directory (rendered without "
+        "intermediate files). From Python: archive.georectify(sources, out, gsd=..., ...), keyword "
+        "names as these options (--ground-height is ground_height)."))
     p.add_argument("sources", nargs="*", metavar="SOURCE",
                    help="raw flight directory, or a collection id of --archive (optional with --query-*)")
     p.add_argument("--archive", metavar="ARCHIVE", help="archive holding the collections named as SOURCE")
@@ -169,13 +178,8 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--crs", metavar="EPSG:XXXX",
                    help="projected CRS of the output (default: the UTM zone holding most of the flights; "
                         "flights of other zones are rendered into it)")
-    p.add_argument("--dem", metavar="FILE",
-                   help="digital elevation model, a GeoTIFF in any CRS and resolution (only the part under the "
-                        "flight is read): the meshes follow it instead of the flat ground; ground no line sees stays NaN; "
+    _add_dem(p, "the meshes follow it instead of the flat ground; ground no line sees stays NaN; "
                         "exclusive with a numeric --ground-height")
-    p.add_argument("--dem-datum", choices=["ellipsoid", "egm96", "egm2008"], default=None,
-                   help="vertical datum of the DEM's heights, required when its CRS does not declare one "
-                        "(geoid heights are converted to ellipsoidal ones with PROJ's grids)")
     p.add_argument("--overlap", choices=["last", "nadir", "mean"], default="last",
                    help="where lines overlap: the later line wins (default), the line seen closest to nadir "
                         "(smallest view zenith) wins, or the mean")
@@ -201,44 +205,32 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
                         "--out DIR/<id>.<format>)")
     q.add_argument("--format", choices=["zarr", "tif", "hdr"], default="zarr",
                    help="format of the per-flight outputs in --out DIR (default zarr)")
-    p.add_argument("--overwrite", action="store_true", help="replace PATH if it exists")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_run_flags(p, "replace PATH if it exists")
 
 
 def _add_info(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "info",
-        help="check a raw flight directory and print its summary",
-        description=(
-            "Read every cube of a raw flight directory (headers, .times, .lcf, calibration), check "
-            "that each is complete and that navigation covers every line, and print a summary: cubes, "
-            "lines, bands, wavelengths, time span, UTM zone, ground track length and altitude."
-        ),
-    )
-    p.add_argument("directory", metavar="DIR", help="raw flight directory")
-    p.add_argument("--fov", type=float, default=47.5, metavar="DEG", help="field of view used for the swath width (default 47.5)")
+    p = _command(sub, "info", "check a raw flight directory (or a collection) and print its summary", (
+        "Read every cube of a raw flight directory (headers, .times, .lcf, calibration), check "
+        "that each is complete and that navigation covers every line, and print a summary: cubes, "
+        "lines, bands, wavelengths, time span, UTM zone, ground track length and altitude."))
+    p.add_argument("directory", metavar="DIR", help="raw flight directory, or a collection id with --archive")
+    p.add_argument("--archive", metavar="ARCHIVE", default=None,
+                   help="archive holding the collection DIR names (its DEM, if ingested with --dem, is used "
+                        "unless --dem is given)")
+    p.add_argument("--fov", type=float, default=None, metavar="DEG",
+                   help="field of view used for the swath width (default: the collection's, else 47.5)")
     p.add_argument("--sync-offset", type=float, default=0.0, metavar="S", help="camera-to-navigation time offset, seconds (default 0)")
-    p.add_argument("--dem", metavar="FILE",
-                   help="digital elevation model, a GeoTIFF in any CRS and resolution (only the part under the "
-                        "flight is read): also check that it covers the swath and report the terrain under the flight")
-    p.add_argument("--dem-datum", choices=["ellipsoid", "egm96", "egm2008"], default=None,
-                   help="vertical datum of the DEM's heights, required when its CRS does not declare one "
-                        "(geoid heights are converted to ellipsoidal ones with PROJ's grids)")
+    _add_dem(p, "also check that it covers the swath and report the terrain under the flight")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
 def _add_ingest(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "ingest",
-        help="ingest raw flights into chunked Zarr collections and catalog them",
-        description=(
-            "Check each raw flight directory completely, then store it as ARCHIVE/collections/<id>.zarr "
-            "(Zarr v3: DN chunked one band of one cube per chunk and compressed, per-line times and poses, "
-            "the raw navigation, calibration, header metadata, source checksums) and describe it by a STAC "
-            "Item in the archive's catalog. The id is <sensor>_<UTC start>. Ingesting a flight again is a "
-            "no-op; an interrupted ingest resumes when rerun. The archive is created if needed."
-        ),
-    )
+    p = _command(sub, "ingest", "ingest raw flights into chunked Zarr collections and catalog them", (
+        "Check each raw flight directory completely, then store it as ARCHIVE/collections/<id>.zarr "
+        "(Zarr v3: DN chunked one band of one cube per chunk and compressed, per-line times and poses, "
+        "the raw navigation, calibration, header metadata, source checksums) and describe it by a STAC "
+        "Item in the archive's catalog. The id is <sensor>_<UTC start>. Ingesting a flight again is a "
+        "no-op; an interrupted ingest resumes when rerun. The archive is created if needed."))
     p.add_argument("directories", nargs="+", metavar="RAW_DIR", help="raw flight directory")
     p.add_argument("--archive", required=True, metavar="ARCHIVE", help="archive directory (created if absent or empty)")
     p.add_argument("--fov", required=True, type=float, metavar="DEG",
@@ -247,44 +239,28 @@ def _add_ingest(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ground-height", type=float, metavar="M",
                    help="ground height, metres above the ellipsoid, for the catalog footprint "
                         "(default: the header's 'ground elevation')")
-    p.add_argument("--dem", metavar="FILE",
-                   help="digital elevation model, a GeoTIFF in any CRS and resolution (only the part under the "
-                        "flight is read): the catalog footprint follows the terrain; exclusive with --ground-height")
-    p.add_argument("--dem-datum", choices=["ellipsoid", "egm96", "egm2008"], default=None,
-                   help="vertical datum of the DEM's heights, required when its CRS does not declare one "
-                        "(geoid heights are converted to ellipsoidal ones with PROJ's grids)")
+    _add_dem(p, "the catalog footprint follows the terrain; exclusive with --ground-height")
     p.add_argument("--sync-offset", type=float, default=0.0, metavar="S",
                    help="camera-to-navigation time offset, seconds (default 0); recorded, used by renders of the collection")
     _add_mounting(p, recorded=False)
     p.add_argument("--workers", type=_positive_int, metavar="N", help="threads writing chunks (default: CPU count)")
-    p.add_argument("--overwrite", action="store_true", help="re-ingest flights that are already in the archive")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_run_flags(p, "re-ingest flights that are already in the archive")
 
 
 def _add_verify(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "verify",
-        help="re-check stored collections against their recorded checksums",
-        description=(
-            "Decode every DN chunk and small array of a collection (or of all collections) and compare "
-            "their sha256 with those recorded at ingest. Exit code 0 when all are intact, 1 otherwise."
-        ),
-    )
+    p = _command(sub, "verify", "re-check stored collections against their recorded checksums", (
+        "Decode every DN chunk and small array of a collection (or of all collections) and compare "
+        "their sha256 with those recorded at ingest. Exit code 0 when all are intact, 1 otherwise."))
     p.add_argument("id", nargs="?", metavar="ID", help="collection id (default: every collection)")
     p.add_argument("--archive", required=True, metavar="ARCHIVE", help="archive directory")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def _add_catalog(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "catalog",
-        help="search, list, rebuild or validate an archive's catalog",
-        description=(
-            "Query the archive's catalog (STAC Items + SQLite index), rebuild the index and the STAC tree "
-            "(ARCHIVE/catalog.json -> catalog/collection.json -> catalog/items/<id>.json) from the Items, or "
-            "validate STAC files offline against the schemas shipped with archive."
-        ),
-    )
+    p = _command(sub, "catalog", "search, list, rebuild or validate an archive's catalog", (
+        "Query the archive's catalog (STAC Items + SQLite index), rebuild the index and the STAC tree "
+        "(ARCHIVE/catalog.json -> catalog/collection.json -> catalog/items/<id>.json) from the Items, or "
+        "validate STAC files offline against the schemas shipped with archive."))
     csub = p.add_subparsers(dest="catalog_command", metavar="SUBCOMMAND", required=True)
     s = csub.add_parser(
         "search",
@@ -326,17 +302,12 @@ def _add_catalog(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_view(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "view",
-        help="browse the archive's flights in a web browser, georectified on the fly",
-        description=(
-            "Start a local web server and print its URL: a map of the catalog's footprints; opening a "
-            "flight draws it georectified by the inverse renderer as Web-Mercator tiles (RGB or grey "
-            "bands, radiometric mode, stretch, cube range, ground height and sync offset), and a click "
-            "shows the spectrum of that pixel. Serves only the collections of --archive and the flight "
-            "directories named; binds 127.0.0.1 unless --host and --allow-remote say otherwise."
-        ),
-    )
+    p = _command(sub, "view", "browse the archive's flights in a web browser, georectified on the fly", (
+        "Start a local web server and print its URL: a map of the catalog's footprints; opening a "
+        "flight draws it georectified by the inverse renderer as Web-Mercator tiles (RGB or grey "
+        "bands, radiometric mode, stretch, cube range, ground height and sync offset), and a click "
+        "shows the spectrum of that pixel. Serves only the collections of --archive and the flight "
+        "directories named; binds 127.0.0.1 unless --host and --allow-remote say otherwise."))
     p.add_argument("directories", nargs="*", metavar="FLIGHT_DIR", help="raw flight directories to serve too (need --fov)")
     p.add_argument("--archive", metavar="ARCHIVE", help="archive whose cataloged collections are served")
     p.add_argument("--fov", type=float, metavar="DEG",

@@ -168,6 +168,68 @@ class DemSpec:
         return ("DemSpec", self.path, self.datum, self.size, self.mtime_ns)
 
 
+def dem_record(dem: Dem) -> dict:
+    """What a collection records of the DEM it was ingested with (its ``terrain`` attribute): the
+    file name, absolute path, vertical datum, whether the file declares it, and the sha256 of the
+    file (so that a DEM that changed since is refused, not silently drawn)."""
+    from archive.collection import sha256_file
+
+    return {"dem": dem.path.name, "dem_path": str(Path(dem.path).absolute()), "datum": dem.datum,
+            "declared": bool(dem.declared), "sha256": sha256_file(dem.path)}
+
+
+_CHECKED: dict[tuple, str] = {}
+
+
+def recorded_dem(terrain: dict | None, where: str) -> DemSpec | None:
+    """The :class:`DemSpec` of a collection's recorded DEM (``terrain``: its ``terrain`` attribute,
+    :func:`dem_record`), None for a collection ingested without one. The file must still be where it
+    was and, when a checksum was recorded, hold the same bytes: else InputError naming the DEM and
+    ``where`` (the collection) and saying how to go on. The DEM is opened with the datum recorded
+    ('ellipsoid', 'egm96', ... or the declared datum's name)."""
+    if not terrain or not terrain.get("dem_path"):
+        return None
+    path = Path(str(terrain["dem_path"]))
+    fix = ("put the DEM back, pass --dem FILE to render over another DEM, or --ground-height M to "
+           "render flat")
+    if not path.is_file():
+        raise InputError(where, f"was ingested with the DEM {path}, which is no longer there", fix)
+    spec = DemSpec.create(path, None if terrain.get("declared") else terrain.get("datum"))
+    digest = terrain.get("sha256")
+    if digest:
+        key = (spec.path, spec.size, spec.mtime_ns)
+        if key not in _CHECKED:
+            from archive.collection import sha256_file
+
+            _CHECKED[key] = sha256_file(path)
+        if _CHECKED[key] != digest:
+            raise InputError(where, f"the DEM {path} changed since the collection was ingested (sha256 "
+                             f"{_CHECKED[key][:12]}... instead of {str(digest)[:12]}...)", fix)
+    return spec
+
+
+def sources_dem(sources, where: str = "--dem") -> DemSpec | None:
+    """The DEM the collections among ``sources`` were ingested with, when none of them was ingested
+    flat: one :class:`DemSpec` (they must agree, else InputError naming both), None when any source
+    has no recorded DEM (raw flights, collections ingested flat)."""
+    specs = []
+    for s in sources:
+        terrain = getattr(getattr(s, "info", None), "attrs", {}).get("terrain")
+        spec = recorded_dem(terrain, str(getattr(s, "id", None) or s.label))
+        if spec is None:
+            return None
+        specs.append((s, spec))
+    if not specs:
+        return None
+    first_source, first = specs[0]
+    for s, spec in specs[1:]:
+        if (spec.path, spec.datum) != (first.path, first.datum):
+            raise InputError(where, f"{first_source.label} was ingested with the DEM {first.path}, {s.label} with "
+                             f"{spec.path}", "pass --dem FILE (or --ground-height M) for all of them, or render "
+                             "them separately")
+    return first
+
+
 @dataclass(frozen=True, eq=False)
 class Dem:
     """An opened DEM (metadata only; pixels are read by :meth:`surface`).

@@ -72,20 +72,14 @@ def check_size(plan, gsd: float) -> None:
     group = max(b1 - b0 for b0, b1 in plan.groups)
     biggest = max((job.window.width * job.window.height for job in plan.jobs), default=0)
     task = biggest * (group * 4 + 2)
-    if total > OUTPUT_BUDGET:
-        suggest = _nice(gsd * math.sqrt(total / OUTPUT_BUDGET))
-        raise InputError(
-            "--gsd", f"{gsd:g} m gives a {grid.width} x {grid.height} px x {plan.nbands}-band output "
-            f"({total:.3g} pixel-bands, {total * 4 / 1024**4:.1f} TiB), over the {OUTPUT_BUDGET:.0e} limit",
-            f"use --gsd {suggest:g} or larger, or fewer --wavelengths",
-        )
-    if task > TASK_BUDGET_BYTES:
-        suggest = _nice(gsd * math.sqrt(task / TASK_BUDGET_BYTES))
-        raise InputError(
-            "--gsd", f"{gsd:g} m makes one cube cover {biggest:.3g} px ({task / 1024**3:.1f} GiB per "
-            f"{group}-band render task, limit {TASK_BUDGET_BYTES / 1024**3:.0f} GiB)",
-            f"use --gsd {suggest:g} or larger",
-        )
+    limits = ((total, OUTPUT_BUDGET, f"{gsd:g} m gives a {grid.width} x {grid.height} px x {plan.nbands}-band output "
+               f"({total:.3g} pixel-bands, {total * 4 / 1024**4:.1f} TiB), over the {OUTPUT_BUDGET:.0e} limit",
+               ", or fewer --wavelengths"),
+              (task, TASK_BUDGET_BYTES, f"{gsd:g} m makes one cube cover {biggest:.3g} px ({task / 1024**3:.1f} GiB "
+               f"per {group}-band render task, limit {TASK_BUDGET_BYTES / 1024**3:.0f} GiB)", ""))
+    for size, limit, problem, also in limits:
+        if size > limit:
+            raise InputError("--gsd", problem, f"use --gsd {_nice(gsd * math.sqrt(size / limit)):g} or larger{also}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -140,11 +134,15 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
         mode = "raw"
     for s, b in zip(sources, bands):
         s.radiometry(0, b[:1], mode)  # mode problems (calibration, white reference) surface now
-    dem = None
-    if options.dem is not None:   # the DEM gives the ground: no flat height to settle
-        from archive.dem import DemSpec
+    from archive.dem import DemSpec, sources_dem
 
+    if options.dem is not None:   # the DEM gives the ground: no flat height to settle
         dem = DemSpec.create(options.dem, options.dem_datum)
+    elif str(options.ground_height).strip().lower() == "auto":   # collections ingested with --dem: theirs
+        dem = sources_dem(sources)
+    else:
+        dem = None
+    if dem is not None:
         grounds = [None] * len(sources)
         opened = dem.open()
         meshes = tuple(cube_meshes(s, nav.fov_deg, math.nan, float(options.max_view_angle), terrain=opened,

@@ -28,13 +28,20 @@ def _parse(path: Path, number: int, line: str) -> float:
     text = line.strip()
     if not text:
         raise FormatError(path, f"line {number}: empty line", "one time value per image line")
-    try:
-        value = float(text)
-    except ValueError:
-        raise FormatError(path, f"line {number}: {text!r} is not a number") from None
+    value = _number(text)
+    if value is None:
+        raise FormatError(path, f"line {number}: {text!r} is not a number")
     if not math.isfinite(value):
         raise FormatError(path, f"line {number}: value {text!r} is not finite")
     return value
+
+
+def _number(text: str) -> float | None:
+    """``text`` as a float, None when it is not a number."""
+    try:
+        return float(text)
+    except ValueError:
+        return None
 
 
 def read_times(path: str | os.PathLike, expected_lines: int | None = None) -> np.ndarray:

@@ -66,7 +66,7 @@ def _terrain_record(src: RawFlightSource, dem_path, dem_datum: str | None, groun
     from scipy.spatial.transform import Rotation
 
     from archive.catalog.footprint import flight_footprint
-    from archive.dem import open_dem
+    from archive.dem import dem_record, open_dem
 
     if ground_height is not None:
         raise InputError("--dem", f"--dem and --ground-height {ground_height:g} are exclusive: the DEM gives "
@@ -83,9 +83,8 @@ def _terrain_record(src: RawFlightSource, dem_path, dem_datum: str | None, groun
                                  f"the median height of the DEM {dem.path} under the track")
     fp = flight_footprint(arrays["time"], position, Rotation.from_quat(arrays["attitude"]), frame,
                           float(src.params.fov_deg), ground, samples, where=str(src.label), terrain=dem)
-    record = {"dem": dem.path.name, "dem_path": str(dem.path), "datum": dem.datum, "declared": dem.declared,
-              "gsd": fp.gsd, "footprint_lonlat": [[[round(float(x), 9), round(float(y), 9)] for x, y in ring]
-                                                  for ring in fp.lonlat()]}
+    rings = [[[round(float(x), 9), round(float(y), 9)] for x, y in ring] for ring in fp.lonlat()]
+    record = {**dem_record(dem), "gsd": fp.gsd, "footprint_lonlat": rings}
     return ground, f"DEM {dem.path.name} (median under the track)", record
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -73,7 +74,7 @@ def summarize(source: RawFlightSource, fov_deg: float, dem=None) -> dict[str, An
     altitudes = []
     strips = 1
     previous_end = None
-    cal = source.calibration()
+    cal = source.has_calibration
     for info in source.cubes:
         t = source.line_times(info.index)
         track = source.track(info.index)
@@ -89,7 +90,7 @@ def summarize(source: RawFlightSource, fov_deg: float, dem=None) -> dict[str, An
             strips += 1
         strips += len(strip_slices(t, frame_interval(info.framerate, t))) - 1  # pauses inside the cube
         previous_end = float(t[-1])
-        if cal is not None:
+        if cal:
             # check the calibration fits this cube (bands, samples, binning, exposure keys)
             source.radiometry(info.index, [0], "radiance")
         cubes.append({
@@ -99,7 +100,8 @@ def summarize(source: RawFlightSource, fov_deg: float, dem=None) -> dict[str, An
             "start_s": round(float(t[0]), 3), "end_s": round(float(t[-1]), 3), "duration_s": round(duration, 3),
             "measured_line_rate_hz": _number(1.0 / interval if interval > 0 else None),
             "track_length_m": round(length, 2), "mean_altitude_m": round(float(np.mean(lcf_alt)), 2),
-            "lcf": str(source.files(info.index).lcf.name), "lcf_rows": int(len(track.time)),
+            "lcf": (str(source.files(info.index).lcf.name) if hasattr(source, "files") else f"{info.base}.lcf"),
+            "lcf_rows": int(len(track.time)),
         })
     start = source.cubes[0].first_time
     end = float(source.line_times(len(source.cubes) - 1)[-1])
@@ -109,7 +111,7 @@ def summarize(source: RawFlightSource, fov_deg: float, dem=None) -> dict[str, An
     samples = source.cubes[0].samples
     duration = end - start
     return {
-        "directory": str(source.directory),
+        "directory": str(getattr(source, "directory", None) or getattr(source, "store", source.label)),
         "id": source.id,
         "cubes": len(source.cubes),
         "strips": strips,
@@ -132,7 +134,8 @@ def summarize(source: RawFlightSource, fov_deg: float, dem=None) -> dict[str, An
         "fov_deg": fov_deg,
         "swath_per_m_height": round(2 * half, 4),
         "gsd_per_m_height": round(2 * half / samples, 6),
-        "calibration": None if source.calibration_path is None else str(source.calibration_path),
+        "calibration": (str(source.calibration_path) if getattr(source, "calibration_path", None) is not None
+                        else "stored in the collection" if source.has_calibration else None),
         **({} if dem is None else {"terrain": terrain_summary(source, fov_deg, dem)}),
         "cube_list": cubes,
     }
@@ -176,18 +179,34 @@ def format_summary(s: dict[str, Any]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``archive info DIR [--fov DEG] [--sync-offset S] [--json]``; errors propagate as ArchiveError."""
-    params = NavigationParams(fov_deg=float(args.fov), sync_offset=float(args.sync_offset))
-    dem = None
-    if getattr(args, "dem", None) is not None:
-        from archive.dem import open_dem
+    """``archive info DIR|ID [--archive A] [--fov DEG] [--sync-offset S] [--dem FILE] [--json]``; errors
+    propagate as ArchiveError. A collection ingested with a DEM is summarised over it (``--dem`` wins)."""
+    from archive.dem import open_dem, recorded_dem
+    from archive.sources import open_source
 
-        dem = open_dem(args.dem, args.dem_datum)
-    elif getattr(args, "dem_datum", None) is not None:
+    archive = getattr(args, "archive", None)
+    fov = getattr(args, "fov", None)
+    if getattr(args, "dem", None) is None and getattr(args, "dem_datum", None) is not None:
         raise InputError("--dem-datum", "gives the vertical datum of a DEM, but no --dem was given",
                          "add --dem FILE, or leave --dem-datum out")
-    source = RawFlightSource(args.directory, params)
-    summary = summarize(source, params.fov_deg, dem)
+    if archive is None or Path(args.directory).is_dir():
+        params = NavigationParams(fov_deg=47.5 if fov is None else float(fov), sync_offset=float(args.sync_offset))
+        source = RawFlightSource(args.directory, params)
+        spec = None
+    else:
+        if fov is None:
+            from archive.catalog.root import open_archive
+            from archive.collection import read_info
+
+            fov = read_info(open_archive(archive).require_collection(str(args.directory)), navigation=False).fov_deg
+        params = NavigationParams(fov_deg=float(fov), sync_offset=None)
+        source = open_source(args.directory, params, archive=archive)
+        spec = recorded_dem(source.info.attrs.get("terrain"), str(args.directory))
+    if getattr(args, "dem", None) is not None:
+        dem = open_dem(args.dem, args.dem_datum)
+    else:
+        dem = None if spec is None else spec.open()
+    summary = summarize(source, source.params.fov_deg, dem)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

@@ -26,7 +26,7 @@ import numpy as np
 from archive.errors import InputError
 from archive.grid import Grid
 
-__all__ = ["CHUNK", "OutputMeta", "Sink", "TileWriter", "all_nan", "check_tile", "chunk_buffer", "variable_for_mode"]
+__all__ = ["CHUNK", "OutputMeta", "Sink", "TileWriter", "all_nan", "check_bands", "check_tile", "chunk_buffer", "variable_for_mode"]
 
 #: Output tile = Zarr chunk edge, pixels.
 CHUNK = 1024
@@ -110,6 +110,13 @@ def check_tile(tile, height: int, width: int, size: tuple[int, int] = (CHUNK, CH
     if row0 % th or col0 % tw or not (0 < h <= th and 0 < w <= tw) \
             or h != min(th, height - row0) or w != min(tw, width - col0):
         raise ValueError(f"tile {tile} is not one {th} x {tw} px tile of a {height} x {width} mosaic")
+
+
+def check_bands(band0: int, nbands: int, total: int, what: str) -> None:
+    """ValueError unless bands band0 .. band0 + nbands - 1 lie within the ``total`` of a sink (``what``
+    names them: 'of a 3-band ENVI file')."""
+    if not 0 <= band0 < band0 + nbands <= total:
+        raise ValueError(f"bands {band0}..{band0 + nbands - 1} {what}")
 
 
 _VARIABLES = {"raw": "dn", "relative": "relative", "radiance": "radiance", "reflectance": "reflectance"}

@@ -20,7 +20,7 @@ import numpy as np
 from archive.errors import RenderError
 from archive.files import remove_path
 from archive.grid import Grid
-from archive.outputs.base import CHUNK, OutputMeta, Sink, TileWriter, all_nan, check_tile, chunk_buffer
+from archive.outputs.base import CHUNK, OutputMeta, Sink, TileWriter, all_nan, check_bands, check_tile, chunk_buffer
 from archive.outputs.layers import layers_cog_metadata, sibling_path
 
 __all__ = ["CogSink", "CogWriter", "assemble_cog", "read_band"]
@@ -86,8 +86,7 @@ class CogSink(Sink):
 
     def open_tile(self, band0: int, tile, nbands: int) -> _CogTileWriter:
         check_tile(tile, self.height, self.width)
-        if not 0 <= band0 < band0 + nbands <= self.nbands:
-            raise ValueError(f"bands {band0}..{band0 + nbands - 1} of a {self.nbands}-band COG")
+        check_bands(band0, nbands, self.nbands, f"of a {self.nbands}-band COG")
         return _CogTileWriter(self, band0, tile, nbands)
 
     def overview(self, level: int, r: int, c: int, band0: int, nbands: int,

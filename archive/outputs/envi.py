@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from archive.grid import Grid
-from archive.outputs.base import CHUNK, OutputMeta, Sink, TileWriter, check_tile, chunk_buffer
+from archive.outputs.base import CHUNK, OutputMeta, Sink, TileWriter, check_bands, check_tile, chunk_buffer
 from archive.outputs.layers import sibling_path
 
 __all__ = ["ENVI_STRIP_MAX", "EnviSink", "EnviWriter", "envi_data_path", "envi_header", "map_info"]
@@ -69,8 +69,7 @@ class EnviSink(Sink):
 
     def open_tile(self, band0: int, tile, nbands: int) -> _EnviTileWriter:
         check_tile(tile, self.height, self.width, self.tile_size)
-        if not 0 <= band0 < band0 + nbands <= self.nbands:
-            raise ValueError(f"bands {band0}..{band0 + nbands - 1} of a {self.nbands}-band ENVI file")
+        check_bands(band0, nbands, self.nbands, f"of a {self.nbands}-band ENVI file")
         return _EnviTileWriter(self, band0, tile)
 
 

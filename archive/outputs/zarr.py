@@ -22,7 +22,7 @@ import numpy as np
 
 from archive.files import write_atomic
 from archive.grid import Grid
-from archive.outputs.base import CHUNK, OutputMeta, Sink, TileWriter, chunk_buffer
+from archive.outputs.base import CHUNK, OutputMeta, Sink, TileWriter, check_bands, chunk_buffer
 from archive.outputs.layers import layer_attrs, layers_metadata
 
 __all__ = ["ChunkWriter", "LayersStore", "MosaicStore", "ZarrWriter", "add_zarr_layers", "geozarr_attrs",
@@ -388,8 +388,7 @@ class LayersStore(Sink):
     blank_tiles: ClassVar[bool] = False   # unwritten chunks read as NaN
 
     def open_tile(self, band0: int, tile, nbands: int) -> _LayersTileWriter:
-        if not 0 <= band0 < band0 + nbands <= len(self.names):
-            raise ValueError(f"layers {band0}..{band0 + nbands - 1} of {len(self.names)}")
+        check_bands(band0, nbands, len(self.names), f"of {len(self.names)} layers")
         return _LayersTileWriter(self, band0, tile)
 
 
