@@ -32,6 +32,7 @@ that walls do not stall it; a crossing is then bracketed), and the bracket is bi
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import warnings
@@ -150,6 +151,7 @@ class DemSpec:
     datum: str | None = None
     size: int = 0
     mtime_ns: int = 0
+    offset: float = 0.0   #: metres added to every height (the viewer's vertical offset of a DEM)
 
     @classmethod
     def create(cls, path, datum: str | None = None) -> DemSpec:
@@ -162,10 +164,11 @@ class DemSpec:
         return cls(str(p), None if datum is None else str(datum), size, mtime)
 
     def open(self) -> Dem:
-        return open_dem(self.path, self.datum)
+        dem = open_dem(self.path, self.datum)
+        return dem if not self.offset else dataclasses.replace(dem, offset=float(self.offset))
 
     def __dask_tokenize__(self):
-        return ("DemSpec", self.path, self.datum, self.size, self.mtime_ns)
+        return ("DemSpec", self.path, self.datum, self.size, self.mtime_ns, self.offset)
 
 
 def dem_record(dem: Dem) -> dict:
@@ -253,6 +256,7 @@ class Dem:
     crs_epsg: int | None = None
     unit: float = 1.0
     _separation: object = field(default=None, repr=False)
+    offset: float = 0.0   #: metres added to every height read (a vertical offset of the whole DEM)
 
     # -- coordinates ---------------------------------------------------------------------------
     def _to_dem(self, epsg: int, e, n):
@@ -329,7 +333,7 @@ class Dem:
         block = np.where(mask == 0, np.nan, block)
         if self.nodata is not None and not math.isnan(self.nodata):
             block = np.where(block == self.nodata, np.nan, block)
-        return block
+        return block + self.offset if self.offset else block
 
     def _aligned(self, epsg: int) -> float | None:
         """The pixel side (m) when the DEM is a north-up grid of square metre pixels in the UTM

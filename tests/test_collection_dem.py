@@ -101,3 +101,53 @@ def test_moved_or_changed_dem_is_refused(ingested, tmp_path):
         assert str(dem) in done.stderr and "changed since" in done.stderr, done.stderr
     finally:
         shutil.copy(backup, dem)
+
+
+def test_viewer_draws_the_collection_on_its_dem(ingested, tmp_path):
+    """The viewer's point spectra of a DEM collection equal ``archive render --dem`` at those pixels,
+    float32 bit for bit (the same terrain meshes); its ground slider is the DEM's vertical offset."""
+    import warnings
+
+    from pyproj import Transformer
+
+    from archive.view.flights import FlightRegistry
+    from archive.view.server import create_app
+
+    directory, dem, archive, cid = ingested
+    out = tmp_path / "dem.tif"
+    done = _archive("render", directory, "--fov", FOV, "--dem", dem, "--gsd", GSD, "--out", out, "--quiet")
+    assert done.returncode == 0, done.stderr
+    import rasterio
+
+    with rasterio.open(out) as f:
+        values, transform, epsg = f.read(), f.transform, f.crs.to_epsg()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        from starlette.testclient import TestClient
+    to_ll = Transformer.from_crs(epsg, 4326, always_xy=True)
+    rows, cols = np.nonzero(np.isfinite(values).all(axis=0))
+    pick = np.random.default_rng(3).choice(len(rows), 12, replace=False)
+    with TestClient(create_app(FlightRegistry(archive))) as client:
+        info = client.get(f"/api/collections/{cid}").json()
+        assert info["terrain"] == {"dem": "dem.tif", "offset": 0.0} and info["ground_height"] == 0.0
+        for k in pick:
+            r, c = int(rows[k]), int(cols[k])
+            x, y = transform * (c + 0.5, r + 0.5)
+            lon, lat = to_ll.transform(x, y)
+            p = client.get(f"/api/collections/{cid}/point",
+                           params={"lon": repr(lon), "lat": repr(lat), "gsd": repr(GSD), "mode": "radiance"}).json()
+            assert p["covered"], p
+            spectrum = np.array([np.nan if v is None else v for v in p["values"]], np.float32)
+            assert np.array_equal(spectrum.view(np.uint32), values[:, r, c].view(np.uint32)), (r, c)
+        # a vertical offset of the DEM moves the picture: the same point shows another line or sample
+        moved = 0
+        for k in pick:
+            r, c = int(rows[k]), int(cols[k])
+            lon, lat = to_ll.transform(*(transform * (c + 0.5, r + 0.5)))
+            a = client.get(f"/api/collections/{cid}/point", params={"lon": repr(lon), "lat": repr(lat),
+                                                                   "gsd": repr(GSD)}).json()
+            b = client.get(f"/api/collections/{cid}/point", params={"lon": repr(lon), "lat": repr(lat),
+                                                                   "gsd": repr(GSD), "ground_height": "3"}).json()
+            assert b["ground_height"] == 3.0
+            moved += (a["line"], a["sample"]) != (b["line"], b["sample"])
+        assert moved >= len(pick) // 2

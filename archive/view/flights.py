@@ -6,7 +6,10 @@ named. :class:`Flight` holds one flight's caches and does its drawing with the i
 
 - geometry per (ground height, sync offset): the opened source, its cube meshes (the same
   :func:`~archive.graph.plan.cube_meshes` as ``archive render``) transformed to EPSG:3857 for tiles
-  and to the UTM zone of ``archive render`` (:func:`~archive.graph.plan.job_epsg`) for points;
+  and to the UTM zone of ``archive render`` (:func:`~archive.graph.plan.job_epsg`) for points. A
+  collection ingested with a DEM is drawn on its terrain (the meshes of ``archive render --dem``:
+  at the flight's nominal GSD for tiles, at the point's GSD for spectra); its "ground height" is
+  then a vertical offset of the DEM (m, 0 = the DEM as it is);
 - lookups (pass 1 of the renderer: which line and sample each tile pixel sees) per cube and tile
   grid, shared by every band choice; cube bands (DN) read from the store once.
 
@@ -21,6 +24,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,6 +74,7 @@ class Geometry:
     utm: tuple
     mercator: tuple
     bounds: np.ndarray
+    gsd: float | None = None   #: terrain meshes: the output pixel they were built for (m); None: flat
 
     def union(self, cubes: range) -> tuple[float, float, float, float] | None:
         """W, S, E, N (EPSG:3857 m) of the cubes' meshes, None when none is drawable."""
@@ -155,9 +160,25 @@ class Flight:
         params = NavigationParams(fov_deg=47.5, sync_offset=sync_offset, boresight_deg=None, lever_arm_m=None)
         return self._keep(self._sources, sync_offset, self.opener(params), GEOMETRIES_KEPT)
 
-    def geometry(self, ground_height: float | None, sync_offset: float | None) -> Geometry:
-        """Meshes at this ground height (None: auto) and sync offset (None: as ingested)."""
-        key = (ground_height, sync_offset)
+    def terrain(self):
+        """(the :class:`~archive.dem.DemSpec` of the DEM the collection was ingested with, its nominal
+        GSD m) or None for a flight drawn on flat ground (raw flights, collections ingested flat)."""
+        from archive.dem import recorded_dem
+
+        source = self.source(None)
+        record = getattr(getattr(source, "info", None), "attrs", {}).get("terrain")
+        spec = recorded_dem(record, self.id)
+        return None if spec is None else (spec, float(record.get("gsd") or 0.05))
+
+    def geometry(self, ground_height: float | None, sync_offset: float | None,
+                 gsd: float | None = None) -> Geometry:
+        """Meshes at this ground height (None: auto) and sync offset (None: as ingested). Over a
+        DEM, ``ground_height`` is the DEM's vertical offset (m, None: 0) and ``gsd`` the output pixel
+        the terrain meshes are built for (None: the flight's nominal GSD)."""
+        terrain = self.terrain()
+        if terrain is not None:
+            gsd = float(gsd if gsd is not None else terrain[1])
+        key = (ground_height, sync_offset, gsd if terrain is not None else None)
         found = self._geometries.get(key)
         if found is not None:
             self._geometries.move_to_end(key)
@@ -166,14 +187,20 @@ class Flight:
         from archive.sources.select import resolve_ground_height
 
         source = self.source(sync_offset)
-        ground = resolve_ground_height("auto" if ground_height is None else ground_height, [source])
-        meshes = cube_meshes(source, self.fov, ground)
+        if terrain is not None:
+            ground = 0.0 if ground_height is None else float(ground_height)
+            dem = dataclasses.replace(terrain[0], offset=ground).open()
+            meshes = cube_meshes(source, self.fov, math.nan, terrain=dem, gsd=gsd)
+        else:
+            ground = resolve_ground_height("auto" if ground_height is None else ground_height, [source])
+            meshes = cube_meshes(source, self.fov, ground)
         epsg = job_epsg([meshes])
         utm = tuple(m if m.epsg == epsg else m.to_epsg(epsg) for m in meshes)
         mercator = tuple(m.to_epsg(MERCATOR_EPSG) for m in meshes)
         bounds = np.array([m.bounds_utm() if m.rows >= 2 else (np.nan,) * 4 for m in mercator], float)
-        return self._keep(self._geometries, key, Geometry(source, float(ground), int(epsg), utm, mercator, bounds),
-                          GEOMETRIES_KEPT)
+        return self._keep(self._geometries, key,
+                          Geometry(source, float(ground), int(epsg), utm, mercator, bounds,
+                                   gsd if terrain is not None else None), GEOMETRIES_KEPT)
 
     def cube_range(self, cubes: tuple[int, int] | None) -> range:
         n = len(self.cubes)
@@ -239,7 +266,7 @@ class Flight:
             if found.box() is None:
                 return None, 64
             return found, found.line.nbytes + found.sample.nbytes
-        key = (self.id, geometry.ground_height, geometry.source.params.sync_offset, cube, grid)
+        key = (self.id, geometry.ground_height, geometry.source.params.sync_offset, geometry.gsd, cube, grid)
         return self.lookup_cache.get_or_make(key, make)
 
     def render(self, grid: Grid, bands: Sequence[int], mode: str, cubes: range, geometry: Geometry,
@@ -336,7 +363,7 @@ class Flight:
         from archive.navigation import project, to_lonlat
         from archive.render.renderer import Lookup, rasterize_lookup, render_lookup
 
-        geometry = self.geometry(query.ground_height, query.sync_offset)
+        geometry = self.geometry(query.ground_height, query.sync_offset, gsd)
         cubes = self.cube_range(query.cubes)
         mode = self.mode(query)
         x, y = (float(v) for v in project(lon, lat, geometry.epsg))
@@ -402,6 +429,8 @@ class Flight:
             "default_mode": "radiance" if self.has_calibration else "raw",
             "ground_height": geometry.ground_height,
             "lowest_camera": float(np.min(camera_altitudes(source))),
+            "terrain": (None if geometry.gsd is None else
+                        {"dem": Path(self.terrain()[0].path).name, "offset": geometry.ground_height}),
             "sync_offset": float(source.params.sync_offset),
             "cubes": [{"index": c.index, "base": c.base, "lines": c.lines, "samples": c.samples}
                       for c in self.cubes],

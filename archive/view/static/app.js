@@ -101,8 +101,11 @@ function setDefaults() {
   $("cube-first").value = 0; $("cube-last").value = info.cubes.length - 1;
   const gh = info.ground_height;
   const ground = $("ground");
-  ground.min = (gh - 30).toFixed(1);
-  ground.max = Math.min(gh + 30, info.lowest_camera - 1.5).toFixed(1);
+  // over a DEM (a collection ingested with --dem) the slider is the DEM's vertical offset
+  document.querySelector('label[for="ground"]').textContent = info.terrain ? "DEM offset" : "Ground";
+  ground.title = info.terrain ? `vertical offset of ${info.terrain.dem}, metres` : "flat ground height, metres";
+  ground.min = (gh - (info.terrain ? 10 : 30)).toFixed(1);
+  ground.max = (info.terrain ? gh + 10 : Math.min(gh + 30, info.lowest_camera - 1.5)).toFixed(1);
   ground.value = gh;
   const sync = $("sync");
   sync.min = (info.sync_offset - 0.25).toFixed(3); sync.max = (info.sync_offset + 0.25).toFixed(3);
