@@ -47,7 +47,8 @@ def _triple(text: str) -> tuple[float, float, float]:
     return values  # type: ignore[return-value]
 
 
-def _command(sub: argparse._SubParsersAction, name: str, help: str, description: str) -> argparse.ArgumentParser:
+def _command(sub, name: str, help: str, description: str) -> argparse.ArgumentParser:
+    """The parser of subcommand ``name`` (``sub``: what ``add_subparsers`` returned)."""
     return sub.add_parser(name, help=help, description=description)
 
 
@@ -77,7 +78,7 @@ def _add_mounting(p: argparse.ArgumentParser, recorded: bool) -> None:
                    help=f"camera position from the INS in the body frame (x forward, y right, z down), metres ({default})")
 
 
-def _add_simulate(sub: argparse._SubParsersAction) -> None:
+def _add_simulate(sub) -> None:
     p = _command(sub, "simulate", "write a simulated Resonon flight with its ground truth", (
         "Write a simulated airborne pushbroom flight in the Resonon layout (<base>.bil, .bil.hdr, "
         ".lcf, .bil.times per cube, plus calibration.icp) and its ground truth (truth/: scene, "
@@ -143,7 +144,7 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     _add_run_flags(p, "replace DIR if it exists")
 
 
-def _add_render(sub: argparse._SubParsersAction) -> None:
+def _add_render(sub) -> None:
     p = _command(sub, "render", "georectify flights into a mosaicked, georeferenced cube", (
         "Georectify one or more flights by the inverse (mesh + OpenGL) method and write one "
         "mosaic: Zarr (.zarr), Cloud-Optimized GeoTIFF (.tif) or ENVI BSQ (.hdr), float32 with NaN "
@@ -208,7 +209,7 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     _add_run_flags(p, "replace PATH if it exists")
 
 
-def _add_info(sub: argparse._SubParsersAction) -> None:
+def _add_info(sub) -> None:
     p = _command(sub, "info", "check a raw flight directory (or a collection) and print its summary", (
         "Read every cube of a raw flight directory (headers, .times, .lcf, calibration), check "
         "that each is complete and that navigation covers every line, and print a summary: cubes, "
@@ -224,7 +225,7 @@ def _add_info(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
-def _add_ingest(sub: argparse._SubParsersAction) -> None:
+def _add_ingest(sub) -> None:
     p = _command(sub, "ingest", "ingest raw flights into chunked Zarr collections and catalog them", (
         "Check each raw flight directory completely, then store it as ARCHIVE/collections/<id>.zarr "
         "(Zarr v3: DN chunked one band of one cube per chunk and compressed, per-line times and poses, "
@@ -247,7 +248,7 @@ def _add_ingest(sub: argparse._SubParsersAction) -> None:
     _add_run_flags(p, "re-ingest flights that are already in the archive")
 
 
-def _add_verify(sub: argparse._SubParsersAction) -> None:
+def _add_verify(sub) -> None:
     p = _command(sub, "verify", "re-check stored collections against their recorded checksums", (
         "Decode every DN chunk and small array of a collection (or of all collections) and compare "
         "their sha256 with those recorded at ingest. Exit code 0 when all are intact, 1 otherwise."))
@@ -256,7 +257,7 @@ def _add_verify(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def _add_catalog(sub: argparse._SubParsersAction) -> None:
+def _add_catalog(sub) -> None:
     p = _command(sub, "catalog", "search, list, rebuild or validate an archive's catalog", (
         "Query the archive's catalog (STAC Items + SQLite index), rebuild the index and the STAC tree "
         "(ARCHIVE/catalog.json -> catalog/collection.json -> catalog/items/<id>.json) from the Items, or "
@@ -301,7 +302,7 @@ def _add_catalog(sub: argparse._SubParsersAction) -> None:
     a.add_argument("--archive", required=True, metavar="ARCHIVE", help="archive directory")
 
 
-def _add_view(sub: argparse._SubParsersAction) -> None:
+def _add_view(sub) -> None:
     p = _command(sub, "view", "browse the archive's flights in a web browser, georectified on the fly", (
         "Start a local web server and print its URL: a map of the catalog's footprints; opening a "
         "flight draws it georectified by the inverse renderer as Web-Mercator tiles (RGB or grey "

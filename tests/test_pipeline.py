@@ -301,6 +301,36 @@ def test_select_bands(flight):
         select_bands(src, None, "6")
 
 
+@pytest.mark.parametrize("overlap", ["last", "nadir"])
+def test_write_graph_and_lazy_arrays_share_their_nodes(flight, tmp_path, overlap):
+    """``archive render``'s write graph and ``archive.mosaic``'s lazy arrays build the same lookup,
+    render, per-cube layer and rule-key nodes for the same request: their keys are equal (both come
+    from :mod:`archive.graph.nodes`), so the two cannot drift apart."""
+    import archive
+    from archive.api import plan
+    from archive.outputs.publish import Output
+    from archive.pipeline import build_output
+
+    directory, truth = flight
+    request = dict(gsd=GSD, fov=FOV, ground_height=truth.ground_height, overlap=overlap, band_group=4)
+    output = Output(tmp_path / "m.zarr")
+    try:
+        _, graph = build_output(plan([directory], **request), output)
+        written = set().union(*(dict(d.__dask_graph__()) for d in graph.writes))
+    finally:
+        output.cleanup()
+    lazy = set(dict(archive.mosaic([directory], **request)["radiance"].data.__dask_graph__()))
+
+    def nodes(keys, kind):
+        return {k for k in keys if isinstance(k, str) and k.startswith(f"{kind}-")}
+
+    for kind in ("lookup", "render", "mesh", "source"):
+        assert nodes(written, kind) and nodes(written, kind) == nodes(lazy, kind), kind
+    assert len(nodes(written, "lookup")) == 4 and len(nodes(written, "render")) == 4 * 2
+    for kind in ("layers", "key"):   # only the 'nadir' rule compares a layer (the view zenith)
+        assert nodes(written, kind) == nodes(lazy, kind) and bool(nodes(lazy, kind)) == (overlap == "nadir"), kind
+
+
 def test_graph_is_deterministic_and_annotated(flight, tmp_path):
     from archive.graph.build import build_render_graph
     from archive.graph.plan import cube_meshes, plan_render
