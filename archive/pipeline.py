@@ -134,7 +134,8 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
         mode = "raw"
     for s, b in zip(sources, bands):
         s.radiometry(0, b[:1], mode)  # mode problems (calibration, white reference) surface now
-    from archive.dem import DemSpec, sources_dem
+    from archive.dem import DemSpec
+    from archive.sources.ground import sources_dem
 
     if options.dem is not None:   # the DEM gives the ground: no flat height to settle
         dem = DemSpec.create(options.dem, options.dem_datum)

@@ -256,7 +256,7 @@ LAYERS = [
     ("formats", ("archive.formats",)),
     ("geometry", ("archive.navigation", "archive.provenance")),
     ("store", ("archive.collection",)),
-    ("terrain", ("archive.dem",)),   # a collection records the DEM it was ingested with
+    ("terrain", ("archive.dem", "archive.surface")),   # a collection records the DEM it was ingested with
     ("catalog", ("archive.catalog",)),
     ("sources", ("archive.sources",)),
     ("render", ("archive.render",)),

@@ -47,7 +47,7 @@ def register_output(root: ArchiveRoot, product_path: str | os.PathLike) -> list[
     """Add the output described by ``product_path`` (an ``<out>.json``) to the Items of its
     source collections; returns their ids. InputError when none of its sources is a collection
     of this archive."""
-    from archive.catalog.tree import _locked
+    from archive.catalog.tree import locked
 
     product_path = Path(product_path)
     if not product_path.is_file():
@@ -60,7 +60,7 @@ def register_output(root: ArchiveRoot, product_path: str | os.PathLike) -> list[
         raise InputError(product_path, f"none of its sources ({', '.join(sources) or 'none recorded'}) is a "
                                        f"collection of {root.path}",
                          "render from the archive's collection ids (archive render ID --archive ARCHIVE)")
-    with _locked(root):
+    with locked(root):
         for cid in targets:
             path = root.item_path(cid)
             item = read_item_file(path)

@@ -98,7 +98,7 @@ def collection_dict(rows: list[IndexRow]) -> dict:
 
 
 @contextlib.contextmanager
-def _locked(root: ArchiveRoot):
+def locked(root: ArchiveRoot):
     """An exclusive lock on the archive's catalog (so that two ingests never interleave their
     read of the index and their writes); none where fcntl does not exist."""
     try:
@@ -139,7 +139,7 @@ def write_catalog(root: ArchiveRoot | str | os.PathLike, *, rescan: bool = False
     every Item file its collection field and links and rebuild the index from the Item files.
     Returns the path of the root Catalog."""
     root = root if isinstance(root, ArchiveRoot) else open_archive(root)
-    with _locked(root):
+    with locked(root):
         if rescan:
             _link_items(root)
             rebuild_index(root)

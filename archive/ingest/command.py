@@ -66,7 +66,8 @@ def _terrain_record(src: RawFlightSource, dem_path, dem_datum: str | None, groun
     from scipy.spatial.transform import Rotation
 
     from archive.catalog.footprint import flight_footprint
-    from archive.dem import dem_record, open_dem
+    from archive.dem import open_dem
+    from archive.sources.ground import dem_record
 
     if ground_height is not None:
         raise InputError("--dem", f"--dem and --ground-height {ground_height:g} are exclusive: the DEM gives "

@@ -181,8 +181,9 @@ def format_summary(s: dict[str, Any]) -> str:
 def run(args: argparse.Namespace) -> int:
     """``archive info DIR|ID [--archive A] [--fov DEG] [--sync-offset S] [--dem FILE] [--json]``; errors
     propagate as ArchiveError. A collection ingested with a DEM is summarised over it (``--dem`` wins)."""
-    from archive.dem import open_dem, recorded_dem
+    from archive.dem import open_dem
     from archive.sources import open_source
+    from archive.sources.ground import recorded_dem
 
     archive = getattr(args, "archive", None)
     fov = getattr(args, "fov", None)

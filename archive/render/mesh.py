@@ -102,22 +102,9 @@ from scipy.spatial.transform import Rotation
 
 from archive.errors import InputError, RenderError
 from archive.navigation import DEFAULT_MAX_VIEW_ANGLE, frame_interval, ground_hits, joined, view_angles
+from archive.render.terrain import (EDGE_ERROR_PX, GRAZING_DEG, MAX_COLUMNS, MAX_LEVELS,  # noqa: F401 (re-exported)
+                                    OCCLUSION_PX, START_COLUMN, terrain_mesh)
 
-#: Terrain meshes: the straight-edge error bound, output pixels (checked at segment midpoints
-#: against half of it, see :func:`archive.render.terrain.terrain_mesh`).
-EDGE_ERROR_PX = 0.1
-#: Terrain meshes: an edge within this angle of the line of sight (the surface between its ends
-#: would be seen at more than 90 - GRAZING_DEG degrees of incidence) spans an occlusion.
-GRAZING_DEG = 10.0
-#: Terrain meshes: segments spanning an occlusion are split until their rays are this close on the
-#: ground (output pixels), so that the ground left out beside an occlusion stays below it.
-OCCLUSION_PX = 0.5
-#: Terrain meshes: columns start at most this many DEM pixels or output pixels wide on the ground
-#: (the larger), then are halved where the straight-edge check needs it.
-START_COLUMN = 4.0
-#: Terrain meshes: most vertices per row, and most halvings of a column.
-MAX_COLUMNS = 4097
-MAX_LEVELS = 10
 
 if TYPE_CHECKING:  # pragma: no cover
     from archive.navigation import LocalFrame, Poses
@@ -378,10 +365,8 @@ def build_mesh(
         keep &= ~too_far
 
     if terrain is not None:
-        from archive.render.terrain import terrain_mesh
-
-        return terrain_mesh(frame, mid_pos, mid_att, keep, link, line, lines, first, float(fov_deg),
-                            terrain, gsd, no_navigation, oblique)
+        return Mesh(frame, **terrain_mesh(frame, mid_pos, mid_att, keep, link, line, lines, first,
+                                           float(fov_deg), terrain, gsd, no_navigation, oblique))
     t = math.tan(math.radians(fov_deg) / 2)
     d_ground = float(frame.origin_alt) - float(ground_height)
     below = keep & (mid_pos[:, 2] >= d_ground)

@@ -19,10 +19,25 @@ from dataclasses import dataclass
 import numpy as np
 
 from archive.errors import InputError, RenderError
-from archive.render.mesh import (EDGE_ERROR_PX, GRAZING_DEG, MAX_COLUMNS, MAX_LEVELS, OCCLUSION_PX, START_COLUMN,
-                                 Mesh)
 
-__all__ = ["terrain_mesh", "zipper"]
+__all__ = ["EDGE_ERROR_PX", "GRAZING_DEG", "MAX_COLUMNS", "MAX_LEVELS", "OCCLUSION_PX", "START_COLUMN",
+           "terrain_mesh", "zipper"]
+
+#: Terrain meshes: the straight-edge error bound, output pixels (checked at segment midpoints
+#: against half of it, see :func:`_split`).
+EDGE_ERROR_PX = 0.1
+#: Terrain meshes: an edge within this angle of the line of sight (the surface between its ends
+#: would be seen at more than 90 - GRAZING_DEG degrees of incidence) spans an occlusion.
+GRAZING_DEG = 10.0
+#: Terrain meshes: segments spanning an occlusion are split until their rays are this close on the
+#: ground (output pixels), so that the ground left out beside an occlusion stays below it.
+OCCLUSION_PX = 0.5
+#: Terrain meshes: columns start at most this many DEM pixels or output pixels wide on the ground
+#: (the larger), then are halved where the straight-edge check needs it.
+START_COLUMN = 4.0
+#: Terrain meshes: most vertices per row, and most halvings of a column.
+MAX_COLUMNS = 4097
+MAX_LEVELS = 10
 
 
 def _enu(d: np.ndarray) -> np.ndarray:
@@ -171,19 +186,20 @@ def _regular_faces(v: int, k: np.ndarray, cols: np.ndarray) -> np.ndarray:
 
 
 def terrain_mesh(frame, mid_pos, mid_att, keep, link, line, lines, first, fov_deg, terrain, gsd,
-                 no_navigation, oblique) -> Mesh:
+                 no_navigation, oblique) -> dict:
     """The terrain part of :func:`archive.render.mesh.build_mesh` (its module docstring, "Terrain
     meshes" and "Watertight seams"): rows at mid-exposure ``mid_pos`` / ``mid_att`` where ``keep``,
     joined where ``link``; ``line`` the line coordinate of each row (-1 opening, ``lines`` closing);
-    ``first`` the index of the cube's line 0 among the rows."""
+    ``first`` the index of the cube's line 0 among the rows. Returns the fields of the
+    :class:`~archive.render.mesh.Mesh` (all but its frame)."""
     if gsd is None or not (math.isfinite(gsd) and gsd > 0):
         raise InputError("gsd", f"a terrain mesh needs the output pixel size, got {gsd!r}")
     t = math.tan(math.radians(fov_deg) / 2)
     rows = np.flatnonzero(keep)
 
-    def empty() -> Mesh:
-        return Mesh(frame, np.zeros((0, 2, 2)), np.ones((0, 2)), np.zeros(0), lines, fov_deg, math.nan,
-                    dropped={"no navigation": no_navigation, "view angle": oblique},
+    def empty() -> dict:
+        return dict(ground=np.zeros((0, 2, 2)), depth=np.ones((0, 2)), line=np.zeros(0), lines=lines,
+                    fov_deg=fov_deg, ground_height=math.nan, dropped={"no navigation": no_navigation, "view angle": oblique},
                     columns=np.array([0.0, 1.0]), distance=np.zeros((0, 2)))
 
     if rows.size == 0:
@@ -243,13 +259,14 @@ def terrain_mesh(frame, mid_pos, mid_att, keep, link, line, lines, first, fov_de
 
 
 def _regular_mesh(frame, cube: _Split, row_line, lines, fov_deg, joined_rows, breaks, gsd, no_navigation,
-                  oblique, worst, columns) -> Mesh:
+                  oblique, worst, columns) -> dict:
     """Every row on the cube's split: quads, with ``hidden`` flags per triangle."""
     hidden = None
     if len(row_line) > 1:
         hidden = _quad_hidden(cube, gsd)
     columns[0], columns[-1] = 0.0, 1.0
-    return Mesh(frame, cube.pts[..., :2], cube.lam, row_line, lines, fov_deg, math.nan, breaks=breaks,
+    return dict(ground=cube.pts[..., :2], depth=cube.lam, line=row_line, lines=lines, fov_deg=fov_deg,
+                ground_height=math.nan, breaks=breaks,
                 dropped={"no navigation": no_navigation, "view angle": oblique},
                 columns=columns, distance=cube.rng, hidden=hidden, edge_error=worst)
 
@@ -269,7 +286,7 @@ def _quad_hidden(split: _Split, gsd: float) -> np.ndarray:
 
 
 def _stitched_mesh(frame, cube: _Split, seams: dict[int, _Split], row_line, lines, fov_deg, joined_rows,
-                   breaks, gsd, no_navigation, oblique, worst, columns_of) -> Mesh:
+                   breaks, gsd, no_navigation, oblique, worst, columns_of) -> dict:
     """Rows on the cube's split, the two rows of each seam on the seam's split, all vertices on the
     union of the splits (``active`` says which a row uses), and explicit ``faces``: quads between
     rows of one split, zipper strips between rows of different splits."""
@@ -328,6 +345,7 @@ def _stitched_mesh(frame, cube: _Split, seams: dict[int, _Split], row_line, line
              else np.zeros((0, 3), np.int64)).astype(np.int32)
     columns = columns_of(union)
     columns[0], columns[-1] = 0.0, 1.0
-    return Mesh(frame, pts[..., :2], lam, row_line, lines, fov_deg, math.nan, breaks=breaks,
+    return dict(ground=pts[..., :2], depth=lam, line=row_line, lines=lines, fov_deg=fov_deg,
+                ground_height=math.nan, breaks=breaks,
                 dropped={"no navigation": no_navigation, "view angle": oblique},
                 columns=columns, distance=rng, hidden=None, edge_error=worst, active=active, faces=faces)

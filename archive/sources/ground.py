@@ -17,13 +17,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
 from archive.errors import InputError
 
 __all__ = ["GROUND_KEY", "MAX_CLEARANCE", "MIN_CLEARANCE", "auto_ground_height", "check_ground_height",
-           "header_ground_height"]
+           "dem_record", "header_ground_height", "recorded_dem", "sources_dem"]
 
 GROUND_KEY = "ground elevation"
 #: Least height of the camera above the ground, metres.
@@ -83,3 +84,72 @@ def auto_ground_height(sources: Sequence) -> float:
         raise InputError("--ground-height", f"the flights disagree on the ground height: {listing}",
                          "pass --ground-height M")
     return next(iter(found))
+
+
+# ---------------------------------------------------------------------------------------------
+# A collection's DEM (ingested with --dem): what it records, and the checks on reading it back
+# ---------------------------------------------------------------------------------------------
+_CHECKED: dict[tuple, str] = {}   #: sha256 of DEM files already checked, by (path, size, mtime)
+
+
+def dem_record(dem) -> dict:
+    """What a collection records of the DEM it was ingested with (its ``terrain`` attribute): the
+    file name, absolute path, vertical datum, whether the file declares it, and the sha256 of the
+    file (so that a DEM that changed since is refused, not silently drawn)."""
+    from archive.collection import sha256_file
+
+    return {"dem": dem.path.name, "dem_path": str(Path(dem.path).absolute()), "datum": dem.datum,
+            "declared": bool(dem.declared), "sha256": sha256_file(dem.path)}
+
+
+
+
+def recorded_dem(terrain: dict | None, where: str):
+    """The :class:`DemSpec` of a collection's recorded DEM (``terrain``: its ``terrain`` attribute,
+    :func:`dem_record`), None for a collection ingested without one. The file must still be where it
+    was and, when a checksum was recorded, hold the same bytes: else InputError naming the DEM and
+    ``where`` (the collection) and saying how to go on. The DEM is opened with the datum recorded
+    ('ellipsoid', 'egm96', ... or the declared datum's name)."""
+    if not terrain or not terrain.get("dem_path"):
+        return None
+    path = Path(str(terrain["dem_path"]))
+    fix = ("put the DEM back, pass --dem FILE to render over another DEM, or --ground-height M to "
+           "render flat")
+    if not path.is_file():
+        raise InputError(where, f"was ingested with the DEM {path}, which is no longer there", fix)
+    from archive.dem import DemSpec
+
+    spec = DemSpec.create(path, None if terrain.get("declared") else terrain.get("datum"))
+    digest = terrain.get("sha256")
+    if digest:
+        key = (spec.path, spec.size, spec.mtime_ns)
+        if key not in _CHECKED:
+            from archive.collection import sha256_file
+
+            _CHECKED[key] = sha256_file(path)
+        if _CHECKED[key] != digest:
+            raise InputError(where, f"the DEM {path} changed since the collection was ingested (sha256 "
+                             f"{_CHECKED[key][:12]}... instead of {str(digest)[:12]}...)", fix)
+    return spec
+
+
+def sources_dem(sources, where: str = "--dem"):
+    """The DEM the collections among ``sources`` were ingested with, when none of them was ingested
+    flat: one :class:`DemSpec` (they must agree, else InputError naming both), None when any source
+    has no recorded DEM (raw flights, collections ingested flat)."""
+    specs = []
+    for s in sources:
+        terrain = getattr(getattr(s, "info", None), "attrs", {}).get("terrain")
+        spec = recorded_dem(terrain, str(getattr(s, "id", None) or s.label))
+        if spec is None:
+            return None
+        specs.append((s, spec))
+    if not specs:
+        return None
+    first_source, first = specs[0]
+    for s, spec in specs[1:]:
+        if (spec.path, spec.datum) != (first.path, first.datum):
+            raise InputError(where, f"{first_source.label} was ingested with the DEM {first.path}, {s.label} with "
+                             f"{spec.path}", "pass --dem FILE (or --ground-height M) for all of them, or render "
+                             "them separately")
+    return first

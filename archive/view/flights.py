@@ -163,7 +163,7 @@ class Flight:
     def terrain(self):
         """(the :class:`~archive.dem.DemSpec` of the DEM the collection was ingested with, its nominal
         GSD m) or None for a flight drawn on flat ground (raw flights, collections ingested flat)."""
-        from archive.dem import recorded_dem
+        from archive.sources.ground import recorded_dem
 
         source = self.source(None)
         record = getattr(getattr(source, "info", None), "attrs", {}).get("terrain")
