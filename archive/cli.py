@@ -93,6 +93,9 @@ def _add_simulate(sub) -> None:
     p.add_argument("--cubes-per-pass", type=_positive_int, default=2,
                    help="cubes recorded back to back on each straight pass (default 2)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--start", metavar="ISO8601",
+                   help="UTC start of the flight (the first line follows 0.5 s later), e.g. 2024-06-12T16:00:00Z (default: 2024-06-12T16:00:00Z "
+                        "plus --seed minutes, so flights of different seeds get different ids)")
     p.add_argument("--lat", type=float, default=35.12, help="latitude of the site, degrees (default 35.12)")
     p.add_argument("--lon", type=float, default=-89.94, help="longitude of the site, degrees (default -89.94)")
     p.add_argument("--fov", type=float, default=47.5, help="across-track field of view, degrees (default 47.5)")

@@ -62,7 +62,8 @@ def catalog(tmp_path_factory):
     flights, truths = {}, {}
     for name, (kw, shift, wl, sensor) in FLIGHTS.items():
         d = base / name
-        truths[name] = simulate_flight(d, cubes=2, samples=48, lines=250, seed=len(name), **kw)
+        truths[name] = simulate_flight(d, cubes=2, samples=48, lines=250, seed=len(name),
+                                       start="2024-06-12T16:00:00Z", **kw)
         if shift:
             _shift_times(d, shift)
         if wl is not None or sensor is not None:

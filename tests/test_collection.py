@@ -64,7 +64,7 @@ def ingested(flight, tmp_path_factory):
 def test_id_and_layout(flight, ingested):
     d, truth = flight
     archive_dir, cid = ingested
-    assert cid == "Pika-L-SIM_20240612T160000"
+    assert cid == "Pika-L-SIM_20240612T160300"  # <sensor>_<UTC start>; seed 3 starts at 16:03
     store = archive_dir / "collections" / f"{cid}.zarr"
     assert (archive_dir / "archive.json").is_file()
     assert not (archive_dir / "collections" / f"{cid}.zarr.partial").exists()

@@ -281,3 +281,30 @@ def test_cli(tmp_path, capsys):
     assert len(truth.cubes) == 3 and truth.strips == [(0, 1), (2,)]
     assert main(args) == 2
     assert "exists" in capsys.readouterr().err
+
+
+def test_start_and_seed_give_the_flight_id(tmp_path, capsys):
+    """--start sets the first line's UTC time (hence the collection id <sensor>_<start>); without it
+    each seed starts a minute after the previous one (seed 0 at 2024-06-12T16:00:00Z)."""
+    from archive.formats.lcf import gps_seconds_to_datetime
+    from archive.simulator.command import T_START_GPS, start_gps
+
+    def first(directory):
+        # the first line follows the start by the run-in (RUN_S, 0.5 s): ids keep whole seconds
+        t = gps_seconds_to_datetime(float(read_lcf(discover_flight(directory).cubes[0].lcf).time[0]))
+        return t.replace(microsecond=0)
+
+    small = ["--cubes", "1", "--lines", "10", "--samples", "8", "--bands", "2", "--quiet"]
+    assert main(["simulate", str(tmp_path / "a"), *small, "--start", "2023-05-01T09:30:15Z"]) == 0
+    assert first(tmp_path / "a").isoformat() == "2023-05-01T09:30:15+00:00"
+    assert main(["simulate", str(tmp_path / "b"), *small, "--start", "2023-05-01T11:30:15+02:00"]) == 0
+    assert first(tmp_path / "b") == first(tmp_path / "a")
+    assert start_gps(None, 0) == T_START_GPS
+    assert gps_seconds_to_datetime(start_gps(None, 7)).isoformat() == "2024-06-12T16:07:00+00:00"
+    for seed in (0, 3):
+        assert main(["simulate", str(tmp_path / f"s{seed}"), *small, "--seed", str(seed)]) == 0
+    assert first(tmp_path / "s0").isoformat() == "2024-06-12T16:00:00+00:00"
+    assert first(tmp_path / "s3").isoformat() == "2024-06-12T16:03:00+00:00"
+    capsys.readouterr()
+    assert main(["simulate", str(tmp_path / "c"), *small, "--start", "yesterday"]) == 2
+    assert "--start" in capsys.readouterr().err

@@ -41,9 +41,12 @@ from archive.simulator.turns import RAMP_S, banked_turn
 from archive.simulator.truth import CubeTruth, Truth, save_truth
 from archive.simulator.writer import BilWriter, header_text, size_on_disk
 
-__all__ = ["simulate_flight", "run", "T_START_GPS", "CAMERA_CLOCK_START"]
+__all__ = ["simulate_flight", "run", "T_START_GPS", "CAMERA_CLOCK_START", "SEED_START_STEP_S", "start_gps"]
 
 T_START_GPS = 1402243218.0     #: 2024-06-12 16:00:00 UTC in GPS seconds (GPS - UTC = 18 s)
+#: s between the default starts of consecutive seeds: seed k starts at 2024-06-12 16:00 UTC + k
+#: minutes, so flights of different seeds get different collection ids (seed 0 keeps 16:00:00)
+SEED_START_STEP_S = 60.0
 CAMERA_CLOCK_START = 263.873396  #: s, camera clock (not GPS) at the first line of the flight
 SPEED = 10.0                   #: m/s
 HEIGHT = 40.0                  #: m above ground
@@ -106,6 +109,34 @@ def _check(cubes: int, bands: int, samples: int, lines: int, cubes_per_pass: int
         raise InputError("simulate", f"longitude {lon} is outside -180..180 degrees")
     if not 1.0 <= fov_deg <= 120.0:
         raise InputError("simulate", f"field of view {fov_deg} degrees, expected 1..120")
+
+
+def start_gps(start, seed: int = 0) -> float:
+    """GPS seconds of a flight's start (its first line follows :data:`RUN_S` later): ``start`` (an ISO 8601 text, 'Z' or an offset for the
+    zone, UTC without one; or a datetime), else the seed's default (:data:`T_START_GPS` +
+    ``seed`` x :data:`SEED_START_STEP_S`). InputError for an unreadable or implausible time."""
+    from datetime import UTC, datetime, timedelta
+
+    from archive.formats.lcf import GPS_EPOCH, gps_seconds_to_datetime
+
+    if start is None:
+        return T_START_GPS + int(seed) * SEED_START_STEP_S
+    when = start
+    if isinstance(start, str):
+        try:
+            when = datetime.fromisoformat(start.strip().replace("z", "Z").replace("Z", "+00:00"))
+        except ValueError:
+            raise InputError("--start", f"{start!r} is not an ISO 8601 time", "e.g. 2024-06-12T16:00:00Z") from None
+    if not isinstance(when, datetime):
+        raise InputError("--start", f"expected an ISO 8601 time or a datetime, got {start!r}")
+    when = when.replace(tzinfo=UTC) if when.tzinfo is None else when.astimezone(UTC)
+    if not datetime(2000, 1, 1, tzinfo=UTC) <= when < datetime(2100, 1, 1, tzinfo=UTC):
+        raise InputError("--start", f"{start} is outside 2000..2099 (GPS week numbers)")
+    base = (when - GPS_EPOCH).total_seconds()
+    t = base
+    for _ in range(3):   # add the leap seconds in force at that instant (GPS - UTC)
+        t = base + ((GPS_EPOCH + timedelta(seconds=t)) - gps_seconds_to_datetime(t)).total_seconds()
+    return t
 
 
 def _triple(name: str, value) -> tuple[float, float, float]:
@@ -273,7 +304,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                     bank_deg: float | None = None, record_turns: bool = False, pause_s: float = 0.0,
                     pause_cube: int = 0, boresight_deg: Sequence[float] = (0.0, 0.0, 0.0),
                     lever_arm_m: Sequence[float] = (0.0, 0.0, 0.0), terrain: str | None = None,
-                    heading_deg: float = HEADING_DEG) -> Truth:
+                    heading_deg: float = HEADING_DEG, start=None) -> Truth:
     """Write a simulated flight into ``directory`` and return its :class:`Truth`.
 
     ``cubes`` cubes of ``lines`` lines x ``samples`` samples x ``bands`` bands (400-1000 nm,
@@ -312,10 +343,15 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
 
     ``heading_deg``: grid heading of the even passes (degrees clockwise from grid north; odd passes
     fly the opposite way).
+
+    ``start``: UTC time the flight starts, its first line :data:`RUN_S` later (ISO 8601 text or a datetime; :func:`start_gps`); the
+    default depends on the seed (2024-06-12T16:00:00Z plus ``seed`` minutes), so flights of
+    different seeds get different collection ids (``<sensor>_<start>``) and can share an archive.
     """
     if not math.isfinite(heading_deg):
         raise InputError("simulate", f"heading must be a finite number of degrees, got {heading_deg!r}")
     _check(cubes, bands, samples, lines, cubes_per_pass, lat, lon, fov_deg)
+    t_start = start_gps(start, seed)
     if terrain is not None and terrain not in TERRAINS:
         raise InputError("simulate", f"terrain {terrain!r}, expected one of {', '.join(TERRAINS)}")
     recorder = _recorder(cubes, lines, dropped_frames, shutters, gains, shutter_steps, sync_offset,
@@ -341,7 +377,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
         else:
             into_turn = 0.5 * math.pi * (SPACING / 2.0) / SPEED
         into_turn = min(into_turn, RECORD_TURN_FRACTION * record_s)
-    traj = Trajectory(epsg, e0, n0, float(heading_deg), SPEED, SPACING, HEIGHT, GROUND_HEIGHT, T_START_GPS,
+    traj = Trajectory(epsg, e0, n0, float(heading_deg), SPEED, SPACING, HEIGHT, GROUND_HEIGHT, t_start,
                       RUN_S, record_s, passes, default_wobble(rng), bank_deg=recorder.bank_deg,
                       record_into_turn_s=into_turn)
     camera = camera_path(traj, recorder.mount)
@@ -476,6 +512,7 @@ def run(args: argparse.Namespace) -> int:
                             record_turns=bool(opt("record_turns", False)), pause_s=opt("pause", 0.0),
                             pause_cube=opt("pause_cube", 0),
                             boresight_deg=opt("boresight", (0.0, 0.0, 0.0)),
-                            lever_arm_m=opt("lever_arm", (0.0, 0.0, 0.0)), terrain=opt("terrain", None))
+                            lever_arm_m=opt("lever_arm", (0.0, 0.0, 0.0)), terrain=opt("terrain", None),
+                            start=opt("start", None))
     print(summary(truth))
     return 0
