@@ -490,11 +490,62 @@ def read_calibration(store: str | os.PathLike, cube: int, bands: Sequence[int]) 
 
 
 def open_dn(store: str | os.PathLike):
-    """The stored ``dn`` array (band, line, sample), read-only."""
+    """The stored ``dn`` array (band, line, sample), read-only, unchecked (:class:`CheckedDn` checks)."""
     return zarr.open_array(store, path="dn", mode="r")
 
 
-__all__ = ["COMPLETE", "CollectionInfo", "StoredPoses", "read_poses", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS", "StorePlan", "StoredCube",
+class CorruptChunkError(FormatError):
+    """A dn chunk of a collection does not decode, is missing, or does not match its recorded sha256."""
+
+
+class CheckedDn:
+    """The ``dn`` array of a collection, read whole chunk by whole chunk, each chunk's decoded values
+    checked against the sha256 recorded at ingest (``dn_sha256``) before any of them is used: a
+    flipped byte that the codec still decodes, a truncated or missing chunk file is a
+    :class:`CorruptChunkError` naming the collection, band and lines. Every reader of DN (renders,
+    :func:`archive.mosaic`, the viewer) goes through this (via the collection source)."""
+
+    def __init__(self, store: str | os.PathLike):
+        self.store = Path(store)
+        group = zarr.open_group(self.store, mode="r")
+        self.array = group["dn"]
+        if "dn_sha256" not in group:
+            raise CorruptChunkError(self.store, "collection has no dn chunk checksums (dn_sha256)",
+                                    self._fix())
+        self.digests = np.asarray(group["dn_sha256"][...])
+        self.chunk = int(self.array.chunks[1])
+        self.dtype = self.array.dtype
+
+    def _fix(self) -> str:
+        archive, cid = self.store.parent.parent, self.store.name.removesuffix(".zarr")
+        return (f"run 'archive verify --archive {archive} {cid}', then re-ingest the flight from its raw files "
+                f"with 'archive ingest RAW_DIR --archive {archive} --overwrite'")
+
+    def _fail(self, band: int, line0: int, line1: int, problem: str) -> CorruptChunkError:
+        cid = self.store.name.removesuffix(".zarr")
+        return CorruptChunkError(self.store, f"collection {cid}: array dn, band {band}, lines {line0}-{line1 - 1}: "
+                                 f"{problem}", self._fix())
+
+    def read(self, band: int, line0: int, line1: int) -> np.ndarray:
+        """(line1 - line0, samples) DN of ``band``, lines [line0, line1), every chunk they touch checked."""
+        total, c = int(self.array.shape[1]), self.chunk
+        out = np.empty((line1 - line0, int(self.array.shape[2])), self.dtype)
+        for k in range(line0 // c, -(-line1 // c)):
+            a, b = k * c, min((k + 1) * c, total)
+            try:
+                values = self.array[band, a:b]
+            except Exception as exc:  # noqa: BLE001 - any decoding failure of the stored bytes
+                raise self._fail(band, a, b, f"chunk cannot be decoded ({type(exc).__name__}: {exc})") from None
+            if chunk_digest(values) != self.digests[band, k].tobytes():
+                missing = not chunk_path(self.store, band, k).is_file()
+                raise self._fail(band, a, b, "chunk file is missing" if missing else
+                                 "chunk does not match its recorded sha256 (the stored bytes changed)")
+            lo, hi = max(a, line0), min(b, line1)
+            out[lo - line0:hi - line0] = values[lo - a:hi - a]
+        return out
+
+
+__all__ = ["COMPLETE", "CheckedDn", "CollectionInfo", "CorruptChunkError", "StoredPoses", "read_poses", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS", "StorePlan", "StoredCube",
            "chunk_tasks", "finish_store", "frame_from_attrs", "frame_to_attrs", "is_complete", "open_dn",
            "open_partial", "publish", "read_attrs", "read_calibration", "read_info", "verify_store",
            "write_chunk"]

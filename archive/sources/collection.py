@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from archive.collection import open_dn, read_calibration, read_info
+from archive.collection import CheckedDn, read_calibration, read_info
 from archive.formats.envi import EnviHeader
 from archive.params import NavigationParams
 from archive.sources.base import CubeInfo, Radiometry, band_list, check_mode, radiometry_for
@@ -80,15 +80,16 @@ class CollectionSource(NavigatedSource):
 
     def read_bands(self, cube: int, bands: Sequence[int]) -> np.ndarray:
         """(len(bands), lines, samples) DN of ``cube`` in the stored (native) dtype; reads only the
-        chunks holding those bands and the cube's lines."""
+        chunks holding those bands and the cube's lines, each checked against its recorded sha256
+        (:class:`archive.collection.CheckedDn`: a corrupt chunk is a CorruptChunkError naming it)."""
         cube = self._check(cube)
         idx = band_list(bands, self.cubes[cube].bands, self._where(cube))
         if self._dn is None:
-            self._dn = open_dn(self.store)
+            self._dn = CheckedDn(self.store)
         l0 = self._line_offset[cube]
         out = np.empty((len(idx), self.cubes[cube].lines, self.cubes[cube].samples), self._dn.dtype)
         for k, b in enumerate(idx):
-            out[k] = self._dn[b, l0:l0 + self.cubes[cube].lines]
+            out[k] = self._dn.read(b, l0, l0 + self.cubes[cube].lines)
         return out
 
     def radiometry(self, cube: int, bands: Sequence[int], mode: str,
