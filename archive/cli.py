@@ -26,6 +26,7 @@ HANDLERS = {
     "verify": "archive.ingest.command:run_verify",
     "catalog": "archive.catalog.command:run",
     "view": "archive.view.server:run",
+    "calibrate": "archive.calibrate.command:run",
 }
 
 
@@ -324,6 +325,32 @@ def _add_view(sub) -> None:
                    help="memory for the tile, band and lookup caches, MiB (default 512)")
 
 
+def _add_calibrate(sub) -> None:
+    p = _command(sub, "calibrate", "estimate boresight, sync offset and ground height from a flight's own overlaps", (
+        "Render every pair of overlapping passes onto a common grid, measure their misregistration "
+        "(sub-pixel, on textured windows) and solve by least squares for the boresight (roll, pitch, "
+        "yaw), the camera-to-navigation sync offset (searched over +-1 s) and the flat ground height "
+        "(or, with --dem, the DEM's vertical offset). Prints the estimates with 1-sigma uncertainties, "
+        "what the flight cannot separate, the misregistration before and after, and the render/ingest "
+        "flags; starts from the parameters the flight records (a collection's as ingested)."))
+    p.add_argument("sources", nargs="+", metavar="SOURCE",
+                   help="raw flight directory, or a collection id of --archive (several: one camera, one estimate)")
+    p.add_argument("--archive", metavar="ARCHIVE", help="archive holding the collections named as SOURCE")
+    p.add_argument("--fov", type=float, metavar="DEG",
+                   help="across-track field of view, degrees (required for raw sources; 47.5 for a Pika L)")
+    p.add_argument("--ground-height", type=float, metavar="M",
+                   help="start ground height, metres above the ellipsoid (default: as ingested, else the headers')")
+    _add_dem(p, "estimate its vertical offset instead of a flat ground height; exclusive with --ground-height")
+    p.add_argument("--estimate", default="boresight,sync,ground", metavar="LIST",
+                   help="parameters to estimate, comma-separated: boresight (or roll, pitch, yaw), sync, ground "
+                        "(default boresight,sync,ground)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument("--apply", action="store_true",
+                   help="record the estimates: a collection's navigation parameters (renders default to them), "
+                        "a raw flight's navigation_params.json sidecar")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="archive",
@@ -341,6 +368,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_verify(sub)
     _add_catalog(sub)
     _add_view(sub)
+    _add_calibrate(sub)
     return parser
 
 

@@ -53,7 +53,7 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec
 
-from archive.errors import FormatError, MissingInputError
+from archive.errors import FormatError, InputError, MissingInputError
 from archive.files import replace_path, write_atomic
 from archive.formats.envi import EnviCube, EnviHeader, header_from_metadata
 from archive.formats.lcf import LcfData
@@ -290,6 +290,42 @@ def finish_store(partial: Path, plan: StorePlan, chunk_digests: dict[tuple[int, 
     del attrs["source_names"]
     attrs["array_sha256"] = {name: array_digest(v) for name, v in sorted(plan.arrays.items())}
     attrs["archive:plan"] = plan.token()
+    group.attrs.put(attrs)
+    group.attrs.put({**attrs, COMPLETE: True})
+
+
+def record_navigation(store: str | os.PathLike, navigation_params: dict, arrays: dict[str, np.ndarray],
+                      ground_height: float | None = None, note: dict | None = None) -> None:
+    """Give a complete collection new navigation parameters (``archive calibrate --apply``):
+    ``navigation_params`` ('sync_offset', 'boresight_deg', 'lever_arm_m'), the per-line arrays they
+    give ('time', 'position', 'attitude': same shapes as stored), optionally a new flat
+    ``ground_height`` (m) and a ``note`` kept as the 'navigation_calibration' attribute. The
+    completion marker is taken off first and put back last (an interrupted update leaves an
+    incomplete store, never a silently inconsistent one); the arrays' checksums follow them."""
+    store = Path(store)
+    group = zarr.open_group(store, mode="r+")
+    attrs = dict(group.attrs)
+    if attrs.get(COMPLETE) is not True:
+        raise InputError(store, "is not a complete collection", "re-ingest it")
+    for name, values in arrays.items():
+        if name not in ("time", "position", "attitude") or tuple(group[name].shape) != values.shape:
+            raise InputError(store, f"array {name} cannot be replaced by shape {values.shape}")
+    attrs.pop(COMPLETE)
+    group.attrs.put(attrs)
+    digests = dict(attrs.get("array_sha256", {}))
+    for name, values in arrays.items():
+        values = np.asarray(values, group[name].dtype)
+        group[name][...] = values
+        digests[name] = array_digest(values)
+    attrs["array_sha256"] = digests
+    attrs["navigation_params"] = {"sync_offset": float(navigation_params["sync_offset"]),
+                                  "boresight_deg": [float(v) for v in navigation_params["boresight_deg"]],
+                                  "lever_arm_m": [float(v) for v in navigation_params["lever_arm_m"]]}
+    if ground_height is not None:
+        attrs["ground_height"] = float(ground_height)
+        attrs["ground_height_source"] = "archive calibrate"
+    if note is not None:
+        attrs["navigation_calibration"] = note
     group.attrs.put(attrs)
     group.attrs.put({**attrs, COMPLETE: True})
 
@@ -545,7 +581,7 @@ class CheckedDn:
         return out
 
 
-__all__ = ["COMPLETE", "CheckedDn", "CollectionInfo", "CorruptChunkError", "StoredPoses", "read_poses", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS", "StorePlan", "StoredCube",
+__all__ = ["COMPLETE", "CheckedDn", "CollectionInfo", "CorruptChunkError", "StoredPoses", "read_poses", "record_navigation", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS", "StorePlan", "StoredCube",
            "chunk_tasks", "finish_store", "frame_from_attrs", "frame_to_attrs", "is_complete", "open_dn",
            "open_partial", "publish", "read_attrs", "read_calibration", "read_info", "verify_store",
            "write_chunk"]

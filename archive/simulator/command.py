@@ -36,7 +36,7 @@ from archive.simulator.sensor import (EXPOSURES, GAIN_CAL, SHUTTER_CAL, Radiomet
                                       make_radiometry, trace_abundance)
 from archive.simulator.terrain import TERRAINS, Terrain, make_terrain, write_dem
 from archive.simulator.trajectory import (FRAMERATE, INS_RATE, Trajectory, convergence,
-                                          default_wobble, to_lonlat, to_utm, utm_epsg)
+                                          Wobble, default_wobble, to_lonlat, to_utm, utm_epsg)
 from archive.simulator.turns import RAMP_S, banked_turn
 from archive.simulator.truth import CubeTruth, Truth, save_truth
 from archive.simulator.writer import BilWriter, header_text, size_on_disk
@@ -304,7 +304,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                     bank_deg: float | None = None, record_turns: bool = False, pause_s: float = 0.0,
                     pause_cube: int = 0, boresight_deg: Sequence[float] = (0.0, 0.0, 0.0),
                     lever_arm_m: Sequence[float] = (0.0, 0.0, 0.0), terrain: str | None = None,
-                    heading_deg: float = HEADING_DEG, start=None) -> Truth:
+                    heading_deg: float = HEADING_DEG, wobble: bool = True, start=None) -> Truth:
     """Write a simulated flight into ``directory`` and return its :class:`Truth`.
 
     ``cubes`` cubes of ``lines`` lines x ``samples`` samples x ``bands`` bands (400-1000 nm,
@@ -344,6 +344,10 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
     ``heading_deg``: grid heading of the even passes (degrees clockwise from grid north; odd passes
     fly the opposite way).
 
+    ``wobble``: False flies the passes without attitude, height or lateral wobble (straight, level, at
+    constant speed: the case where pitch and a sync offset cannot be told apart); the scene is the
+    one the same seed gives with wobble.
+
     ``start``: UTC time the flight starts, its first line :data:`RUN_S` later (ISO 8601 text or a datetime; :func:`start_gps`); the
     default depends on the seed (2024-06-12T16:00:00Z plus ``seed`` minutes), so flights of
     different seeds get different collection ids (``<sensor>_<start>``) and can share an archive.
@@ -377,8 +381,11 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
         else:
             into_turn = 0.5 * math.pi * (SPACING / 2.0) / SPEED
         into_turn = min(into_turn, RECORD_TURN_FRACTION * record_s)
+    motion = default_wobble(rng)     # drawn either way: the same seed gives the same scene
+    if not wobble:
+        motion = {name: Wobble() for name in motion}
     traj = Trajectory(epsg, e0, n0, float(heading_deg), SPEED, SPACING, HEIGHT, GROUND_HEIGHT, t_start,
-                      RUN_S, record_s, passes, default_wobble(rng), bank_deg=recorder.bank_deg,
+                      RUN_S, record_s, passes, motion, bank_deg=recorder.bank_deg,
                       record_into_turn_s=into_turn)
     camera = camera_path(traj, recorder.mount)
     relief = None if terrain is None else make_terrain(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 from collections.abc import Sequence
@@ -21,7 +22,27 @@ from archive.params import NavigationParams
 from archive.sources.base import CubeInfo, Radiometry, band_list, check_mode, radiometry_for
 from archive.sources.navigation import CubeNavigation, FlightNavigation, NavigatedSource
 
-__all__ = ["RawFlightSource", "flight_id"]
+__all__ = ["NAVIGATION_SIDECAR", "RawFlightSource", "flight_id", "read_navigation_sidecar"]
+
+#: A raw flight directory's record of its navigation parameters (``archive calibrate --apply``):
+#: JSON with 'sync_offset' (s), 'boresight_deg' (3), 'lever_arm_m' (3) and 'ground_height' (m or
+#: null). Parameters not given by the caller default to it, as a collection's do to its ingest's.
+NAVIGATION_SIDECAR = "navigation_params.json"
+
+
+def read_navigation_sidecar(directory: str | os.PathLike) -> dict:
+    """The sidecar of a raw flight directory ({} when there is none); InputError naming the file
+    when it is not a JSON object."""
+    path = Path(directory) / NAVIGATION_SIDECAR
+    if not path.is_file():
+        return {}
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise InputError(path, f"cannot be read as JSON ({exc})", "fix or delete it") from None
+    if not isinstance(record, dict):
+        raise InputError(path, "is not a JSON object", "fix or delete it")
+    return record
 
 
 def flight_id(name: str, t0: float) -> str:
@@ -55,8 +76,11 @@ class RawFlightSource(NavigatedSource):
         flight = discover_flight(directory)
         self.directory = Path(flight.directory)
         self.label = str(self.directory)
-        params = params.resolved()
+        recorded = read_navigation_sidecar(self.directory)   # archive calibrate --apply
+        params = params.resolved(recorded)
         self.params = params
+        if recorded.get("ground_height") is not None:
+            self.ground_height = float(recorded["ground_height"])
         if calibration is not None:
             calibration = Path(calibration)
             if not calibration.is_file():

@@ -1,0 +1,85 @@
+"""``archive calibrate --apply``: record the estimates where renders find them.
+
+- A collection: its navigation parameters (``navigation_params``, what ``ingest --sync-offset /
+  --boresight`` records), the per-line times and poses stored with them, and (flat ground) its
+  ground height, through :func:`archive.collection.record_navigation`; then its STAC Item is
+  rewritten (the footprint follows the new poses). Renders of the collection default to them, as
+  to an ingest's.
+- A raw flight directory: the sidecar ``navigation_params.json``
+  (:data:`archive.sources.raw.NAVIGATION_SIDECAR`), read by :class:`~archive.sources.raw.RawFlightSource`
+  whenever the caller leaves a parameter unset (``render`` without ``--sync-offset``/``--boresight``,
+  ``--ground-height auto``).
+
+Parameters the calibration held (not separable) are recorded at the value it held them at (their
+start value); the lever arm is kept.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+from pathlib import Path
+
+import numpy as np
+
+from archive.params import NavigationParams
+
+__all__ = ["apply"]
+
+
+def _note(result) -> dict:
+    return {"by": "archive calibrate", "estimated": list(result.estimated),
+            "sigma": {k: v for k, v in result.sigma.items()}, "observable": result.observable,
+            "residual_px_after": result.residual_after,
+            "date": _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()}
+
+
+def apply(sources, result, archive=None) -> list[Path]:
+    """Record ``result`` (a :class:`~archive.calibrate.estimate.Calibration`) for every source;
+    returns the paths written."""
+    written = []
+    for source in sources:
+        params = {"sync_offset": float(result.params.sync),
+                  "boresight_deg": [float(v) for v in result.params.boresight_deg],
+                  "lever_arm_m": [float(v) for v in source.params.lever_arm_m]}
+        ground = None if result.dem is not None else float(result.params.ground)
+        if hasattr(source, "store"):
+            written.append(_apply_collection(source, params, ground, _note(result), archive))
+        else:
+            written.append(_apply_raw(source, params, ground, result))
+    return written
+
+
+def _apply_raw(source, params: dict, ground, result) -> Path:
+    from archive.files import write_atomic
+    from archive.sources.raw import NAVIGATION_SIDECAR
+
+    path = Path(source.directory) / NAVIGATION_SIDECAR
+    record = {**params, "ground_height": ground, "fov_deg": float(result.params and source.params.fov_deg),
+              "calibration": _note(result)}
+    if result.dem is not None:
+        record["dem"] = result.dem
+        record["dem_offset_m"] = float(result.params.ground)
+    write_atomic(path, json.dumps(record, indent=1) + "\n")
+    return path
+
+
+def _apply_collection(source, params: dict, ground, note: dict, archive) -> Path:
+    from archive.collection import record_navigation
+    from archive.sources.collection import CollectionSource
+
+    nav = NavigationParams(fov_deg=source.params.fov_deg, sync_offset=params["sync_offset"],
+                           boresight_deg=tuple(params["boresight_deg"]), lever_arm_m=tuple(params["lever_arm_m"]))
+    fresh = CollectionSource(source.store, source.id, nav)
+    n = len(fresh.cubes)
+    poses = [fresh.poses(i) for i in range(n)]
+    arrays = {"time": np.concatenate([fresh.line_times(i) for i in range(n)]),
+              "position": np.concatenate([p.position for p in poses]),
+              "attitude": np.concatenate([p.attitude.as_quat() for p in poses])}
+    record_navigation(source.store, params, arrays, ground_height=ground, note=note)
+    if archive is not None:
+        from archive.catalog.describe import catalog_collection
+        from archive.catalog.root import open_archive
+
+        catalog_collection(open_archive(archive), source.id)
+    return Path(source.store)

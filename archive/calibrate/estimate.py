@@ -1,0 +1,426 @@
+"""``calibrate``: boresight, sync offset and ground height (or a DEM's vertical offset) from a
+flight's own overlapping passes (DESIGN 10).
+
+1. Passes are the flight's strips (the project's strip rule); every pair of passes whose footprints
+   overlap is measured.
+2. Measure: both passes rendered onto a common grid under the current parameters, the shift field
+   between them by coarse masked NCC then Lucas-Kanade on textured windows
+   (:mod:`archive.calibrate.match`).
+3. Solve: the tie rays of every window brought onto one ground point by least squares
+   (:mod:`archive.calibrate.solve`); the sync offset is first searched over +-1 s (the others fitted
+   at each step), then refined with the rest.
+4. Repeat 2-3 under the new parameters (the windows then barely move, where Lucas-Kanade is most
+   accurate) until the parameters settle.
+5. Report: 1-sigma uncertainties, correlations, what the flight separates, the misregistration
+   before and after, the overlap used.
+
+What a flight can separate: opposite passes shift against each other across track by roll and by a
+ground height error alike (2 H droll vs baseline dh / H), and along track by pitch, yaw and sync
+offset alike; only the geometry's second-order terms (view angle across the overlap, attitude
+wobble, height changes) tell them apart. Parameters whose correlation with another exceeds
+:data:`SEPARABLE` are reported as not separable (with the correlation); a pair the flight cannot
+tell apart at all (correlation above :data:`DEGENERATE`, e.g. pitch and sync on straight passes
+flown without attitude changes) keeps the less needed one at its start value (:data:`HOLD_ORDER`)
+rather than inventing it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from archive.calibrate.match import PairGrid, Tie, measure_pair, pair_grid
+from archive.calibrate.model import PARAM_NAMES, FlightModel, Params
+from archive.calibrate.solve import Fit, fit, observations
+from archive.errors import InputError
+
+__all__ = ["Calibration", "calibrate", "PARAMETER_GROUPS", "SEPARABLE", "DEGENERATE"]
+
+#: --estimate groups -> parameters.
+PARAMETER_GROUPS = {"boresight": ("roll", "pitch", "yaw"), "roll": ("roll",), "pitch": ("pitch",),
+                    "yaw": ("yaw",), "sync": ("sync",), "ground": ("ground",)}
+#: |correlation| above which two parameters are reported as not separable.
+SEPARABLE = 0.99
+#: |correlation| above which the flight cannot tell two parameters apart at all: one is held.
+DEGENERATE = 0.9999
+#: Which parameter of a degenerate pair keeps its start value (first in this order).
+HOLD_ORDER = ("pitch", "yaw", "roll", "ground", "sync")
+#: Sync offsets searched about the start value, s.
+SYNC_SEARCH = (-1.0, 1.0, 0.05)
+#: Fewest tie windows a calibration accepts, and fewest per estimated parameter.
+MIN_TIES = 30
+#: Measurement grid spacing as a fraction of the nominal GSD; window side (grid pixels).
+SPACING = 0.5
+WINDOW = 24
+#: Outer iterations (measure, solve) at most; stop when every parameter moves less than STOP.
+ITERATIONS = 6
+STOP = np.array([0.0005, 0.0005, 0.001, 0.0001, 0.002])
+#: Bands averaged into the matched image: up to this many around the middle of the spectrum.
+BANDS = 4
+#: Shortest overlap (along track, m) worth measuring: a few windows.
+MIN_OVERLAP_WINDOWS = 4
+
+
+@dataclass
+class Calibration:
+    """Result of :func:`calibrate`. params: the estimates (ground: height m, or DEM offset m);
+    start: the parameters it started from; estimated: names solved for; sigma: 1-sigma per
+    estimated parameter (None where held); observable: per estimated parameter; correlations:
+    {'a,b': r} for |r| >= 0.5; residual_before / residual_after: misregistration stats (px of the
+    nominal GSD); pairs: overlap per pass pair; pixel_m: the nominal GSD; dem: the DEM path or None;
+    notes: sentences for people."""
+
+    params: Params
+    start: Params
+    estimated: tuple[str, ...]
+    sigma: dict
+    observable: dict
+    correlations: dict
+    residual_before: dict
+    residual_after: dict
+    pairs: list
+    pixel_m: float
+    dem: str | None = None
+    notes: list = field(default_factory=list)
+    held: dict = field(default_factory=dict)
+
+    def flags(self) -> str:
+        """The render/ingest options that apply the estimates."""
+        r, p, y = self.params.boresight_deg
+        out = f"--boresight {r:.4f},{p:.4f},{y:.4f} --sync-offset {self.params.sync:.4f}"
+        if self.dem is None:
+            out += f" --ground-height {self.params.ground:.3f}"
+        return out
+
+    def to_json(self) -> dict:
+        names = {"roll": "roll_deg", "pitch": "pitch_deg", "yaw": "yaw_deg", "sync": "sync_offset_s",
+                 "ground": "dem_offset_m" if self.dem else "ground_height_m"}
+        out = {
+            "boresight_deg": [round(v, 6) for v in self.params.boresight_deg],
+            "sync_offset_s": round(self.params.sync, 6),
+            "ground_height_m": None if self.dem else round(self.params.ground, 4),
+            "sigma": {names[k]: (None if v is None else float(f"{v:.3g}")) for k, v in self.sigma.items()},
+            "observable": {names[k]: v for k, v in self.observable.items()},
+            "correlation": self.correlations,
+            "residual_px": {"before": self.residual_before, "after": self.residual_after},
+            "overlap": {"pairs": self.pairs, "windows": int(sum(p["windows"] for p in self.pairs)),
+                        "pixels": int(sum(p["pixels"] for p in self.pairs)), "pixel_m": round(self.pixel_m, 5)},
+            "estimated": [names[k] for k in self.estimated],
+            "held": {names[k]: v for k, v in self.held.items()},
+            "start": {"boresight_deg": list(self.start.boresight_deg), "sync_offset_s": self.start.sync,
+                      names["ground"]: self.start.ground},
+            "flags": {"render": self.flags(), "ingest": self.flags()},
+            "notes": self.notes,
+        }
+        if self.dem:
+            out["dem_offset_m"] = round(self.params.ground, 4)
+            out["dem"] = self.dem
+        return out
+
+
+def parse_estimate(text: str | Sequence[str] | None) -> tuple[str, ...]:
+    """'boresight,sync,ground' (any of boresight, roll, pitch, yaw, sync, ground) -> parameter
+    names in model order."""
+    items = text if not isinstance(text, str) else [t for t in text.replace(" ", "").split(",") if t]
+    items = list(items) if items is not None else ["boresight", "sync", "ground"]
+    names: set[str] = set()
+    for item in items:
+        if item not in PARAMETER_GROUPS:
+            raise InputError("--estimate", f"unknown parameter {item!r}",
+                             f"use a comma-separated list of {', '.join(PARAMETER_GROUPS)}")
+        names.update(PARAMETER_GROUPS[item])
+    if not names:
+        raise InputError("--estimate", "nothing to estimate", "name at least one of boresight, sync, ground")
+    return tuple(n for n in PARAM_NAMES if n in names)
+
+
+@dataclass(frozen=True, eq=False)
+class _Flight:
+    source: object
+    model: FlightModel
+    images: tuple[np.ndarray, ...]   # per pass: (lines, samples) float32
+
+
+def _pass_images(source, model: FlightModel) -> tuple[np.ndarray, ...]:
+    """Per pass, the mean of up to BANDS middle bands (relative radiometry: DN per exposure, so
+    that cubes of one pass with different shutters meet without a step), (lines, samples)."""
+    nb = source.cubes[0].bands
+    mid = nb // 2
+    bands = sorted(set(range(max(0, mid - BANDS // 2), min(nb, mid - BANDS // 2 + BANDS))))
+    out = []
+    for p in model.passes:
+        parts = []
+        for k in p.cubes:
+            dn = np.asarray(source.read_bands(k, bands), np.float32)
+            rad = source.radiometry(k, bands, "relative")
+            v = (dn - rad.dark[:, None, :]) * rad.gain[:, None, :] / rad.response[None, :, None]
+            parts.append(v.mean(axis=0))
+        out.append(np.concatenate(parts).astype(np.float32))
+    return tuple(out)
+
+
+def _nominal_pixel(flights, ground: float, dem_surface) -> float:
+    """Across-track sample spacing at nadir at the median camera height above the ground, m."""
+    heights, samples, fov = [], [], flights[0].model.fov_deg
+    for f in flights:
+        alt = f.model.frame.origin_alt - np.asarray(f.source.navigation.track.position)[:, 2]
+        heights.append(float(np.median(alt)) - ground)
+        samples.append(f.source.cubes[0].samples)
+    h = float(np.median(heights))
+    return 2.0 * h * math.tan(math.radians(fov) / 2.0) / float(np.median(samples))
+
+
+def _stats(ties: Sequence[Tie], spacing: float, pixel: float) -> dict:
+    if not ties:
+        return {"median": None, "p95": None, "windows": 0}
+    d = np.array([math.hypot(*t.shift) for t in ties]) * spacing / pixel
+    return {"median": round(float(np.median(d)), 4), "p95": round(float(np.percentile(d, 95)), 4),
+            "windows": len(ties)}
+
+
+def _measure(flights, params: Params, spacing: float, window: int, progress) -> tuple[list, dict, list]:
+    """Ties, grids and per-pair overlap of every overlapping pass pair of every flight."""
+    sets, pairs, all_ties = [], [], []
+    for fi, f in enumerate(flights):
+        grids: dict = {}
+        ties: list = []
+        passes = f.model.passes
+        for i in range(len(passes)):
+            for j in range(i + 1, len(passes)):
+                grid = pair_grid(f.model, passes[i], passes[j], params, spacing)
+                if grid is None:
+                    continue
+                found, stats = measure_pair(f.model, grid, f.images[i], f.images[j], params, window)
+                grids[(i, j)] = grid
+                ties.extend(found)
+                pairs.append({"flight": fi, "passes": [i, j], "pixels": stats["overlap_px"],
+                              "windows": stats["matched"], "textured": stats["textured"],
+                              "tried": stats["windows"]})
+                if progress:
+                    progress(f"  passes {i}-{j}: {stats['overlap_px']} px overlap, {stats['textured']} textured "
+                             f"windows, {stats['matched']} matched")
+        sets.append((f.model, observations(f.model, grids, ties, params)))
+        all_ties.extend(ties)
+    return sets, pairs, all_ties
+
+
+def calibrate(sources: Sequence, fov_deg: float, ground: float, *, dem=None, dem_label: str | None = None,
+              estimate: Sequence[str] = ("roll", "pitch", "yaw", "sync", "ground"),
+              progress=None, window: int = WINDOW) -> Calibration:
+    """Estimate ``estimate`` (names of :data:`~archive.calibrate.model.PARAM_NAMES`) for opened
+    navigated ``sources`` (raw or collection: their parameters are the start) sharing one camera,
+    mounting and sync offset.
+
+    ground: start ground height (m above the ellipsoid), or with ``dem`` (an opened
+    :class:`archive.dem.Dem`) the start vertical offset of the DEM (m). progress: a callable
+    taking a line of text, or None. InputError when there is nothing to measure (no overlap, too
+    little texture, a flight too short)."""
+    estimate = tuple(n for n in PARAM_NAMES if n in set(estimate))
+    first = sources[0].params
+    start = Params(*first.boresight_deg, float(first.sync_offset), float(ground))
+    flights = []
+    for s in sources:
+        surface = None if dem is None else _surface(dem, s.frame)
+        model = FlightModel(s, fov_deg, surface)
+        flights.append(_Flight(s, model, ()))
+    passes = sum(len(f.model.passes) for f in flights)
+    if all(len(f.model.passes) < 2 for f in flights):
+        names = ", ".join(str(f.source.label) for f in flights)
+        raise InputError(names, f"has {passes} pass{'es' if passes != 1 else ''} and no overlap of the flight with "
+                         "itself", "calibrate needs two or more overlapping passes (neighbouring lines, "
+                         "crossing lines)")
+    ground_for_pixel = ground if dem is None else float(np.median(dem.typical_height())) + ground
+    pixel = _nominal_pixel(flights, ground_for_pixel, dem)
+    spacing = SPACING * pixel
+    flights = [_Flight(f.source, f.model, _pass_images(f.source, f.model)) for f in flights]
+    _check_overlap(flights, start, spacing, window)
+
+    say = progress or (lambda text: None)
+    say(f"measuring under the start parameters ({_describe(start, dem is not None)})")
+    sets, pairs, ties = _measure(flights, start, spacing, window, say)
+    ties_before = ties
+    _check_ties(ties, pairs, estimate, flights)
+    params = start
+    if "sync" in estimate:
+        params = _search_sync(sets, start, estimate, pixel, say)
+    held: dict = {}
+    result = _fit_separable(sets, params, start, list(estimate), held, pixel, say)
+    params = result.params
+    for it in range(ITERATIONS):
+        say(f"iteration {it + 1}: {_describe(params, dem is not None)}")
+        sets, pairs, ties = _measure(flights, params, spacing, window, say)
+        _check_ties(ties, pairs, estimate, flights)
+        result = _fit_separable(sets, params, start, [n for n in estimate if n not in held], held, pixel, say)
+        moved = np.abs(result.params.vector() - params.vector())
+        params = result.params
+        if np.all(moved <= STOP):
+            break
+    say(f"final: {_describe(params, dem is not None)}")
+    sets_after, pairs, ties_after = _measure(flights, params, spacing, window, lambda text: None)
+    final_ground = params.ground if dem is None else float(np.median(dem.typical_height())) + params.ground
+    pixel_after = _nominal_pixel(flights, final_ground, dem)     # the unit: the flight's nominal GSD
+    before = _stats(ties_before, spacing, pixel_after)
+    after = _stats(ties_after, spacing, pixel_after)
+    pixel = pixel_after
+    return _report(result, start, estimate, held, before, after, pairs, pixel, dem_label)
+
+
+def _surface(dem, frame):
+    """heights(n, e) of ``dem`` at local N, E points of ``frame``, m above the ellipsoid."""
+    def height(n, e):
+        n = np.asarray(n, float)
+        out = dem.heights_at(frame.epsg, np.asarray(e, float).ravel() + frame.origin_e,
+                             n.ravel() + frame.origin_n)
+        return np.asarray(out, float).reshape(n.shape)
+    return height
+
+
+def _describe(p: Params, dem: bool) -> str:
+    g = f"DEM offset {p.ground:+.3f} m" if dem else f"ground {p.ground:.3f} m"
+    return f"boresight {p.roll:.4f},{p.pitch:.4f},{p.yaw:.4f} deg, sync {p.sync:+.4f} s, {g}"
+
+
+def _check_overlap(flights, params: Params, spacing: float, window: int) -> None:
+    """InputError unless some pass pair overlaps over at least a few windows' length."""
+    longest = 0.0
+    for f in flights:
+        passes = f.model.passes
+        prints = [f.model.footprint(p, params) for p in passes]
+        for i in range(len(passes)):
+            for j in range(i + 1, len(passes)):
+                if prints[i] is None or prints[j] is None:
+                    continue
+                inter = prints[i].intersection(prints[j])
+                if not inter.is_empty and inter.area > 0:
+                    longest = max(longest, max(_sides(inter.minimum_rotated_rectangle)))
+    need = MIN_OVERLAP_WINDOWS * window * spacing
+    if longest <= 0.0:
+        labels = ", ".join(str(f.source.label) for f in flights)
+        raise InputError(labels, "no two passes of the flight overlap", "calibrate needs neighbouring passes "
+                         "whose swaths overlap (or crossing lines); check --fov and the ground height")
+    if longest < need:
+        labels = ", ".join(str(f.source.label) for f in flights)
+        raise InputError(labels, f"flight too short: the passes overlap over {longest:.1f} m, calibrate "
+                         f"needs at least {need:.1f} m ({MIN_OVERLAP_WINDOWS} windows)",
+                         "calibrate a longer flight (passes of a few seconds at least)")
+
+
+def _sides(rect) -> list[float]:
+    xy = np.asarray(rect.exterior.coords)
+    return [float(np.hypot(*(xy[k + 1] - xy[k]))) for k in range(len(xy) - 1)]
+
+
+def _check_ties(ties, pairs, estimate, flights) -> None:
+    need = max(MIN_TIES, 6 * len(estimate))
+    if len(ties) >= need:
+        return
+    textured = sum(p["textured"] for p in pairs)
+    tried = sum(p["tried"] for p in pairs)
+    labels = ", ".join(str(f.source.label) for f in flights)
+    if textured < need:
+        raise InputError(labels, f"too little texture in the overlaps: {textured} of {tried} windows are "
+                         f"textured, calibrate needs {need}", "calibrate over a flight with more ground "
+                         "detail in its overlaps")
+    raise InputError(labels, f"only {len(ties)} of {textured} textured overlap windows could be matched "
+                     f"between passes (calibrate needs {need})",
+                     "check --fov and the start parameters (--ground-height, the ingested mounting)")
+
+
+def _search_sync(sets, start: Params, estimate, pixel: float, say) -> Params:
+    """The sync offset within +-1 s of the start minimising the robust cost, the other estimated
+    parameters fitted at each step."""
+    others = tuple(n for n in estimate if n != "sync")
+    lo, hi, step = SYNC_SEARCH
+    best = None
+    for ds in np.arange(lo, hi + step / 2, step):
+        trial = Params.from_vector(np.where(np.array(PARAM_NAMES) == "sync", start.sync + ds, start.vector()))
+        f = fit(sets, trial, others, pixel, max_nfev=30) if others else fit(sets, trial, (), pixel)
+        if best is None or f.cost < best.cost:
+            best = f
+    say(f"sync offset search (+-1 s): {best.params.sync:+.3f} s")
+    return best.params
+
+
+def _fit_separable(sets, params: Params, start: Params, free: list, held: dict, pixel: float, say) -> Fit:
+    """Fit ``free`` from ``params``; while two free parameters are degenerate (|correlation| above
+    DEGENERATE: the flight cannot tell them apart at all), hold one (HOLD_ORDER) at its ``start``
+    value, record it in ``held`` and fit again."""
+    result = fit(sets, params, tuple(free), pixel)
+    while True:
+        pair = _degenerate(result)
+        if pair is None:
+            return result
+        hold = min(pair, key=HOLD_ORDER.index)
+        c = result.correlation()
+        i = result.free.index(hold)
+        partners = sorted((p for p in pair if p != hold), key=lambda p: -abs(c[i, result.free.index(p)]))
+        r = float(c[i, result.free.index(partners[0])])
+        w = float(np.linalg.eigvalsh(c)[0])
+        held[hold] = {"with": partners, "correlation": round(r, 6), "eigenvalue": float(f"{w:.3g}")}
+        say(f"{hold} cannot be told apart from {', '.join(partners)} (correlation with {partners[0]} {r:+.6f}): "
+            "held at its start value")
+        free.remove(hold)
+        params = Params.from_vector(np.where(np.array(PARAM_NAMES) == hold, start.vector(), params.vector()))
+        result = fit(sets, params, tuple(free), pixel)
+
+
+def _degenerate(result: Fit) -> tuple[str, ...] | None:
+    """The free parameters of the flight's blind direction, when it has one: the correlation matrix's
+    smallest eigenvalue below 1 - DEGENERATE (two parameters correlated beyond DEGENERATE, or three
+    or more that only together shift the passes alike, e.g. pitch, yaw and sync offset along track);
+    the parameters weighing in its eigenvector. None when every direction is measured."""
+    if len(result.free) < 2:
+        return None
+    c = result.correlation()
+    if not np.isfinite(c).all():
+        return tuple(result.free)
+    w, v = np.linalg.eigh(c)
+    if w[0] >= 1.0 - DEGENERATE:
+        return None
+    return tuple(n for i, n in enumerate(result.free) if abs(v[i, 0]) >= 0.2)
+
+
+def _report(result: Fit, start: Params, estimate, held: dict, before: dict, after: dict, pairs: list,
+            pixel: float, dem_label) -> Calibration:
+    sigma = {n: None for n in estimate}
+    sigma.update(result.sigma())
+    corr = result.correlation() if len(result.free) else np.zeros((0, 0))
+    correlations, observable, notes = {}, {}, []
+    for i, a in enumerate(result.free):
+        for j in range(i + 1, len(result.free)):
+            r = float(corr[i, j])
+            if abs(r) >= 0.5:
+                correlations[f"{a},{result.free[j]}"] = round(r, 4)
+    for n in estimate:
+        if n in held:
+            observable[n] = False
+            w = " and ".join(held[n]["with"])
+            notes.append(f"{n} cannot be separated from {w} by this flight (correlation with "
+                         f"{held[n]['with'][0]} {held[n]['correlation']:+.4f}, smallest eigenvalue of the "
+                         f"correlation matrix {held[n]['eigenvalue']:.2g}): held at its start value, {w} absorb"
+                         f"{'s' if len(held[n]['with']) == 1 else ''} it")
+            continue
+        i = result.free.index(n)
+        others = [(abs(float(corr[i, j])), result.free[j], float(corr[i, j]))
+                  for j in range(len(result.free)) if j != i]
+        worst = max(others) if others else (0.0, None, 0.0)
+        observable[n] = bool(worst[0] < SEPARABLE)
+        if not observable[n]:
+            notes.append(f"{n} is not separable from {worst[1]} on this flight (correlation {worst[2]:+.4f}): "
+                         f"their combination is measured, each alone only to +-{_fmt(n, sigma[n])}")
+    if not observable.get("pitch", True) or not observable.get("sync", True):
+        notes.append("pitch and sync offset both shift along track: they separate only through speed, height "
+                     "or attitude changes during the passes")
+    return Calibration(result.params, start, tuple(estimate), sigma, observable, correlations, before, after,
+                       pairs, pixel, dem_label, notes, held)
+
+
+def _fmt(name: str, value: float | None) -> str:
+    if value is None:
+        return "?"
+    unit = {"roll": "deg", "pitch": "deg", "yaw": "deg", "sync": "s", "ground": "m"}[name]
+    return f"{value:.3g} {unit}"
