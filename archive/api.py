@@ -152,7 +152,7 @@ def mosaic(sources: Source | Sequence[Source], *, band_group: int | None = None,
 def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: Source | None = None,
                scheduler: str | None = None, workers: int | None = None, threads: int | None = None,
                overwrite: bool = False, quiet: bool = True, per_flight: bool = False, format: str = "zarr",
-               **options) -> dict:
+               resume: bool = False, tell=None, **options) -> dict:
     """Georectify ``sources`` into ``out`` (.zarr, .tif or .hdr) exactly as ``archive render``;
     returns its summary (out, width, height, gsd, epsg, bands, wavelengths, mode, cubes, sources,
     renders, assemblies, seconds, graph_seconds, left_out, provenance).
@@ -163,11 +163,24 @@ def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: So
     write an RGB .png; scheduler: a Dask scheduler address (default: a local cluster of ``workers``
     processes, 1, of ``threads`` threads each, default the cores); overwrite: replace an existing
     output; quiet: no progress bar or notes; per_flight: one output per source,
-    ``out/<name>.<format>`` (then the summary holds ``outputs``). Nothing is left at ``out`` when
-    anything fails; the output's STAC Item, ``<out>.json``, is written last.
+    ``out/<name>.<format>`` (then the summary holds ``outputs``, and ``out/report.json`` the batch
+    report; each flight succeeds or fails alone, :mod:`archive.batch`); resume: skip per-flight
+    outputs that are complete with the same recipe; tell: called with one line per finished flight.
+    Nothing is left at ``out`` when anything fails; the output's STAC Item, ``<out>.json``, is
+    written last.
     """
     from archive import pipeline
 
-    return pipeline.georectify(_options(sources, options), out, quicklook=quicklook, overwrite=overwrite,
-                               scheduler=scheduler, workers=workers, quiet=quiet, per_flight=per_flight,
-                               format=format, threads=threads)
+    request = _options(sources, options)
+    if per_flight:   # each flight a job of its own, in waves
+        from archive.batch import run_batch
+
+        if quicklook:
+            raise InputError("--quicklook", "only one quicklook per command", "add --mosaic, or leave it out")
+        return run_batch(request, out, format=format, overwrite=overwrite, resume=resume, scheduler=scheduler,
+                         workers=workers, threads=threads, quiet=quiet, tell=tell)
+    if resume:
+        raise InputError("--resume", "resumes batch jobs (one output per flight)",
+                         "leave it out: a single output is written whole or not at all")
+    return pipeline.georectify(request, out, quicklook=quicklook, overwrite=overwrite, scheduler=scheduler,
+                               workers=workers, quiet=quiet, format=format, threads=threads)

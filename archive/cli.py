@@ -210,6 +210,10 @@ def _add_render(sub) -> None:
                         "--out DIR/<id>.<format>)")
     q.add_argument("--format", choices=["zarr", "tif", "hdr"], default="zarr",
                    help="format of the per-flight outputs in --out DIR (default zarr)")
+    q.add_argument("--resume", action="store_true",
+                   help="skip flights whose output in --out DIR is complete (its STAC Item exists) and was made "
+                        "by the same request; redo incomplete ones (a different request is an error without "
+                        "--overwrite)")
     _add_run_flags(p, "replace PATH if it exists")
 
 

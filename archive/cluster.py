@@ -19,8 +19,8 @@ import numpy as np
 
 from archive.errors import ArchiveError, InputError, RenderError
 
-__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "active_client", "check_gpu_workers", "execute", "start_cluster",
-           "task_budget"]
+__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "active_client", "check_gpu_workers", "execute", "flight_slots",
+           "start_cluster", "task_budget", "wait_for_writers"]
 
 
 def check_gpu_workers(client, where: str) -> None:
@@ -145,6 +145,20 @@ def task_budget(client) -> int:
     limits = [int(w.get("memory_limit") or 0) for w in client.scheduler_info().get("workers", {}).values()]
     limits = [m for m in limits if m > 0]
     return min([TASK_VALUES_BYTES] + [m // 10 for m in limits])
+
+
+def flight_slots(client, budget: int) -> int:
+    """Flights a batch keeps in the scheduler at once (its waves, :mod:`archive.batch`): the render
+    slots of the workers (their 'GPU' resources), at least 2 so that one flight is planned and
+    published while another renders, and at most what the workers' memory holds (a flight holds
+    about ``RENDERS_AHEAD`` + 2 renders of ``budget`` bytes at a time)."""
+    from archive.graph.build import RENDERS_AHEAD
+
+    workers = client.scheduler_info().get("workers", {}).values()
+    slots = sum(int((w.get("resources") or {}).get("GPU", 0)) for w in workers)
+    memory = sum(int(w.get("memory_limit") or 0) for w in workers)
+    by_memory = memory // ((RENDERS_AHEAD + 2) * max(int(budget), 1)) if memory else slots
+    return max(2, min(slots, by_memory))
 
 
 def active_client():

@@ -15,9 +15,9 @@ out:
 
 :func:`georectify` runs all five (nothing is left at ``out`` when anything fails); :func:`mosaic`
 stops after planning and gives the plan as a lazy ``xarray.Dataset`` (:mod:`archive.graph.lazy`)
-computed on demand. Batch jobs (``per_flight``): one output per source, ``out/<name>.<format>``,
-all in one graph (one progress bar). Band groups are sized from the workers' memory limits
-(:func:`archive.cluster.task_budget`).
+computed on demand. Batch jobs (one output per source, each flight a job of its own, submitted in
+waves) are :mod:`archive.batch`'s, built from these steps. Band groups are sized from the workers'
+memory limits (:func:`archive.cluster.task_budget`).
 """
 
 from __future__ import annotations
@@ -270,27 +270,6 @@ def build_output(output: OutputPlan, target: Output):
 # ---------------------------------------------------------------------------------------------
 # Run and publish
 # ---------------------------------------------------------------------------------------------
-def _flight_outputs(sources: Sequence[str], out, format: str, overwrite: bool, quicklook,
-                    provenance: bool = False) -> list[Output]:
-    """Per-flight batch mode: ``out/<name>.<format>`` for each source (checked now)."""
-    directory = Path(out).absolute()
-    if directory.exists() and not directory.is_dir():
-        raise InputError(directory, "is a file, but a batch job writes one output per flight into a directory",
-                         "give --out DIR, or --mosaic for one output")
-    if directory.suffix.lower() in (".zarr", ".tif", ".tiff", ".hdr"):
-        raise InputError(directory, "looks like one output file, but a batch job writes one output per flight",
-                         "give --out DIR (outputs DIR/<id>.<format>), or add --mosaic")
-    if quicklook:
-        raise InputError("--quicklook", "only one quicklook per command", "add --mosaic, or leave it out")
-    outputs = []
-    for src in sources:
-        name = Path(src).name if Path(src).is_dir() else str(src)
-        output = Output(directory / f"{name}.{format}", overwrite=bool(overwrite), provenance=provenance)
-        output.check()
-        outputs.append(output)
-    return outputs
-
-
 @dataclass
 class _Job:
     """One output of a command: its Output, plan, sink and graph, and the options that render it
@@ -340,48 +319,32 @@ def _say(quiet: bool):
 
 def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str | os.PathLike | None = None,
                overwrite: bool = False, scheduler: str | None = None, workers: int | None = None,
-               quiet: bool = True, per_flight: bool = False, format: str = "zarr",
-               threads: int | None = None) -> dict:
+               quiet: bool = True, format: str = "zarr", threads: int | None = None) -> dict:
     """Georectify ``options`` into ``out`` (.zarr, .tif or .hdr); returns a summary dict. Raises ArchiveError.
 
-    One output at ``out``, or with ``per_flight`` one output per source, ``out/<name>.<format>``:
-    then the summary holds ``outputs``, one summary per flight. Every output's tasks run in one
-    graph, on ``scheduler`` (an address) or on a local cluster of ``workers`` processes of
+    One output at ``out`` (batch jobs, one output per flight, are :func:`archive.batch.run_batch`'s).
+    The tasks run on ``scheduler`` (an address) or on a local cluster of ``workers`` processes of
     ``threads`` threads each (default: the cores). The graph's tile tasks write every format
     directly; :func:`publish` finishes each output and moves it into place.
     """
-    from archive.graph.build import RenderGraph
-
     started = time.perf_counter()
     say = _say(quiet)
     check_gsd(options.gsd)
-    if per_flight:
-        nav = options.check()
-        if format not in ("zarr", "tif", "hdr"):
-            raise InputError("--format", f"unknown output format {format!r}", "use zarr, tif or hdr")
-        outputs = _flight_outputs(options.sources, out, format, overwrite, quicklook, options.provenance)
-    else:
-        output = Output(Path(out).absolute(), overwrite=bool(overwrite),
-                        quicklook=None if not quicklook else Path(quicklook).absolute(),
-                        provenance=options.provenance)
-        output.check()
-        outputs = [output]
-        nav = options.check()
+    output = Output(Path(out).absolute(), overwrite=bool(overwrite),
+                    quicklook=None if not quicklook else Path(quicklook).absolute(),
+                    provenance=options.provenance)
+    output.check()
+    outputs = [output]
+    nav = options.check()
     client = cluster = None
     jobs: list[_Job] = []
     graph_seconds = 0.0
     try:
-        inputs = open_inputs(options, nav, say, mosaic=not per_flight)
-        members = [[i] for i in range(len(inputs.sources))] if per_flight else [list(range(len(inputs.sources)))]
+        inputs = open_inputs(options, nav, say, mosaic=True)
         client, cluster = start_cluster(scheduler, workers, say, threads)
-        budget = task_budget(client)
-        for output, idx in zip(outputs, members):
-            planned = plan_output(inputs, idx, budget=budget)
-            sink, graph = build_output(planned, output)
-            recipe = options.with_sources([options.sources[i] for i in idx]) if per_flight else options
-            jobs.append(_Job(output, planned, sink, graph, recipe))
-        graph = RenderGraph(tuple(w for j in jobs for w in j.graph.writes), sum(j.graph.renders for j in jobs),
-                            sum(j.graph.assemblies for j in jobs))
+        planned = plan_output(inputs, budget=task_budget(client))
+        sink, graph = build_output(planned, output)
+        jobs.append(_Job(output, planned, sink, graph, options))
         t = time.perf_counter()
         if len(graph):
             execute(client, graph, quiet, shared=cluster is None)
@@ -400,7 +363,7 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
     for job in jobs:
         g, plan = job.planned.plan.grid, job.planned.plan
         summaries.append({
-            "out": str(job.output.path) if per_flight else str(out), "width": g.width, "height": g.height,
+            "out": str(out), "width": g.width, "height": g.height,
             "gsd": g.gsd, "epsg": g.epsg, "bands": plan.nbands, "wavelengths": job.planned.wavelengths,
             "mode": job.planned.params.mode, "cubes": len(plan.jobs), "sources": len(job.planned.sources),
             "renders": job.graph.renders, "assemblies": job.graph.assemblies, "seconds": seconds,
@@ -408,9 +371,7 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
             "provenance": (None if not job.output.provenance else
                            str(job.output.provenance_path or job.output.path)),
         })
-    if not per_flight:
-        return summaries[0]
-    return {"outputs": summaries, "seconds": seconds, "graph_seconds": graph_seconds, "renders": graph.renders}
+    return summaries[0]
 
 
 def describe(s: dict) -> str:

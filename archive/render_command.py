@@ -35,7 +35,7 @@ def _query_ids(args: argparse.Namespace) -> list[str] | None:
 
 
 #: Options of ``archive render`` that say how to run, not what to render.
-RUN_KEYWORDS = ("quicklook", "scheduler", "workers", "threads", "overwrite", "quiet", "format")
+RUN_KEYWORDS = ("quicklook", "scheduler", "workers", "threads", "overwrite", "quiet", "format", "resume")
 
 
 def render_keywords(args: argparse.Namespace) -> dict:
@@ -54,16 +54,19 @@ def render_keywords(args: argparse.Namespace) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     """``archive render``: :func:`archive.georectify` with the parsed options; prints a one-paragraph
-    summary (batch mode: one line per output, then the total)."""
+    summary (batch mode: one line per flight as it finishes, done / skipped / failed with its reason,
+    then the totals; exit code 1 when a flight failed)."""
     from archive.pipeline import describe
 
-    s = georectify(**render_keywords(args))
+    def tell(line: str) -> None:
+        print(f"archive render: {line}", flush=True)
+
+    s = georectify(**render_keywords(args), tell=tell)
     if "outputs" in s:
-        for one in s["outputs"]:
-            print(f"archive render: wrote {describe(one)}.")
         n = len(s["outputs"])
-        print(f"archive render: {n} output{'s' if n != 1 else ''} in {s['seconds']:.1f} s.")
-        return 0
+        print(f"archive render: {n} flight{'s' if n != 1 else ''} in {s['seconds']:.1f} s: {s['done']} done, "
+              f"{s['skipped']} skipped, {s['failed']} failed; report {s['report']}.")
+        return 1 if s["failed"] else 0
     print(f"archive render: wrote {describe(s)} in {s['seconds']:.1f} s.")
     return 0
 

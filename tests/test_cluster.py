@@ -12,6 +12,7 @@ completes without any worker process exceeding that limit.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import socket
@@ -417,8 +418,11 @@ def test_batch_job_over_the_catalog(flights, cluster, reference, tmp_path):
     done = subprocess.run(base + ["--query-bbox", "-89.95,35.11,-89.93,35.13", "--out", str(out)],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
-    assert sorted(p.name for p in out.iterdir()) == sorted(f"{i}.zarr{x}" for i in ids for x in ("", ".json"))
-    assert done.stdout.count("archive render: wrote ") == 2
+    assert sorted(p.name for p in out.iterdir()) == sorted([f"{i}.zarr{x}" for i in ids for x in ("", ".json")]
+                                                         + ["report.json"])
+    assert done.stdout.count("archive render: done ") == 2
+    report = json.loads((out / "report.json").read_text())
+    assert report["complete"] and [o["status"] for o in report["outputs"]] == ["done", "done"]
     x_ref, y_ref = ref_ds["x"].values, ref_ds["y"].values
     for cid in ids:
         one, one_saturated, ds = _load(out / f"{cid}.zarr")

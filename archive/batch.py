@@ -1,0 +1,353 @@
+"""Batch jobs: one output per flight, each flight a job of its own (DESIGN 9).
+
+``archive render --archive A --query-... --out DIR --format F`` (and
+``archive.georectify(..., per_flight=True)``) renders every source into ``DIR/<name>.<F>``:
+
+- **Isolation.** Each flight is opened, planned, rendered and published on its own: a flight that
+  fails (a corrupt chunk, a DEM that does not cover it, a worker that dies on it) leaves nothing at
+  its output path (its temporaries are removed), and the others go on. One line per flight
+  (done / skipped / failed and its one-line reason); :func:`run_batch` reports how many failed
+  (the command exits 1 if any did).
+- **Report.** ``DIR/report.json`` = ``{"outputs": [{"id", "status", "path", "error", "seconds"}],
+  "flights", "done", "skipped", "failed", "pending", "complete"}``, written atomically before the
+  first flight starts and rewritten as each flight finishes: a killed job leaves an honest report
+  (its unfinished flights ``pending``, ``complete`` false).
+- **Resume.** With ``resume``, a flight whose output is complete (its STAC Item, written last,
+  exists) and whose recipe (``archive:recipe.request``: same options, same sources) equals this
+  request is skipped; an output without its Item (killed while publishing) is rendered again, and
+  temporaries of killed runs are removed. A complete output made with another recipe is an error
+  before anything starts, unless ``overwrite``.
+- **Waves.** At most :func:`archive.cluster.flight_slots` flights are in the scheduler at once (from
+  the workers' render slots and memory): the next flight is planned and submitted when one
+  finishes, so the tasks the scheduler holds, the submission time and the client's memory do not
+  grow with the batch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from archive.errors import ArchiveError, InputError
+from archive.files import path_exists, remove_path, write_atomic
+
+__all__ = ["FORMATS", "REPORT", "Flight", "recipe_request", "run_batch"]
+
+#: Formats of the per-flight outputs.
+FORMATS = ("zarr", "tif", "hdr")
+#: The batch report's file name in the output directory.
+REPORT = "report.json"
+
+
+def recipe_request(options) -> dict:
+    """The JSON form of a request as an output's Item records it (``archive:recipe.request``)."""
+    return json.loads(json.dumps(dataclasses.asdict(options), default=str))
+
+
+@dataclass
+class Flight:
+    """One flight of a batch: its source (id or directory), output, request (its recipe), status
+    ('pending', 'done', 'skipped', 'failed'), one-line error, seconds and summary."""
+
+    source: str
+    name: str
+    output: object
+    recipe: object
+    status: str = "pending"
+    error: str | None = None
+    seconds: float | None = None
+    summary: dict | None = None
+    job: object = None
+    futures: list = field(default_factory=list)
+    left: int = 0
+    started: float = 0.0
+
+    def entry(self) -> dict:
+        return {"id": self.name, "status": self.status, "path": str(self.output.path), "error": self.error,
+                "seconds": None if self.seconds is None else round(self.seconds, 3)}
+
+
+def _directory(out) -> Path:
+    directory = Path(out).absolute()
+    if directory.exists() and not directory.is_dir():
+        raise InputError(directory, "is a file, but a batch job writes one output per flight into a directory",
+                         "give --out DIR, or --mosaic for one output")
+    if directory.suffix.lower() in (".zarr", ".tif", ".tiff", ".hdr"):
+        raise InputError(directory, "looks like one output file, but a batch job writes one output per flight",
+                         "give --out DIR (outputs DIR/<id>.<format>), or add --mosaic")
+    return directory
+
+
+def _differences(stored: dict, wanted: dict) -> str:
+    keys = [k for k in wanted if stored.get(k) != wanted.get(k)] + [k for k in stored if k not in wanted]
+    return ", ".join(f"{k} {stored.get(k)!r} there, {wanted.get(k)!r} now" for k in keys[:4])
+
+
+def _remove_leftovers(output) -> None:
+    """Temporaries of killed runs beside ``output``'s files: Item/report partials
+    (``<name>.<hex>.partial``); the output's own ``.<name>.partial-<pid>`` are its check's."""
+    for final in output.finals:
+        for tmp in final.parent.glob(f"{final.name}.*.partial"):
+            remove_path(tmp)
+
+
+def _decide(flight: Flight, resume: bool, overwrite: bool) -> None:
+    """Settle what to do with ``flight`` before anything starts: skip it (``status`` 'skipped'), or
+    render it (its Output replaces what is there when it may). InputError when its output exists and
+    may not be replaced, or (with ``resume``) was made with another recipe and ``overwrite`` is off."""
+    output = flight.output
+    item = output.item_path
+    data = [p for p in output.finals if p not in (item, output.quicklook)]
+    complete = path_exists(item) and all(path_exists(p) for p in data)
+    present = [p for p in output.finals if path_exists(p)]
+    if resume:
+        _remove_leftovers(output)
+    if complete and resume:
+        try:
+            stored = json.loads(item.read_text())["properties"]["archive:recipe"]["request"]
+        except (OSError, ValueError, KeyError, TypeError):
+            stored = None
+        wanted = recipe_request(flight.recipe)
+        if stored == wanted:
+            flight.status = "skipped"
+            return
+        if not overwrite:
+            what = "an unreadable recipe" if stored is None else f"another recipe ({_differences(stored, wanted)})"
+            raise InputError(item, f"the output of {flight.name} is complete but was made with {what}",
+                             "pass --overwrite to render it again with this request, or choose another --out")
+    if present and not (resume or overwrite):
+        raise InputError(present[0], "output exists already",
+                         "pass --resume to skip complete outputs of the same request, or --overwrite to "
+                         "replace them")
+    if present:
+        output.overwrite = True
+        if not complete:
+            remove_path(item)   # an Item without its data, or of an output about to be replaced
+    output.check()
+
+
+def _reason(exc: BaseException) -> str:
+    """One line saying why a flight failed."""
+    from distributed import KilledWorker
+
+    if isinstance(exc, ArchiveError):
+        text = str(exc)
+    elif isinstance(exc, KilledWorker):
+        text = (f"a Dask worker died while rendering it ({exc}); it may have run out of memory or crashed in "
+                "OpenGL: try a larger --gsd or fewer --wavelengths")
+    else:
+        text = f"a render task failed: {type(exc).__name__}: {exc}"
+    return " ".join(text.split())
+
+
+class _Report:
+    """``DIR/report.json``, rewritten atomically whenever a flight finishes."""
+
+    def __init__(self, directory: Path, flights: list[Flight]):
+        self.path, self.flights = directory / REPORT, flights
+
+    def write(self, complete: bool = False) -> None:
+        counts = {s: sum(f.status == s for f in self.flights) for s in ("done", "skipped", "failed", "pending")}
+        doc = {"outputs": [f.entry() for f in self.flights], "flights": len(self.flights), **counts,
+               "complete": complete}
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(self.path, json.dumps(doc, indent=1) + "\n")
+
+
+def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, resume: bool = False,
+              scheduler: str | None = None, workers: int | None = None, threads: int | None = None,
+              quiet: bool = True, tell: Callable[[str], None] | None = None, wave: int | None = None) -> dict:
+    """Render every source of ``options`` into ``out/<name>.<format>``, each flight on its own (see
+    the module's docstring). ``tell(line)`` gets one line per flight as it finishes; ``wave``: flights
+    in the scheduler at once (default :func:`archive.cluster.flight_slots`). Returns ``{"outputs":
+    [per flight: id, status, path, error, seconds and, when done, the output's summary], "done",
+    "skipped", "failed", "seconds", "graph_seconds", "report", "wave", "peak_tasks"}``. Raises an
+    ArchiveError before anything is rendered for problems of the whole request (``out``, ``format``,
+    outputs that may not be replaced)."""
+    from archive.outputs.publish import Output
+    from archive.options import check_gsd
+
+    started = time.perf_counter()
+    check_gsd(options.gsd)
+    if format not in FORMATS:
+        raise InputError("--format", f"unknown output format {format!r}", f"use {', '.join(FORMATS)}")
+    directory = _directory(out)
+    if options.archive is not None:   # recipes independent of the working directory
+        options = dataclasses.replace(options, archive=os.fspath(Path(options.archive).absolute()))
+    flights = []
+    for src in dict.fromkeys(options.sources):
+        name = Path(src).name if Path(src).is_dir() else str(src)
+        output = Output(directory / f"{name}.{format}", overwrite=bool(overwrite), provenance=options.provenance)
+        flights.append(Flight(str(src), name, output, options.with_sources([src])))
+    for flight in flights:
+        _decide(flight, resume, overwrite)
+    report = _Report(directory, flights)
+    report.write()
+    tell = tell or (lambda line: None)
+    for flight in flights:
+        if flight.status == "skipped":
+            tell(f"skipped {flight.name}: {flight.output.path} is complete (same recipe)")
+    todo = [f for f in flights if f.status == "pending"]
+    state = {"graph_seconds": 0.0, "wave": 0, "peak_tasks": 0}
+    if todo:
+        _render(todo, report, tell, state, scheduler=scheduler, workers=workers, threads=threads, quiet=quiet,
+                wave=wave)
+    report.write(complete=True)
+    outputs = []
+    for f in flights:
+        outputs.append({**(f.summary or {}), **f.entry(), "out": str(f.output.path)})
+    counts = {s: sum(f.status == s for f in flights) for s in ("done", "skipped", "failed")}
+    return {"outputs": outputs, **counts, "seconds": time.perf_counter() - started,
+            "graph_seconds": state["graph_seconds"], "report": str(report.path), "wave": state["wave"],
+            "peak_tasks": state["peak_tasks"], "renders": sum((f.summary or {}).get("renders", 0) for f in flights)}
+
+
+def _say(quiet: bool):
+    def say(text: str) -> None:
+        if not quiet:
+            print(text, file=sys.stderr)
+    return say
+
+
+def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler, workers, threads, quiet,
+            wave) -> None:
+    """Plan, submit (in waves), follow and publish ``todo``'s flights on a cluster."""
+    from collections import deque
+
+    from distributed import as_completed
+    from tqdm import tqdm
+
+    from archive.cluster import flight_slots, start_cluster, task_budget, wait_for_writers
+
+    say = _say(quiet)
+    client, cluster = start_cluster(scheduler, workers, say, threads)
+    queue = deque(todo)
+    owner: dict[str, Flight] = {}
+    active: list[Flight] = []
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(todo), desc="flights", unit="flight", disable=quiet, file=sys.stderr)
+    tasks = {"done": 0, "submitted": 0}
+    try:
+        budget = task_budget(client)
+        slots = wave or flight_slots(client, budget)
+        state["wave"] = slots
+        pending_futures = as_completed()
+
+        def finish(flight: Flight, status: str, error: str | None = None) -> None:
+            flight.status, flight.error = status, error
+            flight.seconds = time.perf_counter() - flight.started
+            if status == "failed":
+                client.cancel([f for f in flight.futures if not f.done()], force=True)
+                flight.output.cleanup()
+                tell(f"failed {flight.name}: {error}")
+            else:
+                s = flight.summary
+                tell(f"done {flight.name}: {s['width']} x {s['height']} px, {s['bands']} bands -> "
+                     f"{flight.output.path} ({flight.seconds:.1f} s)")
+            flight.futures, flight.job = [], None
+            if flight in active:
+                active.remove(flight)
+            report.write()
+            bar.update(1)
+
+        def submit(flight: Flight) -> None:
+            flight.started = time.perf_counter()
+            try:
+                flight.job, graph = _prepare(flight, budget, say)
+                futures = client.compute(list(graph.writes)) if len(graph) else []
+            except Exception as exc:  # noqa: BLE001 - the flight fails alone
+                finish(flight, "failed", _reason(exc))
+                return
+            flight.futures, flight.left = list(futures), len(futures)
+            active.append(flight)
+            tasks["submitted"] += len(futures)
+            for future in futures:
+                owner[future.key] = flight
+                pending_futures.add(future)
+            if not futures:
+                publish_flight(flight)
+
+        def publish_flight(flight: Flight) -> None:
+            from archive.pipeline import publish
+
+            try:
+                publish(flight.job)
+            except Exception as exc:  # noqa: BLE001
+                finish(flight, "failed", _reason(exc))
+                return
+            finish(flight, "done")
+
+        while queue or active:
+            while queue and len(active) < slots:
+                submit(queue.popleft())
+            state["peak_tasks"] = max(state["peak_tasks"], sum(len(f.futures) for f in active))
+            if not active:
+                continue
+            future = next(pending_futures)
+            flight = owner.pop(future.key, None)
+            if flight is None or flight.status != "pending":
+                future.release()
+                continue
+            if future.status == "error":
+                exc = future.exception()
+                future.release()
+                finish(flight, "failed", _reason(exc))
+                continue
+            if future.status == "cancelled":
+                future.release()
+                finish(flight, "failed", "its tasks were cancelled (the scheduler lost them)")
+                continue
+            future.release()
+            flight.left -= 1
+            tasks["done"] += 1
+            bar.set_postfix_str(f"tasks {tasks['done']}/{tasks['submitted']}", refresh=False)
+            if flight.left == 0:
+                publish_flight(flight)
+        state["graph_seconds"] = time.perf_counter() - t0
+    finally:
+        bar.close()
+        if cluster is None and any(f.status == "failed" for f in todo):
+            wait_for_writers(client)
+        client.close()
+        if cluster is not None:
+            cluster.close()  # stops the worker processes, with any task still writing
+        for flight in todo:
+            flight.output.cleanup()
+
+
+@dataclass
+class _FlightJob:
+    """What :func:`archive.pipeline.publish` needs of a flight: output, plan, sink, options."""
+
+    output: object
+    planned: object
+    sink: object
+    options: object
+
+
+def _prepare(flight: Flight, budget: int, say) -> tuple[_FlightJob, object]:
+    """Open, plan and build one flight (metadata only; its sink created under temporary names)."""
+    from archive.pipeline import build_output, open_inputs, plan_output
+
+    recipe = flight.recipe
+    nav = recipe.check()
+    inputs = open_inputs(recipe, nav, say, mosaic=False)
+    planned = plan_output(inputs, [0], budget=budget)
+    sink, graph = build_output(planned, flight.output)
+    flight.summary = _summary(planned, flight.output, graph)
+    return _FlightJob(flight.output, planned, sink, recipe), graph
+
+
+def _summary(planned, output, graph) -> dict:
+    g, plan = planned.plan.grid, planned.plan
+    return {"out": str(output.path), "width": g.width, "height": g.height, "gsd": g.gsd, "epsg": g.epsg,
+            "bands": plan.nbands, "wavelengths": planned.wavelengths, "mode": planned.params.mode,
+            "cubes": len(plan.jobs), "sources": len(planned.sources), "renders": graph.renders,
+            "assemblies": graph.assemblies, "left_out": dict(planned.left_out or {}),
+            "provenance": None if not output.provenance else str(output.provenance_path or output.path)}
