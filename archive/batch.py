@@ -90,11 +90,16 @@ def _differences(stored: dict, wanted: dict) -> str:
 
 
 def _remove_leftovers(output) -> None:
-    """Temporaries of killed runs beside ``output``'s files: Item/report partials
-    (``<name>.<hex>.partial``); the output's own ``.<name>.partial-<pid>`` are its check's."""
+    """Temporaries of killed runs beside ``output``'s files: Item partials (``<name>.<hex>.partial``)
+    and the output's ``.<name>.partial-<pid>...`` whose process is gone (its check removes those)."""
     for final in output.finals:
         for tmp in final.parent.glob(f"{final.name}.*.partial"):
             remove_path(tmp)
+    keep, output.overwrite = output.overwrite, True   # check only for the leftovers it removes
+    try:
+        output.check()
+    finally:
+        output.overwrite = keep
 
 
 def _decide(flight: Flight, resume: bool, overwrite: bool) -> None:

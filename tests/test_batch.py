@@ -9,8 +9,13 @@ Archives of small simulated flights (2 cubes x 100 lines x 64 samples x 4 bands)
 from __future__ import annotations
 
 import json
-import shutil
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
+import shutil
 
 import numcodecs
 import numpy as np
@@ -26,13 +31,13 @@ SHAPE = dict(cubes=2, bands=4, samples=64, lines=100, cubes_per_pass=2)
 
 @pytest.fixture(scope="module")
 def flights(tmp_path_factory):
-    """(raw directories, archive, ids) of three small flights ingested into one archive."""
+    """(raw directories, archive, ids) of four small flights ingested into one archive."""
     from archive.ingest.command import ingest
     from archive.simulator.command import simulate_flight
 
     root = tmp_path_factory.mktemp("batch")
     dirs, ids = [], []
-    for seed in range(3):
+    for seed in range(4):
         d = root / f"flight{seed}"
         simulate_flight(d, seed=seed, **SHAPE)
         (r,) = ingest([str(d)], root / "archive", FOV, progress=False)
@@ -123,3 +128,143 @@ def test_render_mosaic_and_viewer_refuse_a_corrupt_chunk(flights, tmp_path, caps
         got = client.get(f"/api/collections/{cid}/point", params={"lon": repr(lon), "lat": repr(lat)})
     assert got.status_code == 400, got.text
     assert re.search(expected, got.json()["error"]) and "archive verify" in got.json()["error"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Batch jobs: each flight on its own, the report, --resume
+# ---------------------------------------------------------------------------------------------
+def read_values(path: Path) -> np.ndarray:
+    import rasterio
+
+    with rasterio.open(path) as src:
+        return src.read()
+
+
+def render_batch(archive: Path, out: Path, *extra: str, wait: bool = True):
+    """``archive render --archive A --query-bbox (everything) --out DIR --format tif`` as a process
+    of its own session (so that SIGKILL of the group is a killed job: command and workers)."""
+    args = [sys.executable, "-m", "archive", "render", "--archive", str(archive), "--query-bbox", "-180,-90,180,90",
+            "--gsd", GSD, "--out", str(out), "--format", "tif", "--quiet", "--workers", "1", *extra]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    if not wait:
+        return proc
+    stdout, stderr = proc.communicate(timeout=300)
+    return proc.returncode, stdout, stderr
+
+
+def report(out: Path) -> dict:
+    return json.loads((out / "report.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def singles(flights, tmp_path_factory):
+    """Each flight rendered alone (``archive render ID --archive A --out ID.tif``): id -> values."""
+    _, archive, ids = flights
+    root = tmp_path_factory.mktemp("singles")
+    values = {}
+    for cid in ids:
+        assert main(["render", cid, "--archive", str(archive), "--gsd", GSD, "--out", str(root / f"{cid}.tif"),
+                     "--quiet"]) == 0
+        values[cid] = read_values(root / f"{cid}.tif")
+    return values
+
+
+def test_a_bad_flight_costs_only_itself(flights, singles, tmp_path):
+    _, archive, ids = flights
+    archive = copy_archive(archive, tmp_path / "archive")
+    flip_value(store_of(archive, ids[1]), 2, 1)     # silent corruption: decodes, wrong values
+    truncate(store_of(archive, ids[3]), 3, 0)       # does not decode
+    out = tmp_path / "out"
+    code, stdout, stderr = render_batch(archive, out)
+    assert code == 1, stderr
+    lines = [line for line in stdout.splitlines() if line.startswith("archive render: ") and ":" in line[16:]]
+    by_id = {line.split()[3].rstrip(":"): line.split()[2] for line in lines if line.split()[2] in
+             ("done", "failed", "skipped")}
+    assert by_id == {ids[0]: "done", ids[1]: "failed", ids[2]: "done", ids[3]: "failed"}, stdout
+    failed = {line.split()[3].rstrip(":"): line for line in lines if " failed " in line}
+    assert f"collection {ids[1]}: array dn, band 2, lines 100-199: chunk does not match its recorded sha256" \
+        in failed[ids[1]] and "archive verify" in failed[ids[1]]
+    assert f"collection {ids[3]}: array dn, band 3, lines 0-99: chunk cannot be decoded" in failed[ids[3]]
+    doc = report(out)
+    assert doc["complete"] and (doc["done"], doc["failed"], doc["skipped"], doc["pending"]) == (2, 2, 0, 0)
+    entries = {o["id"]: o for o in doc["outputs"]}
+    assert {k: v["status"] for k, v in entries.items()} == by_id
+    assert "band 2, lines 100-199" in entries[ids[1]]["error"] and entries[ids[0]]["error"] is None
+    assert all(o["seconds"] >= 0 and o["path"] == str(out / f"{o['id']}.tif") for o in doc["outputs"])
+    # nothing of the failed flights anywhere in DIR; the others complete and equal to single renders
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [f"{ids[i]}.tif{x}" for i in (0, 2) for x in ("", ".json")] + ["report.json"])
+    for i in (0, 2):
+        assert np.array_equal(read_values(out / f"{ids[i]}.tif"), singles[ids[i]], equal_nan=True)
+
+
+def _kill_when(proc, out: Path, done: int, timeout: float = 120.0) -> None:
+    """SIGKILL the batch (its whole session) once its report shows ``done`` finished flights."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            if report(out)["done"] >= done:
+                break
+        except (OSError, ValueError, KeyError):
+            pass
+        time.sleep(0.02)
+    assert proc.poll() is None, "the batch ended before it could be killed"
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+
+
+@pytest.mark.parametrize("moment", [0, 1, 3])
+def test_resume_after_sigkill(flights, singles, tmp_path, moment):
+    """SIGKILL at three moments (report written, nothing done; one flight done; three done); --resume
+    completes the batch, skips every flight finished before the kill (not rendered again: same
+    files), and gives the outputs of single-flight renders."""
+    _, archive, ids = flights
+    out = tmp_path / "out"
+    _kill_when(render_batch(archive, out, wait=False), out, moment)
+    before = report(out)
+    assert not before["complete"] and before["pending"] >= 1
+    finished = {o["id"] for o in before["outputs"] if o["status"] == "done"}
+    assert len(finished) >= moment
+    stamps = {cid: (out / f"{cid}.tif").stat().st_mtime_ns for cid in finished}
+    code, stdout, stderr = render_batch(archive, out, "--resume")
+    assert code == 0, stderr
+    doc = report(out)
+    assert doc["complete"] and doc["failed"] == 0 and doc["pending"] == 0
+    assert {o["id"] for o in doc["outputs"] if o["status"] == "skipped"} == finished
+    assert doc["done"] == len(ids) - len(finished)
+    assert stdout.count("archive render: skipped ") == len(finished)
+    for cid in finished:
+        assert (out / f"{cid}.tif").stat().st_mtime_ns == stamps[cid]
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [f"{cid}.tif{x}" for cid in ids for x in ("", ".json")] + ["report.json"])
+    for cid in ids:
+        assert np.array_equal(read_values(out / f"{cid}.tif"), singles[cid], equal_nan=True)
+
+
+def test_resume_redoes_incomplete_outputs_and_refuses_another_recipe(flights, tmp_path, capsys):
+    _, archive, ids = flights
+    out = tmp_path / "out"
+    code, _, stderr = render_batch(archive, out)
+    assert code == 0, stderr
+    # killed between the rename and the Item: data without Item; and a dead run's temporary
+    (out / f"{ids[1]}.tif.json").unlink()
+    (out / f".{ids[2]}.tif.partial-999999999").mkdir()
+    (out / f"{ids[2]}.tif.json.0123abcd.partial").write_text("{")
+    stamp = (out / f"{ids[0]}.tif").stat().st_mtime_ns
+    code, stdout, stderr = render_batch(archive, out)   # without --resume: refused, nothing touched
+    assert code == 2 and "output exists already" in stderr and "--resume" in stderr
+    code, stdout, stderr = render_batch(archive, out, "--resume")
+    assert code == 0, stderr
+    doc = report(out)
+    assert {o["id"]: o["status"] for o in doc["outputs"]} == {ids[0]: "skipped", ids[1]: "done",
+                                                            ids[2]: "skipped", ids[3]: "skipped"}
+    assert (out / f"{ids[0]}.tif").stat().st_mtime_ns == stamp and (out / f"{ids[1]}.tif.json").is_file()
+    assert not list(out.glob(".*")) and not list(out.glob("*.partial"))
+    # another recipe: refused before anything starts, unless --overwrite
+    args = ["render", "--archive", str(archive), "--query-bbox", "-180,-90,180,90", "--gsd", "0.2", "--out",
+            str(out), "--format", "tif", "--quiet", "--resume"]
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "was made with another recipe (gsd 0.1 there, 0.2 now)" in err and "--overwrite" in err
+    assert (out / f"{ids[0]}.tif").stat().st_mtime_ns == stamp
