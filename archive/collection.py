@@ -93,8 +93,8 @@ def sha256_file(path: str | os.PathLike, block: int = 1 << 22) -> str:
 def chunk_digest(data: np.ndarray) -> bytes:
     """sha256 of an array's bytes in C order, little endian (the recorded chunk checksum)."""
     a = np.ascontiguousarray(data)
-    a = a.astype(a.dtype.newbyteorder("<"), copy=False)
-    return hashlib.sha256(a.tobytes()).digest()
+    a = np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<"), copy=False))
+    return hashlib.sha256(a.reshape(-1).view(np.uint8).data).digest()   # no copy of the bytes
 
 
 def array_digest(data: np.ndarray) -> str:

@@ -268,3 +268,49 @@ def test_resume_redoes_incomplete_outputs_and_refuses_another_recipe(flights, tm
     err = capsys.readouterr().err
     assert "was made with another recipe (gsd 0.1 there, 0.2 now)" in err and "--overwrite" in err
     assert (out / f"{ids[0]}.tif").stat().st_mtime_ns == stamp
+
+
+# ---------------------------------------------------------------------------------------------
+# Waves: the tasks the scheduler holds do not grow with the batch
+# ---------------------------------------------------------------------------------------------
+def _peak_tasks(dirs: list[Path], out: Path) -> tuple[int, dict]:
+    """Peak number of tasks the scheduler holds while a batch of ``dirs`` runs (a scheduler plugin)."""
+    import logging
+
+    import archive as api
+    from distributed import LocalCluster
+    from distributed.diagnostics.plugin import SchedulerPlugin
+
+    class Peak(SchedulerPlugin):
+        name = "peak-tasks"
+
+        def __init__(self, scheduler):
+            self.peak, self.scheduler = 0, scheduler
+
+        def transition(self, key, start, finish, *args, **kwargs):
+            self.peak = max(self.peak, len(self.scheduler.tasks))
+
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, resources={"GPU": 2},
+                      dashboard_address=":0", silence_logs=logging.CRITICAL) as cluster:
+        plugin = Peak(cluster.scheduler)
+        cluster.scheduler.add_plugin(plugin)
+        summary = api.georectify(dirs, out, per_flight=True, format="zarr", fov=FOV, gsd=0.2,
+                                 scheduler=cluster.scheduler_address)
+    return plugin.peak, summary
+
+
+def test_waves_keep_the_scheduler_flat(tmp_path):
+    """40 flights hold no more tasks in the scheduler at once than 4 flights of the same size."""
+    from archive.simulator.command import simulate_flight
+
+    dirs = []
+    for seed in range(40):
+        d = tmp_path / "raw" / f"f{seed:02d}"
+        simulate_flight(d, cubes=2, bands=2, samples=24, lines=40, cubes_per_pass=2, seed=seed)
+        dirs.append(d)
+    peak4, four = _peak_tasks(dirs[:4], tmp_path / "four")
+    peak40, forty = _peak_tasks(dirs, tmp_path / "forty")
+    assert four["done"] == 4 and forty["done"] == 40 and forty["failed"] == 0
+    assert forty["wave"] == four["wave"] < 40
+    assert 0 < peak40 <= peak4, (peak4, peak40)
+    assert forty["peak_tasks"] <= four["peak_tasks"]
