@@ -172,7 +172,8 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
     the module's docstring). ``tell(line)`` gets one line per flight as it finishes; ``wave``: flights
     in the scheduler at once (default :func:`archive.cluster.flight_slots`). Returns ``{"outputs":
     [per flight: id, status, path, error, seconds and, when done, the output's summary], "done",
-    "skipped", "failed", "seconds", "graph_seconds", "report", "wave", "peak_tasks"}``. Raises an
+    "skipped", "failed", "seconds", "graph_seconds", "submit_seconds" (opening, planning, building
+    and submitting the flights), "report", "wave", "peak_tasks" (futures held at once)}``. Raises an
     ArchiveError before anything is rendered for problems of the whole request (``out``, ``format``,
     outputs that may not be replaced)."""
     from archive.outputs.publish import Output
@@ -188,7 +189,8 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
     flights = []
     for src in dict.fromkeys(options.sources):
         name = Path(src).name if Path(src).is_dir() else str(src)
-        output = Output(directory / f"{name}.{format}", overwrite=bool(overwrite), provenance=options.provenance)
+        output = Output(directory / f"{name}.{format}", overwrite=bool(overwrite), provenance=options.provenance,
+                        zarr_format=options.zarr_format)
         flights.append(Flight(str(src), name, output, options.with_sources([src])))
     for flight in flights:
         _decide(flight, resume, overwrite)
@@ -199,7 +201,7 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
         if flight.status == "skipped":
             tell(f"skipped {flight.name}: {flight.output.path} is complete (same recipe)")
     todo = [f for f in flights if f.status == "pending"]
-    state = {"graph_seconds": 0.0, "wave": 0, "peak_tasks": 0}
+    state = {"graph_seconds": 0.0, "submit_seconds": 0.0, "wave": 0, "peak_tasks": 0}
     if todo:
         _render(todo, report, tell, state, scheduler=scheduler, workers=workers, threads=threads, quiet=quiet,
                 wave=wave)
@@ -209,7 +211,8 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
         outputs.append({**(f.summary or {}), **f.entry(), "out": str(f.output.path)})
     counts = {s: sum(f.status == s for f in flights) for s in ("done", "skipped", "failed")}
     return {"outputs": outputs, **counts, "seconds": time.perf_counter() - started,
-            "graph_seconds": state["graph_seconds"], "report": str(report.path), "wave": state["wave"],
+            "graph_seconds": state["graph_seconds"], "submit_seconds": state["submit_seconds"],
+            "report": str(report.path), "wave": state["wave"],
             "peak_tasks": state["peak_tasks"], "renders": sum((f.summary or {}).get("renders", 0) for f in flights)}
 
 
@@ -269,6 +272,8 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
             except Exception as exc:  # noqa: BLE001 - the flight fails alone
                 finish(flight, "failed", _reason(exc))
                 return
+            finally:
+                state["submit_seconds"] += time.perf_counter() - flight.started
             flight.futures, flight.left = list(futures), len(futures)
             active.append(flight)
             tasks["submitted"] += len(futures)
