@@ -283,7 +283,7 @@ def measure_pair(model: FlightModel, grid: PairGrid, image_a: np.ndarray, image_
     return ties, stats
 
 
-def _local_shift(ra, rb, r, c, window, coarse, pad: int = 2 * COARSE) -> np.ndarray | None:
+def _local_shift(ra, rb, r, c, window, coarse, pad: int = 3 * COARSE) -> np.ndarray | None:
     """Shift of one window (integer + parabola) from a masked NCC search within ``pad`` grid
     pixels of ``coarse``; None without a clear match."""
     base = np.round(coarse).astype(int)

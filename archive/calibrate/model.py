@@ -88,6 +88,8 @@ class FlightModel:
         self.fov_deg = float(fov_deg)
         self.t_half = math.tan(math.radians(self.fov_deg) / 2.0)
         self.surface = surface
+        #: where a ray's search for the terrain starts (m above the ellipsoid): the terrain under the track
+        self.base_height = 0.0
         self.lever = np.asarray(nav.params.lever_arm_m, float)
         track = nav.track
         self._t0 = float(track.time[0])
@@ -98,6 +100,9 @@ class FlightModel:
         self._seg_start = self._time[np.r_[0, cuts]]
         self._seg_end = self._time[np.r_[cuts, len(self._time)] - 1]
         self.passes = self._passes(source)
+        if surface is not None:
+            under = surface(self._pos[:, 0], self._pos[:, 1])
+            self.base_height = float(np.nanmedian(under)) if np.isfinite(under).any() else 0.0
 
     # --- passes -------------------------------------------------------------------------------
     def _passes(self, source) -> tuple[Pass, ...]:
@@ -154,7 +159,8 @@ class FlightModel:
         pos, att, valid = self.poses(t, params)
         d = att @ np.stack([np.zeros_like(u), u, np.ones_like(u)], axis=1)[:, :, None]
         d = d[:, :, 0]
-        down = self.ground_down(params)
+        down = self.ground_down(params) if self.surface is None else \
+            float(self.frame.origin_alt - self.base_height - params.ground)
         with np.errstate(divide="ignore", invalid="ignore"):
             lam = (down - pos[:, 2]) / d[:, 2]
             xy = pos[:, :2] + lam[:, None] * d[:, :2]
