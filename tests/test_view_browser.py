@@ -1,16 +1,20 @@
-"""The viewer's page in real headless Chromium (Debian's ``chromium`` driven by Playwright; issue 13).
+"""The viewer's page in real headless Chromium (Debian's ``chromium`` driven by Playwright; issues 13, 22).
 
-``archive view`` (the command, in a subprocess) serves a demo-sized archive; the page opens the
-flight, and once its tiles have loaded:
+``archive view`` (the command, in a subprocess) serves an archive of six small overlapping flights.
+The page draws band-value tiles it stretches and composes itself, so:
 
-- a screenshot of the map shows the flight's pixels exactly where ``archive.mosaic`` (a UTM
-  render, another grid and CRS) has coverage, and the map's background everywhere else (only a
-  2-pixel band along the coverage's edges may differ);
-- a click on a covered pixel shows a spectrum (SVG chart, CSV, pixel info) equal, float32 bit for
-  bit, to the same pixel of the mosaic at the grid of the nominal GSD;
-- moving the ground-height slider with the keyboard re-renders the tiles (they change).
+- one flight drawn alone shows its pixels exactly where ``archive.mosaic`` (a UTM render, another
+  grid and CRS) has coverage, and the map's background everywhere else (only a 2-pixel band along
+  the coverage's edges may differ); pinned spectra equal the mosaic's pixels float32 bit for bit;
+- screenshots taken every ~50 ms during a band change and a ground-height change never show the
+  open flight's footprint empty (double buffering; previews while the slider moves);
+- a stretch change issues no tile request and changes the picture; editing the URL hash updates the
+  view without a reload;
+- two overlapping flights are drawn at once (the order decides the overlap), and at the zoom that
+  fits the archive every flight shows imagery (anti-aliased overview tiles);
+- an invalid cube range shows the server's message next to the cube fields; Reset clears it.
 
-The page's screenshot after the click is saved as docs/viewer.png (the README shows it).
+The page's screenshot with two pinned spectra is saved as docs/viewer.png (the README shows it).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -33,9 +38,10 @@ CHROMIUM = Path("/usr/bin/chromium")
 LAUNCH_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
                "--disable-component-update", "--disable-sync"]
 ROOT = Path(__file__).resolve().parents[1]
-BACKGROUND = (255, 0, 255)  # the map's background during the pixel check: no stretched flight pixel is this
+BACKGROUND = (255, 0, 255)  # the map's background during pixel checks: no stretched flight pixel is this
 FOV = 47.5
 HALF_WORLD = np.pi * 6378137.0
+FLIGHTS = 6
 
 pytestmark = pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed at "
                                 "/usr/bin/chromium (./dev.sh test installs it: apt-get install chromium)")
@@ -44,24 +50,30 @@ playwright = pytest.importorskip("playwright.sync_api", reason="the playwright p
 
 
 @pytest.fixture(scope="module")
-def demo_archive(tmp_path_factory):
-    """The demo's archive: ``archive simulate`` defaults (4 cubes x 250 lines x 128 samples x 8 bands)
-    ingested at --fov 47.5."""
+def archive_of_flights(tmp_path_factory):
+    """(archive path, ids by start time): six simulated flights (2 cubes x 150 lines x 64 samples x 6
+    bands) on a 3 x 2 grid whose neighbours overlap, ingested at --fov 47.5."""
     from archive.ingest.command import ingest
     from archive.simulator.command import simulate_flight
 
     root = tmp_path_factory.mktemp("viewer")
-    simulate_flight(root / "flight")
-    (result,) = ingest([root / "flight"], root / "archive", FOV, progress=False)
-    return root / "archive", result.cid
+    dirs = []
+    for i in range(FLIGHTS):
+        d = root / f"flight{i}"
+        simulate_flight(d, cubes=2, bands=6, samples=64, lines=150, cubes_per_pass=2, seed=i,
+                        lat=35.12 + 0.00015 * (i // 3), lon=-89.94 + 0.00025 * (i % 3),
+                        start=f"2024-06-0{i + 1}T15:00:00Z")
+        dirs.append(d)
+    results = ingest(dirs, root / "archive", FOV, progress=False)
+    return root / "archive", [r.cid for r in results]
 
 
 @pytest.fixture(scope="module")
-def server(demo_archive):
+def server(archive_of_flights):
     """``archive view --archive A --port 0`` in a subprocess; yields its URL."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen([sys.executable, "-m", "archive", "view", "--archive", str(demo_archive[0]), "--port", "0"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env)
+    proc = subprocess.Popen([sys.executable, "-m", "archive", "view", "--archive", str(archive_of_flights[0]),
+                             "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env)
     lines: queue.Queue = queue.Queue()
     threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout], daemon=True).start()
     try:
@@ -81,21 +93,61 @@ def server(demo_archive):
     assert proc.returncode == 0, proc.stderr.read()
 
 
-def _screenshot(locator) -> np.ndarray:
-    return np.asarray(Image.open(io.BytesIO(locator.screenshot())).convert("RGB"))
+@pytest.fixture(scope="module")
+def browser():
+    with playwright.sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=str(CHROMIUM), args=LAUNCH_ARGS)
+        try:
+            yield b
+        finally:
+            b.close()
 
 
-def _map_geometry(page) -> dict:
-    """Zoom and the global pixel (Web-Mercator, zoom z) of the map container's top-left corner."""
-    return page.evaluate("""() => {
-        const m = window.viewer.map;
-        const p = m.getPixelOrigin().add(m.containerPointToLayerPoint([0, 0]));
-        return {zoom: m.getZoom(), x: p.x, y: p.y};
-    }""")
+class Page:
+    """A page of the viewer with its tile requests and errors recorded."""
+
+    def __init__(self, browser, url: str, hash_: str = "", width: int = 1280, height: int = 900):
+        self.page = browser.new_page(viewport={"width": width, "height": height}, device_scale_factor=1)
+        self.errors: list[str] = []
+        self.values_requests: list[str] = []
+        self.page.on("pageerror", lambda exc: self.errors.append(str(exc)))
+        self.page.on("request", lambda r: self.values_requests.append(r.url) if "/values/" in r.url else None)
+        self.page.goto(url + ("#" + hash_ if hash_ else ""))
+        self.settled()
+
+    def settled(self, timeout: float = 60_000) -> None:
+        self.page.wait_for_function("() => window.viewer.settled && window.viewer.draws > 0", timeout=timeout)
+
+    def clean(self) -> None:
+        """Map background BACKGROUND, no footprints, labels or controls (pixel checks)."""
+        self.page.evaluate(f"""() => {{
+            for (const s of ['.leaflet-control-container', '.leaflet-footprints-pane', '.leaflet-tooltip-pane'])
+                document.querySelector(s).style.display = 'none';
+            document.getElementById('map').style.background = 'rgb{BACKGROUND}';
+        }}""")
+
+    def shot(self) -> np.ndarray:
+        return np.asarray(Image.open(io.BytesIO(self.page.locator("#map").screenshot())).convert("RGB"))
+
+    def drawn(self, shot=None) -> np.ndarray:
+        shot = self.shot() if shot is None else shot
+        return (shot != np.array(BACKGROUND, np.uint8)).any(axis=-1)
+
+    def geometry(self) -> dict:
+        """Zoom and the global pixel (Web-Mercator, zoom z) of the map container's top-left corner."""
+        return self.page.evaluate("""() => {
+            const m = window.viewer.map;
+            const p = m.getPixelOrigin().add(m.containerPointToLayerPoint([0, 0]));
+            return {zoom: m.getZoom(), x: p.x, y: p.y};
+        }""")
+
+    def close(self) -> None:
+        assert not self.errors, self.errors
+        self.page.close()
 
 
-def _expected_coverage(ds, shape, geo) -> np.ndarray:
-    """Whether each screen pixel centre of the map falls on a covered pixel of the UTM mosaic ``ds``."""
+def _screen_lonlat(shape, geo):
+    """lon, lat of each screen pixel centre of the map."""
     from pyproj import Transformer
 
     h, w = shape
@@ -103,7 +155,16 @@ def _expected_coverage(ds, shape, geo) -> np.ndarray:
     mx = -HALF_WORLD + (geo["x"] + np.arange(w) + 0.5) * res
     my = HALF_WORLD - (geo["y"] + np.arange(h) + 0.5) * res
     gx, gy = np.meshgrid(mx, my)
-    e, n = Transformer.from_crs(3857, ds.rio.crs.to_epsg(), always_xy=True).transform(gx, gy)
+    lon, lat = Transformer.from_crs(3857, 4326, always_xy=True).transform(gx, gy)
+    return np.asarray(lon), np.asarray(lat)
+
+
+def _expected_coverage(ds, shape, geo) -> np.ndarray:
+    """Whether each screen pixel centre of the map falls on a covered pixel of the UTM mosaic ``ds``."""
+    from pyproj import Transformer
+
+    lon, lat = _screen_lonlat(shape, geo)
+    e, n = Transformer.from_crs(4326, ds.rio.crs.to_epsg(), always_xy=True).transform(lon, lat)
     gsd = float(ds.x[1] - ds.x[0])
     col = np.floor((np.asarray(e) - (float(ds.x[0]) - gsd / 2)) / gsd).astype(int)
     row = np.floor(((float(ds.y[0]) + gsd / 2) - np.asarray(n)) / gsd).astype(int)
@@ -114,110 +175,258 @@ def _expected_coverage(ds, shape, geo) -> np.ndarray:
     return out
 
 
-def _wait_tiles(page, contains: str = "") -> None:
-    page.wait_for_function(
-        "(part) => window.viewer.ready && window.viewer.tileUrl && window.viewer.tileUrl.includes(part)",
-        arg=contains, timeout=60_000)
-    # every visible tile has loaded (no grey placeholder left)
-    page.wait_for_function("() => !document.querySelector('.flight-tiles img.leaflet-tile:not(.leaflet-tile-loaded)')",
-                           timeout=60_000)
+def _footprint_mask(feature, shape, geo) -> np.ndarray:
+    from archive.catalog.footprint import points_in_polygon
+
+    lon, lat = _screen_lonlat(shape, geo)
+    g = feature["geometry"]
+    polygons = [g["coordinates"]] if g["type"] == "Polygon" else g["coordinates"]
+    pts = np.stack([lon.ravel(), lat.ravel()], axis=-1)
+    inside = np.zeros(len(pts), bool)
+    for poly in polygons:
+        inside |= points_in_polygon(pts, np.asarray(poly[0]))
+    return inside.reshape(shape)
 
 
-def test_viewer_in_headless_chromium(server, demo_archive):
+def _shots_while(page: Page, start, seconds: float = 8.0) -> list[np.ndarray]:
+    """Screenshots of the map: one before ``start()``, then as fast as they come (~every 50 ms)
+    until the view has settled again (and at least 0.5 s)."""
+    shots = [page.shot()]
+    page.page.evaluate("() => { window.viewer.settled = false; }")
+    start()
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        shots.append(page.shot())
+        if time.monotonic() - t0 > 0.5 and page.page.evaluate("window.viewer.settled"):
+            break
+        time.sleep(0.05)
+    shots.append(page.shot())
+    return shots
+
+
+def _point_check(point, path):
+    """The pinned spectrum equals the pixel of ``archive.mosaic`` at the point's GSD, float32-exact."""
     from pyproj import Transformer
+
+    import archive
+
+    ds = archive.mosaic([point["id"]], archive=path, gsd=point["gsd"])
+    values = ds["radiance"].values
+    assert ds.rio.crs.to_epsg() == point["epsg"]
+    e, n = Transformer.from_crs(4326, point["epsg"], always_xy=True).transform(point["lon"], point["lat"])
+    col = round((point["pixel"]["x"] - float(ds.x[0])) / point["gsd"])
+    row = round((float(ds.y[0]) - point["pixel"]["y"]) / point["gsd"])
+    assert abs(float(ds.x[col]) - point["pixel"]["x"]) < 1e-6 and abs(float(ds.y[row]) - point["pixel"]["y"]) < 1e-6
+    assert abs(e - point["pixel"]["x"]) <= point["gsd"] / 2 and abs(n - point["pixel"]["y"]) <= point["gsd"] / 2
+    spectrum = np.array(point["values"], np.float32)
+    assert np.array_equal(spectrum.view(np.uint32), values[:, row, col].astype(np.float32).view(np.uint32)), \
+        (spectrum, values[:, row, col])
+    return spectrum
+
+
+def test_one_flight_where_the_mosaic_is_and_pinned_spectra(server, browser, archive_of_flights):
     from scipy.ndimage import binary_dilation, binary_erosion
 
     import archive
 
-    path, cid = demo_archive
-    with playwright.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=LAUNCH_ARGS)
-        try:
-            page = browser.new_page(viewport={"width": 1280, "height": 960}, device_scale_factor=1)
-            errors: list[str] = []
-            page.on("pageerror", lambda exc: errors.append(str(exc)))
-            page.goto(server)
-            page.locator("#flights li", has_text=cid).click()
-            _wait_tiles(page)
-            assert page.evaluate("window.viewer.tileErrors") == 0
+    path, ids = archive_of_flights
+    cid = ids[0]
+    page = Page(browser, server, f"flights={cid}&open={cid}")
+    page.page.wait_for_function(f"() => window.viewer.open === '{cid}'")
+    page.page.evaluate("() => window.viewer.map.setZoom(window.viewer.map.getZoom() + 1)")
+    page.settled()
+    assert page.page.evaluate("window.viewer.tileErrors") == 0
+    page.clean()
+    drawn = page.drawn()
+    geo = page.geometry()
+    coverage = archive.mosaic([cid], archive=path, gsd=0.03, wavelengths=[650])
+    expected = _expected_coverage(coverage, drawn.shape, geo)
+    edge = binary_dilation(expected, iterations=2) & ~binary_erosion(expected, iterations=2)
+    assert expected.sum() > 20_000, "the flight should fill a good part of the map"
+    wrong = (drawn != expected) & ~edge
+    assert wrong.sum() == 0, f"{wrong.sum()} pixels drawn where the mosaic has no coverage or the reverse"
 
-            # ---- pixels where the flight is, and only there ------------------------------------
-            page.evaluate(f"""() => {{
-                window.viewer.footprints.remove();
-                document.querySelector('.leaflet-control-container').style.display = 'none';
-                document.getElementById('map').style.background = 'rgb{BACKGROUND}';
-            }}""")
-            shot = _screenshot(page.locator("#map"))
-            geo = _map_geometry(page)
-            drawn = (shot != np.array(BACKGROUND, np.uint8)).any(axis=-1)
-            coverage = archive.mosaic([cid], archive=path, gsd=0.03, wavelengths=[650])
-            expected = _expected_coverage(coverage, drawn.shape, geo)
-            edge = binary_dilation(expected, iterations=2) & ~binary_erosion(expected, iterations=2)
-            assert expected.sum() > 20_000, "the flight should fill a good part of the map"
-            wrong = (drawn != expected) & ~edge
-            assert wrong.sum() == 0, f"{wrong.sum()} pixels drawn where the mosaic has no coverage or the reverse"
-            assert (drawn & expected).sum() > 0.95 * expected.sum()
+    # two clicks: two pinned spectra (own colours), each the pixel archive render writes
+    inner = binary_erosion(expected, iterations=12)
+    rows, cols = np.nonzero(inner)
+    box = page.page.locator("#map").bounding_box()
+    points = []
+    for k in (len(rows) // 3, 2 * len(rows) // 3):
+        page.page.mouse.click(box["x"] + cols[k] + 0.5, box["y"] + rows[k] + 0.5)
+        page.page.wait_for_function(f"() => window.viewer.pins.length === {len(points) + 1}", timeout=30_000)
+        points.append(page.page.evaluate("window.viewer.lastPoint"))
+    spectra = [_point_check(p, path) for p in points]
+    assert all(p["covered"] and p["id"] == cid and p["mode"] == "radiance" for p in points)
+    assert page.page.locator("#spectrum polyline").count() == 2
+    colours = {page.page.locator("#spectrum polyline").nth(i).get_attribute("stroke") for i in range(2)}
+    assert len(colours) == 2
+    assert page.page.locator("#spectrum .band-mark").count() == 3          # R, G, B wavelengths marked
+    assert "calibration radiance units" in page.page.locator("#spectrum").inner_html()
+    info = page.page.locator("#pixel-info").inner_text()
+    assert f"{points[1]['cube'] + 1} of 2 ({points[1]['base']})" in info and " UTC" in info
+    assert "GPS" not in info and str(points[1]["time"])[:8] not in info
+    csv = page.page.evaluate("window.viewer.csv").strip().splitlines()
+    assert csv[0].startswith("wavelength_nm,radiance ") and len(csv) == len(spectra[0]) + 1
+    for j, spectrum in enumerate(spectra):
+        assert np.array_equal(np.array([float(line.split(",")[1 + j]) for line in csv[1:]], np.float32), spectrum)
+    page.page.locator("#pins button").first.click()       # remove the first
+    assert page.page.locator("#spectrum polyline").count() == 1
+    page.close()
 
-            # ---- a click: the spectrum of that pixel, as archive render has it -----------------
-            inner = binary_erosion(expected, iterations=6)
-            rows, cols = np.nonzero(inner)
-            k = int(np.argmin((rows - rows.mean()) ** 2 + (cols - cols.mean()) ** 2))
-            box = page.locator("#map").bounding_box()
-            page.evaluate("document.querySelector('.leaflet-control-container').style.display = ''")
-            page.mouse.click(box["x"] + cols[k] + 0.5, box["y"] + rows[k] + 0.5)
-            page.wait_for_function("() => window.viewer.lastPoint !== null", timeout=30_000)
-            point = page.evaluate("window.viewer.lastPoint")
-            assert point["covered"] and point["id"] == cid and point["mode"] == "radiance"
-            ds = archive.mosaic([cid], archive=path, gsd=point["gsd"])
-            values = ds["radiance"].values
-            assert ds.rio.crs.to_epsg() == point["epsg"]
-            e, n = Transformer.from_crs(4326, point["epsg"], always_xy=True).transform(point["lon"], point["lat"])
-            col = round((point["pixel"]["x"] - float(ds.x[0])) / point["gsd"])
-            row = round((float(ds.y[0]) - point["pixel"]["y"]) / point["gsd"])
-            assert abs(float(ds.x[col]) - point["pixel"]["x"]) < 1e-6
-            assert abs(float(ds.y[row]) - point["pixel"]["y"]) < 1e-6
-            assert abs(e - point["pixel"]["x"]) <= point["gsd"] / 2 and abs(n - point["pixel"]["y"]) <= point["gsd"] / 2
-            spectrum = np.array(point["values"], np.float32)
-            assert np.array_equal(spectrum.view(np.uint32), values[:, row, col].astype(np.float32).view(np.uint32)), \
-                (spectrum, values[:, row, col])
-            # what the page shows: the chart (one point per band), pixel info and the CSV
-            assert page.locator("#pixel").is_visible()
-            polyline = page.locator("#spectrum polyline").first.get_attribute("points")
-            assert len(polyline.split()) == len(spectrum)
-            info = page.locator("#pixel-info").inner_text()
-            assert f"{point['line']}, {point['sample']}" in info and point["utc"] in info
-            csv = page.evaluate("window.viewer.csv").strip().splitlines()
-            assert csv[0] == "wavelength_nm,radiance" and len(csv) == len(spectrum) + 1
-            assert np.array_equal(np.array([float(line.split(",")[1]) for line in csv[1:]], np.float32), spectrum)
-            page.evaluate("() => { window.viewer.footprints.addTo(window.viewer.map); "
-                          "document.getElementById('map').style.background = ''; }")
-            (ROOT / "docs").mkdir(exist_ok=True)
-            page.screenshot(path=str(ROOT / "docs" / "viewer.png"))
 
-            # ---- the ground-height slider re-renders the tiles --------------------------------
-            page.evaluate(f"""() => {{
-                window.viewer.footprints.remove();
-                document.querySelector('.leaflet-control-container').style.display = 'none';
-                document.getElementById('map').style.background = 'rgb{BACKGROUND}';
-            }}""")
-            before = _screenshot(page.locator("#map"))
-            slider = page.locator("#ground")
-            slider.focus()
-            for _ in range(20):  # 0.5 m steps: 10 m lower
-                page.keyboard.press("ArrowLeft")
-            lowered = float(slider.input_value())
-            assert lowered < point["ground_height"] - 5
-            _wait_tiles(page, f"ground_height={lowered:g}")
-            after = _screenshot(page.locator("#map"))
-            moved = (after != before).any(axis=-1)
-            assert moved.mean() > 0.02, "the tiles did not change with the ground height"
-            # the camera is higher above the lowered ground: its swath, and the drawn area, grow
-            drawn_after = (after != np.array(BACKGROUND, np.uint8)).any(axis=-1)
-            assert drawn_after.sum() > 1.1 * drawn.sum()
-            # tiles dropped by the moves (Leaflet aborts them) were skipped or stopped, never failed
-            counts = page.evaluate("fetch('/api/status').then(r => r.json())")["render"]
-            assert counts["failed"] == 0
-            assert counts["done"] + counts["skipped"] + counts["stopped"] <= counts["submitted"]
-            assert not errors, errors
-        finally:
-            browser.close()
+def test_never_blank_during_band_and_ground_changes(server, browser, archive_of_flights):
+    from scipy.ndimage import binary_erosion
+
+    _, ids = archive_of_flights
+    cid = ids[0]
+    page = Page(browser, server, f"flights={cid}&open={cid}")
+    page.page.wait_for_function(f"() => window.viewer.open === '{cid}'")
+    page.settled()
+    page.clean()
+    interior = binary_erosion(page.drawn(), iterations=8)
+    assert interior.sum() > 5_000
+
+    def empty_fraction(shots):
+        return max(float((~page.drawn(s) & interior).mean() / interior.mean()) for s in shots)
+
+    before = len(page.values_requests)
+    shots = _shots_while(page, lambda: page.page.select_option("#band-r", index=5))
+    assert len(page.values_requests) > before, "a new band needs its values"
+    assert len(shots) >= 3
+    assert empty_fraction(shots) < 0.01, "the footprint went blank during a band change"
+    assert (shots[-1] != shots[0]).any(axis=-1).mean() > 0.02
+
+    slider = page.page.locator("#ground")
+    slider.focus()
+
+    def lower():
+        for _ in range(4):
+            page.page.keyboard.press("ArrowLeft")
+    shots = _shots_while(page, lower)
+    assert empty_fraction(shots) < 0.01, "the footprint went blank during a ground change"
+    ground = float(slider.input_value())
+    assert f"ground={ground:g}" in page.page.evaluate("location.hash") or page.page.wait_for_function(
+        f"() => location.hash.includes('ground={ground:g}')")
+    assert (shots[-1] != shots[0]).any(axis=-1).mean() > 0.01, "the ground change did not move the picture"
+    page.close()
+
+
+def test_stretch_needs_no_request_and_hash_drives_the_view(server, browser, archive_of_flights):
+    _, ids = archive_of_flights
+    cid = ids[0]
+    page = Page(browser, server, f"flights={cid}&open={cid}")
+    page.page.wait_for_function(f"() => window.viewer.open === '{cid}'")
+    page.settled()
+    page.clean()
+    before_shot, before = page.shot(), len(page.values_requests)
+    page.page.select_option("#stretch", "view")
+    page.settled()
+    page.page.locator("#per-channel").uncheck()
+    page.settled()
+    page.page.select_option("#stretch", "manual")
+    page.page.fill("#stretch-low", "0")
+    page.page.fill("#stretch-high", "20000")
+    page.page.locator("#stretch-high").dispatch_event("change")
+    page.settled()
+    # R/G/B reassigned among the loaded bands: no request either
+    r, b = page.page.input_value("#band-r"), page.page.input_value("#band-b")
+    page.page.select_option("#band-r", b)
+    page.page.select_option("#band-b", r)
+    page.settled()
+    after_shot = page.shot()
+    assert len(page.values_requests) == before, page.values_requests[before:]
+    assert (after_shot != before_shot).any(axis=-1).mean() > 0.02
+    page.page.wait_for_function("() => location.hash.includes('stretch=0,20000')")
+
+    # the hash is the state: edit it, the view follows without a reload
+    page.page.evaluate("() => { window.marker = 1; location.hash = location.hash.replace(/stretch=[^&]*/, "
+                       "'stretch=p2,p98').replace(/bands=[^&]*/, 'bands=760'); }")
+    page.page.wait_for_function("() => document.getElementById('display').value === 'grey'")
+    page.settled()
+    assert page.page.evaluate("window.marker") == 1
+    assert page.page.input_value("#stretch") == "flight" and float(page.page.input_value("#band-grey")) == 760
+    page.close()
+
+
+def test_several_flights_on_one_map(server, browser, archive_of_flights):
+    from scipy.ndimage import binary_erosion
+
+    _, ids = archive_of_flights
+    features = {f["id"]: f for f in __import__("json").loads(
+        __import__("urllib.request").request.urlopen(server + "api/collections").read())["features"]}
+    page = Page(browser, server)          # every flight, at the zoom that fits them all
+    page.clean()
+    shot = page.shot()
+    drawn = page.drawn(shot)
+    geo = page.geometry()
+    for cid in ids:
+        inside = binary_erosion(_footprint_mask(features[cid], drawn.shape, geo), iterations=2)
+        assert inside.sum() > 50, cid
+        assert drawn[inside].mean() > 0.8, f"{cid} shows no imagery at the zoom fitting the archive"
+    # flights 0 and 1 overlap: both drawn at once, and their order decides the overlap
+    page.page.evaluate(f"() => {{ location.hash = 'flights={ids[1]},{ids[0]}'; }}")
+    page.page.wait_for_function(f"() => window.viewer.hidden.size === {FLIGHTS - 2}")
+    page.settled()
+    page.page.evaluate(f"() => window.viewer.map.fitBounds(L.geoJSON(window.viewer.features.filter("
+                       f"f => ['{ids[0]}', '{ids[1]}'].includes(f.id))).getBounds())")
+    page.settled()
+    shot = page.shot()
+    drawn = page.drawn(shot)
+    geo = page.geometry()
+    a, b = (_footprint_mask(features[c], drawn.shape, geo) for c in ids[:2])
+    assert (a & ~b).sum() > 500 and (b & ~a).sum() > 500 and (a & b).sum() > 500, "the flights should overlap"
+    a_only, b_only = (binary_erosion(m, iterations=6) for m in (a & ~b, b & ~a))
+    assert drawn[a_only].mean() > 0.8 and drawn[b_only].mean() > 0.8, (drawn[a_only].mean(), drawn[b_only].mean())
+    before = len(page.values_requests)
+    page.page.locator("#flights li", has_text=ids[1]).locator("button.move[title='draw over']").click()
+    page.settled()
+    swapped = page.shot()
+    assert len(page.values_requests) == before
+    changed = (swapped != shot).any(axis=-1)
+    assert changed[a & b].mean() > 0.3 and changed[a ^ b].mean() < 0.01
+    page.close()
+
+
+def test_invalid_cube_range_shows_the_server_message(server, browser, archive_of_flights):
+    _, ids = archive_of_flights
+    cid = ids[2]
+    page = Page(browser, server, f"flights={cid}&open={cid}")
+    page.page.wait_for_function(f"() => window.viewer.open === '{cid}'")
+    page.settled()
+    page.clean()
+    before = page.shot()
+    page.page.fill("#cube-first", "2")
+    page.page.fill("#cube-last", "1")
+    page.page.locator("#cube-last").dispatch_event("change")
+    page.page.wait_for_function("() => document.getElementById('err-cubes').textContent.length > 0")
+    message = page.page.inner_text("#err-cubes")
+    assert "cubes: expected 0 <= first <= last" in message, message
+    assert (page.shot() == before).all(), "the picture should stay when a change is refused"
+    page.page.click("#reset")
+    page.settled()
+    assert page.page.inner_text("#err-cubes") == ""
+
+    # docs/viewer.png: several flights, two pinned spectra
+    page.page.evaluate("() => { location.hash = ''; }")
+    page.page.evaluate(f"() => {{ location.hash = 'open={cid}'; }}")
+    page.page.wait_for_function("() => window.viewer.hidden.size === 0")
+    page.page.evaluate("""() => {
+        for (const s of ['.leaflet-control-container', '.leaflet-footprints-pane', '.leaflet-tooltip-pane'])
+            document.querySelector(s).style.display = '';
+        document.getElementById('map').style.background = '';
+        const m = window.viewer.map; m.fitBounds(window.viewer.footprints.getBounds()); }""")
+    page.settled()
+    box = page.page.locator("#map").bounding_box()
+    feature = page.page.evaluate(f"window.viewer.byId.get('{cid}')")
+    lon = [c[0] for c in feature["geometry"]["coordinates"][0]]
+    lat = [c[1] for c in feature["geometry"]["coordinates"][0]]
+    for f in (0.4, 0.6):
+        xy = page.page.evaluate(f"window.viewer.map.latLngToContainerPoint([{np.mean(lat)}, "
+                                f"{min(lon) + f * (max(lon) - min(lon))}])")
+        page.page.mouse.click(box["x"] + xy["x"], box["y"] + xy["y"])
+        page.page.wait_for_timeout(300)
+    page.page.wait_for_function("() => window.viewer.pins.length >= 1", timeout=30_000)
+    page.settled()
+    (ROOT / "docs").mkdir(exist_ok=True)
+    page.page.screenshot(path=str(ROOT / "docs" / "viewer.png"))
+    page.close()

@@ -46,6 +46,8 @@ POINT_BAND_GROUP = 16
 #: Geometries (ground height x sync offset) kept per flight; flights kept open.
 GEOMETRIES_KEPT = 6
 FLIGHTS_KEPT = 16
+#: Rows of a cube's mesh kept in its outline (footprint drawn by the page).
+OUTLINE_ROWS = 64
 #: Seconds the list of catalog ids is trusted before the index is asked again.
 IDS_TTL_S = 5.0
 
@@ -97,6 +99,20 @@ def _slice_radiometry(radiometry, lines: slice, samples: slice):
         return None
     return Radiometry(radiometry.dark[:, samples], radiometry.gain[:, samples], radiometry.response[lines],
                       radiometry.saturation)
+
+
+def _block_mean(values: np.ndarray, factor: int) -> np.ndarray:
+    """(k, h / factor, w / factor) float32: the mean of the finite values of each factor x factor
+    block of (k, h, w) ``values``, NaN where none is finite."""
+    if factor == 1:
+        return values
+    k, h, w = values.shape
+    blocks = values.reshape(k, h // factor, factor, w // factor, factor)
+    finite = np.isfinite(blocks)
+    count = finite.sum(axis=(2, 4))
+    total = np.where(finite, blocks, 0).sum(axis=(2, 4), dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan).astype(np.float32)
 
 
 def _crop(lookup):
@@ -207,7 +223,8 @@ class Flight:
         if cubes is None:
             return range(n)
         if cubes[1] >= n:
-            raise InputError("cubes", f"cube {cubes[1]} out of range: the flight has cubes 0..{n - 1}")
+            raise InputError("cubes", f"cube {cubes[1]} out of range: the flight has cubes 0..{n - 1} (0-based; "
+                             f"files {self.cubes[0].base}..{self.cubes[-1].base})")
         return range(cubes[0], cubes[1] + 1)
 
     def bands(self, query: ViewQuery) -> list[int]:
@@ -219,6 +236,11 @@ class Flight:
             if query.band >= nbands:
                 raise InputError("band", f"band {query.band} out of range: the flight has bands 0..{nbands - 1}")
             return [query.band]
+        if query.bands is not None:
+            bad = [b for b in query.bands if b >= nbands]
+            if bad:
+                raise InputError("bands", f"band {bad[0]} out of range: the flight has bands 0..{nbands - 1}")
+            return list(query.bands)
         source = self.source(None)
         if query.wavelengths is not None:
             return [select_bands(source, [w])[0] for w in query.wavelengths]
@@ -269,14 +291,40 @@ class Flight:
         key = (self.id, geometry.ground_height, geometry.source.params.sync_offset, geometry.gsd, cube, grid)
         return self.lookup_cache.get_or_make(key, make)
 
+    def view_zenith(self, geometry: Geometry, cube: int, lookup) -> np.ndarray:
+        """(height, width) float32 view zenith (deg) of the line each pixel of ``lookup.grid`` shows
+        (NaN where not covered): the key of the 'nadir' rule, computed as ``archive render
+        --provenance`` does (:func:`archive.provenance.cube_layers`)."""
+        from archive.provenance import ProvenanceSpec, cube_layers
+
+        terrain = self.terrain() if geometry.gsd is not None else None
+        dem = None if terrain is None else dataclasses.replace(terrain[0], offset=geometry.ground_height)
+        # the time reference only shifts the sun layers, which are not asked for
+        spec = ProvenanceSpec(lookup.grid.epsg, 0.0, "1980-01-06T00:00:00Z", (), (geometry.ground_height,), dem,
+                              ("view_zenith",))
+        return cube_layers(geometry.source, cube, 0, lookup, spec, geometry.ground_height)[0]
+
     def render(self, grid: Grid, bands: Sequence[int], mode: str, cubes: range, geometry: Geometry,
-               check: Callable[[], None] = lambda: None) -> np.ndarray:
+               check: Callable[[], None] = lambda: None, overlap: str = "last") -> np.ndarray:
         """(len(bands), height, width) float32 of the cubes on ``grid`` (EPSG:3857, or the flight's
-        UTM zone), NaN where no line covers, later cubes winning (``archive render``'s 'last' rule).
+        UTM zone), NaN where no line covers, cubes combined by ``overlap`` ('last': later cubes win,
+        'nadir': the cube seen closest to nadir, as ``archive render --overlap``).
         ``check()`` runs before each cube (raises to stop: an abandoned request)."""
+        return self.render_keyed(grid, bands, mode, cubes, geometry, check, overlap)[0]
+
+    def render_keyed(self, grid: Grid, bands: Sequence[int], mode: str, cubes: range, geometry: Geometry,
+                     check: Callable[[], None] = lambda: None, overlap: str = "last"
+                     ) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`render` and, for the 'nadir' rule, the view zenith (deg) of each pixel's winner
+        ((height, width) float32, NaN where none; None for 'last'): what the browser compares
+        between flights."""
+        from archive.graph.mosaic import make_rule, nadir_values, nadir_winners, rule_key
         from archive.render.renderer import render_lookup
 
-        out = np.full((len(bands), grid.height, grid.width), np.nan, np.float32)
+        rule = make_rule(overlap, len(bands), grid.height, grid.width)
+        keyed = rule_key(overlap) is not None
+        whole = (slice(0, grid.height), slice(0, grid.width))
+        keys = []
         box = grid.bounds
         for c in cubes:
             if grid.epsg == MERCATOR_EPSG and not (np.isfinite(geometry.bounds[c]).all()
@@ -289,9 +337,60 @@ class Flight:
             sub, lines, samples = _crop(lookup)
             block = np.stack([self.band(c, b)[lines, samples] for b in bands])
             rad = _slice_radiometry(self.radiometry(c, bands, mode), lines, samples)
-            values = render_lookup(sub, block, rad).values
-            np.copyto(out, values, where=np.isfinite(values))
-        return out
+            result = render_lookup(sub, block, rad)
+            key = self.view_zenith(geometry, c, lookup) if keyed else None
+            if key is not None:
+                keys.append((key, *whole))
+            rule.feed(result.values, result.saturated, *whole, key=key)
+        values = rule.result()[0]
+        if not keyed:
+            return values, None
+        winner = nadir_winners(grid.height, grid.width, keys)
+        return values, nadir_values(np.empty((grid.height, grid.width), np.float32), winner, keys)
+
+    def band_values(self, grid: Grid, query: ViewQuery, flight_gsd: float | None, scale: int = 1,
+                    check: Callable[[], None] = lambda: None) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """Band values of an EPSG:3857 tile grid for the browser to stretch and compose:
+        ((len(bands), n, n) float32, the nadir key (n, n) or None), n = grid side / ``scale`` (a
+        coarse preview), None when no line covers the tile.
+
+        Where a tile pixel spans several of the flight's pixels (``flight_gsd`` m, overview zooms),
+        its value is the mean over its footprint (anti-aliased): the tile is rendered on a finer
+        grid (up to 8 x 8 samples per pixel, only over the flight's bounds) and averaged, as a
+        mipmap would; covered sub-pixels only, so edges stay sharp."""
+        geometry = self.geometry(query.ground_height, query.sync_offset)
+        cubes = self.cube_range(query.cubes)
+        bands = self.bands(query)
+        mode = self.mode(query)
+        union = geometry.union(cubes)
+        if union is None or not _intersects(union, grid.bounds):
+            return None
+        side = grid.width // scale
+        gsd = grid.gsd * scale
+        factor = 1
+        if scale == 1 and flight_gsd:
+            factor = int(min(8, 2 ** max(0, round(math.log2(gsd / flight_gsd)))))
+        fine = Grid(grid.epsg, gsd / factor, grid.x0, grid.y0, side * factor, side * factor)
+        cropped = fine.crop(*union)
+        if cropped is None:
+            return None
+        r0, c0, window = cropped
+        # align the window on whole output pixels
+        r1, c1 = r0 + window.height, c0 + window.width
+        r0, c0 = r0 - r0 % factor, c0 - c0 % factor
+        r1, c1 = min(-(-r1 // factor) * factor, fine.height), min(-(-c1 // factor) * factor, fine.width)
+        window = fine.window(r0, c0, r1 - r0, c1 - c0)
+        values, key = self.render_keyed(window, bands, mode, cubes, geometry, check, query.overlap)
+        if not np.isfinite(values).any():
+            return None
+        out = np.full((len(bands), side, side), np.nan, np.float32)
+        rows, cols = slice(r0 // factor, r1 // factor), slice(c0 // factor, c1 // factor)
+        out[:, rows, cols] = _block_mean(values, factor)
+        out_key = None
+        if key is not None:
+            out_key = np.full((side, side), np.nan, np.float32)
+            out_key[rows, cols] = _block_mean(key[None], factor)[0]
+        return out, out_key
 
     # ---- what the API answers ----------------------------------------------------------
     def tile(self, grid: Grid, query: ViewQuery, check: Callable[[], None] = lambda: None) -> bytes:
@@ -306,7 +405,7 @@ class Flight:
         ranges = query.stretch.ranges
         if ranges is None:
             ranges = self.flight_ranges(bands, mode, cubes, geometry, query.stretch.percentiles)
-        values = self.render(grid, bands, mode, cubes, geometry, check)
+        values = self.render(grid, bands, mode, cubes, geometry, check, query.overlap)
         if not np.isfinite(values).any():
             return transparent_png()
         return encode_png(values, ranges)
@@ -414,6 +513,26 @@ class Flight:
                           utc=gps_seconds_to_datetime(t).isoformat().replace("+00:00", "Z"))
         return answer
 
+    def outline(self, query: ViewQuery) -> dict:
+        """GeoJSON MultiPolygon (lon, lat) of the cubes' ground meshes at the query's ground height,
+        sync offset and cube range: one ring per cube, its left edge forwards and right edge back
+        (at most OUTLINE_ROWS rows each)."""
+        from archive.view.tiles import mercator_to_lonlat
+
+        geometry = self.geometry(query.ground_height, query.sync_offset)
+        polygons = []
+        for c in self.cube_range(query.cubes):
+            mesh = geometry.mercator[c]
+            if mesh.rows < 2:
+                continue
+            g = mesh.ground_utm()
+            step = max(1, mesh.rows // OUTLINE_ROWS)
+            rows = np.unique(np.r_[np.arange(0, mesh.rows, step), mesh.rows - 1])
+            ring = np.concatenate([g[rows, 0], g[rows[::-1], -1], g[rows[:1], 0]])
+            lon, lat = mercator_to_lonlat(ring[:, 0], ring[:, 1])
+            polygons.append([[[round(float(x), 8), round(float(y), 8)] for x, y in zip(lon, lat, strict=True)]])
+        return {"type": "MultiPolygon", "coordinates": polygons}
+
     def describe(self) -> dict:
         """What the page needs to build its controls: cubes, bands, modes, default ground height
         and the camera's lowest altitude (the ground-height slider's range)."""
@@ -427,6 +546,8 @@ class Flight:
             "wavelength": self._wavelengths(range(self.cubes[0].bands)),
             "default_bands": self.default_bands(), "modes": modes,
             "default_mode": "radiance" if self.has_calibration else "raw",
+            "units": {"raw": "DN", "relative": "DN per ms of exposure (0 dB)",
+                      "radiance": "calibration radiance units (µflicks for Resonon)"},
             "ground_height": geometry.ground_height,
             "lowest_camera": float(np.min(camera_altitudes(source))),
             "terrain": (None if geometry.gsd is None else

@@ -20,6 +20,11 @@ __all__ = ["MAX_TEXT", "Stretch", "ViewQuery", "parse_bbox", "parse_number", "pa
 MAX_TEXT = 200
 #: Wavelengths a tile or stats request may name (RGB).
 MAX_CHANNELS = 3
+#: Band indices one band-value tile or stats request may name.
+MAX_BANDS = 16
+#: Overlap rules between captures (cubes, flights): as ``archive render --overlap`` ('mean' is not
+#: offered: it mixes pixels, and the browser composes flights by picking one).
+OVERLAPS = ("last", "nadir")
 #: Ground heights (m, ellipsoid) and sync offsets (s) outside these are refused outright.
 MAX_HEIGHT = 10_000.0
 MAX_SYNC_OFFSET = 10.0
@@ -122,25 +127,29 @@ class Stretch:
 class ViewQuery:
     """What to render, as requested (band choices are resolved against the flight later).
 
-    wavelengths: nm of the channels (1 = grey, 3 = RGB), or band: one 0-based band index (grey);
-    neither: the flight's default. mode: radiometric mode (None: radiance, raw DN without a
+    wavelengths: nm of the channels (1 = grey, 3 = RGB), or band: one 0-based band index (grey),
+    or bands: 0-based band indices (band-value tiles and stats); none: the flight's default. mode: radiometric mode (None: radiance, raw DN without a
     calibration). stretch: :class:`Stretch`. cubes: (first, last) 0-based inclusive, None = all.
     ground_height: m above the ellipsoid (None: as ingested / the headers'). sync_offset: s (None:
-    as ingested, else 0).
+    as ingested, else 0). overlap: how cubes that cover the same pixel combine ('last' | 'nadir').
     """
 
     wavelengths: tuple[float, ...] | None = None
     band: int | None = None
+    bands: tuple[int, ...] | None = None
     mode: str | None = None
     stretch: Stretch = Stretch()
     cubes: tuple[int, int] | None = None
     ground_height: float | None = None
     sync_offset: float | None = None
+    overlap: str = "last"
 
     @property
     def channels(self) -> int:
         if self.band is not None:
             return 1
+        if self.bands is not None:
+            return len(self.bands)
         return 3 if self.wavelengths is None else len(self.wavelengths)
 
 
@@ -159,11 +168,20 @@ def _cubes(params: Mapping[str, str]) -> tuple[int, int] | None:
     return (a, b)
 
 
+def _band_indices(params: Mapping[str, str]) -> tuple[int, ...] | None:
+    values = _numbers(params, "bands", MAX_BANDS)
+    if values is None:
+        return None
+    if not all(v == int(v) and 0 <= v < 1e6 for v in values):
+        raise InputError("bands", f"expected 0-based band indices, got {params.get('bands')!r}")
+    return tuple(int(v) for v in values)
+
+
 def parse_query(params: Mapping[str, str], channels: bool = True) -> ViewQuery:
-    """The :class:`ViewQuery` of request parameters (``wavelengths``, ``band``, ``mode``,
-    ``stretch``, ``cubes``, ``ground_height``, ``sync_offset``). channels: whether wavelengths /
+    """The :class:`ViewQuery` of request parameters (``wavelengths``, ``band``, ``bands``, ``mode``,
+    ``stretch``, ``cubes``, ``ground_height``, ``sync_offset``, ``overlap``). channels: whether wavelengths /
     band / stretch are read (tiles and stats) or left out (point: every band)."""
-    wavelengths = band = None
+    wavelengths = band = indices = None
     stretch = Stretch()
     if channels:
         wavelengths = _numbers(params, "wavelengths", MAX_CHANNELS)
@@ -179,12 +197,20 @@ def parse_query(params: Mapping[str, str], channels: bool = True) -> ViewQuery:
             if b != int(b):
                 raise InputError("band", f"expected a 0-based band index, got {b:g}")
             band = int(b)
-        count = 1 if band is not None else (3 if wavelengths is None else len(wavelengths))
+        indices = _band_indices(params)
+        if indices is not None and (band is not None or wavelengths is not None):
+            raise InputError("bands", "give one of bands, band or wavelengths")
+        count = 1 if band is not None else (len(indices) if indices is not None else
+                                            3 if wavelengths is None else len(wavelengths))
         stretch = Stretch.parse(_text(params, "stretch"), count)
     mode = _text(params, "mode")
     if mode is not None and mode not in MODES:
         raise InputError("mode", f"unknown radiometric mode {mode!r}", f"use one of {', '.join(MODES)}")
+    overlap = _text(params, "overlap") or "last"
+    if overlap not in OVERLAPS:
+        raise InputError("overlap", f"unknown overlap rule {overlap!r}", f"use one of {', '.join(OVERLAPS)}")
     return ViewQuery(
-        wavelengths=wavelengths, band=band, mode=mode, stretch=stretch, cubes=_cubes(params),
+        wavelengths=wavelengths, band=band, bands=indices if channels else None, mode=mode, stretch=stretch,
+        cubes=_cubes(params), overlap=overlap,
         ground_height=parse_number(params, "ground_height", -MAX_HEIGHT, MAX_HEIGHT),
         sync_offset=parse_number(params, "sync_offset", -MAX_SYNC_OFFSET, MAX_SYNC_OFFSET))

@@ -10,6 +10,12 @@ trace):
   default ground height, lowest camera altitude);
 - ``GET /api/collections/{id}/tiles/{z}/{x}/{y}.png?wavelengths=R,G,B|band=I&mode=&stretch=&cubes=A-B
   &ground_height=&sync_offset=`` a 256 x 256 EPSG:3857 tile drawn by the inverse renderer;
+- ``GET /api/collections/{id}/values/{z}/{x}/{y}?bands=I,J,K&mode=&cubes=&ground_height=&sync_offset=
+  &overlap=last|nadir&scale=1|2|4|8|16`` band values of a tile (float32 planes, little-endian; then
+  the view-zenith plane with ``overlap=nadir``), stretched and composed by the page; 204 where no
+  line covers the tile; ``scale`` > 1: a coarse (side 256 / scale) preview;
+- ``GET /api/collections/{id}/outline?ground_height=&sync_offset=&cubes=`` GeoJSON MultiPolygon of
+  the cubes' ground meshes (the footprint as drawn now);
 - ``GET /api/collections/{id}/point?lon=&lat=&gsd=&mode=...`` the full spectrum of the output pixel
   at that point (the pixel of ``archive render --gsd GSD``'s grid), with cube, line, sample, time;
 - ``GET /api/collections/{id}/stats?bbox=&wavelengths=&mode=&percentiles=2,98`` per band
@@ -38,8 +44,8 @@ from archive.catalog.root import ArchiveRoot
 from archive.errors import ArchiveError, InputError, MissingInputError, RenderError
 from archive.view.cache import ByteLRU
 from archive.view.flights import FlightRegistry
-from archive.view.query import parse_bbox, parse_number, parse_query
-from archive.view.tiles import MAX_ZOOM, mercator_box, tile_grid
+from archive.view.query import Stretch, parse_bbox, parse_number, parse_query
+from archive.view.tiles import MAX_ZOOM, TILE, encode_values, mercator_box, tile_grid
 from archive.view.worker import Cancelled, RenderThread
 
 __all__ = ["check_host", "create_app", "is_loopback", "run", "serve"]
@@ -104,6 +110,16 @@ def resident_bytes() -> int | None:
 # ---- jobs run on the render thread -------------------------------------------------------------
 def _tile_job(registry, cid, grid, query, check):
     return registry.flight(cid).tile(grid, query, check)
+
+
+def _values_job(registry, cid, grid, query, scale, check):
+    flight = registry.flight(cid)
+    gsd = registry.feature(cid)["properties"].get("gsd")
+    return flight.band_values(grid, query, float(gsd) if gsd else None, scale, check)
+
+
+def _outline_job(registry, cid, query, check):
+    return registry.flight(cid).outline(query)
 
 
 def _point_job(registry, cid, lon, lat, gsd, query, check):
@@ -210,6 +226,58 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
             viewer.tiles.put(key, png, len(png))
         return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=600"})
 
+    async def values(request):
+        """Band values of a tile (float32 planes; see :func:`archive.view.tiles.encode_values`),
+        cached per band; 204 where no line covers the tile."""
+        import dataclasses
+
+        import numpy as np
+
+        cid = cid_of(request)
+        z, x, y = (request.path_params[k] for k in ("z", "x", "y"))
+        if z > MAX_ZOOM:
+            raise InputError("z", f"zoom {z} is out of range 0..{MAX_ZOOM}", "request a shallower tile")
+        grid = tile_grid(z, x, y)
+        query = parse_query(request.query_params)
+        if query.bands is None:
+            raise InputError("bands", "give the 0-based band indices wanted, e.g. bands=3,5,7")
+        scale = parse_number(request.query_params, "scale", 1, 16, 1)
+        if scale not in (1, 2, 4, 8, 16):
+            raise InputError("scale", f"expected 1, 2, 4, 8 or 16 (coarse previews), got {scale:g}")
+        scale = int(scale)
+        common = dataclasses.replace(query, bands=None, stretch=Stretch())
+        keyed = query.overlap == "nadir"
+        wanted = list(query.bands) + (["key"] if keyed else [])
+        keys = {b: (cid, z, x, y, b, common, scale) for b in wanted}
+        found = {b: viewer.tiles.get(k) for b, k in keys.items()}
+        empty = viewer.tiles.get((cid, z, x, y, "empty", common, scale))
+        missing = [b for b in query.bands if found[b] is None]
+        if empty is None and (missing or (keyed and found["key"] is None)):
+            asked = dataclasses.replace(query, bands=tuple(missing or query.bands[:1]))
+            drawn_values = await drawn(request, _values_job, registry, cid, grid, asked, scale)
+            if drawn_values is None:
+                empty = True
+                viewer.tiles.put((cid, z, x, y, "empty", common, scale), True, 64)
+            else:
+                planes, key = drawn_values
+                for b, plane in zip(asked.bands, planes, strict=True):
+                    found[b] = plane
+                    viewer.tiles.put(keys[b], plane, plane.nbytes)
+                if keyed:
+                    found["key"] = key
+                    viewer.tiles.put(keys["key"], key, key.nbytes)
+        headers = {"Cache-Control": "private, max-age=600", "X-Bands": ",".join(map(str, query.bands)),
+                   "X-Side": str(TILE // scale), "X-Key": "view_zenith" if keyed else ""}
+        if empty:
+            return Response(status_code=204, headers=headers)
+        body = encode_values(np.stack([found[b] for b in query.bands]), found["key"] if keyed else None)
+        return Response(body, media_type="application/octet-stream", headers=headers)
+
+    async def outline(request):
+        cid = cid_of(request)
+        query = parse_query(request.query_params, channels=False)
+        return JSONResponse(await drawn(request, _outline_job, registry, cid, query))
+
     async def point(request):
         cid = cid_of(request)
         p = request.query_params
@@ -250,6 +318,8 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
         Route("/api/collections", collections),
         Route("/api/collections/{cid}", describe),
         Route("/api/collections/{cid}/tiles/{z:int}/{x:int}/{y:int}.png", tile),
+        Route("/api/collections/{cid}/values/{z:int}/{x:int}/{y:int}", values),
+        Route("/api/collections/{cid}/outline", outline),
         Route("/api/collections/{cid}/point", point),
         Route("/api/collections/{cid}/stats", stats),
         Mount("/static", StaticFiles(directory=str(static)), name="static"),

@@ -17,7 +17,7 @@ import numpy as np
 from archive.errors import InputError
 from archive.grid import Grid
 
-__all__ = ["HALF_WORLD", "MAX_ZOOM", "TILE", "bbox_grid", "encode_png", "lonlat_to_mercator", "mercator_box",
+__all__ = ["HALF_WORLD", "MAX_ZOOM", "TILE", "bbox_grid", "encode_png", "encode_values", "lonlat_to_mercator", "mercator_box",
            "mercator_to_lonlat", "tile_grid", "transparent_png", "zoom_gsd"]
 
 TILE = 256
@@ -100,6 +100,15 @@ def encode_png(values: np.ndarray, ranges, compress_level: int = 3) -> bytes:
     buffer = io.BytesIO()
     Image.fromarray(out, "RGBA" if k == 3 else "LA").save(buffer, "PNG", compress_level=compress_level)
     return buffer.getvalue()
+
+
+def encode_values(values: np.ndarray, key: np.ndarray | None = None) -> bytes:
+    """A band-value tile as the browser reads it: the (k, n, n) float32 planes, then the (n, n)
+    key plane if any, little-endian, row-major (north row first), NaN where no line covers."""
+    planes = [np.asarray(values, "<f4")]
+    if key is not None:
+        planes.append(np.asarray(key, "<f4")[None])
+    return b"".join(np.ascontiguousarray(p).tobytes() for p in planes)
 
 
 @lru_cache(maxsize=1)

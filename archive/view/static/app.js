@@ -1,17 +1,56 @@
-// archive view: the catalog map, a flight drawn as tiles by the server's inverse renderer, and the
-// spectrum of a clicked pixel. State lives in window.viewer (the browser test reads it).
+// archive view: every flight of the catalog on one map, drawn from band-value tiles (float32 planes
+// rendered by the server's inverse renderer) that this page stretches and composes itself, so
+// stretch and R/G/B changes among loaded bands need no request; a change that needs new values keeps
+// the previous picture until every tile in view has its replacement (double buffering). State
+// lives in the URL hash and in window.viewer (the browser tests read it).
 "use strict";
 
 const $ = (id) => document.getElementById(id);
+const TILE = 256;
+const PALETTE = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b", "#e377c2"];
+const MAX_PINS = PALETTE.length;
+const CACHE_BYTES = 384 << 20;      // band planes kept in the browser
+const PREVIEW_SCALE = 4;            // slider previews: 64 x 64 tiles
+
 const viewer = (window.viewer = {
-  map: null, footprints: null, layer: null, flight: null, info: null,
-  ready: false, loads: 0, tileErrors: 0, lastPoint: null, stretchRanges: null, marker: null,
+  map: null, features: [], byId: new Map(), order: [], hidden: new Set(), open: null, info: null,
+  params: {}, pins: [], lastPoint: null, csv: null, ready: false, settled: false, draws: 0, loads: 0,
+  requests: 0, tileErrors: 0, pending: 0, specId: null, errors: {},
 });
 
-const map = L.map("map", { maxZoom: 24, fadeAnimation: false, attributionControl: false, worldCopyJump: false });
+let scheduled = false;      // a pump() is due at the next animation frame
+
+// ---- the map -------------------------------------------------------------------------------
+const map = L.map("map", { maxZoom: 24, fadeAnimation: false, attributionControl: false, worldCopyJump: false,
+                           scrollWheelZoom: false, zoomSnap: 1, keyboard: true });
+map.createPane("footprints").style.zIndex = 150;   // under the imagery (tilePane: 200)
 map.setView([20, 0], 2);
 L.control.scale({ imperial: false }).addTo(map);
 viewer.map = map;
+
+// one zoom level per wheel notch (a notch is ~100 px of deltaY; trackpads add up small deltas)
+let wheelSum = 0, wheelTimer = null;
+map.getContainer().addEventListener("wheel", (ev) => {
+  ev.preventDefault();
+  wheelSum += ev.deltaMode === 1 ? ev.deltaY * 33 : ev.deltaY;
+  if (Math.abs(wheelSum) < 50 || wheelTimer) return;
+  const step = wheelSum > 0 ? -1 : 1;
+  wheelSum = 0;
+  const z = Math.max(map.getMinZoom(), Math.min(map.getMaxZoom(), map.getZoom() + step));
+  map.setZoomAround(map.mouseEventToContainerPoint(ev), z);
+  wheelTimer = setTimeout(() => { wheelTimer = null; wheelSum = 0; }, 120);
+}, { passive: false });
+
+// ---- small helpers ---------------------------------------------------------------------------
+async function getJSON(url, options) {
+  const response = await fetch(url, options);
+  let body = null;
+  try { body = await response.json(); } catch (e) { /* not JSON */ }
+  if (!response.ok) throw new Error((body && body.error) || `${response.status} ${response.statusText}`);
+  return body;
+}
+const fmt = (v, digits = 4) => (v === null || v === undefined || !isFinite(v) ? "–" : Number(v).toPrecision(digits));
+const idPath = (id) => `/api/collections/${encodeURIComponent(id)}`;
 
 function status(text, isError = false) {
   const el = $("status");
@@ -19,86 +58,618 @@ function status(text, isError = false) {
   el.classList.toggle("error", !!isError);
 }
 
-async function getJSON(url) {
-  const response = await fetch(url);
-  let body = null;
-  try { body = await response.json(); } catch (e) { /* not JSON */ }
-  if (!response.ok) throw new Error((body && body.error) || `${response.status} ${response.statusText}`);
-  return body;
+// errors in words next to the control that caused them (the server names the parameter first)
+const ERROR_SLOTS = { cubes: "err-cubes", ground_height: "err-ground", sync_offset: "err-sync", mode: "err-mode",
+                      bands: "err-bands", band: "err-bands", wavelengths: "err-bands", stretch: "err-stretch",
+                      bbox: "err-filters", datetime: "err-filters", wavelength: "err-filters" };
+function showError(message, slot) {
+  const name = slot || ERROR_SLOTS[(message.match(/^([a-z_]+):/) || [])[1]];
+  viewer.errors[name || "status"] = message;
+  if (name) { $(name).textContent = message; } else status(message, true);
+}
+function clearErrors(...slots) {
+  for (const slot of slots.length ? slots : Object.values(ERROR_SLOTS)) { $(slot).textContent = ""; delete viewer.errors[slot]; }
+  if (!slots.length) { delete viewer.errors.status; if ($("status").classList.contains("error")) status(""); }
 }
 
-const fmt = (v, digits = 4) => (v === null || v === undefined ? "–" : Number(v).toPrecision(digits));
-const idPath = () => `/api/collections/${encodeURIComponent(viewer.flight.id)}`;
+function tileBounds(z, x, y) {
+  const n = 2 ** z;
+  const lon = (i) => (i / n) * 360 - 180;
+  const lat = (j) => (Math.atan(Math.sinh(Math.PI * (1 - (2 * j) / n))) * 180) / Math.PI;
+  return [lon(x), lat(y + 1), lon(x + 1), lat(y)];   // W, S, E, N
+}
+const boxesMeet = (a, b) => a[0] <= b[2] && b[0] <= a[2] && a[1] <= b[3] && b[1] <= a[3];
 
-function clampedBounds() {
+function pointInRing(x, y, ring) {
+  let inside = false;
+  for (let i = 0, j = ring.length - 1; i < ring.length; j = i++) {
+    const [xi, yi] = ring[i], [xj, yj] = ring[j];
+    if ((yi > y) !== (yj > y) && x < ((xj - xi) * (y - yi)) / (yj - yi) + xi) inside = !inside;
+  }
+  return inside;
+}
+function inGeometry(lon, lat, g) {
+  const polys = g.type === "Polygon" ? [g.coordinates] : g.type === "MultiPolygon" ? g.coordinates : [];
+  return polys.some((p) => pointInRing(lon, lat, p[0]) && !p.slice(1).some((h) => pointInRing(lon, lat, h)));
+}
+function geometryBox(g) {
+  const box = [Infinity, Infinity, -Infinity, -Infinity];
+  const polys = g.type === "Polygon" ? [g.coordinates] : g.coordinates;
+  for (const p of polys) for (const [x, y] of p[0]) {
+    box[0] = Math.min(box[0], x); box[1] = Math.min(box[1], y); box[2] = Math.max(box[2], x); box[3] = Math.max(box[3], y);
+  }
+  return box;
+}
+
+// ---- the display state: what every tile should show ------------------------------------------
+function nearestBand(feature, nm) {
+  const wl = feature.properties.wavelength;
+  if (!wl) return Math.max(0, Math.min(feature.properties.bands - 1, Math.round(nm)));
+  let best = 0;
+  for (let i = 1; i < wl.length; i++) if (Math.abs(wl[i] - nm) < Math.abs(wl[best] - nm)) best = i;
+  return best;
+}
+function channelsNm() {
+  if ($("display").value === "grey") return [Number($("band-grey").value)];
+  return ["band-r", "band-g", "band-b"].map((id) => Number($(id).value));
+}
+const visibleFlights = () => viewer.order.filter((id) => !viewer.hidden.has(id) && viewer.byId.has(id));
+// the flight whose bands and statistics the display controls use: the open one, else the earliest shown
+const referenceFlight = () => viewer.open ||
+  (viewer.features.find((f) => !viewer.hidden.has(f.id)) || viewer.features[0] || { id: null }).id;
+
+// the request parameters of one flight's values (everything but the bands)
+function flightParams(id, preview) {
+  const q = new URLSearchParams();
+  q.set("mode", $("mode").value || "radiance");
+  q.set("overlap", $("overlap").value);
+  const p = viewer.params[id];
+  if (p) {
+    if (p.cubes) q.set("cubes", `${p.cubes[0] - 1}-${p.cubes[1] - 1}`);
+    const ground = preview && preview.ground !== undefined ? preview.ground : p.ground;
+    const sync = preview && preview.sync !== undefined ? preview.sync : p.sync;
+    if (ground !== null && ground !== undefined) q.set("ground_height", String(ground));
+    if (sync !== null && sync !== undefined) q.set("sync_offset", String(sync));
+  }
+  return q.toString();
+}
+
+let preview = null;          // {ground|sync: value} while a slider of the open flight is dragged
+function buildSpec() {
+  const nm = channelsNm();
+  const flights = visibleFlights().map((id) => {
+    const f = viewer.byId.get(id);
+    const coarse = preview && id === viewer.open;
+    return { id, params: flightParams(id, coarse ? preview : null), bands: nm.map((w) => nearestBand(f, w)),
+             scale: coarse ? PREVIEW_SCALE : 1, box: flightBox(id) };
+  });
+  const ranges = stretchRanges(nm);
+  const nadir = $("overlap").value === "nadir";
+  const data = JSON.stringify(flights.map((f) => [f.id, f.params, f.bands, f.scale]));
+  return { flights, nm, ranges, nadir, data, id: data + JSON.stringify(ranges) + nadir, grey: nm.length === 1 };
+}
+
+// a flight's box (lon/lat), padded: the footprint moves with the ground height and sync offset
+function flightBox(id) {
+  const f = viewer.byId.get(id);
+  const g = (viewer.outlines[id] && viewer.outlines[id].geometry) || f.geometry;
+  const b = geometryBox(g);
+  const dx = (b[2] - b[0]) * 0.5 + 1e-4, dy = (b[3] - b[1]) * 0.5 + 1e-4;
+  return [b[0] - dx, b[1] - dy, b[2] + dx, b[3] + dy];
+}
+viewer.outlines = {};
+
+// ---- band planes: fetched per tile and flight, cached, shared by every band choice -------------
+const cache = new Map();     // entry key -> {planes: Map(band -> Float32Array), key, empty, side, bytes}
+let cacheBytes = 0;
+const inflight = new Map();  // request key -> {controller, entry, bands}
+
+function entryKey(f, coords, scale) { return `${f.id}|${f.params}|${coords.z}/${coords.x}/${coords.y}|${scale}`; }
+function entryOf(key) {
+  let e = cache.get(key);
+  if (e) { cache.delete(key); cache.set(key, e); return e; }   // most recently used last
+  e = { planes: new Map(), key: null, empty: false, side: TILE, bytes: 0 };
+  cache.set(key, e);
+  return e;
+}
+function trimCache() {
+  for (const [k, e] of cache) {
+    if (cacheBytes <= CACHE_BYTES) break;
+    cacheBytes -= e.bytes;
+    cache.delete(k);
+  }
+}
+function entryReady(e, f, nadir) {
+  if (!e) return false;
+  if (e.empty) return true;
+  return f.bands.every((b) => e.planes.has(b)) && (!nadir || e.key !== null);
+}
+
+function request(tile, f, spec) {
+  const ek = entryKey(f, tile.coords, f.scale);
+  const e = entryOf(ek);
+  if (entryReady(e, f, spec.nadir)) return;
+  const missing = [...new Set(f.bands)].filter((b) => !e.planes.has(b));
+  const bands = missing.length ? missing : f.bands.slice(0, 1);
+  const rk = `${ek}|${spec.nadir}|${bands}`;
+  for (const [k, r] of inflight) if (r.entry === ek && bands.every((b) => r.bands.includes(b)) && r.nadir === spec.nadir) return;
+  if (inflight.has(rk)) return;
+  const controller = new AbortController();
+  inflight.set(rk, { controller, entry: ek, bands, nadir: spec.nadir, tile });
+  const { z, x, y } = tile.coords;
+  const url = `${idPath(f.id)}/values/${z}/${x}/${y}?bands=${bands.join(",")}&${f.params}` +
+              (f.scale > 1 ? `&scale=${f.scale}` : "");
+  viewer.requests += 1;
+  busy();
+  fetch(url, { signal: controller.signal }).then(async (response) => {
+    if (response.status === 204) { e.empty = true; return; }
+    if (!response.ok) {
+      let body = null;
+      try { body = await response.json(); } catch (err) { /* not JSON */ }
+      throw Object.assign(new Error((body && body.error) || `${response.status} ${response.statusText}`), { http: response.status });
+    }
+    const buffer = await response.arrayBuffer();
+    const side = Number(response.headers.get("X-Side")) || TILE;
+    const n = side * side;
+    bands.forEach((b, i) => e.planes.set(b, new Float32Array(buffer, i * n * 4, n)));
+    if (response.headers.get("X-Key")) e.key = new Float32Array(buffer, bands.length * n * 4, n);
+    e.side = side;
+    e.bytes += buffer.byteLength;
+    cacheBytes += buffer.byteLength;
+    viewer.loads += 1;
+    trimCache();
+  }).catch((err) => {
+    if (err.name === "AbortError") return;
+    viewer.tileErrors += 1;
+    failed(err.message, f.id);
+  }).finally(() => {
+    inflight.delete(rk);
+    busy();
+    schedule();
+  });
+}
+
+// a request the server refused: say why next to the control, keep the picture, stop asking
+let failedSpec = null;
+function failed(message, id) {
+  failedSpec = current ? current.id : null;
+  showError(message);
+  if (id !== viewer.open) status(`${id}: ${message}`, true);
+}
+
+function busy() {
+  viewer.pending = inflight.size;
+  $("busy").hidden = inflight.size === 0;
+  $("busy-text").textContent = inflight.size ? ` ${inflight.size}` : "";
+}
+
+// ---- the layer: canvases that keep their picture until the replacement is complete -----------
+const tiles = new Map();     // "z/x/y" -> {el, coords, shown: spec id | null}
+let current = null;          // the spec every tile should show
+
+const ValuesLayer = L.GridLayer.extend({
+  createTile(coords) {
+    const el = L.DomUtil.create("canvas", "values-tile");
+    el.width = el.height = TILE;
+    const tile = { el, coords: { z: coords.z, x: coords.x, y: coords.y }, shown: null };
+    const tb = tileBounds(coords.z, coords.x, coords.y);
+    if (current && current.flights.some((f) => boxesMeet(f.box, tb))) el.classList.add("placeholder");
+    tiles.set(`${coords.z}/${coords.x}/${coords.y}`, tile);
+    viewer.settled = viewer.ready = false;
+    schedule();
+    return el;
+  },
+});
+const layer = new ValuesLayer({ maxZoom: 24, tileSize: TILE, keepBuffer: 1, updateWhenZooming: false,
+                                className: "flight-tiles" });
+layer.on("tileunload", (ev) => {
+  const key = `${ev.coords.z}/${ev.coords.x}/${ev.coords.y}`;
+  const tile = tiles.get(key);
+  tiles.delete(key);
+  for (const [k, r] of inflight) if (r.tile === tile) { r.controller.abort(); inflight.delete(k); }
+  busy();
+});
+layer.addTo(map);
+
+const liveTiles = () => [...tiles.values()].filter((t) => t.coords.z === Math.round(map.getZoom()));
+
+function tileReady(tile, spec) {
+  const tb = tileBounds(tile.coords.z, tile.coords.x, tile.coords.y);
+  return spec.flights.every((f) => !boxesMeet(f.box, tb) || entryReady(cache.get(entryKey(f, tile.coords, f.scale)), f, spec.nadir));
+}
+
+function schedule() {
+  if (scheduled) return;
+  scheduled = true;
+  requestAnimationFrame(() => { scheduled = false; pump(); });
+}
+
+// ask for what is missing; draw new tiles as they complete, swap the others all at once
+function pump() {
+  const spec = current;
+  if (!spec) return;
+  if (!spec.ranges) { ensureRanges(spec); }
+  const live = liveTiles();
+  let complete = true;
+  const wanted = new Set();
+  for (const tile of live) {
+    if (tile.shown === spec.id) continue;
+    const tb = tileBounds(tile.coords.z, tile.coords.x, tile.coords.y);
+    let ready = true;
+    for (const f of spec.flights) {
+      if (!boxesMeet(f.box, tb)) continue;
+      const ek = entryKey(f, tile.coords, f.scale);
+      wanted.add(ek);
+      if (!entryReady(cache.get(ek), f, spec.nadir)) {
+        ready = false;
+        if (failedSpec !== spec.id) request(tile, f, spec);
+      }
+    }
+    if (ready && spec.ranges && tile.shown === null) draw(tile, spec);   // nothing to keep: show it now
+    if (!ready) complete = false;
+  }
+  // requests for a picture nobody waits for any more (an older ground height, a tile gone)
+  for (const [k, r] of inflight) if (!wanted.has(r.entry)) { r.controller.abort(); inflight.delete(k); }
+  busy();
+  if (complete && spec.ranges) {
+    for (const tile of live) if (tile.shown !== spec.id) draw(tile, spec);
+    if (spec.flights.length || !live.length) settle(spec);
+  } else {
+    viewer.settled = viewer.ready = false;
+  }
+}
+
+function settle(spec) {
+  viewer.settled = viewer.ready = inflight.size === 0;
+  if (viewer.settled) clearErrors("err-cubes", "err-ground", "err-sync", "err-mode", "err-bands");
+  viewer.specId = spec.id;
+  if (preview && previewNext !== null) { startPreview(previewNext); }
+  if ($("stretch").value === "view" && !spec.viewStretchFresh) {
+    spec.viewStretchFresh = true;
+    const r = viewRanges(spec);
+    if (r && JSON.stringify(r) !== JSON.stringify(viewStretch)) { viewStretch = r; refresh(); }
+  }
+}
+
+// one tile's picture from the planes of every flight over it (later flights on top, or the one
+// seen closest to nadir), stretched here
+let image = null;
+function draw(tile, spec) {
+  const ctx = tile.el.getContext("2d");
+  if (!image) image = ctx.createImageData(TILE, TILE);
+  const d = image.data;
+  d.fill(0);
+  const best = spec.nadir ? new Float32Array(TILE * TILE).fill(Infinity) : null;
+  const tb = tileBounds(tile.coords.z, tile.coords.x, tile.coords.y);
+  const k = spec.flights.length ? spec.flights[0].bands.length : 0;
+  const lo = spec.ranges ? spec.ranges.map((r) => r[0]) : [0, 0, 0];
+  const sc = spec.ranges ? spec.ranges.map((r) => 255 / (r[1] - r[0])) : [0, 0, 0];
+  for (const f of spec.flights) {
+    if (!boxesMeet(f.box, tb)) continue;
+    const e = cache.get(entryKey(f, tile.coords, f.scale));
+    if (!e || e.empty) continue;
+    const n = e.side, shift = Math.log2(TILE / n);
+    const c0 = e.planes.get(f.bands[0]), c1 = e.planes.get(f.bands[k > 1 ? 1 : 0]), c2 = e.planes.get(f.bands[k > 1 ? 2 : 0]);
+    const key = e.key;
+    const l0 = lo[0], l1 = lo[k > 1 ? 1 : 0], l2 = lo[k > 1 ? 2 : 0];
+    const s0 = sc[0], s1 = sc[k > 1 ? 1 : 0], s2 = sc[k > 1 ? 2 : 0];
+    for (let i = 0; i < TILE; i++) {
+      const row = (i >> shift) * n;
+      for (let j = 0; j < TILE; j++) {
+        const s = row + (j >> shift);
+        const v0 = c0[s], v1 = c1[s], v2 = c2[s];
+        if (v0 !== v0 || v1 !== v1 || v2 !== v2) continue;    // NaN: no line covers it
+        const p = i * TILE + j;
+        if (best) { const kv = key[s]; if (!(kv <= best[p])) continue; best[p] = kv; }
+        const o = p * 4;
+        d[o] = (v0 - l0) * s0 + 0.5; d[o + 1] = (v1 - l1) * s1 + 0.5; d[o + 2] = (v2 - l2) * s2 + 0.5; d[o + 3] = 255;
+      }
+    }
+  }
+  ctx.putImageData(image, 0, 0);
+  tile.el.classList.remove("placeholder");
+  tile.shown = spec.id;
+  viewer.draws += 1;
+}
+
+// ---- stretch: computed here from the flight's statistics, the view's values or the user's ----
+const statsCache = new Map();    // flight params + bands + percentiles -> {low, high}
+let viewStretch = null;
+function stretchRanges(nm) {
+  const kind = $("stretch").value;
+  const per = $("per-channel").checked && nm.length === 3;
+  let pairs = null;
+  if (kind === "manual") {
+    const lo = Number($("stretch-low").value), hi = Number($("stretch-high").value);
+    if (!(isFinite(lo) && isFinite(hi) && hi > lo) || $("stretch-low").value === "" || $("stretch-high").value === "") {
+      showError("stretch: give LOW < HIGH", "err-stretch");
+      return lastRanges;
+    }
+    clearErrors("err-stretch");
+    return nm.map(() => [lo, hi]);
+  }
+  clearErrors("err-stretch");
+  if (kind === "view") {
+    pairs = viewStretch && viewStretch.length === nm.length ? viewStretch : null;
+    if (!pairs) return lastRanges && lastRanges.length === nm.length ? lastRanges : null;
+  } else {
+    const id = referenceFlight();
+    if (!id) return null;
+    const f = viewer.byId.get(id);
+    const st = statsCache.get(statsKey(id, nm.map((w) => nearestBand(f, w)), kind));
+    if (!st) return null;
+    pairs = st.low.map((l, i) => [l === null ? 0 : l, st.high[i] === null ? 1 : st.high[i]]);
+    if (kind === "unscaled") {
+      const hi = Math.max(...pairs.map((p) => p[1]));
+      return nm.map(() => [0, hi > 0 ? hi : 1]);
+    }
+  }
+  pairs = pairs.map(([l, h]) => [l, h > l ? h : l + 1]);
+  if (!per) {
+    const l = Math.min(...pairs.map((p) => p[0])), h = Math.max(...pairs.map((p) => p[1]));
+    pairs = pairs.map(() => [l, h]);
+  }
+  return pairs;
+}
+let lastRanges = null;
+const statsKey = (id, bands, kind) => `${id}|${flightParams(id, null)}|${bands}|${kind === "unscaled" ? "0,100" : "2,98"}`;
+const statsPending = new Set();
+function ensureRanges(spec) {
+  const kind = $("stretch").value;
+  if (kind === "view") { if (!viewStretch) { viewStretch = viewRanges(spec) || null; if (viewStretch) refresh(); } return; }
+  if (kind === "manual") return;
+  const id = referenceFlight();
+  if (!id) return;
+  const f = viewer.byId.get(id);
+  const bands = spec.nm.map((w) => nearestBand(f, w));
+  const key = statsKey(id, bands, kind);
+  if (statsCache.has(key) || statsPending.has(key)) return;
+  statsPending.add(key);
+  getJSON(`${idPath(id)}/stats?bands=${bands.join(",")}&${flightParams(id, null)}&percentiles=${kind === "unscaled" ? "0,100" : "2,98"}`)
+    .then((st) => { statsCache.set(key, st); refresh(); })
+    .catch((err) => showError(err.message))
+    .finally(() => statsPending.delete(key));
+}
+
+// 2 %/98 % of the values the view shows (loaded planes of the tiles in view, subsampled)
+function viewRanges(spec) {
   const b = map.getBounds();
-  const clamp = (v, lo, hi) => Math.min(hi, Math.max(lo, v));
-  return [clamp(b.getWest(), -180, 180), clamp(b.getSouth(), -85, 85),
-          clamp(b.getEast(), -180, 180), clamp(b.getNorth(), -85, 85)].map((v) => v.toFixed(7)).join(",");
+  const view = [b.getWest(), b.getSouth(), b.getEast(), b.getNorth()];
+  const k = spec.nm.length;
+  const samples = Array.from({ length: k }, () => []);
+  for (const tile of liveTiles()) {
+    const tb = tileBounds(tile.coords.z, tile.coords.x, tile.coords.y);
+    if (!boxesMeet(tb, view)) continue;
+    for (const f of spec.flights) {
+      const e = cache.get(entryKey(f, tile.coords, f.scale));
+      if (!e || e.empty || !f.bands.every((band) => e.planes.has(band))) continue;
+      const planes = f.bands.map((band) => e.planes.get(band));
+      const step = e.side >= 128 ? 3 : 1;
+      for (let s = 0; s < planes[0].length; s += step) {
+        if (planes.some((p) => p[s] !== p[s])) continue;
+        for (let c = 0; c < k; c++) samples[c].push(planes[c][s]);
+      }
+    }
+  }
+  if (!samples[0].length) return null;
+  return samples.map((v) => {
+    const sorted = Float32Array.from(v).sort();
+    const at = (q) => sorted[Math.min(sorted.length - 1, Math.max(0, Math.round((q / 100) * (sorted.length - 1))))];
+    return [at(2), at(98)];
+  });
 }
 
-// ---- catalog ------------------------------------------------------------------------------
+// ---- changes ---------------------------------------------------------------------------------
+function refresh() {
+  const spec = buildSpec();
+  if (spec.ranges) lastRanges = spec.ranges;   // else new statistics are coming: draw when they arrive
+  if (!current || spec.id !== current.id) failedSpec = null;
+  current = spec;
+  viewer.ready = viewer.settled = false;
+  showOutputs();
+  writeHash();
+  pump();
+}
+
+// ---- the catalog: every flight matching the filters, on the map and in the list ---------------
+let footprints = null;
 async function loadCatalog(fit) {
   const q = new URLSearchParams();
-  if ($("f-inview").checked) q.set("bbox", clampedBounds());
+  const b = map.getBounds();
+  const clamp = (v, lo, hi) => Math.min(hi, Math.max(lo, v));
+  if ($("f-inview").checked) q.set("bbox", [clamp(b.getWest(), -180, 180), clamp(b.getSouth(), -85, 85),
+                                             clamp(b.getEast(), -180, 180), clamp(b.getNorth(), -85, 85)].map((v) => v.toFixed(7)).join(","));
   if ($("f-datetime").value.trim()) q.set("datetime", $("f-datetime").value.trim());
   if ($("f-wavelength").value.trim()) q.set("wavelength", $("f-wavelength").value.trim());
   let fc;
-  try { fc = await getJSON(`/api/collections?${q}`); } catch (e) { status(e.message, true); return; }
-  if (viewer.footprints) viewer.footprints.remove();
-  viewer.footprints = L.geoJSON(fc, {
-    style: { color: "#ffcc33", weight: 2, fill: true, fillOpacity: 0.0, interactive: true },
-    onEachFeature: (feature, layer) => {
-      layer.bindTooltip(feature.id, { sticky: true });
-      layer.on("click", (ev) => { if (!viewer.flight) { L.DomEvent.stop(ev); openFlight(feature); } });
+  try { fc = await getJSON(`/api/collections?${q}`); } catch (e) { showError(e.message, "err-filters"); return; }
+  clearErrors("err-filters");
+  viewer.features = fc.features;
+  viewer.byId = new Map(fc.features.map((f) => [f.id, f]));
+  const known = viewer.order.filter((id) => viewer.byId.has(id));
+  viewer.order = known.concat(fc.features.map((f) => f.id).filter((id) => !known.includes(id)));
+  if (viewer.open && !viewer.byId.has(viewer.open)) closeFlight();
+  fillBandOptions();
+  drawFootprints();
+  renderList();
+  status(`${fc.features.length} flight(s)`);
+  if (fit && fc.features.length && !hashHasMap) map.fitBounds(footprints.getBounds(), { padding: [20, 20] });
+  refresh();
+}
+
+function drawFootprints() {
+  if (footprints) footprints.remove();
+  const features = visibleFlights().map((id) => {
+    const f = viewer.byId.get(id);
+    return viewer.outlines[id] ? { ...f, geometry: viewer.outlines[id].geometry } : f;
+  });
+  footprints = L.geoJSON({ type: "FeatureCollection", features }, {
+    pane: "footprints", interactive: false,
+    style: (f) => ({ color: f.id === viewer.open ? "#ff3366" : "#ffcc33", weight: f.id === viewer.open ? 2.5 : 1.5,
+                     fill: false, fillRule: "nonzero" }),
+    onEachFeature: (feature, fl) => {
+      fl.bindTooltip(feature.id, { permanent: true, direction: "center", className: "footprint-label", opacity: 0.85 });
     },
   });
-  if ($("show-footprints").checked) viewer.footprints.addTo(map);
+  if ($("show-footprints").checked) footprints.addTo(map);
+  viewer.footprints = footprints;
+}
+
+function renderList() {
   const list = $("flights");
   list.replaceChildren();
-  for (const f of fc.features) {
+  viewer.order.forEach((id, i) => {
+    const f = viewer.byId.get(id);
     const p = f.properties;
     const li = document.createElement("li");
-    li.dataset.id = f.id;
-    li.textContent = f.id;
+    li.dataset.id = id;
+    li.classList.toggle("open", id === viewer.open);
+    const show = document.createElement("input");
+    show.type = "checkbox";
+    show.checked = !viewer.hidden.has(id);
+    show.setAttribute("aria-label", `draw ${id}`);
+    show.addEventListener("change", () => { if (show.checked) viewer.hidden.delete(id); else viewer.hidden.add(id); drawFootprints(); refresh(); });
+    const open = document.createElement("button");
+    open.type = "button";
+    open.className = "flight-open";
+    open.textContent = id;
+    open.title = `open ${id} (its controls, spectra)`;
+    open.addEventListener("click", () => openFlight(id, true));
     const meta = document.createElement("span");
     meta.className = "meta";
-    meta.textContent = `${p.start_datetime.slice(0, 19).replace("T", " ")} · ${p.bands} bands ` +
+    meta.textContent = `${p.start_datetime.slice(0, 19).replace("T", " ")} UTC · ${p.bands} bands ` +
       `${fmt(p.min_wavelength, 4)}–${fmt(p.max_wavelength, 4)} nm · ${p.cubes ?? "?"} cubes · ${fmt(p.gsd, 2)} m`;
-    li.append(meta);
-    li.addEventListener("click", () => openFlight(f));
+    const move = (delta, label, text) => {
+      const b = document.createElement("button");
+      b.type = "button"; b.className = "move"; b.textContent = text; b.title = label; b.setAttribute("aria-label", `${label}: ${id}`);
+      b.disabled = i + delta < 0 || i + delta >= viewer.order.length;
+      b.addEventListener("click", () => {
+        const o = viewer.order;
+        [o[i], o[i + delta]] = [o[i + delta], o[i]];
+        renderList(); drawFootprints(); refresh();
+        const again = $("flights").querySelector(`li[data-id="${CSS.escape(id)}"] button.move[title="${label}"]`);
+        if (again && !again.disabled) again.focus();
+      });
+      return b;
+    };
+    li.append(show, open, move(-1, "draw under", "▲"), move(1, "draw over", "▼"), meta);
     list.append(li);
-  }
-  status(`${fc.features.length} flight(s)`);
-  if (fit && fc.features.length) map.fitBounds(viewer.footprints.getBounds(), { padding: [20, 20] });
+  });
 }
 
 $("filters").addEventListener("submit", (ev) => { ev.preventDefault(); loadCatalog(false); });
-$("show-footprints").addEventListener("change", () => {
-  if (!viewer.footprints) return;
-  if ($("show-footprints").checked) viewer.footprints.addTo(map); else viewer.footprints.remove();
-});
+$("show-footprints").addEventListener("change", () => drawFootprints());
+$("overlap").addEventListener("change", () => refresh());
 
-// ---- a flight -----------------------------------------------------------------------------
-function fillBands(select, wavelengths, count) {
-  select.replaceChildren();
-  for (let i = 0; i < count; i++) {
-    const o = document.createElement("option");
-    o.value = String(i);
-    o.textContent = wavelengths ? `${i}: ${wavelengths[i].toFixed(1)} nm` : `band ${i}`;
-    select.append(o);
+// ---- bands -----------------------------------------------------------------------------------
+function fillBandOptions() {
+  const id = referenceFlight();
+  if (!id) return;
+  const p = viewer.byId.get(id).properties;
+  const keep = ["band-r", "band-g", "band-b", "band-grey"].map((s) => $(s).value);
+  for (const sel of ["band-r", "band-g", "band-b", "band-grey"]) {
+    const select = $(sel);
+    select.replaceChildren();
+    for (let i = 0; i < p.bands; i++) {
+      const o = document.createElement("option");
+      o.value = p.wavelength ? String(p.wavelength[i]) : String(i);
+      o.textContent = p.wavelength ? `${i + 1}: ${p.wavelength[i].toFixed(1)} nm` : `band ${i + 1}`;
+      select.append(o);
+    }
   }
+  if (keep[0] === "") setTrueColour(false);
+  else ["band-r", "band-g", "band-b", "band-grey"].forEach((s, i) => selectNearest($(s), Number(keep[i])));
+  if (!$("mode").options.length) setModes(["raw", "relative", "radiance"], "radiance");
+}
+function selectNearest(select, nm) {
+  let best = null;
+  for (const o of select.options) if (best === null || Math.abs(Number(o.value) - nm) < Math.abs(Number(best.value) - nm)) best = o;
+  if (best) select.value = best.value;
+}
+function setTrueColour(apply = true) {
+  const id = referenceFlight();
+  const p = id && viewer.byId.get(id).properties;
+  if (!p) return;
+  if (p.wavelength && p.min_wavelength <= 640 && p.max_wavelength >= 460) {
+    [640, 550, 460].forEach((nm, i) => selectNearest($(["band-r", "band-g", "band-b"][i]), nm));
+  } else {
+    const n = p.bands, pick = (i) => $(["band-r", "band-g", "band-b"][i]).options[i === 0 ? (3 * n) >> 2 : i === 1 ? n >> 1 : n >> 2];
+    [0, 1, 2].forEach((i) => { $(["band-r", "band-g", "band-b"][i]).value = pick(i).value; });
+  }
+  $("band-grey").value = $("band-r").value;
+  if (apply) { $("display").value = "rgb"; showDisplay(); refresh(); }
+}
+function setModes(modes, chosen) {
+  const mode = $("mode");
+  const keep = mode.value;
+  mode.replaceChildren(...modes.map((m) => { const o = document.createElement("option"); o.value = m; o.textContent = m; return o; }));
+  mode.value = modes.includes(keep) ? keep : chosen;
+}
+function showDisplay() {
+  const grey = $("display").value === "grey";
+  for (const el of document.querySelectorAll(".row.rgb")) el.hidden = grey;
+  for (const el of document.querySelectorAll(".row.grey")) el.hidden = !grey;
+  $("per-channel-label").hidden = grey;
+  document.querySelector(".row.manual").hidden = $("stretch").value !== "manual";
 }
 
-function setDefaults() {
-  const info = viewer.info;
-  const [r, g, b] = info.default_bands;
-  $("band-r").value = r; $("band-g").value = g; $("band-b").value = b; $("band-grey").value = r;
-  $("display").value = "rgb";
-  $("mode").value = info.default_mode;
-  $("stretch").value = "flight";
-  viewer.stretchRanges = null;
-  $("cube-first").value = 0; $("cube-last").value = info.cubes.length - 1;
+for (const id of ["band-r", "band-g", "band-b", "band-grey"]) $(id).addEventListener("change", () => refresh());
+$("display").addEventListener("change", () => { showDisplay(); refresh(); });
+$("mode").addEventListener("change", () => refresh());
+$("truecolour").addEventListener("click", () => setTrueColour(true));
+$("stretch").addEventListener("change", () => {
+  if ($("stretch").value === "view") viewStretch = current ? viewRanges(current) : null;
+  if ($("stretch").value === "manual" && $("stretch-low").value === "" && lastRanges) {
+    $("stretch-low").value = Number(Math.min(...lastRanges.map((r) => r[0])).toPrecision(5));
+    $("stretch-high").value = Number(Math.max(...lastRanges.map((r) => r[1])).toPrecision(5));
+  }
+  showDisplay(); refresh();
+});
+for (const id of ["per-channel", "stretch-low", "stretch-high"]) $(id).addEventListener("change", () => refresh());
+map.on("movestart zoomstart", () => { viewer.settled = viewer.ready = false; });
+map.on("moveend", () => {
+  if ($("stretch").value === "view" && current) { current.viewStretchFresh = false; }
+  writeHash();
+  schedule();
+});
+
+function showOutputs() {
+  if (viewer.open && viewer.params[viewer.open]) {
+    const p = viewer.params[viewer.open];
+    const g = preview && preview.ground !== undefined ? preview.ground : p.ground;
+    const s = preview && preview.sync !== undefined ? preview.sync : p.sync;
+    $("ground-out").textContent = `${Number(g).toFixed(1)} m`;
+    $("sync-out").textContent = `${Number(s).toFixed(3)} s`;
+  }
+  const r = current && current.ranges;
+  const names = $("display").value === "grey" ? ["grey"] : ["R", "G", "B"];
+  $("stretch-values").textContent = r ? r.map(([lo, hi], i) => `${names[i]} ${fmt(lo)}…${fmt(hi)}`).join("  ") : "";
+}
+
+// ---- the open flight: its controls, footprint and spectra -----------------------------------
+async function openFlight(id, fit) {
+  status(`opening ${id}…`);
+  let info;
+  try { info = await getJSON(idPath(id)); } catch (e) { status(e.message, true); return; }
+  viewer.open = id;
+  viewer.info = info;
+  viewer.hidden.delete(id);
+  if (!viewer.params[id]) viewer.params[id] = { cubes: null, ground: info.ground_height, sync: info.sync_offset };
+  $("flight-title").textContent = id;
+  setModes(info.modes, info.default_mode);
+  fillBandOptions();
+  setSliders(info);
+  $("controls").hidden = false;
+  renderList();
+  if (fit) map.fitBounds(L.geoJSON(viewer.byId.get(id)).getBounds(), { padding: [30, 30] });
+  status(`${id}: ${info.cubes.length} cubes, ${info.bands} bands`);
+  loadOutline(id);
+  drawFootprints();
+  refresh();
+}
+
+function setSliders(info) {
+  const p = viewer.params[info.id];
   const gh = info.ground_height;
   const ground = $("ground");
   // over a DEM (a collection ingested with --dem) the slider is the DEM's vertical offset
@@ -106,179 +677,140 @@ function setDefaults() {
   ground.title = info.terrain ? `vertical offset of ${info.terrain.dem}, metres` : "flat ground height, metres";
   ground.min = (gh - (info.terrain ? 10 : 30)).toFixed(1);
   ground.max = (info.terrain ? gh + 10 : Math.min(gh + 30, info.lowest_camera - 1.5)).toFixed(1);
-  ground.value = gh;
+  ground.value = p.ground;
   const sync = $("sync");
   sync.min = (info.sync_offset - 0.25).toFixed(3); sync.max = (info.sync_offset + 0.25).toFixed(3);
-  sync.value = info.sync_offset;
-  showDisplay();
-  showOutputs();
-}
-
-async function openFlight(feature) {
-  status(`opening ${feature.id}…`);
-  let info;
-  try { info = await getJSON(`/api/collections/${encodeURIComponent(feature.id)}`); }
-  catch (e) { status(e.message, true); return; }
-  closeFlight();
-  viewer.flight = feature;
-  viewer.info = info;
-  for (const li of $("flights").children) li.classList.toggle("open", li.dataset.id === feature.id);
-  $("flight-title").textContent = feature.id;
-  for (const id of ["band-r", "band-g", "band-b", "band-grey"]) fillBands($(id), info.wavelength, info.bands);
-  const mode = $("mode");
-  mode.replaceChildren(...info.modes.map((m) => { const o = document.createElement("option"); o.value = m; o.textContent = m; return o; }));
-  $("cube-first").max = $("cube-last").max = info.cubes.length - 1;
-  setDefaults();
-  $("controls").hidden = false;
-  const bounds = L.geoJSON(feature).getBounds();
-  map.fitBounds(bounds, { padding: [30, 30] });
-  updateLayer();
-  status(`${feature.id}: ${info.cubes.length} cubes, ${info.bands} bands`);
+  sync.value = p.sync;
+  const n = info.cubes.length;
+  for (const el of [$("cube-first"), $("cube-last")]) { el.min = 1; el.max = n; }
+  $("cube-first").value = p.cubes ? p.cubes[0] : 1;
+  $("cube-last").value = p.cubes ? p.cubes[1] : n;
+  $("cube-first").title = `first cube (${info.cubes[0].base} is 1)`;
 }
 
 function closeFlight() {
-  if (viewer.layer) viewer.layer.remove();
-  if (viewer.marker) viewer.marker.remove();
-  viewer.layer = viewer.flight = viewer.info = viewer.marker = viewer.lastPoint = null;
-  viewer.ready = false;
+  viewer.open = viewer.info = null;
   $("controls").hidden = true;
-  $("pixel").hidden = true;
-  for (const li of $("flights").children) li.classList.remove("open");
+  renderList();
+  drawFootprints();
+  refresh();
 }
 
-function commonParams() {
-  const q = new URLSearchParams();
-  const info = viewer.info;
-  q.set("mode", $("mode").value);
-  const first = Number($("cube-first").value), last = Number($("cube-last").value);
-  if (first !== 0 || last !== info.cubes.length - 1) q.set("cubes", `${first}-${last}`);
-  const gh = Number($("ground").value);
-  if (gh !== info.ground_height) q.set("ground_height", String(gh));
-  const sync = Number($("sync").value);
-  if (sync !== info.sync_offset) q.set("sync_offset", String(sync));
-  return q;
+async function loadOutline(id) {
+  const q = new URLSearchParams(flightParams(id, null));
+  q.delete("mode"); q.delete("overlap");
+  try {
+    const geometry = await getJSON(`${idPath(id)}/outline?${q}`);
+    if (geometry.coordinates.length) viewer.outlines[id] = { geometry, params: q.toString() };
+    drawFootprints();
+    refresh();
+  } catch (e) { /* the tiles say what is wrong */ }
 }
 
-function channelParams(q) {
-  const info = viewer.info;
-  if ($("display").value === "grey") {
-    q.set("band", $("band-grey").value);
-  } else {
-    const bands = ["band-r", "band-g", "band-b"].map((id) => Number($(id).value));
-    q.set("wavelengths", bands.map((b) => (info.wavelength ? info.wavelength[b] : b)).join(","));
-  }
-  return q;
+// an error message stays until the view it refused is replaced (settle) or Reset: clearing it on
+// input would move the controls under the pointer
+function flightChanged() {
+  refresh();
+  if (viewer.open) loadOutline(viewer.open);
 }
-
-function tileQuery() {
-  const q = channelParams(commonParams());
-  if ($("stretch").value === "view" && viewer.stretchRanges) q.set("stretch", viewer.stretchRanges.flat().map((v) => v.toPrecision(7)).join(","));
-  else q.set("stretch", "p2,p98");
-  return q;
+function cubesInput() {
+  const p = viewer.params[viewer.open];
+  const n = viewer.info.cubes.length;
+  const a = Math.round(Number($("cube-first").value)), b = Math.round(Number($("cube-last").value));
+  p.cubes = a === 1 && b === n ? null : [a, b];
+  flightChanged();
 }
+$("cube-first").addEventListener("change", cubesInput);
+$("cube-last").addEventListener("change", cubesInput);
 
-function paddedBounds() {
-  const b = L.geoJSON(viewer.flight).getBounds();
-  return b.pad(1.0);  // the footprint grows when the ground is lowered: leave room
+// sliders: a coarse preview (64 x 64 tiles of the open flight) while dragging, one at a time, at
+// the latest value; the full resolution on release
+let previewNext = null;
+function startPreview(value) {
+  previewNext = null;
+  preview = value;
+  refresh();
 }
-
-function updateLayer() {
-  if (!viewer.flight) return;
-  const url = `${idPath()}/tiles/{z}/{x}/{y}.png?${tileQuery()}`;
-  viewer.ready = false;
-  viewer.tileUrl = url;
-  if (viewer.layer) { viewer.layer.setUrl(url); return; }
-  viewer.layer = L.tileLayer(url, {
-    maxZoom: 24, maxNativeZoom: 24, tileSize: 256, keepBuffer: 1, className: "flight-tiles",
-    bounds: paddedBounds(), updateWhenZooming: false,
+for (const [id, name] of [["ground", "ground"], ["sync", "sync"]]) {
+  $(id).addEventListener("input", () => {
+    const value = { [name]: Number($(id).value) };
+    showOutputsValue(name, value[name]);
+    if (!preview || viewer.settled) startPreview(value); else previewNext = value;
   });
-  viewer.layer.on("loading", () => { viewer.ready = false; });
-  viewer.layer.on("load", () => { viewer.ready = true; viewer.loads += 1; });
-  viewer.layer.on("tileerror", () => { viewer.tileErrors += 1; status("a tile failed to load", true); });
-  viewer.layer.addTo(map);
-}
-
-function showDisplay() {
-  const grey = $("display").value === "grey";
-  for (const el of document.querySelectorAll(".row.rgb")) el.hidden = grey;
-  for (const el of document.querySelectorAll(".row.grey")) el.hidden = !grey;
-}
-
-function showOutputs() {
-  $("ground-out").textContent = `${Number($("ground").value).toFixed(1)} m`;
-  $("sync-out").textContent = `${Number($("sync").value).toFixed(3)} s`;
-  const r = viewer.stretchRanges;
-  $("stretch-values").textContent = $("stretch").value === "view" && r
-    ? r.map(([lo, hi]) => `${fmt(lo)}…${fmt(hi)}`).join("  ") : "2 %/98 % of the whole flight";
-}
-
-let debounce = null;
-function changed(delay = 0) {
-  showOutputs();
-  clearTimeout(debounce);
-  debounce = setTimeout(updateLayer, delay);
-}
-
-for (const id of ["band-r", "band-g", "band-b", "band-grey", "mode", "cube-first", "cube-last"]) {
   $(id).addEventListener("change", () => {
-    if (id === "mode" || id.startsWith("band")) { viewer.stretchRanges = null; $("stretch").value = "flight"; }
-    changed();
+    preview = null; previewNext = null;
+    viewer.params[viewer.open][name] = Number($(id).value);
+    flightChanged();
   });
 }
-$("display").addEventListener("change", () => { viewer.stretchRanges = null; $("stretch").value = "flight"; showDisplay(); changed(); });
-$("stretch").addEventListener("change", () => { if ($("stretch").value === "view") stretchFromView(); else changed(); });
-for (const id of ["ground", "sync"]) {
-  $(id).addEventListener("input", () => changed(150));
-  $(id).addEventListener("change", () => changed());
+function showOutputsValue(name, v) {
+  if (name === "ground") $("ground-out").textContent = `${v.toFixed(1)} m`;
+  else $("sync-out").textContent = `${v.toFixed(3)} s`;
 }
-$("truecolour").addEventListener("click", () => {
-  const [r, g, b] = viewer.info.default_bands;
-  $("band-r").value = r; $("band-g").value = g; $("band-b").value = b;
-  $("display").value = "rgb"; viewer.stretchRanges = null; $("stretch").value = "flight";
-  showDisplay(); changed();
+
+$("reset").addEventListener("click", () => {
+  const info = viewer.info;
+  viewer.params[info.id] = { cubes: null, ground: info.ground_height, sync: info.sync_offset };
+  setSliders(info);
+  setModes(info.modes, info.default_mode);
+  $("mode").value = info.default_mode;
+  $("stretch").value = "flight";
+  $("per-channel").checked = true;
+  setTrueColour(false);
+  $("display").value = "rgb";
+  showDisplay();
+  clearErrors();
+  failedSpec = null;
+  flightChanged();
 });
-$("stretch-view").addEventListener("click", () => stretchFromView());
-$("per-channel").addEventListener("change", () => { if ($("stretch").value === "view") stretchFromView(); });
-$("reset").addEventListener("click", () => { setDefaults(); changed(); });
 $("close").addEventListener("click", () => { closeFlight(); status(""); });
 
-async function stretchFromView() {
-  if (!viewer.flight) return;
-  const q = channelParams(commonParams());
-  q.set("bbox", clampedBounds());
-  let st;
-  try { st = await getJSON(`${idPath()}/stats?${q}`); } catch (e) { status(e.message, true); return; }
-  if (!st.count) { status("no pixel of the flight in view", true); return; }
-  let ranges = st.low.map((lo, i) => [lo, st.high[i] > lo ? st.high[i] : lo + 1]);
-  if (!$("per-channel").checked) {
-    const lo = Math.min(...ranges.map((r) => r[0])), hi = Math.max(...ranges.map((r) => r[1]));
-    ranges = ranges.map(() => [lo, hi]);
-  }
-  viewer.stretchRanges = ranges;
-  $("stretch").value = "view";
-  changed();
-}
-
-// ---- a pixel ------------------------------------------------------------------------------
-map.on("click", async (ev) => {
-  if (!viewer.flight) return;
-  const q = commonParams();
-  q.set("lon", ev.latlng.lng.toFixed(9));
-  q.set("lat", ev.latlng.lat.toFixed(9));
-  if (viewer.flight.properties.gsd) q.set("gsd", String(viewer.flight.properties.gsd));
-  let p;
-  try { p = await getJSON(`${idPath()}/point?${q}`); } catch (e) { status(e.message, true); return; }
-  viewer.lastPoint = p;
-  if (viewer.marker) viewer.marker.remove();
-  viewer.marker = L.circleMarker([p.pixel.lat, p.pixel.lon], { radius: 5, color: "#ff3366", weight: 2, fill: false }).addTo(map);
-  showPixel(p);
+// ---- clicks: open the flight under the pointer, or pin the open flight's spectrum -------------
+map.on("click", (ev) => {
+  const { lng, lat } = ev.latlng;
+  const under = visibleFlights().filter((id) => {
+    const g = (viewer.outlines[id] && viewer.outlines[id].geometry) || viewer.byId.get(id).geometry;
+    return inGeometry(lng, lat, g);
+  });
+  if (viewer.open && (under.includes(viewer.open) || !under.length)) { pinPoint(ev.latlng); return; }
+  if (under.length) openFlight(under[under.length - 1], false);
 });
+
+async function pinPoint(latlng) {
+  const id = viewer.open;
+  const q = new URLSearchParams(flightParams(id, null));
+  q.delete("overlap");
+  q.set("lon", latlng.lng.toFixed(9));
+  q.set("lat", latlng.lat.toFixed(9));
+  const gsd = viewer.byId.get(id).properties.gsd;
+  if (gsd) q.set("gsd", String(gsd));
+  let p;
+  try { p = await getJSON(`${idPath(id)}/point?${q}`); } catch (e) { status(e.message, true); return; }
+  viewer.lastPoint = p;
+  if (!p.covered) { showPixel(p); return; }
+  const used = new Set(viewer.pins.map((s) => s.colour));
+  const colour = PALETTE.find((c) => !used.has(c)) || PALETTE[viewer.pins.length % PALETTE.length];
+  if (viewer.pins.length >= MAX_PINS) removePin(viewer.pins[0]);
+  const pin = { point: p, colour, units: (viewer.info.units || {})[p.mode] || p.mode,
+                marker: L.circleMarker([p.pixel.lat, p.pixel.lon], { radius: 5, color: colour, weight: 2.5, fill: false }).addTo(map) };
+  viewer.pins.push(pin);
+  showPixel(p);
+  showPins();
+}
+function removePin(pin) {
+  pin.marker.remove();
+  viewer.pins = viewer.pins.filter((s) => s !== pin);
+  showPins();
+}
+$("clear-pins").addEventListener("click", () => { for (const pin of [...viewer.pins]) removePin(pin); });
 
 function showPixel(p) {
   $("pixel").hidden = false;
   const rows = p.covered ? [
-    ["cube", `${p.cube} (${p.base})`], ["line, sample", `${p.line}, ${p.sample}`],
-    ["time", `${p.utc} (${p.time.toFixed(4)} s)`],
+    ["flight", p.id],
+    ["cube", `${p.cube + 1} of ${viewer.info ? viewer.info.cubes.length : "?"} (${p.base})`],
+    ["line, sample", `${p.line + 1}, ${p.sample + 1} (1-based; 0-based ${p.line}, ${p.sample})`],
+    ["time", `${p.utc.replace("T", " ").replace("Z", "")} UTC`],
   ] : [["pixel", "no line of the flight covers it"]];
   rows.push(["centre", `${p.pixel.lat.toFixed(7)}, ${p.pixel.lon.toFixed(7)}`],
             ["EPSG:" + p.epsg, `${p.pixel.x.toFixed(3)} E, ${p.pixel.y.toFixed(3)} N (${p.gsd} m)`],
@@ -291,14 +823,36 @@ function showPixel(p) {
     tr.append(th, td);
     return tr;
   }));
-  drawSpectrum(p);
-  const xs = p.wavelength || p.values.map((_, i) => i);
-  const csv = [`${p.wavelength ? "wavelength_nm" : "band"},${p.mode}`]
-    .concat(p.values.map((v, i) => `${xs[i]},${v === null ? "" : v}`)).join("\n") + "\n";
+}
+
+function pinLabel(p) { return `${p.id} c${p.cube + 1} l${p.line + 1} s${p.sample + 1}`; }
+
+function showPins() {
+  $("pixel").hidden = viewer.pins.length === 0 && !viewer.lastPoint;
+  const list = $("pins");
+  list.replaceChildren(...viewer.pins.map((pin) => {
+    const li = document.createElement("li");
+    const swatch = document.createElement("span");
+    swatch.className = "swatch"; swatch.style.background = pin.colour;
+    const text = document.createElement("span");
+    text.textContent = `${pinLabel(pin.point)} · ${pin.point.utc.slice(11, 23)} UTC`;
+    const x = document.createElement("button");
+    x.type = "button"; x.textContent = "×"; x.title = "remove"; x.setAttribute("aria-label", `remove ${pinLabel(pin.point)}`);
+    x.addEventListener("click", () => removePin(pin));
+    li.append(swatch, text, x);
+    return li;
+  }));
+  drawSpectrum();
+  const pts = viewer.pins.map((s) => s.point);
+  if (!pts.length) { viewer.csv = null; return; }
+  const xs = pts[0].wavelength || pts[0].values.map((_, i) => i);
+  const header = [pts[0].wavelength ? "wavelength_nm" : "band"].concat(pts.map((p) => `${p.mode} ${pinLabel(p)}`.replace(/,/g, " ")));
+  const rows = xs.map((x, i) => [x].concat(pts.map((p) => (p.values[i] === null || p.values[i] === undefined ? "" : p.values[i]))));
+  const csv = [header.join(",")].concat(rows.map((r) => r.join(","))).join("\n") + "\n";
   const link = $("csv");
   if (link.href.startsWith("blob:")) URL.revokeObjectURL(link.href);
   link.href = URL.createObjectURL(new Blob([csv], { type: "text/csv" }));
-  link.download = `${p.id}_cube${p.cube}_line${p.line}_sample${p.sample}.csv`;
+  link.download = pts.length === 1 ? `${pts[0].id}_cube${pts[0].cube + 1}_line${pts[0].line}_sample${pts[0].sample}.csv` : "spectra.csv";
   viewer.csv = csv;
 }
 
@@ -312,13 +866,13 @@ function niceTicks(lo, hi, n = 5) {
   return ticks;
 }
 
-function drawSpectrum(p) {
+function drawSpectrum() {
   const svg = $("spectrum");
   const NS = "http://www.w3.org/2000/svg";
-  const W = 340, H = 190, left = 52, right = 10, top = 10, bottom = 32;
-  const xs = p.wavelength || p.values.map((_, i) => i);
-  const finite = p.values.filter((v) => v !== null);
+  const W = 360, H = 200, left = 54, right = 18, top = 12, bottom = 34;
   svg.replaceChildren();
+  const pts = viewer.pins.map((s) => s.point);
+  if (!pts.length) return;
   const el = (name, attrs, text) => {
     const e = document.createElementNS(NS, name);
     for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
@@ -326,28 +880,168 @@ function drawSpectrum(p) {
     svg.append(e);
     return e;
   };
-  const x0 = Math.min(...xs), x1 = Math.max(...xs);
+  el("rect", { x: 0, y: 0, width: W, height: H, fill: "#fff" });
+  const xsOf = (p) => p.wavelength || p.values.map((_, i) => i);
+  const allX = pts.flatMap(xsOf), finite = pts.flatMap((p) => p.values.filter((v) => v !== null));
+  const x0 = Math.min(...allX), x1 = Math.max(...allX);
   let y0 = finite.length ? Math.min(...finite) : 0, y1 = finite.length ? Math.max(...finite) : 1;
   if (y1 === y0) { y0 -= 1; y1 += 1; }
   const pad = (y1 - y0) * 0.05; y0 -= pad; y1 += pad;
   const sx = (x) => left + ((x - x0) / (x1 - x0 || 1)) * (W - left - right);
   const sy = (y) => top + (1 - (y - y0) / (y1 - y0)) * (H - top - bottom);
   for (const t of niceTicks(y0, y1)) {
-    el("line", { class: "grid", x1: left, x2: W - right, y1: sy(t), y2: sy(t) });
-    el("text", { x: left - 4, y: sy(t) + 3, "text-anchor": "end" }, Math.abs(t) >= 1e4 ? t.toExponential(1) : String(t));
+    el("line", { class: "grid", x1: left, x2: W - right, y1: sy(t), y2: sy(t), stroke: "#e3e6eb" });
+    el("text", { x: left - 4, y: sy(t) + 3, "text-anchor": "end", "font-size": 10 }, Math.abs(t) >= 1e4 ? t.toExponential(1) : String(t));
   }
   for (const t of niceTicks(x0, x1)) {
-    el("line", { class: "axis", x1: sx(t), x2: sx(t), y1: H - bottom, y2: H - bottom + 4 });
-    el("text", { x: sx(t), y: H - bottom + 14, "text-anchor": "middle" }, String(t));
+    el("line", { class: "axis", x1: sx(t), x2: sx(t), y1: H - bottom, y2: H - bottom + 4, stroke: "#445" });
+    el("text", { x: sx(t), y: H - bottom + 14, "text-anchor": "middle", "font-size": 10 }, String(t));
   }
-  el("path", { class: "axis", d: `M${left},${top}V${H - bottom}H${W - right}` });
-  el("text", { x: (left + W - right) / 2, y: H - 4, "text-anchor": "middle" }, p.wavelength ? "wavelength (nm)" : "band");
-  el("text", { x: 10, y: (top + H - bottom) / 2, "text-anchor": "middle", transform: `rotate(-90 10 ${(top + H - bottom) / 2})` }, p.mode);
-  // one polyline per run of values (a NaN band breaks the line)
-  let run = [];
-  const flush = () => { if (run.length) el("polyline", { class: "line", points: run.join(" ") }); run = []; };
-  p.values.forEach((v, i) => { if (v === null) flush(); else run.push(`${sx(xs[i]).toFixed(2)},${sy(v).toFixed(2)}`); });
-  flush();
+  // the bands the map shows
+  const nm = channelsNm();
+  const marks = nm.length === 1 ? [["#666", "grey"]] : [["#c0392b", "R"], ["#1e8449", "G"], ["#2155c0", "B"]];
+  const ref = pts[0];
+  nm.forEach((w, i) => {
+    const x = ref.wavelength ? w : w;
+    if (x < x0 || x > x1) return;
+    el("line", { class: "band-mark", x1: sx(x), x2: sx(x), y1: top, y2: H - bottom, stroke: marks[i][0], "stroke-dasharray": "3 3" });
+    el("text", { x: sx(x), y: top - 2, "text-anchor": "middle", "font-size": 9, fill: marks[i][0] }, marks[i][1]);
+  });
+  el("path", { class: "axis", d: `M${left},${top}V${H - bottom}H${W - right}`, stroke: "#445", fill: "none" });
+  el("text", { x: (left + W - right) / 2, y: H - 4, "text-anchor": "middle", "font-size": 10 }, ref.wavelength ? "wavelength (nm)" : "band");
+  const units = viewer.pins[0].units;
+  el("text", { x: 10, y: (top + H - bottom) / 2, "text-anchor": "middle", "font-size": 10,
+               transform: `rotate(-90 10 ${(top + H - bottom) / 2})` }, `${ref.mode} (${units})`);
+  for (const pin of viewer.pins) {
+    const p = pin.point, xs = xsOf(p);
+    let run = [];
+    const flush = () => { if (run.length) el("polyline", { class: "line", points: run.join(" "), stroke: pin.colour, "stroke-width": 1.5, fill: "none" }); run = []; };
+    p.values.forEach((v, i) => { if (v === null) flush(); else run.push(`${sx(xs[i]).toFixed(2)},${sy(v).toFixed(2)}`); });
+    flush();
+  }
 }
 
-loadCatalog(true);
+$("png").addEventListener("click", () => {
+  const svg = $("spectrum");
+  const text = new XMLSerializer().serializeToString(svg);
+  const img = new Image();
+  img.onload = () => {
+    const canvas = document.createElement("canvas");
+    canvas.width = 720; canvas.height = 400;
+    const ctx = canvas.getContext("2d");
+    ctx.drawImage(img, 0, 0, 720, 400);
+    canvas.toBlob((blob) => {
+      const a = document.createElement("a");
+      a.href = URL.createObjectURL(blob);
+      a.download = "spectra.png";
+      viewer.png = a.href;
+      a.click();
+    }, "image/png");
+  };
+  img.src = "data:image/svg+xml;charset=utf-8," + encodeURIComponent(text);
+});
+
+// ---- the URL hash: the state of the page, shareable; editing it updates the view -------------
+let hashHasMap = false;
+let writing = false;
+function hashState() {
+  const c = map.getCenter();
+  const s = new URLSearchParams();
+  s.set("map", `${map.getZoom()}/${c.lat.toFixed(7)}/${c.lng.toFixed(7)}`);
+  s.set("bands", channelsNm().map((v) => Number(v.toFixed(3))).join(","));
+  if ($("mode").value) s.set("mode", $("mode").value);
+  const kind = $("stretch").value;
+  s.set("stretch", kind === "manual" ? `${$("stretch-low").value},${$("stretch-high").value}` : kind === "flight" ? "p2,p98" : kind);
+  if (!$("per-channel").checked) s.set("shared", "1");
+  if ($("overlap").value !== "last") s.set("overlap", $("overlap").value);
+  if (viewer.open) {
+    s.set("open", viewer.open);
+    const p = viewer.params[viewer.open];
+    if (p && viewer.info) {
+      if (p.ground !== viewer.info.ground_height) s.set("ground", String(p.ground));
+      if (p.sync !== viewer.info.sync_offset) s.set("sync", String(p.sync));
+      if (p.cubes) s.set("cubes", `${p.cubes[0]}-${p.cubes[1]}`);
+    }
+  }
+  if (viewer.hidden.size || viewer.order.join() !== viewer.features.map((f) => f.id).join()) s.set("flights", visibleFlights().join(","));
+  return s.toString().replace(/%2C/g, ",").replace(/%2F/g, "/").replace(/%7C/g, "|");
+}
+let hashTimer = null;
+let booted = false;
+function writeHash() {
+  if (!booted) return;
+  clearTimeout(hashTimer);
+  hashTimer = setTimeout(() => {
+    const h = "#" + hashState();
+    if (location.hash !== h) { writing = true; history.replaceState(null, "", h); writing = false; }
+    viewer.hash = h;
+  }, 100);
+}
+
+async function applyHash(initial) {
+  const s = new URLSearchParams(location.hash.slice(1));
+  const m = (s.get("map") || "").split("/").map(Number);
+  if (m.length === 3 && m.every(isFinite)) { map.setView([m[1], m[2]], m[0], { animate: false }); hashHasMap = true; }
+  if (s.has("flights")) {
+    const shown = s.get("flights").split(",").filter(Boolean);
+    const all = viewer.features.map((f) => f.id);
+    viewer.hidden = new Set(all.filter((id) => !shown.includes(id)));
+    viewer.order = all.filter((id) => !shown.includes(id)).concat(shown.filter((id) => all.includes(id)));
+  } else if (!initial) { viewer.hidden = new Set(); }
+  if (s.has("overlap")) $("overlap").value = s.get("overlap"); else $("overlap").value = "last";
+  const open = s.get("open");
+  if (open && viewer.byId.has(open) && open !== viewer.open) await openFlight(open, false);
+  else if (!open && viewer.open && !initial) closeFlight();
+  if (s.has("mode") && [...$("mode").options].some((o) => o.value === s.get("mode"))) $("mode").value = s.get("mode");
+  const bands = (s.get("bands") || "").split(",").filter((v) => v.trim() !== "").map(Number).filter(isFinite);
+  if (bands.length === 1) { $("display").value = "grey"; selectNearest($("band-grey"), bands[0]); }
+  if (bands.length === 3) { $("display").value = "rgb"; ["band-r", "band-g", "band-b"].forEach((id, i) => selectNearest($(id), bands[i])); }
+  const st = s.get("stretch");
+  if (st) {
+    const parts = st.split(/[,|]/);
+    if (st === "view" || st === "unscaled") $("stretch").value = st;
+    else if (parts.length === 2 && parts.every((p) => /^p/i.test(p))) $("stretch").value = "flight";
+    else if (parts.length === 2 && parts.every((p) => isFinite(Number(p)))) {
+      $("stretch").value = "manual"; $("stretch-low").value = parts[0]; $("stretch-high").value = parts[1];
+    }
+  }
+  $("per-channel").checked = s.get("shared") !== "1";
+  if (viewer.open && viewer.info) {
+    const p = viewer.params[viewer.open];
+    if (s.has("ground") && isFinite(Number(s.get("ground")))) p.ground = Number(s.get("ground"));
+    else if (!initial) p.ground = viewer.info.ground_height;
+    if (s.has("sync") && isFinite(Number(s.get("sync")))) p.sync = Number(s.get("sync"));
+    else if (!initial) p.sync = viewer.info.sync_offset;
+    const c = (s.get("cubes") || "").split("-").map(Number);
+    p.cubes = c.length === 2 && c.every(Number.isInteger) ? c : null;
+    setSliders(viewer.info);
+    loadOutline(viewer.open);
+  }
+  showDisplay();
+  renderList();
+  drawFootprints();
+  refresh();
+}
+window.addEventListener("hashchange", () => { if (!writing) applyHash(false); });
+
+// ---- keyboard and narrow screens ------------------------------------------------------------
+$("panel-toggle").addEventListener("click", () => {
+  const collapsed = document.body.classList.toggle("collapsed");
+  $("panel-toggle").setAttribute("aria-expanded", String(!collapsed));
+  setTimeout(() => map.invalidateSize(), 50);
+});
+if (window.matchMedia("(max-width: 720px)").matches) {
+  document.body.classList.add("collapsed");
+  $("panel-toggle").setAttribute("aria-expanded", "false");
+}
+
+(async () => {
+  hashHasMap = false;
+  await loadCatalog(false);
+  const s = new URLSearchParams(location.hash.slice(1));
+  if (location.hash.length > 1) await applyHash(true);
+  if (!s.has("map") && footprints && viewer.features.length) map.fitBounds(footprints.getBounds(), { padding: [20, 20] });
+  showDisplay();
+  booted = true;
+  refresh();
+})();
