@@ -188,6 +188,9 @@ def _add_render(sub) -> None:
     p.add_argument("--overlap", choices=["last", "nadir", "mean"], default="last",
                    help="where lines overlap: the later line wins (default), the line seen closest to nadir "
                         "(smallest view zenith) wins, or the mean")
+    p.add_argument("--zarr-format", type=int, choices=[2, 3], default=2, metavar="2|3",
+                   help="Zarr version of a .zarr output: 2 (default; GDAL >= 3.10, hence QGIS and rasterio, open "
+                        "it) or 3 (zarr-python 3, xarray); the same arrays and attributes either way")
     p.add_argument("--provenance", action="store_true",
                    help="also write per-pixel provenance layers: source cube/line/sample, time, view and sun "
                         "angles, path length, overlap count (variables of a .zarr; <stem>_provenance.tif/.hdr "

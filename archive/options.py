@@ -100,10 +100,11 @@ class RenderOptions:
     the flat ground (exclusive with a numeric ground_height; :mod:`archive.dem`); dem_datum: its
     heights' vertical datum when its CRS does not declare one ('ellipsoid' | 'egm96' | 'egm2008');
     provenance: also write the per-pixel provenance layers (:mod:`archive.provenance`; written
-    outputs only).
+    outputs only); zarr_format: 2 (default: what GDAL 3.10, hence QGIS 3.40 and rasterio, opens) or 3,
+    the Zarr version of a .zarr output.
 
     Build one with :meth:`create`, which normalises what callers give (a single source, CLI text
-    such as ``'550,650'``, paths); checks that need files are :func:`check_request`'s.
+    such as ``'550,650'``, paths); checks that need files are :meth:`check`'s.
     """
 
     sources: tuple[str, ...]
@@ -125,12 +126,14 @@ class RenderOptions:
     dem: str | None = None
     dem_datum: str | None = None
     provenance: bool = False
+    zarr_format: int = 2
 
     @classmethod
     def create(cls, sources, *, gsd, archive=None, fov=None, calibration=None, ground_height="auto",
                wavelengths=None, bands="all", mode=None, white_reference=None, sync_offset=None,
                boresight=None, lever_arm=None, overlap="last", crs=None,
-               max_view_angle=DEFAULT_MAX_VIEW_ANGLE, dem=None, dem_datum=None, provenance=False) -> RenderOptions:
+               max_view_angle=DEFAULT_MAX_VIEW_ANGLE, dem=None, dem_datum=None, provenance=False,
+               zarr_format=2) -> RenderOptions:
         """A request from API keywords (or CLI values); InputError for malformed values."""
         if isinstance(sources, (str, os.PathLike)):
             sources = [sources]
@@ -147,7 +150,8 @@ class RenderOptions:
             boresight=_triple(boresight, "--boresight"), lever_arm=_triple(lever_arm, "--lever-arm"),
             overlap=overlap, crs=None if crs is None else str(crs),
             max_view_angle=_number(max_view_angle, "--max-view-angle", "degrees"),
-            dem=fspath(dem), dem_datum=None if dem_datum is None else str(dem_datum), provenance=bool(provenance))
+            dem=fspath(dem), dem_datum=None if dem_datum is None else str(dem_datum), provenance=bool(provenance),
+            zarr_format=_zarr_format(zarr_format))
 
     def with_sources(self, sources: Sequence[str]) -> RenderOptions:
         """This request for other sources."""
@@ -224,6 +228,18 @@ def _collection_fov(archive, ids: Sequence[str]) -> float:
         raise InputError("--fov", f"the collections were ingested with different fields of view {sorted(fovs)}",
                          "pass --fov DEG")
     return fovs.pop()
+
+
+def _zarr_format(value) -> int:
+    """--zarr-format: 2 or 3."""
+    try:
+        version = int(str(value).strip())
+    except ValueError:
+        version = 0
+    if version not in (2, 3):
+        raise InputError("--zarr-format", f"expected 2 or 3, got {value!r}",
+                         "2 opens in GDAL >= 3.10 (QGIS, rasterio); 3 in zarr-python 3 and xarray")
+    return version
 
 
 #: The keyword names of :class:`RenderOptions` besides ``sources``: what :func:`archive.mosaic` and

@@ -255,7 +255,8 @@ def build_output(output: OutputPlan, target: Output):
 
     p, plan = output.params, output.plan
     meta = OutputMeta(plan.grid, tuple(plan.bands[0]), None if output.wavelengths is None else tuple(output.wavelengths),
-                      output.variable, output.attrs, fwhm=None if output.fwhm is None else tuple(output.fwhm))
+                      output.variable, output.attrs, fwhm=None if output.fwhm is None else tuple(output.fwhm),
+                      zarr_format=target.zarr_format)
     sink = target.sink(meta)
     layers = layers_sink = None
     if target.provenance or rule_key(p.overlap) is not None:
@@ -330,7 +331,7 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
     started = time.perf_counter()
     say = _say(quiet)
     check_gsd(options.gsd)
-    output = Output(Path(out).absolute(), overwrite=bool(overwrite),
+    output = Output(Path(out).absolute(), overwrite=bool(overwrite), zarr_format=options.zarr_format,
                     quicklook=None if not quicklook else Path(quicklook).absolute(),
                     provenance=options.provenance)
     output.check()

@@ -27,7 +27,8 @@ Loaders: odc-stac opens the COG from its Item as is. ENVI has no registered medi
 data asset has none (loaders go by its ``data`` role); GDAL finds the header beside the data file
 only when it may list the folder, which odc-stac forbids by default, so call
 ``odc.stac.configure_rio(GDAL_DISABLE_READDIR_ON_OPEN="FALSE")`` first. A Zarr output is read with
-xarray (``xr.open_zarr(href, decode_coords="all")``), not through rasterio-based loaders.
+xarray (``xr.open_zarr(href, decode_coords="all")``), or, written as Zarr v2 (the default,
+``--zarr-format 2``), by GDAL >= 3.10 (``ZARR:"href":/radiance``: CRS, transform and values).
 """
 
 from __future__ import annotations

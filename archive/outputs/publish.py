@@ -62,6 +62,7 @@ class Output:
     overwrite: bool = False
     quicklook: Path | None = None
     provenance: bool = False   #: provenance layers: sibling file (COG, ENVI) or store variables (Zarr)
+    zarr_format: int = 2   #: Zarr version of a .zarr output (2: GDAL >= 3.10 opens it; 3)
     _temps: list[Path] = field(default_factory=list, repr=False)
     _made_dirs: list[Path] = field(default_factory=list, repr=False)
 

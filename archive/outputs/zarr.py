@@ -31,13 +31,18 @@ __all__ = ["ChunkWriter", "LayersStore", "MosaicStore", "ZarrWriter", "add_zarr_
 _GRID_ATTR = "archive_grid"
 
 
-def _values_codecs() -> tuple:
-    """Compressor of the float32 mosaic chunks: Blosc LZ4 with byte shuffle.
+def _values_codecs(zarr_format: int = 3) -> tuple:
+    """Compressor of the float32 mosaic chunks: Blosc LZ4 with byte shuffle (zarr's codec for Zarr
+    v3, the same numcodecs Blosc for v2).
 
     Measured on rendered 1024^2 radiance chunks (25 % NaN; bench/RESULTS.md "Render (issue 4)"):
     about 560 MB/s to write at ratio 1.7, against 130 MB/s (ratio 2.1) for zarr's default zstd
     level 0 and 260 MB/s (ratio 1.9) for zstd level 1: writing is on the render's critical path.
     """
+    if zarr_format == 2:
+        import numcodecs
+
+        return (numcodecs.Blosc(cname="lz4", clevel=5, shuffle=numcodecs.Blosc.SHUFFLE),)
     from zarr.codecs import BloscCodec
 
     return (BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"),)
@@ -59,6 +64,15 @@ def _direct_codec(array, directory: str):
     from zarr.codecs import BloscCodec, BytesCodec
 
     meta = array.metadata
+    if meta.zarr_format == 2:   # v2: the compressor alone, on the little-endian C-order bytes
+        compressor = getattr(meta, "compressor", None)
+        ok = (sys.byteorder == "little" and isinstance(compressor, numcodecs.Blosc) and not meta.filters
+              and array.dtype == np.float32 and getattr(meta.dtype, "endianness", "little") == "little"
+              and meta.order == "C" and tuple(array.chunks) == (1, CHUNK, CHUNK)
+              and np.isnan(array.fill_value) and isinstance(array.store, zarr.storage.LocalStore)
+              and os.path.isdir(directory)
+              and "typesize" in inspect.signature(numcodecs.Blosc).parameters)
+        return compressor if ok else None
     codecs = tuple(getattr(meta, "codecs", ()))
     if not (meta.zarr_format == 3 and sys.byteorder == "little" and len(codecs) == 2
             and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
@@ -252,11 +266,13 @@ class MosaicStore(Sink):
         variable: str = "radiance",
         attrs: dict | None = None,
         fwhm: Sequence[float] | None = None,
+        zarr_format: int = 2,
     ) -> MosaicStore:
         """Write the store's metadata and coordinates (no chunk data: unwritten chunks read as NaN).
 
         wavelengths: nm per output band (or None); band_indices: the source band index of each output band;
-        fwhm: spectral full width at half maximum per output band, nm (or None).
+        fwhm: spectral full width at half maximum per output band, nm (or None); zarr_format: 2
+        (GDAL >= 3.10 opens it) or 3.
         """
         import dask.array as da
 
@@ -274,7 +290,7 @@ class MosaicStore(Sink):
              "width": grid.width, "height": grid.height}
         )
         ds[variable].encoding.update({"chunks": (1, CHUNK, CHUNK), "_FillValue": np.float32(np.nan),
-                                      "compressors": _values_codecs()})
+                                      "compressors": _values_codecs(zarr_format)})
         ds["saturated"].encoding.update({"chunks": (CHUNK, CHUNK)})
         for name in ("x", "y", "wavelength", "fwhm"):
             if name in ds.coords:  # CF: coordinate variables have no missing values
@@ -282,7 +298,7 @@ class MosaicStore(Sink):
         with warnings.catch_warnings():
             # zarr warns that consolidated metadata is not yet in the v3 spec; xarray reads it fine.
             warnings.simplefilter("ignore")
-            ds.to_zarr(os.fspath(path), mode="w-", compute=False, zarr_format=3, consolidated=True)
+            ds.to_zarr(os.fspath(path), mode="w-", compute=False, zarr_format=zarr_format, consolidated=True)
         return cls(os.fspath(path), variable)
 
     # ---- reading back ------------------------------------------------------------------------
@@ -356,6 +372,9 @@ def add_zarr_layers(path: str | os.PathLike, grid: Grid, spec, grid_attrs: dict 
     import dask.array as da
     import xarray as xr
 
+    import zarr
+
+    version = zarr.open_group(os.fspath(path), mode="r").metadata.zarr_format   # the store's own
     x, y = grid.xy_centres()
     data = {name: (("y", "x"), da.full(grid.shape, np.nan, dtype=np.float32, chunks=(CHUNK, CHUNK)))
             for name in spec.names}
@@ -366,9 +385,8 @@ def add_zarr_layers(path: str | os.PathLike, grid: Grid, spec, grid_attrs: dict 
         ds[name].encoding.update({"chunks": (CHUNK, CHUNK), "_FillValue": np.float32(np.nan)})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")   # consolidated metadata is not in the Zarr v3 spec yet
-        ds.drop_vars(["x", "y"]).to_zarr(os.fspath(path), mode="a", compute=False, zarr_format=3,
+        ds.drop_vars(["x", "y"]).to_zarr(os.fspath(path), mode="a", compute=False, zarr_format=version,
                                          consolidated=True)
-    import zarr
 
     group = zarr.open_group(os.fspath(path), mode="r+")
     group.attrs.update(layers_metadata(spec))
@@ -419,7 +437,7 @@ class ZarrWriter:
     @staticmethod
     def create(temp, path: Path, meta: OutputMeta) -> MosaicStore:
         return MosaicStore.create(temp(path), meta.grid, meta.wavelengths, meta.band_indices, meta.variable,
-                                  meta.attrs, fwhm=meta.fwhm)
+                                  meta.attrs, fwhm=meta.fwhm, zarr_format=meta.zarr_format)
 
     @staticmethod
     def create_layers(temp, path: Path, sink: MosaicStore, meta: OutputMeta, spec) -> LayersStore:
