@@ -86,7 +86,7 @@ class Archive(ArchiveRoot):
 def open_archive(path: Source) -> Archive:
     """Open an existing archive (a directory made by ``archive ingest``); MissingInputError or
     InputError when ``path`` is not one."""
-    from archive.catalog.root import open_archive as open_root
+    from archive.catalog.root import open_root
 
     return Archive(open_root(path).path)
 

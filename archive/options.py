@@ -174,7 +174,9 @@ class RenderOptions:
             raise InputError("--fov", "the field of view is required for raw flight directories",
                              "pass --fov DEG (47.5 for a Pika L and for 'archive simulate' flights)")
         if fov is None:
-            fov = _collection_fov(self.archive, collections)
+            from archive.sources.open import collection_fov
+
+            fov = collection_fov(self.archive, collections)
         if not (math.isfinite(fov) and 0 < fov < 180):
             raise InputError("--fov", f"must be between 0 and 180 degrees, got {fov:g}")
         if self.sync_offset is not None and not math.isfinite(self.sync_offset):
@@ -214,20 +216,6 @@ def _check_dem(options: RenderOptions) -> None:
     from archive.dem import open_dem
 
     open_dem(options.dem, options.dem_datum)
-
-
-def _collection_fov(archive, ids: Sequence[str]) -> float:
-    """The field of view the collections were ingested with (they must agree); reads their records
-    (attributes only)."""
-    from archive.catalog.root import open_archive
-    from archive.collection import read_info
-
-    root = open_archive(archive)
-    fovs = {read_info(root.require_collection(i), navigation=False).fov_deg for i in ids}
-    if len(fovs) != 1:
-        raise InputError("--fov", f"the collections were ingested with different fields of view {sorted(fovs)}",
-                         "pass --fov DEG")
-    return fovs.pop()
 
 
 def _zarr_format(value) -> int:

@@ -236,7 +236,7 @@ def test_catalog_add_links_a_rendered_output(stac, tmp_path, capsys):
     (served by the API with an absolute href), kept when the Item is rewritten; an output of raw
     directories is refused."""
     from archive.catalog.describe import catalog_collection
-    from archive.catalog.root import open_archive
+    from archive.catalog.root import open_root
 
     base, archive_dir, ids = stac
     m = ids["memphis"]
@@ -253,7 +253,7 @@ def test_catalog_add_links_a_rendered_output(stac, tmp_path, capsys):
     assert m in capsys.readouterr().out
     asset = _get(f"{base}/collections/flights/items/{m}")["assets"]["output-mosaic.tif"]
     assert Path(asset["href"]) == out.absolute() and "archive:output" in asset["roles"]
-    catalog_collection(open_archive(archive_dir), m)  # as a re-ingest does
+    catalog_collection(open_root(archive_dir), m)  # as a re-ingest does
     assert "output-mosaic.tif" in _get(f"{base}/collections/flights/items/{m}")["assets"]
     product["properties"]["archive:recipe"]["sources"] = ["/some/raw/flight"]
     (tmp_path / "raw.tif.json").write_text(json.dumps(product))

@@ -176,13 +176,13 @@ def test_bad_dems_fail_cleanly_through_the_cli(ridge, tmp_path):
 def test_ingest_footprint_follows_the_terrain(ridge, tmp_path):
     from archive.catalog.describe import item_for_collection
     from archive.catalog.footprint import points_in_polygon
-    from archive.catalog.root import open_archive
+    from archive.catalog.root import open_root
     from archive.ingest.command import ingest
     from archive.simulator.truth import load_truth  # noqa: F401  (truth from the fixture)
 
     directory, truth = ridge
     [result] = ingest([str(directory)], tmp_path / "archive", FOV, progress=False, dem=directory / "dem.tif")
-    root = open_archive(tmp_path / "archive")
+    root = open_root(tmp_path / "archive")
     item = item_for_collection(root, result.cid)
     assert item["properties"]["archive:dem"] == "dem.tif"
     assert item["properties"]["archive:dem_datum"] == "ellipsoid"

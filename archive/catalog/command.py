@@ -7,7 +7,7 @@ import json
 
 from archive.catalog.index import (IndexRow, ensure_index, parse_bbox, parse_datetime_range, read_item_file,
                                    search)
-from archive.catalog.root import ArchiveRoot, open_archive
+from archive.catalog.root import ArchiveRoot, open_root
 from archive.catalog.stac import item_collection
 
 
@@ -46,7 +46,7 @@ def _validate(args: argparse.Namespace) -> int:
 
     files = [Path(f) for f in args.files]
     if args.archive is not None:
-        root = open_archive(args.archive)
+        root = open_root(args.archive)
         files = [root.catalog_path, root.collection_path, *sorted(root.items.glob("*.json")), *files]
     if not files:
         raise InputError(None, "nothing to validate", "give --archive ARCHIVE and/or STAC JSON files")
@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError("--wavelength", f"{wavelength} is not a positive wavelength in nm")
     if args.catalog_command == "validate":
         return _validate(args)
-    root = open_archive(args.archive)
+    root = open_root(args.archive)
     if args.catalog_command == "rebuild":
         from archive.catalog.tree import write_catalog
 

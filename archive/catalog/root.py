@@ -97,7 +97,7 @@ class ArchiveRoot:
         return store
 
 
-def open_archive(path: str | os.PathLike) -> ArchiveRoot:
+def open_root(path: str | os.PathLike) -> ArchiveRoot:
     """Open an existing archive; MissingInputError if ``path`` does not exist, InputError if it is
     not an archive (no readable ``archive.json``) or has a newer format version."""
     root = Path(path)
@@ -126,7 +126,7 @@ def create_archive(path: str | os.PathLike) -> ArchiveRoot:
     refused, so that an ingest never scatters files into an unrelated folder."""
     root = Path(path)
     if (root / MARKER).exists():
-        return open_archive(root)
+        return open_root(root)
     if root.exists():
         if not root.is_dir():
             raise InputError(root, "exists and is not a directory", "choose another --archive path")

@@ -20,7 +20,7 @@ import posixpath
 from pathlib import Path
 
 from archive.catalog.index import IndexRow, ensure_index, read_item_file, rebuild_index, search
-from archive.catalog.root import ArchiveRoot, open_archive
+from archive.catalog.root import ArchiveRoot, open_root
 from archive.catalog.stac import STAC_VERSION, write_item
 
 CATALOG_ID = "archive"
@@ -138,7 +138,7 @@ def write_catalog(root: ArchiveRoot | str | os.PathLike, *, rescan: bool = False
     index lists (the index is rebuilt from the Items first when missing). ``rescan``: first give
     every Item file its collection field and links and rebuild the index from the Item files.
     Returns the path of the root Catalog."""
-    root = root if isinstance(root, ArchiveRoot) else open_archive(root)
+    root = root if isinstance(root, ArchiveRoot) else open_root(root)
     with locked(root):
         if rescan:
             _link_items(root)

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 import archive
-from archive.catalog.root import ArchiveRoot, check_collection_id, create_archive, open_archive
+from archive.catalog.root import ArchiveRoot, check_collection_id, create_archive, open_root
 from archive.errors import InputError
 from archive.collection import (FORMAT, FORMAT_VERSION, NAV_COLUMNS, StorePlan, chunk_tasks, finish_store,
                                 frame_to_attrs, hash_file_task, is_complete, open_partial, publish, read_attrs,
@@ -378,7 +378,7 @@ def run(args: argparse.Namespace) -> int:
 
 def run_verify(args: argparse.Namespace) -> int:
     """CLI handler of ``archive verify``: exit 0 when every checked collection is intact, 1 if not."""
-    root = open_archive(args.archive)
+    root = open_root(args.archive)
     ids = [args.id] if args.id else root.collection_ids()
     if args.id:
         root.require_collection(args.id)

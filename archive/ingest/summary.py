@@ -196,10 +196,9 @@ def run(args: argparse.Namespace) -> int:
         spec = None
     else:
         if fov is None:
-            from archive.catalog.root import open_archive
-            from archive.collection import read_info
+            from archive.sources.open import collection_fov
 
-            fov = read_info(open_archive(archive).require_collection(str(args.directory)), navigation=False).fov_deg
+            fov = collection_fov(archive, [args.directory])
         params = NavigationParams(fov_deg=float(fov), sync_offset=None)
         source = open_source(args.directory, params, archive=archive)
         spec = recorded_dem(source.info.attrs.get("terrain"), str(args.directory))

@@ -8,14 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
-from archive.catalog.root import open_archive  # resolves collection ids: only here among sources
+from archive.catalog.root import open_root  # resolves collection ids: only here among sources
 from archive.errors import InputError, MissingInputError
 from archive.params import NavigationParams
 from archive.sources.base import FlightSource
 from archive.sources.collection import CollectionSource
 from archive.sources.raw import RawFlightSource
 
-__all__ = ["open_source"]
+__all__ = ["collection_fov", "open_source"]
 
 
 def open_source(path_or_id: str | os.PathLike, params: NavigationParams,
@@ -34,9 +34,22 @@ def open_source(path_or_id: str | os.PathLike, params: NavigationParams,
         if calibration is not None:
             raise InputError("--calibration", f"collection {path_or_id} carries the calibration it was "
                              "ingested with", "leave out --calibration, or re-ingest with another .icp")
-        store = open_archive(archive).require_collection(str(path_or_id))
+        store = open_root(archive).require_collection(str(path_or_id))
         return CollectionSource(store, str(path_or_id), params, white_reference=white_reference)
     if path.exists():
         raise InputError(path, "is not a directory", "give a raw flight directory or a collection id with --archive")
     raise MissingInputError(path, "flight directory",
                             "give a raw flight directory, or a collection id together with --archive ARCHIVE")
+
+
+def collection_fov(archive: str | os.PathLike, ids) -> float:
+    """The field of view (deg) the collections ``ids`` of ``archive`` were ingested with (they must
+    agree, else InputError asking for --fov); reads their records (attributes only)."""
+    from archive.collection import read_info
+
+    root = open_root(archive)
+    fovs = {read_info(root.require_collection(str(i)), navigation=False).fov_deg for i in ids}
+    if len(fovs) != 1:
+        raise InputError("--fov", f"the collections were ingested with different fields of view {sorted(fovs)}",
+                         "pass --fov DEG")
+    return fovs.pop()
