@@ -5,6 +5,13 @@ newly opened flight, and the server's memory.
                                [--cubes 4 --bands 8 --samples 128 --lines 250] [--workdir DIR]
                                [--json FILE] [--results bench/RESULTS.md]
 
+    python bench/bench_view.py --browser [--reps 12] [--cubes 8 --bands 60 --samples 900 --lines 1000]
+
+``--browser`` measures the page instead (issue 22): Debian's Chromium through Playwright opens the
+flight and times, --reps times each, the way to a full screen after open, pan, zoom, band, mode,
+ground-height and stretch changes (p50/p95), and the ground slider's preview rate; the load average
+is printed.
+
 Bounded: it makes clients x requests tile requests twice and stops by itself. Steps:
 
 1. simulate a flight (``archive simulate`` defaults: the demo's) and ingest it into an archive in
@@ -168,6 +175,98 @@ def run_clients(port: int, plans: list[list[str]]) -> tuple[list[float], int]:
     return [x for lat in latencies for x in lat], sum(failures)
 
 
+# ---- browser level (issue 22) ---------------------------------------------------------------
+ACTIONS = ("open", "pan", "zoom", "band", "mode", "ground", "stretch")
+#: JavaScript of each measured change (argument: the repetition); each returns nothing and the page
+#: reports when every tile in view shows the change (window.viewer.settledAt).
+_ACTION_JS = {
+    "pan": "(i) => { const m = viewer.map, s = m.getSize(); m.panBy([(i % 2 ? -1 : 1) * s.x * 0.45, (i % 3 - 1) * s.y * 0.3], {animate: false}); }",
+    "zoom": "(i) => { const m = viewer.map; m.setZoom(m.getZoom() + (i % 2 ? -1 : 1), {animate: false}); }",
+    "band": "(i) => { const s = document.getElementById('band-r'); s.selectedIndex = (s.selectedIndex + 7 + i) % s.options.length; s.dispatchEvent(new Event('change')); }",
+    "mode": "(i) => { const s = document.getElementById('mode'); s.selectedIndex = (s.selectedIndex + 1) % s.options.length; viewer.clearCache(); s.dispatchEvent(new Event('change')); }",
+    "ground": "(i) => { const g = document.getElementById('ground'); g.value = String(Number(g.min) + 0.5 * ((i * 7) % 60 + 10)); g.dispatchEvent(new Event('input')); g.dispatchEvent(new Event('change')); }",
+    "stretch": "(i) => { const s = document.getElementById('stretch'); s.value = i % 2 ? 'flight' : 'view'; s.dispatchEvent(new Event('change')); }",
+}
+
+
+def browser_bench(archive: Path, cid: str, reps: int, cache_mb: int, width: int = 1400, height: int = 900) -> dict:
+    """Time to a full screen (every tile in view drawn with the change) after each action, in
+    Debian's Chromium through Playwright, ``reps`` times each; and the slider preview's frame rate."""
+    from playwright.sync_api import sync_playwright
+
+    server = Server(archive, cache_mb)
+    url = f"http://127.0.0.1:{server.port}/#flights={cid}&open={cid}"
+    out: dict = {a: [] for a in ACTIONS}
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path="/usr/bin/chromium",
+                                         args=["--headless", "--no-sandbox", "--disable-gpu"])
+            try:
+                for i in range(reps):   # open: a fresh page each time (the server's caches stay warm after the first)
+                    page = browser.new_page(viewport={"width": width, "height": height})
+                    t = time.perf_counter()
+                    page.goto(url)
+                    page.wait_for_function(f"() => viewer.open === '{cid}' && viewer.settled && viewer.draws > 0",
+                                           timeout=120_000)
+                    out["open"].append(time.perf_counter() - t)
+                    if i < reps - 1:
+                        page.close()
+                for action in ACTIONS[1:]:
+                    for i in range(reps):
+                        page.evaluate("() => { viewer.settled = false; }")
+                        t0 = page.evaluate(f"(i) => {{ const t = performance.now(); ({_ACTION_JS[action]})(i); return t; }}", i)
+                        page.wait_for_function("() => viewer.settled", timeout=120_000)
+                        out[action].append((page.evaluate("viewer.settledAt") - t0) / 1000.0)
+                # slider preview: input events every 50 ms for 3 s (a drag), previews drawn per second
+                before = page.evaluate("viewer.previews")
+                for k in range(60):
+                    page.evaluate("(k) => { const g = document.getElementById('ground'); g.value = String(Number(g.min) + 5 + 0.5 * (k % 40)); "
+                                  "g.dispatchEvent(new Event('input')); }", k)
+                    page.wait_for_timeout(50)
+                drag_s = 3.0 + 0.0
+                out["preview_fps"] = (page.evaluate("viewer.previews") - before) / drag_s
+                out["requests"] = page.evaluate("viewer.requests")
+            finally:
+                browser.close()
+    finally:
+        server.stop()
+    return out
+
+
+def browser_main(args, archive: Path, cid: str) -> str:
+    load_before = os.getloadavg()
+    out = browser_bench(archive, cid, args.reps, args.cache_mb)
+    load_after = os.getloadavg()
+    m = machine()
+    rows = []
+    for a in ACTIONS:
+        v = out[a]
+        rows.append(f"| {a} | {percentile(v, 50):.0f} | {percentile(v, 95):.0f} | {percentile(v, 100):.0f} | {len(v)} |")
+    lines = [
+        f"## Viewer in the browser (issue 22): {args.cubes} cubes x {args.lines} lines x {args.samples} samples x {args.bands} bands",
+        "",
+        f"Command: `.venv/bin/python bench/bench_view.py --browser {' '.join(a for a in sys.argv[1:] if a != '--browser')}` "
+        "(Debian's Chromium, headless, through Playwright; 1400 x 900 window; `archive view` in a subprocess). "
+        "Time from the change to a full screen: every tile in view drawn with it (the page's `viewer.settledAt`). "
+        "open: a fresh page loading `#flights=ID&open=ID` (the first one cold, then the server's caches are warm); "
+        "pan: 45 % of the width; zoom: +-1 level; band: R to another of the bands (new values); mode: the next "
+        "mode with the page's value cache emptied; ground: a new height each time (new meshes); stretch: flight <-> "
+        "view percentiles (no request).",
+        f"Machine: {m['cpu']}, {m['cores']} cores; GL: {m['gl']}; load average before {load_before[0]:.2f} "
+        f"{load_before[1]:.2f} {load_before[2]:.2f}, after {load_after[0]:.2f} {load_after[1]:.2f} {load_after[2]:.2f} "
+        "(the VM is shared with other engineers' jobs).",
+        "",
+        "| change | p50 ms | p95 ms | max ms | n |",
+        "|---|---|---|---|---|",
+        *rows,
+        "",
+        f"Ground slider dragged (input events every 50 ms for 3 s): {out['preview_fps']:.1f} coarse previews drawn per "
+        f"second (64 x 64 tiles of the open flight). Band-value requests in all: {out['requests']}.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--clients", type=int, default=8)
@@ -181,7 +280,17 @@ def main(argv=None) -> int:
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/archive-bench-view"))
     ap.add_argument("--json", type=Path)
     ap.add_argument("--results", type=Path, help="append the Markdown section to this file")
+    ap.add_argument("--browser", action="store_true", help="measure the page in Chromium instead (issue 22)")
+    ap.add_argument("--reps", type=int, default=12, help="--browser: repetitions of each change")
     args = ap.parse_args(argv)
+    if args.browser:
+        archive, cid, _ = make_archive(args.workdir, args)
+        text = browser_main(args, archive, cid)
+        print(text)
+        if args.results:
+            with open(args.results, "a") as f:
+                f.write("\n" + text)
+        return 0
 
     R: dict = {"machine": machine(), "args": {k: str(v) for k, v in vars(args).items()}}
     archive, cid, item = make_archive(args.workdir, args)

@@ -395,3 +395,92 @@ def test_raw_flight_directories(demo):
         lon, lat = (f["bbox"][0] + f["bbox"][2]) / 2, (f["bbox"][1] + f["bbox"][3]) / 2
         p = c.get(f"/api/collections/{f['id']}/point", params={"lon": lon, "lat": lat}).json()
         assert p["gsd"] == f["properties"]["gsd"] and len(p["values"]) == 6
+
+
+def _values(response, count: int, side: int = 256) -> np.ndarray:
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "application/octet-stream"
+    planes = np.frombuffer(response.content, "<f4")
+    assert planes.size == count * side * side
+    return planes.reshape(count, side, side)
+
+
+def test_band_values_are_what_the_png_tiles_stretch(client, demo):
+    """The band-value tile (issue 22) holds the very values the PNG tile encodes: stretched with
+    the flight's 2/98 % (the stats endpoint), they give the PNG's bytes; per band, cached per band."""
+    from archive.view.tiles import encode_png
+
+    _, cid, item = demo
+    x, y = max(_tiles_over(item["bbox"], Z), key=lambda t: (_rgba(client.get(
+        f"/api/collections/{cid}/tiles/{Z}/{t[0]}/{t[1]}.png"))[..., 3] > 0).sum())
+    info = client.get(f"/api/collections/{cid}").json()
+    bands = ",".join(map(str, info["default_bands"]))
+    values = _values(client.get(f"/api/collections/{cid}/values/{Z}/{x}/{y}", params={"bands": bands}), 3)
+    stats = client.get(f"/api/collections/{cid}/stats", params={"bands": bands}).json()
+    png = _rgba(client.get(f"/api/collections/{cid}/tiles/{Z}/{x}/{y}.png"))
+    again = np.asarray(Image.open(io.BytesIO(encode_png(values, list(zip(stats["low"], stats["high"], strict=True))))))
+    assert np.array_equal(png, again)
+    # one band of the three again: from the cache, equal
+    before = client.get("/api/status").json()["render"]["submitted"]
+    one = _values(client.get(f"/api/collections/{cid}/values/{Z}/{x}/{y}",
+                             params={"bands": str(info["default_bands"][1])}), 1)
+    assert client.get("/api/status").json()["render"]["submitted"] == before
+    assert np.array_equal(one[0], values[1], equal_nan=True)
+    # nadir: values and the winners' view zenith (degrees, NaN exactly where nothing covers)
+    nadir = _values(client.get(f"/api/collections/{cid}/values/{Z}/{x}/{y}",
+                               params={"bands": bands, "overlap": "nadir"}), 4)
+    assert nadir.shape[0] == 4 and np.array_equal(np.isfinite(nadir[3]), np.isfinite(nadir[0]))
+    assert 0 <= np.nanmin(nadir[3]) and np.nanmax(nadir[3]) < 30
+    # a coarse preview (scale 4): 64 x 64
+    _values(client.get(f"/api/collections/{cid}/values/{Z}/{x}/{y}", params={"bands": bands, "scale": 4}), 3, 64)
+    # away from the flight: 204, nothing to draw
+    assert client.get(f"/api/collections/{cid}/values/{Z}/{x + 40}/{y}", params={"bands": "0"}).status_code == 204
+
+
+def test_overview_values_are_means_over_the_pixel_footprint(client, demo):
+    """At a zoom whose pixels span several of the flight's, a band-value pixel is the mean of the
+    finer tile's covered pixels under it (anti-aliased, not point-sampled)."""
+    _, cid, item = demo
+    z = Z - 4
+    (x, y), *_ = sorted(_tiles_over(item["bbox"], z), key=lambda t: -np.isfinite(_values(client.get(
+        f"/api/collections/{cid}/values/{z}/{t[0]}/{t[1]}", params={"bands": "2"}), 1)).sum())
+    coarse = _values(client.get(f"/api/collections/{cid}/values/{z}/{x}/{y}", params={"bands": "2"}), 1)[0]
+    assert np.isfinite(coarse).sum() > 50
+    # f x f samples a pixel, f the power of two nearest the ratio of the pixel sizes: the tiles of
+    # zoom z + log2(f) have those samples' pixel size; their f x f blocks' means are the coarse pixels
+    from archive.view.tiles import zoom_gsd
+
+    f = 2 ** round(np.log2(zoom_gsd(z) / item["properties"]["gsd"]))
+    assert f >= 2
+    k = int(np.log2(f))
+    fine = np.full((256 * f, 256 * f), np.nan, np.float32)
+    for i in range(f):
+        for j in range(f):
+            r = client.get(f"/api/collections/{cid}/values/{z + k}/{x * f + j}/{y * f + i}", params={"bands": "2"})
+            if r.status_code == 200:
+                fine[i * 256:(i + 1) * 256, j * 256:(j + 1) * 256] = _values(r, 1)[0]
+    blocks = fine.reshape(256, f, 256, f)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mean = np.nanmean(blocks, axis=(1, 3))
+    both = np.isfinite(mean) & np.isfinite(coarse)
+    assert both.sum() > 50 and np.array_equal(np.isfinite(mean), np.isfinite(coarse))
+    assert np.allclose(coarse[both], mean[both], rtol=1e-4)
+
+
+def test_outline_follows_ground_and_cubes(client, demo):
+    _, cid, item = demo
+    base = client.get(f"/api/collections/{cid}/outline").json()
+    assert base["type"] == "MultiPolygon" and len(base["coordinates"]) == 4
+    two = client.get(f"/api/collections/{cid}/outline", params={"cubes": "1-2"}).json()
+    assert len(two["coordinates"]) == 2 and two["coordinates"][0] == base["coordinates"][1]
+    lower = client.get(f"/api/collections/{cid}/outline",
+                       params={"ground_height": item["properties"]["archive:ground_height"] - 15}).json()
+
+    def width(g):
+        ring = np.array(g["coordinates"][0][0])
+        return np.ptp(ring[:, 0]) * np.ptp(ring[:, 1])
+    assert width(lower) > 1.1 * width(base)   # a lower ground: a wider swath
+    bad = client.get(f"/api/collections/{cid}/values/{Z}/0/0", params={"bands": "0", "cubes": "2-1"})
+    assert bad.status_code == 400 and bad.json()["error"].startswith("cubes: expected 0 <= first <= last")
+    assert client.get(f"/api/collections/{cid}/values/{Z}/0/0", params={"bands": "99"}).status_code == 400

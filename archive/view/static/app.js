@@ -15,7 +15,7 @@ const PREVIEW_SCALE = 4;            // slider previews: 64 x 64 tiles
 const viewer = (window.viewer = {
   map: null, features: [], byId: new Map(), order: [], hidden: new Set(), open: null, info: null,
   params: {}, pins: [], lastPoint: null, csv: null, ready: false, settled: false, draws: 0, loads: 0,
-  requests: 0, tileErrors: 0, pending: 0, specId: null, errors: {},
+  requests: 0, tileErrors: 0, pending: 0, specId: null, errors: {}, settledAt: 0, previews: 0,
 });
 
 let scheduled = false;      // a pump() is due at the next animation frame
@@ -162,6 +162,7 @@ viewer.outlines = {};
 // ---- band planes: fetched per tile and flight, cached, shared by every band choice -------------
 const cache = new Map();     // entry key -> {planes: Map(band -> Float32Array), key, empty, side, bytes}
 let cacheBytes = 0;
+viewer.clearCache = () => { cache.clear(); cacheBytes = 0; statsCache.clear(); };
 const inflight = new Map();  // request key -> {controller, entry, bands}
 
 function entryKey(f, coords, scale) { return `${f.id}|${f.params}|${coords.z}/${coords.x}/${coords.y}|${scale}`; }
@@ -320,7 +321,12 @@ function pump() {
 }
 
 function settle(spec) {
+  const was = viewer.settled;
   viewer.settled = viewer.ready = inflight.size === 0;
+  if (viewer.settled && !was) {
+    viewer.settledAt = performance.now();    // the bench: time to a full screen
+    if (preview) viewer.previews += 1;
+  }
   if (viewer.settled) clearErrors("err-cubes", "err-ground", "err-sync", "err-mode", "err-bands");
   viewer.specId = spec.id;
   if (preview && previewNext !== null) { startPreview(previewNext); }
