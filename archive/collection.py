@@ -53,6 +53,7 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec
 
+from archive.codecs import numcodecs_blosc
 from archive.errors import FormatError, InputError, MissingInputError
 from archive.files import replace_path, write_atomic
 from archive.formats.envi import EnviCube, EnviHeader, header_from_metadata
@@ -145,14 +146,6 @@ def _cube(path: str, size: int, mtime_ns: int) -> EnviCube:
     return EnviCube(path)
 
 
-def _numcodecs_blosc(spec: dict):
-    import numcodecs
-
-    shuffle = {"noshuffle": numcodecs.Blosc.NOSHUFFLE, "shuffle": numcodecs.Blosc.SHUFFLE,
-               "bitshuffle": numcodecs.Blosc.BITSHUFFLE}[spec["shuffle"]]
-    return numcodecs.Blosc(cname=spec["cname"], clevel=spec["clevel"], shuffle=shuffle, blocksize=0)
-
-
 def write_chunk(store: str, task: ChunkTask, chunk_lines: int, resume: bool) -> tuple[int, int, str]:
     """Dask task body: read one band of the raw cubes for ``task``, write it as one dn chunk, and
     return (band, chunk, hex sha256 of the chunk's values).
@@ -170,7 +163,7 @@ def write_chunk(store: str, task: ChunkTask, chunk_lines: int, resume: bool) -> 
     data = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=0)
     data = np.ascontiguousarray(data, dtype=data.dtype.newbyteorder("<"))
     digest = chunk_digest(data)
-    codec = _numcodecs_blosc(DN_CODEC)
+    codec = numcodecs_blosc(DN_CODEC["cname"], DN_CODEC["clevel"], DN_CODEC["shuffle"])
     target = chunk_path(Path(store), task.band, task.chunk)
     if resume and target.is_file():
         try:

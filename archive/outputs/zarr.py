@@ -20,6 +20,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from archive.codecs import numcodecs_blosc
 from archive.files import write_atomic
 from archive.grid import Grid
 from archive.outputs.base import CHUNK, OutputMeta, Sink, TileWriter, check_bands, chunk_buffer
@@ -40,9 +41,7 @@ def _values_codecs(zarr_format: int = 3) -> tuple:
     level 0 and 260 MB/s (ratio 1.9) for zstd level 1: writing is on the render's critical path.
     """
     if zarr_format == 2:
-        import numcodecs
-
-        return (numcodecs.Blosc(cname="lz4", clevel=5, shuffle=numcodecs.Blosc.SHUFFLE),)
+        return (numcodecs_blosc("lz4", 5, "shuffle"),)
     from zarr.codecs import BloscCodec
 
     return (BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"),)
@@ -84,10 +83,8 @@ def _direct_codec(array, directory: str):
     if endian != "little" or "typesize" not in inspect.signature(numcodecs.Blosc).parameters:
         return None  # numcodecs < 0.16: zarr compresses with typesize 1 there; let zarr write
     config = codecs[1].to_dict()["configuration"]
-    shuffle = {"noshuffle": numcodecs.Blosc.NOSHUFFLE, "shuffle": numcodecs.Blosc.SHUFFLE,
-               "bitshuffle": numcodecs.Blosc.BITSHUFFLE}[config["shuffle"]]
-    return numcodecs.Blosc(cname=config["cname"], clevel=config["clevel"], shuffle=shuffle,
-                           blocksize=config["blocksize"], typesize=config["typesize"])
+    return numcodecs_blosc(config["cname"], config["clevel"], config["shuffle"], config["blocksize"],
+                           config["typesize"])
 
 
 class ChunkWriter:
