@@ -27,7 +27,7 @@ from archive.grid import Grid
 
 Box = tuple[int, int, int, int]
 
-__all__ = ["Box", "assemble_layers", "assemble_task", "assemble_write_task", "blank_write_task", "gate_task", "gl_call",
+__all__ = ["Box", "assemble_layers", "assemble_task", "assemble_write_task", "blank_write_task", "cpu_band_pass", "gate_task", "gl_call",
            "layers_task", "lookup_task", "overview_task", "pick_task", "render_task", "write_layers_task",
            "write_saturated_task", "write_values_task"]
 
@@ -44,6 +44,25 @@ def gl_call(fn, *args, **kwargs):
             _GL_EXECUTOR.append(ThreadPoolExecutor(1, thread_name_prefix="archive-gl"))
         executor = _GL_EXECUTOR[0]
     return executor.submit(fn, *args, **kwargs).result()
+
+
+_BAND_PASS: dict[str, bool] = {}
+
+
+def cpu_band_pass() -> bool:
+    """Whether this process's render tasks gather their bands on the CPU
+    (:func:`archive.render.gather.use_cpu_gather`: on a software GL renderer such as llvmpipe)
+    rather than drawing GL band passes; decided once per process from its GL thread's renderer."""
+    with _GL_LOCK:
+        known = _BAND_PASS.get("cpu")
+    if known is None:
+        from archive.render.context import gl_info
+        from archive.render.gather import use_cpu_gather
+
+        known = use_cpu_gather(str(gl_call(gl_info).get("renderer")))
+        with _GL_LOCK:
+            _BAND_PASS["cpu"] = known
+    return known
 
 
 def lookup_task(mesh, window: Grid, samples: int, *after, count: bool = False):
@@ -79,7 +98,9 @@ def render_task(source, cube: int, bands: Sequence[int], lookup, mode: str,
     """Render ``bands`` of ``cube`` of ``source`` through the cube's ``lookup`` (from :func:`lookup_task`).
 
     Reads the bands and radiometry here, in the task's thread, then draws on the process's GL
-    thread (:func:`gl_call`), ``bands_per_pass`` (1..8) bands per full-screen pass. ``after``: results
+    thread (:func:`gl_call`), ``bands_per_pass`` (1..8) bands per full-screen pass; on a software
+    GL renderer (llvmpipe: :func:`cpu_band_pass`) it gathers the bands through the lookup with numpy
+    in its own thread instead (:func:`archive.render.gather.gather_lookup`, equal values). ``after``: results
     of tasks the render waits for (the graph's backpressure, :func:`gate_task`), not used.
     Returns values (len(bands), window height, window width) float32 (NaN where not covered) and
     saturated (window height, window width) bool.
@@ -90,7 +111,12 @@ def render_task(source, cube: int, bands: Sequence[int], lookup, mode: str,
     try:
         dn = source.read_bands(cube, bands)
         radiometry = source.radiometry(cube, bands, mode)
-        result = gl_call(render_lookup, lookup, dn, radiometry, bands_per_pass=min(bands_per_pass, len(bands)))
+        if cpu_band_pass():   # software GL: the numpy gather, in this thread (same values, tested)
+            from archive.render.gather import gather_lookup
+
+            result = gather_lookup(lookup, dn, radiometry)
+        else:
+            result = gl_call(render_lookup, lookup, dn, radiometry, bands_per_pass=min(bands_per_pass, len(bands)))
     except (InputError, RenderError) as exc:  # say which cube: the renderer cannot know
         where = f"{source.label} cube {source.cubes[cube].base}"
         if isinstance(exc, InputError):

@@ -86,7 +86,7 @@ class Lookup:
         return (int(rows[0]), int(cols[0]), int(rows[-1] - rows[0] + 1), int(cols[-1] - cols[0] + 1))
 
 
-def _dn_texture_format(dn: np.ndarray) -> tuple[np.ndarray, str, tuple[str, ...]]:
+def dn_texture_format(dn: np.ndarray) -> tuple[np.ndarray, str, tuple[str, ...]]:
     """DN as uploaded: (array, moderngl dtype, shader defines). Integer DN in 0..65535 go up as
     uint16, other integers (negative DN of signed cubes) as exact float32."""
     if dn.dtype == np.uint16:
@@ -106,7 +106,7 @@ def _dn_texture_format(dn: np.ndarray) -> tuple[np.ndarray, str, tuple[str, ...]
     raise InputError("dn", f"unsupported DN dtype {dn.dtype}", "use uint16, an integer type or float32")
 
 
-def _radiometry_arrays(radiometry, nb: int, lines: int, samples: int):
+def radiometry_arrays(radiometry, nb: int, lines: int, samples: int):
     if radiometry is None:
         return (np.zeros((nb, samples), np.float32), np.ones((nb, samples), np.float32),
                 np.ones(lines, np.float32), None)
@@ -318,8 +318,8 @@ def render_lookup(
                          f"{lookup.lines} x {lookup.samples}", "rasterize the lookup for this cube")
     if not 1 <= bands_per_pass <= 8:
         raise InputError("bands_per_pass", f"must be 1..8, got {bands_per_pass}")
-    dark, gain, resp, saturation = _radiometry_arrays(radiometry, nb, lines, samples)
-    dn_up, dn_dtype, defines = _dn_texture_format(dn)
+    dark, gain, resp, saturation = radiometry_arrays(radiometry, nb, lines, samples)
+    dn_up, dn_dtype, defines = dn_texture_format(dn)
 
     grid = lookup.grid
     covered = lookup.covered

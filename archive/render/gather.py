@@ -1,0 +1,119 @@
+"""Pass 2 of the renderer on the CPU: the bands of a cube gathered through its lookup with numpy.
+
+On a CPU renderer (Mesa llvmpipe) a full-screen GL band pass is a gather through the (line, sample)
+lookup that pass 1 (:func:`archive.render.renderer.rasterize_lookup`, still drawn by GL) gives, run
+through a software rasteriser: :func:`gather_lookup` does the same gather with numpy, several times
+cheaper in CPU-seconds (bench/RESULTS.md, issue 20), in whichever thread calls it (no GL context, so
+the worker's other threads keep drawing and writing). On a real GPU the GL band passes stay
+(:func:`use_cpu_gather` decides from the GL renderer string, ``ARCHIVE_BAND_PASS`` overrides).
+
+Values: the same float32 operations in the same order as ``bands.frag.glsl``,
+``value = ((DN - dark) * gain) / response`` with DN converted exactly to float32, each operation
+rounded to float32: computed once per (band, line, sample) of the cube, then copied to every
+output pixel that sees that (line, sample); NaN where no line covers the pixel. Measured against
+llvmpipe's band passes (Mesa 22.3, tests/test_render_gather.py): bit for bit equal. The documented
+bound, which the test asserts for any GL driver: at most 2 units in the last place of float32
+(a driver may compute ``a / b`` as ``a * (1 / b)``: two roundings instead of one), NaN at exactly the
+same pixels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from archive.errors import InputError
+from archive.render.renderer import Lookup, RenderResult, dn_texture_format, radiometry_arrays
+
+__all__ = ["CPU_RENDERERS", "MAX_ULP", "gather_lookup", "is_cpu_renderer", "use_cpu_gather"]
+
+#: GL renderer names (substrings, lower case) of software rasterisers, where the CPU gather wins.
+CPU_RENDERERS = ("llvmpipe", "softpipe", "swrast", "lavapipe")
+#: The stated bound between :func:`gather_lookup` and the GL band passes, float32 ULP.
+MAX_ULP = 2
+#: Values of a band's plane computed per block (64K x 4 B: in a core's L2 cache).
+_BLOCK_VALUES = 1 << 16
+
+
+def is_cpu_renderer(renderer: str | None) -> bool:
+    """True for a software GL renderer (llvmpipe, softpipe...): its band passes run on the CPU."""
+    name = (renderer or "").lower()
+    return any(cpu in name for cpu in CPU_RENDERERS)
+
+
+def use_cpu_gather(renderer: str | None, setting: str | None = None) -> bool:
+    """Whether render tasks gather bands on the CPU (:func:`gather_lookup`) instead of drawing GL
+    band passes: ``setting`` 'cpu' or 'gl' forces it; 'auto' (default; or the environment variable
+    ``ARCHIVE_BAND_PASS`` = auto | cpu | gl, for benchmarks) takes the CPU gather on software GL
+    ``renderer`` strings (llvmpipe...) and the GL band passes on GPUs."""
+    import os
+
+    setting = setting or os.environ.get("ARCHIVE_BAND_PASS") or "auto"
+    if setting not in ("auto", "cpu", "gl"):
+        raise InputError("ARCHIVE_BAND_PASS", f"expected auto, cpu or gl, got {setting!r}")
+    if setting != "auto":
+        return setting == "cpu"
+    return is_cpu_renderer(renderer)
+
+
+def gather_lookup(lookup: Lookup, dn: np.ndarray, radiometry) -> RenderResult:
+    """Pass 2 on the CPU: the values of the bands of ``dn`` at each pixel of ``lookup.grid``.
+
+    Same arguments and result as :func:`archive.render.renderer.render_lookup` (without GL
+    options): dn (bands, lines, samples) uint16 (other integers in 0..65535 or -2^24..2^24, or
+    float32); radiometry with dark / gain (bands, samples), response (lines,), saturation, or None
+    for raw DN. Returns values (bands, height, width) float32, NaN where not covered.
+    """
+    dn = np.asarray(dn)
+    if dn.ndim != 3:
+        raise InputError("dn", f"expected a (bands, lines, samples) cube, got shape {dn.shape}")
+    nb, lines, samples = dn.shape
+    if (lines, samples) != (lookup.lines, lookup.samples):
+        raise InputError("dn", f"cube has {lines} lines x {samples} samples but its lookup "
+                         f"{lookup.lines} x {lookup.samples}", "rasterize the lookup for this cube")
+    dark, gain, resp, saturation = radiometry_arrays(radiometry, nb, lines, samples)
+    dn_up, _, _ = dn_texture_format(dn)   # the values the GL path uploads (exact in float32)
+    grid = lookup.grid
+    covered = lookup.covered
+    box = lookup.box() if nb > 0 else None
+    values = np.empty((nb, grid.height, grid.width), np.float32)
+    result = RenderResult(grid, values, np.zeros(grid.shape, bool), covered)
+    if box is None:
+        values[...] = np.nan
+        return result
+    row0, _, height, _ = box
+    values[:, :row0] = np.nan
+    values[:, row0 + height:] = np.nan
+    rows = slice(row0, row0 + height)
+    # Flat index into a band's (lines * samples + 1) plane for every pixel of the covered rows; the
+    # extra last element is NaN and stands for "not covered".
+    plane_size = lines * samples
+    # int32 indices when they fit: half the index bytes streamed per band (np.take 2.5x faster).
+    line = lookup.line[rows]
+    index = line.astype(np.int32 if plane_size < 2**31 - 1 else np.intp)
+    index *= samples
+    index += lookup.sample[rows]
+    index[line < 0] = plane_size
+    index = index.reshape(-1)
+
+    # One band at a time, its plane computed in blocks of lines that stay in the core's cache (4
+    # operations per value), then gathered while the plane is still in cache.
+    plane = np.empty(plane_size + 1, np.float32)
+    plane[plane_size] = np.nan
+    work = plane[:plane_size].reshape(lines, samples)
+    step = max(1, _BLOCK_VALUES // samples)
+    for b in range(nb):
+        for l0 in range(0, lines, step):
+            l1 = min(l0 + step, lines)
+            w = work[l0:l1]
+            w[...] = dn_up[b, l0:l1]                      # exact: integers below 2^24 / float32
+            np.subtract(w, dark[b], out=w)
+            np.multiply(w, gain[b], out=w)
+            np.divide(w, resp[l0:l1, None], out=w)
+        out = values[b, rows].reshape(-1)                 # whole rows: contiguous, a view
+        np.take(plane, index, out=out, mode="clip")       # "clip": unbuffered (all indices valid)
+    if saturation is not None:  # as render_lookup: any band's DN at or above the threshold
+        sat_src = dn.max(axis=0) >= float(saturation)
+        if sat_src.any():
+            r, c = np.nonzero(covered)
+            result.saturated[r, c] = sat_src[lookup.line[r, c], lookup.sample[r, c]]
+    return result
