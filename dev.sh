@@ -47,7 +47,9 @@ case "${1:-}" in
         echo "demo: browse the demo archive in a web browser: $VENV/bin/archive view --archive demo/archive"
         ;;
     test)
-        system_packages chromium  # no 'playwright install': the browser comes from Debian
+        # no 'playwright install': the browser comes from Debian; slurm-wlm and munge: tests/test_slurm.py
+        # starts a one-node Slurm (as root; skipped otherwise)
+        system_packages chromium slurm-wlm munge
         python_env "[test]"
         shift
         "$VENV/bin/python" -m pytest -q "$@"

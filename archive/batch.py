@@ -18,9 +18,13 @@
   temporaries of killed runs are removed. A complete output made with another recipe is an error
   before anything starts, unless ``overwrite``.
 - **Waves.** At most :func:`archive.cluster.flight_slots` flights are in the scheduler at once (from
-  the workers' render slots and memory): the next flight is planned and submitted when one
-  finishes, so the tasks the scheduler holds, the submission time and the client's memory do not
-  grow with the batch.
+  the workers' render slots and memory, counted again as workers come and go): the next flight is
+  submitted when one finishes, so the tasks the scheduler holds, the submission time and the
+  client's memory do not grow with the batch.
+- **Planning ahead.** Opening, planning and building a flight (metadata only, on the client) runs in
+  one thread of its own while the wave renders, at most a wave of flights ahead of their place in
+  the scheduler: a flight is ready to submit when a place frees up, and the workers do not wait for
+  the client (what the scheduler holds is unchanged).
 """
 
 from __future__ import annotations
@@ -227,8 +231,9 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
             wave) -> None:
     """Plan, submit (in waves), follow and publish ``todo``'s flights on a cluster."""
     from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
 
-    from distributed import as_completed
+    from distributed import LocalCluster, as_completed
     from tqdm import tqdm
 
     from archive.cluster import flight_slots, start_cluster, task_budget, wait_for_writers
@@ -236,6 +241,8 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
     say = _say(quiet)
     client, cluster = start_cluster(scheduler, workers, say, threads)
     queue = deque(todo)
+    prepared: deque = deque()   # (flight, its planning's concurrent future), in submission order
+    planner = ThreadPoolExecutor(1, thread_name_prefix="archive-plan")
     owner: dict[str, Flight] = {}
     active: list[Flight] = []
     t0 = time.perf_counter()
@@ -245,7 +252,14 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
         budget = task_budget(client)
         slots = wave or flight_slots(client, budget)
         state["wave"] = slots
+        counted = time.monotonic()
         pending_futures = as_completed()
+
+        def plan_ahead() -> None:
+            """Keep up to a wave of flights planned (in the planner's thread) ahead of the scheduler."""
+            while queue and len(prepared) < max(slots, 1):
+                flight = queue.popleft()
+                prepared.append((flight, planner.submit(_timed_prepare, flight, budget, say)))
 
         def finish(flight: Flight, status: str, error: str | None = None) -> None:
             flight.status, flight.error = status, error
@@ -264,16 +278,17 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
             report.write()
             bar.update(1)
 
-        def submit(flight: Flight) -> None:
-            flight.started = time.perf_counter()
+        def submit(flight: Flight, planning) -> None:
             try:
-                flight.job, graph = _prepare(flight, budget, say)
+                flight.job, graph, seconds = planning.result()
+                state["submit_seconds"] += seconds
+                flight.started = time.perf_counter() - seconds   # its planning, not its wait for a place
+                t = time.perf_counter()
                 futures = client.compute(list(graph.writes)) if len(graph) else []
+                state["submit_seconds"] += time.perf_counter() - t
             except Exception as exc:  # noqa: BLE001 - the flight fails alone
                 finish(flight, "failed", _reason(exc))
                 return
-            finally:
-                state["submit_seconds"] += time.perf_counter() - flight.started
             flight.futures, flight.left = list(futures), len(futures)
             active.append(flight)
             tasks["submitted"] += len(futures)
@@ -293,9 +308,14 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
                 return
             finish(flight, "done")
 
-        while queue or active:
-            while queue and len(active) < slots:
-                submit(queue.popleft())
+        while queue or prepared or active:
+            if wave is None and time.monotonic() - counted > 5.0:   # workers come and go (Slurm jobs)
+                slots, counted = flight_slots(client, budget), time.monotonic()
+                state["wave"] = max(state["wave"], slots)
+            plan_ahead()
+            while prepared and len(active) < slots:
+                submit(*prepared.popleft())
+                plan_ahead()
             state["peak_tasks"] = max(state["peak_tasks"], sum(len(f.futures) for f in active))
             if not active:
                 continue
@@ -322,11 +342,12 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
         state["graph_seconds"] = time.perf_counter() - t0
     finally:
         bar.close()
-        if cluster is None and any(f.status == "failed" for f in todo):
-            wait_for_writers(client)
+        planner.shutdown(wait=True, cancel_futures=True)   # no temporaries made after the clean-up below
+        if not isinstance(cluster, LocalCluster) and any(f.status == "failed" for f in todo):
+            wait_for_writers(client)   # a shared scheduler, or Slurm jobs that stop only when cancelled
         client.close()
         if cluster is not None:
-            cluster.close()  # stops the worker processes, with any task still writing
+            cluster.close()  # stops the worker processes (cancels Slurm worker jobs), with any task still writing
         for flight in todo:
             flight.output.cleanup()
 
@@ -339,6 +360,13 @@ class _FlightJob:
     planned: object
     sink: object
     options: object
+
+
+def _timed_prepare(flight: Flight, budget: int, say) -> tuple[_FlightJob, object, float]:
+    """:func:`_prepare` in the planner's thread; the flight's clock starts here. (job, graph, seconds)."""
+    flight.started = time.perf_counter()
+    job, graph = _prepare(flight, budget, say)
+    return job, graph, time.perf_counter() - flight.started
 
 
 def _prepare(flight: Flight, budget: int, say) -> tuple[_FlightJob, object]:

@@ -203,6 +203,20 @@ def _add_render(sub) -> None:
     p.add_argument("--threads", type=_positive_int, metavar="N",
                    help="threads per local worker (default: the cores divided among the workers, at least 2): "
                         "render tasks draw on the worker's GL thread while the others mosaic, compress and write")
+    p.add_argument("--cluster", choices=["slurm"],
+                   help="start the Dask workers as Slurm batch jobs (dask-jobqueue's SLURMCluster; its scheduler runs "
+                        "in this command): --jobs jobs of one worker each, sized by the --job-* options or "
+                        "dask-jobqueue's 'jobqueue: slurm:' configuration; see docs/deploy.md")
+    j = p.add_argument_group("--cluster slurm: the worker jobs (an option left out: the 'jobqueue: slurm:' "
+                             "configuration of ~/.config/dask/jobqueue.yaml, /etc/dask or $DASK_CONFIG)")
+    j.add_argument("--jobs", type=_positive_int, metavar="N",
+                   help="worker jobs kept running (default 1; a job that ends early is submitted again)")
+    j.add_argument("--job-queue", metavar="PARTITION", help="Slurm partition of the worker jobs")
+    j.add_argument("--job-cores", type=_positive_int, metavar="N", help="CPUs per job: the worker's threads")
+    j.add_argument("--job-memory", metavar="SIZE", help="memory per job, e.g. 16GB: the worker's memory limit")
+    j.add_argument("--job-walltime", metavar="HH:MM:SS", help="time limit of each worker job")
+    j.add_argument("--job-gpus", type=int, choices=[0, 1], metavar="0|1",
+                   help="GPUs per job (--gres=gpu:1): a worker draws on one GPU; more GPUs, more --jobs")
     # Batch jobs over the catalog: every flight of --archive that matches, rendered in one graph.
     q = p.add_argument_group("batch jobs over the catalog of --archive (every given filter must match)")
     q.add_argument("--query-bbox", metavar="W,S,E,N", help="flights whose footprint meets this lon/lat box, degrees")

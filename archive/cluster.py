@@ -1,6 +1,7 @@
 """Where a render graph runs: a local cluster or a scheduler, how it is executed, how its errors read.
 
-- :func:`start_cluster`: ``--scheduler ADDRESS`` (checked for GPU workers) or a local cluster of
+- :func:`start_cluster`: ``--scheduler ADDRESS`` (checked for GPU workers), Dask workers as Slurm
+  jobs (:class:`SlurmJobs`, ``--cluster slurm``: dask-jobqueue's SLURMCluster) or a local cluster of
   spawned, GPU-resourced worker processes (:data:`GL_SLOTS`, glibc's :data:`MALLOC_MMAP_THRESHOLD`);
 - :func:`execute`: computes the graph's writer tasks with a progress bar, maps a task's failure or a
   dead worker to a :class:`~archive.errors.RenderError` (on a shared cluster, cancelling what is
@@ -12,15 +13,18 @@
 from __future__ import annotations
 
 import os
+import shutil
+import subprocess
 import sys
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
 from archive.errors import ArchiveError, InputError, RenderError
 
-__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "active_client", "check_gpu_workers", "execute", "flight_slots",
-           "start_cluster", "task_budget", "wait_for_writers"]
+__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "SlurmJobs", "active_client", "check_gpu_workers", "execute",
+           "flight_slots", "start_cluster", "start_slurm", "task_budget", "wait_for_writers"]
 
 
 def check_gpu_workers(client, where: str) -> None:
@@ -51,8 +55,9 @@ def positive(value, option: str, what: str) -> int | None:
     return None if value is None else int(value)
 
 
-def start_cluster(scheduler: str | None, workers: int | None, say, threads: int | None = None):
-    """(client, cluster or None): ``scheduler`` or a local cluster of GPU-resourced workers.
+def start_cluster(scheduler, workers: int | None, say, threads: int | None = None):
+    """(client, cluster or None): ``scheduler`` (an address, or a :class:`SlurmJobs`: workers as Slurm
+    jobs) or a local cluster of GPU-resourced workers.
 
     Local cluster: ``workers`` processes (default 1) of ``threads`` threads each (default: the
     machine's cores divided among the workers, at least 2). Render tasks need the 'GPU' resource
@@ -63,6 +68,11 @@ def start_cluster(scheduler: str | None, workers: int | None, say, threads: int 
 
     from distributed import Client, LocalCluster
 
+    if isinstance(scheduler, SlurmJobs):
+        if workers is not None or threads is not None:
+            raise InputError("--workers/--threads", "size a local cluster, not Slurm worker jobs",
+                             "give --jobs and --job-cores instead")
+        return start_slurm(scheduler, say)
     if scheduler:
         try:
             client = Client(scheduler, timeout="20s")
@@ -91,6 +101,146 @@ def start_cluster(scheduler: str | None, workers: int | None, say, threads: int 
                                resources={"GPU": GL_SLOTS}, env={"LP_NUM_THREADS": str(cores)},
                                dashboard_address=":0", silence_logs=logging.CRITICAL)  # errors come back here
     return Client(cluster), cluster
+
+
+@dataclass(frozen=True)
+class SlurmJobs:
+    """Dask workers as Slurm batch jobs (``--cluster slurm``: dask-jobqueue's SLURMCluster), one
+    worker process per job, started with the 'GPU' resource like the workers of docs/deploy.md.
+    A field left ``None`` comes from dask-jobqueue's own configuration (``jobqueue: slurm:`` in
+    ~/.config/dask/jobqueue.yaml, /etc/dask/ or $DASK_CONFIG), which also holds what has no field
+    here (account, interface, log-directory, local-directory, job-extra-directives, ...).
+
+    jobs: worker jobs kept running (one that ends early, cancelled or out of walltime, is submitted
+    again); queue: the partition; cores: CPUs per job (the worker's threads and LP_NUM_THREADS);
+    memory: per job, e.g. '16GB' (the worker's memory limit); walltime: 'HH:MM:SS'; gpus: GPUs per
+    job, 0 or 1 (``--gres=gpu:1``; a worker process draws on one GPU: more GPUs, more jobs).
+    """
+
+    jobs: int = 1
+    queue: str | None = None
+    cores: int | None = None
+    memory: str | None = None
+    walltime: str | None = None
+    gpus: int | None = None
+
+
+#: Seconds between two checks that every Slurm worker job is there (a lost one is submitted again,
+#: once Dask's ``distributed.deploy.lost-worker-timeout`` has passed).
+KEEP_JOBS_SECONDS = 10.0
+
+
+def start_slurm(spec: SlurmJobs, say):
+    """(client, cluster): ``spec.jobs`` Slurm jobs of one GPU-resourced worker each, submitted by
+    dask-jobqueue's SLURMCluster (its scheduler runs in this process, reachable on jobqueue's
+    ``interface``); returns once the first worker has connected. InputError when dask-jobqueue or
+    Slurm's commands are missing, cores or memory are given nowhere, sbatch refuses the job
+    (``sbatch --test-only``, before any job is queued) or every job ends before its worker connects."""
+    import dask
+    from distributed import Client
+    from tornado.ioloop import PeriodicCallback
+
+    try:
+        from dask_jobqueue import SLURMCluster   # also loads jobqueue's configuration defaults
+    except ImportError:
+        raise InputError("--cluster slurm", "needs the dask-jobqueue package", "pip install dask-jobqueue") from None
+    for tool in ("sbatch", "squeue", "scancel"):
+        if shutil.which(tool) is None:
+            raise InputError("--cluster slurm", f"Slurm's {tool} is not on PATH: this machine cannot submit jobs",
+                             "run archive render on a Slurm login node (docs/deploy.md)")
+    jobs = positive(spec.jobs, "--jobs", "Slurm worker jobs") or 1
+    config = dask.config.get("jobqueue.slurm", default={}) or {}
+    cores = positive(spec.cores, "--job-cores", "cores per job") or config.get("cores")
+    memory = spec.memory or config.get("memory")
+    if not cores or not memory:
+        raise InputError("--job-cores/--job-memory", "a Slurm worker job needs its cores and memory",
+                         "pass --job-cores N --job-memory 16GB, or set cores and memory under 'jobqueue: slurm:' "
+                         "in ~/.config/dask/jobqueue.yaml (docs/deploy.md)")
+    if spec.gpus is not None and (isinstance(spec.gpus, bool) or spec.gpus not in (0, 1)):
+        raise InputError("--job-gpus", f"expected 0 or 1 GPUs per job, got {spec.gpus!r}",
+                         "a worker process draws on one GPU: ask for more --jobs to use more GPUs")
+    directives = list(config.get("job-extra-directives") or [])
+    if spec.gpus:
+        directives.append(f"--gres=gpu:{spec.gpus}")
+    worker_args = list(config.get("worker-extra-args") or [])
+    if "--resources" not in worker_args:
+        worker_args += ["--resources", f"GPU={GL_SLOTS}"]
+    # The configuration's own prologue comes last, so that a site's settings win.
+    prologue = [f"export LP_NUM_THREADS={int(cores)}", f"export MALLOC_MMAP_THRESHOLD_={MALLOC_MMAP_THRESHOLD}",
+                *(config.get("job-script-prologue") or [])]
+    try:
+        cluster = SLURMCluster(cores=int(cores), processes=1, memory=memory, queue=spec.queue,
+                               walltime=spec.walltime, job_extra_directives=directives,
+                               worker_extra_args=worker_args, job_script_prologue=prologue)
+    except ValueError as exc:
+        raise InputError("--cluster slurm", f"dask-jobqueue refuses the worker job: {exc}") from None
+    client = None
+    try:
+        _test_submit(cluster.job_script())
+        cluster.scale(jobs=jobs)
+        keep = PeriodicCallback(lambda: cluster.scale(jobs=jobs), KEEP_JOBS_SECONDS * 1000)
+        cluster.periodic_callbacks["archive-keep-jobs"] = keep   # stopped when the cluster closes
+        cluster.loop.add_callback(keep.start)
+        client = Client(cluster)
+        say(f"archive render: {jobs} Slurm worker job{'s' if jobs != 1 else ''} submitted; Dask dashboard at "
+            f"{client.dashboard_link}")
+        _wait_for_first_worker(client, cluster, say)
+        check_gpu_workers(client, "--cluster slurm")
+    except BaseException:
+        if client is not None:
+            client.close()
+        cluster.close()   # cancels the jobs (scancel)
+        raise
+    return client, cluster
+
+
+def _test_submit(script: str) -> None:
+    """InputError when ``sbatch --test-only`` refuses the worker job script (nothing is queued)."""
+    try:
+        done = subprocess.run(["sbatch", "--test-only"], input=script, capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        raise InputError("--cluster slurm", f"sbatch --test-only did not answer: {exc}",
+                         "check that Slurm's controller runs (sinfo)") from None
+    if done.returncode:
+        why = " ".join((done.stderr or done.stdout).split()) or f"exit code {done.returncode}"
+        raise InputError("--cluster slurm", f"sbatch refuses the worker job: {why}",
+                         "check --job-queue, --job-cores, --job-memory, --job-walltime, --job-gpus and the "
+                         "'jobqueue: slurm:' configuration (docs/deploy.md)")
+
+
+def _wait_for_first_worker(client, cluster, say, submit_timeout: float = 120.0) -> None:
+    """Wait (as long as a job is queued or running) until a worker has connected; InputError when
+    every worker job ended first, or when no job was submitted within ``submit_timeout`` s."""
+    started, told = time.monotonic(), False
+    while True:
+        try:
+            client.wait_for_workers(1, timeout=5)
+            return
+        except TimeoutError:
+            pass
+        ids = sorted(str(j.job_id) for j in list(cluster.workers.values()) if getattr(j, "job_id", None))
+        if not ids:
+            if time.monotonic() - started > submit_timeout:
+                raise InputError("--cluster slurm", f"no worker job was submitted in {submit_timeout:.0f} s",
+                                 "check that sbatch works on this machine (docs/deploy.md)")
+            continue
+        if not told:
+            say(f"archive render: waiting for Slurm job{'s' if len(ids) != 1 else ''} {', '.join(ids)} to start "
+                "(squeue shows why they wait)")
+            told = True
+        done = subprocess.run(["squeue", "-h", "-o", "%i", "-t", "PD,CF,R", "-u", str(os.getuid())],
+                              capture_output=True, text=True, timeout=60)
+        if done.returncode == 0 and not set(ids) & set(done.stdout.split()):
+            try:
+                client.wait_for_workers(1, timeout=5)   # connected just before its job ended?
+                return
+            except TimeoutError:
+                pass
+            raise InputError("--cluster slurm", f"the Slurm worker job{'s' if len(ids) != 1 else ''} "
+                             f"{', '.join(ids)} ended before a worker connected to {client.scheduler.address}",
+                             "read the jobs' output files (jobqueue's log-directory, else the current directory); "
+                             "workers must reach this machine: set 'interface' under 'jobqueue: slurm:' "
+                             "(docs/deploy.md)")
 
 
 def wait_for_writers(client, timeout: float = 60.0) -> None:

@@ -36,6 +36,29 @@ def _query_ids(args: argparse.Namespace) -> list[str] | None:
 
 #: Options of ``archive render`` that say how to run, not what to render.
 RUN_KEYWORDS = ("quicklook", "scheduler", "workers", "threads", "overwrite", "quiet", "format", "resume")
+#: ``--cluster slurm``'s options (parser destinations) and the :class:`~archive.cluster.SlurmJobs` fields they set.
+JOB_OPTIONS = {"jobs": "jobs", "job_queue": "queue", "job_cores": "cores", "job_memory": "memory",
+               "job_walltime": "walltime", "job_gpus": "gpus"}
+
+
+def _where(args: argparse.Namespace):
+    """Where to run: ``--scheduler``'s address, a :class:`~archive.cluster.SlurmJobs` for
+    ``--cluster slurm``, or None (a local cluster)."""
+    from archive.cluster import SlurmJobs
+
+    given = {field: getattr(args, dest, None) for dest, field in JOB_OPTIONS.items()}
+    given = {field: value for field, value in given.items() if value is not None}
+    if getattr(args, "cluster", None) is None:
+        if given:
+            option = next(d for d, f in JOB_OPTIONS.items() if f in given).replace("_", "-")
+            raise InputError(f"--{option}", "sizes the worker jobs of --cluster slurm", "add --cluster slurm")
+        return args.scheduler
+    if args.scheduler:
+        raise InputError("--cluster", "--cluster and --scheduler both say where the workers are", "give one of them")
+    if args.workers is not None or args.threads is not None:
+        raise InputError("--workers/--threads", "size a local cluster, not Slurm worker jobs",
+                         "give --jobs and --job-cores instead")
+    return SlurmJobs(**given)
 
 
 def render_keywords(args: argparse.Namespace) -> dict:
@@ -44,7 +67,7 @@ def render_keywords(args: argparse.Namespace) -> dict:
     to run; catalog queries resolved (matching ids added to the sources; one output per flight
     unless ``--mosaic``)."""
     keywords = {"sources": list(args.sources or []), "out": args.out,
-                **{name: getattr(args, name) for name in KEYWORDS + RUN_KEYWORDS}}
+                **{name: getattr(args, name) for name in KEYWORDS + RUN_KEYWORDS}, "scheduler": _where(args)}
     ids = _query_ids(args)
     if ids is not None:
         keywords["sources"] += [i for i in ids if i not in keywords["sources"]]
