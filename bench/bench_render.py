@@ -69,7 +69,7 @@ class MemoryPoll:
     """Polls the summed RSS of a process tree (pid and all descendants) in a thread.
 
     peak_rss: max over time of sum(rss); peak_anon: same for rss - shared (file-backed pages, e.g.
-    memory-mapped input, excluded), bytes.
+    memory-mapped input, excluded), bytes; cpu_s: CPU-seconds of the tree's processes.
     """
 
     def __init__(self, pid: int | None = None, interval: float = 0.1):
@@ -79,6 +79,7 @@ class MemoryPoll:
         self.interval = interval
         self.peak_rss = 0
         self.peak_anon = 0
+        self._cpu: dict[int, float] = {}   # pid -> user + system CPU-s last seen
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -97,8 +98,19 @@ class MemoryPoll:
                 continue
             rss += m.rss
             anon += m.rss - m.shared
+            try:
+                t = p.cpu_times()
+                self._cpu[p.pid] = t.user + t.system
+            except psutil.Error:
+                pass
         self.peak_rss = max(self.peak_rss, rss)
         self.peak_anon = max(self.peak_anon, anon)
+
+    @property
+    def cpu_s(self) -> float:
+        """CPU-seconds of the tree's processes as last seen (polled: a process's last 0.1 s may be
+        missed)."""
+        return sum(self._cpu.values())
 
     def _run(self) -> None:
         while not self._stop.is_set():
