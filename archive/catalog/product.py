@@ -317,7 +317,7 @@ def _cli_value(name: str, value: Any) -> str:
 def render_command(request, out: str | os.PathLike, *, quicklook: str | os.PathLike | None = None,
                    provenance: bool = False, overwrite: bool = False) -> str:
     """The ``archive render`` command line (shell-quoted) that renders ``request`` (an
-    :class:`archive.pipeline.RenderRequest`) into ``out`` again: SOURCE... then ``--out``, then
+    :class:`archive.options.RenderOptions`) into ``out`` again: SOURCE... then ``--out``, then
     one option per request field that differs from its default (``--ground-height``,
     ``--wavelengths``, ``--sync-offset``...; a field ``x_y`` is option ``--x-y``). Paths (sources
     that exist, ``out``, archive, calibration, white reference, DEM, quicklook) are made absolute;
@@ -325,7 +325,7 @@ def render_command(request, out: str | os.PathLike, *, quicklook: str | os.PathL
     names. How it runs (scheduler, workers, threads, progress) is left out: it does not change the
     output."""
     if not dataclasses.is_dataclass(request) or isinstance(request, type):
-        raise InputError("request", f"expected a render request (RenderRequest), got {type(request).__name__}")
+        raise InputError("request", f"expected render options (RenderOptions), got {type(request).__name__}")
     words = ["archive", "render"]
     options: list[str] = ["--out", os.path.abspath(out)]
     for f in dataclasses.fields(request):
