@@ -25,6 +25,7 @@ Keys are ``<kind>-<dask.base.tokenize(inputs)>``, so the same inputs give the sa
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 from collections.abc import Sequence
 
@@ -39,7 +40,8 @@ from archive.graph.plan import GROUP, RenderPlan, band_groups
 from archive.graph.tasks import (assemble_write_task, blank_write_task, gate_task, overview_task, write_layers_task,
                                  write_saturated_task)
 
-__all__ = ["RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "task_group_size", "with_task_groups"]
+__all__ = ["HELD_VALUES_BYTES", "RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "live_renders", "task_group_size",
+           "with_task_groups"]
 
 #: Rendered values one render task may hold, bytes (window px x bands x 4 B): 32 bands of a 1.4 Mpx
 #: cube window. Larger groups mean fewer GL set-ups and reads per band; smaller ones less memory.
@@ -49,16 +51,45 @@ MAX_GROUP = 64
 #: Renders that may run ahead of the writers consuming earlier renders (in (group, capture)
 #: order): bounds the renders held in memory whatever the flight length and GPU speed.
 RENDERS_AHEAD = 3
-#: Lookups (8 B per cube window pixel) that band groups may share; beyond, one per group and cube.
+#: Lookups that band groups may share (held packed: 8 B per cube window pixel / LOOKUP_PACKING);
+#: beyond, one per group and cube.
 LOOKUP_BYTES = 256 * 1024**2
+#: What packing (:class:`~archive.graph.tasks.PackedLookup`) at least gains on a lookup (measured:
+#: ~20x on the paper flight's cube windows).
+LOOKUP_PACKING = 8
+#: Rendered values all renders of a band group held at once may take, bytes: the renders the
+#: writers still wait for (:func:`live_renders`, which grows with the passes' length: a tile holds
+#: the renders of every pass that crosses it) plus RENDERS_AHEAD. Band groups shrink as passes get
+#: longer, so that memory stays flat (issue 20).
+HELD_VALUES_BYTES = 640 * 1024**2
+
+
+def live_renders(plan: RenderPlan, tile: tuple[int, int] = (CHUNK, CHUNK)) -> int:
+    """Most renders of one band group alive at once in capture order: render j lives until the
+    render of the last cube touching any output tile (``tile`` px, height x width) that cube j
+    touches (that tile's writer needs them all)."""
+    jobs = plan.jobs
+    last = list(range(len(jobs)))
+    for row0, col0, tile_grid in plan.grid.tiles(tile):
+        box = (row0, col0, tile_grid.height, tile_grid.width)
+        touching = [j for j, job in enumerate(jobs) if boxes_intersect(box, job.box)]
+        for j in touching:
+            last[j] = max(last[j], touching[-1])
+    ends = sorted(last)   # render j is alive from k = j to k = last[j]: started (0..k) minus ended before k
+    return max([1] + [(k + 1) - bisect.bisect_left(ends, k) for k in range(len(jobs))])
 
 
 def task_group_size(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> int:
-    """Bands per render task for ``plan``: as many whole 8-band GL passes as fit ``budget`` bytes of
-    values for the largest cube window (at most MAX_GROUP), but never fewer than GROUP (4) bands."""
+    """Bands per render task for ``plan``: as many whole 8-band GL passes as fit the bytes of values
+    one render may hold for the largest cube window (at most MAX_GROUP), but never fewer than GROUP
+    (4) bands; a render may hold ``budget`` bytes, and all renders held at once
+    (:func:`live_renders` + RENDERS_AHEAD) HELD_VALUES_BYTES."""
     biggest = max((job.window.width * job.window.height for job in plan.jobs), default=1)
-    fit = budget // (4 * max(biggest, 1))
-    return max(GROUP, min(MAX_GROUP, fit // BANDS_PER_PASS * BANDS_PER_PASS))
+    held = live_renders(plan) + RENDERS_AHEAD
+    fit = min(budget, HELD_VALUES_BYTES // held) // (4 * max(biggest, 1))
+    if fit < BANDS_PER_PASS:
+        return max(GROUP, fit // GROUP * GROUP)
+    return min(MAX_GROUP, fit // BANDS_PER_PASS * BANDS_PER_PASS)
 
 
 def with_task_groups(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> RenderPlan:
@@ -130,10 +161,10 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
             completes.setdefault(max(touching), []).append(t)
 
     # One lookup (GL pass 1) per cube, shared by its band groups while all of them fit
-    # LOOKUP_BYTES (8 B per window pixel); beyond that (long flights and several groups) each group
+    # LOOKUP_BYTES (8 B per window pixel, packed); beyond that (long flights and several groups) each group
     # makes its own, so that held lookups do not grow with the flight either.
     shared = len(plan.groups) == 1 or 8 * sum(job.window.width * job.window.height
-                                              for job in plan.jobs) <= LOOKUP_BYTES
+                                              for job in plan.jobs) // LOOKUP_PACKING <= LOOKUP_BYTES
     lookups: dict[tuple[int, int], Delayed] = {}
     count = layers_sink is not None and "overlap_count" in layers.names
 
