@@ -168,10 +168,13 @@ def start_slurm(spec: SlurmJobs, say):
     # The configuration's own prologue comes last, so that a site's settings win.
     prologue = [f"export LP_NUM_THREADS={int(cores)}", f"export MALLOC_MMAP_THRESHOLD_={MALLOC_MMAP_THRESHOLD}",
                 *(config.get("job-script-prologue") or [])]
+    # A free dashboard port unless the configuration names one (a login node is shared; the link is printed).
+    scheduler_options = {"dashboard_address": ":0", **(config.get("scheduler-options") or {})}
     try:
         cluster = SLURMCluster(cores=int(cores), processes=1, memory=memory, queue=spec.queue,
                                walltime=spec.walltime, job_extra_directives=directives,
-                               worker_extra_args=worker_args, job_script_prologue=prologue)
+                               worker_extra_args=worker_args, job_script_prologue=prologue,
+                               scheduler_options=scheduler_options)
     except ValueError as exc:
         raise InputError("--cluster slurm", f"dask-jobqueue refuses the worker job: {exc}") from None
     client = None

@@ -93,6 +93,7 @@ def main() -> None:
         return child(args)
     import psutil
 
+    print(f"load average at start {os.getloadavg()[0]:.2f} (2-core VM shared with other jobs)", flush=True)
     work = Path(args.workdir)
     counts = [int(v) for v in args.flights.split(",")]
     t = time.perf_counter()
@@ -139,16 +140,18 @@ def main() -> None:
             worker.wait(30)
             sched.wait(30)
         row["scheduler_rss"] = peak["rss"]
+        row["load"] = os.getloadavg()[0]   # the VM is shared: say how loaded it was
         row["overhead"] = (row["wall"] - n * row["one_flight"]) / n
         rows.append(row)
         print(json.dumps(row), flush=True)
     print(f"\nload average {os.getloadavg()[0]:.2f}; flights {SHAPE}, gsd {args.gsd} m")
     print("| flights | batch wall | one flight alone | overhead per flight | submission (all) | wave | peak tasks "
-          "| client RSS | scheduler RSS |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "| client RSS | scheduler RSS | load after |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['n']} | {r['wall']:.1f} s | {r['one_flight']:.2f} s | {r['overhead']:.3f} s | {r['submit']:.1f} s "
-              f"| {r['wave']} | {r['peak_tasks']} | {r['client_rss'] / 1e6:.0f} MB | {r['scheduler_rss'] / 1e6:.0f} MB |")
+              f"| {r['wave']} | {r['peak_tasks']} | {r['client_rss'] / 1e6:.0f} MB | {r['scheduler_rss'] / 1e6:.0f} MB "
+              f"| {r['load']:.1f} |")
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ FOV = 47.5
 GSD = "0.02"
 #: Flights large enough that one renders for seconds on one worker thread (the cancel lands mid-batch).
 SHAPE = dict(cubes=2, bands=6, samples=96, lines=160, cubes_per_pass=2)
-DAEMONS = ("munged", "slurmctld", "slurmd", "sbatch", "squeue", "scancel", "sinfo")
+DAEMONS = ("munged", "slurmctld", "slurmd", "sbatch", "squeue", "scancel", "sinfo", "srun", "scontrol")
 
 
 def _why_not() -> str | None:
@@ -306,6 +306,10 @@ def test_batch_on_slurm_survives_a_cancelled_worker_job(slurm, archive3, tmp_pat
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
                             start_new_session=True)
     lines, cancelled, at_cancel = [], None, None
+    import threading
+
+    watchdog = threading.Timer(240, lambda: os.killpg(proc.pid, signal.SIGKILL))   # never hang CI
+    watchdog.start()
     try:
         deadline = time.monotonic() + 150
         for line in proc.stdout:   # one line per finished flight
@@ -320,6 +324,7 @@ def test_batch_on_slurm_survives_a_cancelled_worker_job(slurm, archive3, tmp_pat
         stderr = proc.stderr.read()
         code = proc.wait(timeout=60)
     finally:
+        watchdog.cancel()
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait(30)
@@ -328,7 +333,10 @@ def test_batch_on_slurm_survives_a_cancelled_worker_job(slurm, archive3, tmp_pat
     doc = json.loads((out / "report.json").read_text())
     assert code == 0, (lines, stderr[-3000:], doc)
     assert doc["complete"] and (doc["done"], doc["failed"], doc["pending"]) == (3, 0, 0), doc
-    assert not slurm.jobs(), "the command left Slurm worker jobs behind"
+    ended = time.monotonic() + 20   # cancelled jobs complete within KillWait
+    while slurm.jobs("PD,CF,R") and time.monotonic() < ended:
+        time.sleep(0.5)
+    assert not slurm.jobs("PD,CF,R"), "the command left Slurm worker jobs behind"
     # the cancelled job really ended before its worker's job would have
     state = slurm.run("scontrol", "show", "job", cancelled).stdout
     assert "JobState=CANCELLED" in state, state
