@@ -9,8 +9,9 @@ newly opened flight, and the server's memory.
 
 ``--browser`` measures the page instead (issue 22): Debian's Chromium through Playwright opens the
 flight and times, --reps times each, the way to a full screen after open, pan, zoom, band, mode,
-ground-height and stretch changes (p50/p95), and the ground slider's preview rate; the load average
-is printed.
+ground-height and stretch changes (p50/p95) with the server's CPU-seconds per change (comparable
+when the machine is loaded and wall times are not), and the ground slider's preview rate; the load
+average is printed.
 
 Bounded: it makes clients x requests tile requests twice and stops by itself. Steps:
 
@@ -70,6 +71,15 @@ def rss(pid: int) -> int:
     except OSError:
         pass
     return 0
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (all its threads), s (Linux /proc)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return float("nan")
 
 
 class Server:
@@ -197,6 +207,7 @@ def browser_bench(archive: Path, cid: str, reps: int, cache_mb: int, width: int 
     server = Server(archive, cache_mb)
     url = f"http://127.0.0.1:{server.port}/#flights={cid}&open={cid}"
     out: dict = {a: [] for a in ACTIONS}
+    cpu: dict = {a: [] for a in ACTIONS}   # the server's CPU-seconds per change
     try:
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path="/usr/bin/chromium",
@@ -204,32 +215,39 @@ def browser_bench(archive: Path, cid: str, reps: int, cache_mb: int, width: int 
             try:
                 for i in range(reps):   # open: a fresh page each time (the server's caches stay warm after the first)
                     page = browser.new_page(viewport={"width": width, "height": height})
+                    c = cpu_seconds(server.proc.pid)
                     t = time.perf_counter()
                     page.goto(url)
                     page.wait_for_function(f"() => viewer.open === '{cid}' && viewer.settled && viewer.draws > 0",
                                            timeout=120_000)
                     out["open"].append(time.perf_counter() - t)
+                    cpu["open"].append(cpu_seconds(server.proc.pid) - c)
                     if i < reps - 1:
                         page.close()
                 for action in ACTIONS[1:]:
                     for i in range(reps):
                         page.evaluate("() => { viewer.settled = false; }")
+                        c = cpu_seconds(server.proc.pid)
                         t0 = page.evaluate(f"(i) => {{ const t = performance.now(); ({_ACTION_JS[action]})(i); return t; }}", i)
                         page.wait_for_function("() => viewer.settled", timeout=120_000)
                         out[action].append((page.evaluate("viewer.settledAt") - t0) / 1000.0)
+                        cpu[action].append(cpu_seconds(server.proc.pid) - c)
                 # slider preview: input events every 50 ms for 3 s (a drag), previews drawn per second
                 before = page.evaluate("viewer.previews")
+                c = cpu_seconds(server.proc.pid)
                 for k in range(60):
                     page.evaluate("(k) => { const g = document.getElementById('ground'); g.value = String(Number(g.min) + 5 + 0.5 * (k % 40)); "
                                   "g.dispatchEvent(new Event('input')); }", k)
                     page.wait_for_timeout(50)
                 drag_s = 3.0 + 0.0
                 out["preview_fps"] = (page.evaluate("viewer.previews") - before) / drag_s
+                out["preview_cpu_s"] = cpu_seconds(server.proc.pid) - c
                 out["requests"] = page.evaluate("viewer.requests")
             finally:
                 browser.close()
     finally:
         server.stop()
+    out["cpu"] = cpu
     return out
 
 
@@ -241,7 +259,9 @@ def browser_main(args, archive: Path, cid: str) -> str:
     rows = []
     for a in ACTIONS:
         v = out[a]
-        rows.append(f"| {a} | {percentile(v, 50):.0f} | {percentile(v, 95):.0f} | {percentile(v, 100):.0f} | {len(v)} |")
+        c = out["cpu"][a]
+        rows.append(f"| {a} | {percentile(v, 50):.0f} | {percentile(v, 95):.0f} | {percentile(v, 100):.0f} | {len(v)} | "
+                    f"{np.median(c):.2f} | {np.max(c):.2f} |")
     lines = [
         f"## Viewer in the browser (issue 22): {args.cubes} cubes x {args.lines} lines x {args.samples} samples x {args.bands} bands",
         "",
@@ -256,12 +276,13 @@ def browser_main(args, archive: Path, cid: str) -> str:
         f"{load_before[1]:.2f} {load_before[2]:.2f}, after {load_after[0]:.2f} {load_after[1]:.2f} {load_after[2]:.2f} "
         "(the VM is shared with other engineers' jobs).",
         "",
-        "| change | p50 ms | p95 ms | max ms | n |",
-        "|---|---|---|---|---|",
+        "| change | p50 ms | p95 ms | max ms | n | server CPU s (median) | server CPU s (max) |",
+        "|---|---|---|---|---|---|---|",
         *rows,
         "",
         f"Ground slider dragged (input events every 50 ms for 3 s): {out['preview_fps']:.1f} coarse previews drawn per "
-        f"second (64 x 64 tiles of the open flight). Band-value requests in all: {out['requests']}.",
+        f"second (64 x 64 tiles of the open flight; server CPU {out['preview_cpu_s']:.2f} s over the 3 s). "
+        f"Band-value requests in all: {out['requests']}.",
         "",
     ]
     return "\n".join(lines)

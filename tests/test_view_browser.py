@@ -262,6 +262,11 @@ def test_one_flight_where_the_mosaic_is_and_pinned_spectra(server, browser, arch
     assert len(colours) == 2
     assert page.page.locator("#spectrum .band-mark").count() == 3          # R, G, B wavelengths marked
     assert "calibration radiance units" in page.page.locator("#spectrum").inner_html()
+    # the y-axis label (mode and units) lies inside the chart, not clipped by its edges
+    label = page.page.locator("#spectrum .y-label").bounding_box()
+    chart = page.page.locator("#spectrum").bounding_box()
+    assert chart["y"] <= label["y"] and label["y"] + label["height"] <= chart["y"] + chart["height"], (label, chart)
+    assert chart["x"] <= label["x"], (label, chart)
     info = page.page.locator("#pixel-info").inner_text()
     assert f"{points[1]['cube'] + 1} of 2 ({points[1]['base']})" in info and " UTC" in info
     assert "GPS" not in info and str(points[1]["time"])[:8] not in info
@@ -400,7 +405,7 @@ def test_invalid_cube_range_shows_the_server_message(server, browser, archive_of
     page.page.locator("#cube-last").dispatch_event("change")
     page.page.wait_for_function("() => document.getElementById('err-cubes').textContent.length > 0")
     message = page.page.inner_text("#err-cubes")
-    assert "cubes: expected 0 <= first <= last" in message, message
+    assert "cubes: first cube 2 comes after last cube 1" in message, message   # 1-based, as the files
     assert (page.shot() == before).all(), "the picture should stay when a change is refused"
     page.page.click("#reset")
     page.settled()
@@ -431,3 +436,71 @@ def test_invalid_cube_range_shows_the_server_message(server, browser, archive_of
     (ROOT / "docs").mkdir(exist_ok=True)
     page.page.screenshot(path=str(ROOT / "docs" / "viewer.png"))
     page.close()
+
+
+def _tab_to(page, selector: str, presses: int = 80) -> None:
+    """Press Tab until the focused element matches ``selector`` (reachable by keyboard alone)."""
+    for _ in range(presses):
+        page.keyboard.press("Tab")
+        if page.evaluate(f"() => document.activeElement && document.activeElement.matches({selector!r})"):
+            return
+    pytest.fail(f"{selector} is not reachable with Tab")
+
+
+def test_keyboard_flight_list_wheel_notches_and_narrow_layout(server, browser, archive_of_flights):
+    _, ids = archive_of_flights
+    page = Page(browser, server)
+    p = page.page
+    first = p.evaluate("window.viewer.order[0]")
+    # keyboard only: Tab to the first flight's checkbox, Space hides and shows it; its name, Enter opens
+    # it; its "draw over" button, Enter moves it one place up the drawing order (focus stays on it)
+    _tab_to(p, f'#flights li[data-id="{first}"] input[type=checkbox]')
+    p.keyboard.press("Space")
+    p.wait_for_function(f"() => window.viewer.hidden.has('{first}')")
+    p.keyboard.press("Space")
+    p.wait_for_function(f"() => !window.viewer.hidden.has('{first}')")
+    p.keyboard.press("Tab")
+    assert p.evaluate("document.activeElement.classList.contains('flight-open')")
+    p.keyboard.press("Enter")
+    p.wait_for_function(f"() => window.viewer.open === '{first}'")
+    page.settled()
+    _tab_to(p, f'#flights li[data-id="{first}"] button.move[title="draw over"]')
+    p.keyboard.press("Enter")
+    p.wait_for_function(f"() => window.viewer.order[1] === '{first}'")
+    assert p.evaluate(f"""() => document.activeElement.closest('li').dataset.id === '{first}'""")
+    page.settled()
+
+    # one zoom level per wheel notch (100 px), and one for a burst of small trackpad deltas
+    box = p.locator("#map").bounding_box()
+    p.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    z0 = p.evaluate("window.viewer.map.getZoom()")
+    p.mouse.wheel(0, -100)
+    p.wait_for_timeout(400)
+    assert p.evaluate("window.viewer.map.getZoom()") == z0 + 1
+    p.mouse.wheel(0, 100)
+    p.wait_for_timeout(400)
+    assert p.evaluate("window.viewer.map.getZoom()") == z0
+    for _ in range(5):
+        p.mouse.wheel(0, -20)
+    p.wait_for_timeout(400)
+    assert p.evaluate("window.viewer.map.getZoom()") == z0 + 1
+    page.close()
+
+    # a phone's width: the panel starts collapsed and the map fills the screen; the toggle (by
+    # keyboard) shows the panel below a map that keeps more than half the height
+    narrow = Page(browser, server, f"flights={ids[0]}&open={ids[0]}", width=390, height=800)
+    q = narrow.page
+    m = q.locator("#map").bounding_box()
+    assert q.evaluate("document.body.classList.contains('collapsed')")
+    assert m["width"] >= 389 and m["height"] >= 790, m
+    q.focus("#panel-toggle")
+    q.keyboard.press("Enter")
+    q.wait_for_function("() => !document.body.classList.contains('collapsed')")
+    assert q.get_attribute("#panel-toggle", "aria-expanded") == "true"
+    m = q.locator("#map").bounding_box()
+    panel = q.locator("#panel").bounding_box()
+    assert m["height"] >= 0.55 * 800 - 1 and m["width"] >= 389, m
+    assert panel["y"] >= m["y"] + m["height"] - 1 and panel["height"] <= 0.45 * 800 + 1, panel
+    assert q.evaluate("document.documentElement.scrollWidth") <= 390   # nothing wider than the screen
+    narrow.settled()
+    narrow.close()

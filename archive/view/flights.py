@@ -11,7 +11,14 @@ named. :class:`Flight` holds one flight's caches and does its drawing with the i
   at the flight's nominal GSD for tiles, at the point's GSD for spectra); its "ground height" is
   then a vertical offset of the DEM (m, 0 = the DEM as it is);
 - lookups (pass 1 of the renderer: which line and sample each tile pixel sees) per cube and tile
-  grid, shared by every band choice; cube bands (DN) read from the store once.
+  grid, shared by every band choice;
+- band planes: a band of a cube in a mode, calibrated once for every (line, sample) by
+  :func:`archive.render.gather.gather_lookup` (the CPU pass 2 of ``archive render`` on software GL,
+  bit for bit llvmpipe's band pass) and kept, with its box-filtered levels for overview zooms (each
+  value the mean of the 2^k x 2^k block of lines x samples around it); a tile is then a gather
+  through its lookup (no GL band pass per tile);
+- whole-flight 2/98 % statistics per (band, mode, cubes) from every 4th line and sample of those
+  planes: computed once, whatever the ground height or sync offset.
 
 Every method of :class:`Flight` may use OpenGL: call them from the viewer's one render thread
 (:class:`archive.view.worker.RenderThread`), never from the event loop.
@@ -46,6 +53,10 @@ POINT_BAND_GROUP = 16
 #: Geometries (ground height x sync offset) kept per flight; flights kept open.
 GEOMETRIES_KEPT = 6
 FLIGHTS_KEPT = 16
+#: Whole-flight statistics sample every STATS_STEP-th line and sample of each cube.
+STATS_STEP = 4
+#: Widest box filter of a band plane for overviews (blocks of 2^k x 2^k lines x samples).
+MAX_MIP = 8
 #: Rows of a cube's mesh kept in its outline (footprint drawn by the page).
 OUTLINE_ROWS = 64
 #: Seconds the list of catalog ids is trusted before the index is asked again.
@@ -115,20 +126,25 @@ def _block_mean(values: np.ndarray, factor: int) -> np.ndarray:
         return np.where(count > 0, total / np.maximum(count, 1), np.nan).astype(np.float32)
 
 
-def _crop(lookup):
-    """(lookup, lines, samples): ``lookup`` cut to the lines and samples it sees, and those slices
-    of the cube. Rendering the cut cube through it gives the same values from much smaller
-    textures (a tile sees a few hundred lines of a cube)."""
-    from archive.render.renderer import Lookup
+def _box_mean(plane: np.ndarray, size: int) -> np.ndarray:
+    """(lines, samples) float32: at each (line, sample), the mean of the finite values of ``plane``
+    in the size x size block of lines x samples centred on it (rows and columns from index - size // 2;
+    cut at the edges), NaN where none is finite: the flight's pixels box-filtered to a coarser
+    pixel, sampled where the lookup lands (no block-grid offset, unlike a pyramid)."""
+    from scipy.ndimage import uniform_filter
 
-    seen = lookup.line >= 0
-    lines = lookup.line[seen]
-    samples = lookup.sample[seen]
-    l0, l1 = int(lines.min()), int(lines.max()) + 1
-    s0, s1 = int(samples.min()), int(samples.max()) + 1
-    line = np.where(seen, lookup.line - l0, -1).astype(np.int32)
-    sample = np.where(seen, lookup.sample - s0, -1).astype(np.int32)
-    return Lookup(lookup.grid, line, sample, l1 - l0, s1 - s0), slice(l0, l1), slice(s0, s1)
+    finite = np.isfinite(plane)
+    total = uniform_filter(np.where(finite, plane, 0).astype(np.float64), size, mode="constant", cval=0.0)
+    count = uniform_filter(finite.astype(np.float64), size, mode="constant", cval=0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0.5 / size**2, total / np.maximum(count, 1e-12), np.nan).astype(np.float32)
+
+
+def _plane_index(lookup) -> np.ndarray:
+    """(height * width,) int32 index into a band plane (:meth:`Flight.plane`) of the (line, sample)
+    each pixel of ``lookup`` sees; the plane's last (NaN) element where none."""
+    index = lookup.line * np.int32(lookup.samples) + lookup.sample
+    return np.where(lookup.line >= 0, index, lookup.lines * lookup.samples).astype(np.int32).reshape(-1)
 
 
 class Flight:
@@ -223,8 +239,8 @@ class Flight:
         if cubes is None:
             return range(n)
         if cubes[1] >= n:
-            raise InputError("cubes", f"cube {cubes[1]} out of range: the flight has cubes 0..{n - 1} (0-based; "
-                             f"files {self.cubes[0].base}..{self.cubes[-1].base})")
+            raise InputError("cubes", f"cube {cubes[1] + 1} out of range: the flight has cubes 1..{n} (numbered "
+                             f"as its files, {self.cubes[0].base}..{self.cubes[-1].base})")
         return range(cubes[0], cubes[1] + 1)
 
     def bands(self, query: ViewQuery) -> list[int]:
@@ -270,12 +286,49 @@ class Flight:
             found = self._keep(self._radiometry, key, self.source(None).radiometry(cube, list(bands), mode), 256)
         return found
 
-    def band(self, cube: int, band: int) -> np.ndarray:
-        """(lines, samples) DN of one band of one cube (cached)."""
-        def read():
-            dn = self.source(None).read_bands(cube, [band])[0]
-            return dn, dn.nbytes
-        return self.bands_cache.get_or_make((self.id, cube, band), read)
+    def plane(self, cube: int, band: int, mode: str, level: int = 1) -> np.ndarray:
+        """(lines * samples + 1,) float32 values of one band of one cube in ``mode`` for every (line,
+        sample), row-major, the last element NaN (what an uncovered pixel shows): the values
+        ``archive render`` gives those pixels (:func:`~archive.render.gather.gather_lookup` through
+        a lookup that sees each once). ``level`` > 1: each value the mean of the level x level
+        block of lines x samples centred on it (:func:`_box_mean`). Cached (the bands cache)."""
+        key = (self.id, cube, band, mode, level)
+
+        def make():
+            if level > 1:
+                lines, samples = self.cubes[cube].lines, self.cubes[cube].samples
+                full = self.plane(cube, band, mode)[:-1].reshape(lines, samples)
+                values = _box_mean(full, level).reshape(-1)
+            else:
+                values = self._calibrate(cube, band, mode).reshape(-1)
+            out = np.empty(values.size + 1, np.float32)
+            out[:-1] = values
+            out[-1] = np.nan
+            return out, out.nbytes
+        return self.bands_cache.get_or_make(key, make)
+
+    def _calibrate(self, cube: int, band: int, mode: str) -> np.ndarray:
+        """(lines, samples) float32: every pixel of one band of one cube in ``mode``."""
+        from archive.render.gather import gather_lookup
+        from archive.render.renderer import Lookup
+
+        info = self.cubes[cube]
+        dn = self.source(None).read_bands(cube, [band])
+        grid = Grid(MERCATOR_EPSG, 1.0, 0.0, 0.0, info.samples, info.lines)   # only its shape matters
+        line = np.repeat(np.arange(info.lines, dtype=np.int32)[:, None], info.samples, axis=1)
+        sample = np.repeat(np.arange(info.samples, dtype=np.int32)[None], info.lines, axis=0)
+        every = Lookup(grid, line, sample, info.lines, info.samples)
+        return gather_lookup(every, dn, self.band_radiometry(cube, band, mode)).values[0]
+
+    def band_radiometry(self, cube: int, band: int, mode: str):
+        """The radiometric terms of one band of ``cube`` (None: raw DN), cut from those of every band
+        (read once per cube and mode: a new band reads no calibration)."""
+        from archive.sources.base import Radiometry
+
+        every = self.radiometry(cube, tuple(range(self.cubes[cube].bands)), mode)
+        if every is None:
+            return None
+        return Radiometry(every.dark[band:band + 1], every.gain[band:band + 1], every.response, every.saturation)
 
     def lookup(self, geometry: Geometry, cube: int, grid: Grid):
         """Pass 1 of the renderer for ``cube`` on ``grid`` (cached); None when nothing is covered."""
@@ -297,12 +350,19 @@ class Flight:
         --provenance`` does (:func:`archive.provenance.cube_layers`)."""
         from archive.provenance import ProvenanceSpec, cube_layers
 
+        key = (self.id, "view_zenith", geometry.ground_height, geometry.source.params.sync_offset, geometry.gsd,
+               cube, lookup.grid)
+        found = self.lookup_cache.get(key)
+        if found is not None:
+            return found
         terrain = self.terrain() if geometry.gsd is not None else None
         dem = None if terrain is None else dataclasses.replace(terrain[0], offset=geometry.ground_height)
         # the time reference only shifts the sun layers, which are not asked for
         spec = ProvenanceSpec(lookup.grid.epsg, 0.0, "1980-01-06T00:00:00Z", (), (geometry.ground_height,), dem,
                               ("view_zenith",))
-        return cube_layers(geometry.source, cube, 0, lookup, spec, geometry.ground_height)[0]
+        zenith = cube_layers(geometry.source, cube, 0, lookup, spec, geometry.ground_height)[0]
+        self.lookup_cache.put(key, zenith, zenith.nbytes)
+        return zenith
 
     def render(self, grid: Grid, bands: Sequence[int], mode: str, cubes: range, geometry: Geometry,
                check: Callable[[], None] = lambda: None, overlap: str = "last") -> np.ndarray:
@@ -313,19 +373,21 @@ class Flight:
         return self.render_keyed(grid, bands, mode, cubes, geometry, check, overlap)[0]
 
     def render_keyed(self, grid: Grid, bands: Sequence[int], mode: str, cubes: range, geometry: Geometry,
-                     check: Callable[[], None] = lambda: None, overlap: str = "last"
+                     check: Callable[[], None] = lambda: None, overlap: str = "last", level: int = 1
                      ) -> tuple[np.ndarray, np.ndarray | None]:
         """:meth:`render` and, for the 'nadir' rule, the view zenith (deg) of each pixel's winner
         ((height, width) float32, NaN where none; None for 'last'): what the browser compares
-        between flights."""
+        between flights. Each pixel shows the value of the (line, sample) its lookup sees, from the
+        band's plane (:meth:`plane`; ``level`` > 1: the mean of the level x level block of the
+        flight's pixels centred there)."""
         from archive.graph.mosaic import make_rule, nadir_values, nadir_winners, rule_key
-        from archive.render.renderer import render_lookup
 
         rule = make_rule(overlap, len(bands), grid.height, grid.width)
         keyed = rule_key(overlap) is not None
         whole = (slice(0, grid.height), slice(0, grid.width))
         keys = []
         box = grid.bounds
+        unflagged = np.zeros(grid.shape, bool)   # saturation does not change which value shows
         for c in cubes:
             if grid.epsg == MERCATOR_EPSG and not (np.isfinite(geometry.bounds[c]).all()
                                                     and _intersects(geometry.bounds[c], box)):
@@ -334,14 +396,14 @@ class Flight:
             lookup = self.lookup(geometry, c, grid)
             if lookup is None:
                 continue
-            sub, lines, samples = _crop(lookup)
-            block = np.stack([self.band(c, b)[lines, samples] for b in bands])
-            rad = _slice_radiometry(self.radiometry(c, bands, mode), lines, samples)
-            result = render_lookup(sub, block, rad)
+            index = _plane_index(lookup)
+            values = np.empty((len(bands), grid.height, grid.width), np.float32)
+            for i, b in enumerate(bands):
+                np.take(self.plane(c, b, mode, level), index, out=values[i].reshape(-1), mode="clip")
             key = self.view_zenith(geometry, c, lookup) if keyed else None
             if key is not None:
                 keys.append((key, *whole))
-            rule.feed(result.values, result.saturated, *whole, key=key)
+            rule.feed(values, unflagged, *whole, key=key)
         values = rule.result()[0]
         if not keyed:
             return values, None
@@ -355,9 +417,10 @@ class Flight:
         coarse preview), None when no line covers the tile.
 
         Where a tile pixel spans several of the flight's pixels (``flight_gsd`` m, overview zooms),
-        its value is the mean over its footprint (anti-aliased): the tile is rendered on a finer
-        grid (up to 8 x 8 samples per pixel, only over the flight's bounds) and averaged, as a
-        mipmap would; covered sub-pixels only, so edges stay sharp."""
+        its value is the mean over the block of 2^k x 2^k of the flight's pixels (lines x samples)
+        centred on the one it sees, 2^k (up to MAX_MIP) the power of two nearest the ratio of the
+        pixel sizes: anti-aliased as by a mipmapped texture (box-filtered planes made once per band
+        and level), at the cost of a full-resolution tile."""
         geometry = self.geometry(query.ground_height, query.sync_offset)
         cubes = self.cube_range(query.cubes)
         bands = self.bands(query)
@@ -367,30 +430,14 @@ class Flight:
             return None
         side = grid.width // scale
         gsd = grid.gsd * scale
-        factor = 1
-        if scale == 1 and flight_gsd:
-            factor = int(min(8, 2 ** max(0, round(math.log2(gsd / flight_gsd)))))
-        fine = Grid(grid.epsg, gsd / factor, grid.x0, grid.y0, side * factor, side * factor)
-        cropped = fine.crop(*union)
-        if cropped is None:
-            return None
-        r0, c0, window = cropped
-        # align the window on whole output pixels
-        r1, c1 = r0 + window.height, c0 + window.width
-        r0, c0 = r0 - r0 % factor, c0 - c0 % factor
-        r1, c1 = min(-(-r1 // factor) * factor, fine.height), min(-(-c1 // factor) * factor, fine.width)
-        window = fine.window(r0, c0, r1 - r0, c1 - c0)
-        values, key = self.render_keyed(window, bands, mode, cubes, geometry, check, query.overlap)
+        level = 1
+        if flight_gsd:
+            level = int(min(MAX_MIP, 2 ** max(0, round(math.log2(gsd / flight_gsd)))))
+        coarse = Grid(grid.epsg, gsd, grid.x0, grid.y0, side, side)
+        values, key = self.render_keyed(coarse, bands, mode, cubes, geometry, check, query.overlap, level)
         if not np.isfinite(values).any():
             return None
-        out = np.full((len(bands), side, side), np.nan, np.float32)
-        rows, cols = slice(r0 // factor, r1 // factor), slice(c0 // factor, c1 // factor)
-        out[:, rows, cols] = _block_mean(values, factor)
-        out_key = None
-        if key is not None:
-            out_key = np.full((side, side), np.nan, np.float32)
-            out_key[rows, cols] = _block_mean(key[None], factor)[0]
-        return out, out_key
+        return values, key
 
     # ---- what the API answers ----------------------------------------------------------
     def tile(self, grid: Grid, query: ViewQuery, check: Callable[[], None] = lambda: None) -> bytes:
@@ -411,33 +458,62 @@ class Flight:
         return encode_png(values, ranges)
 
     def flight_ranges(self, bands, mode, cubes, geometry, percentiles) -> tuple:
-        """Per band (low, high) percentiles over the whole flight (cached)."""
-        key = (tuple(bands), mode, cubes.start, cubes.stop, geometry.ground_height,
-               geometry.source.params.sync_offset, percentiles)
-        found = self._ranges.get(key)
-        if found is None:
-            stats = self.stats(None, bands, mode, cubes, geometry, percentiles)
-            pairs = []
-            for lo, hi in zip(stats["low"], stats["high"], strict=True):
-                lo = 0.0 if lo is None else lo
-                hi = lo + 1.0 if hi is None or hi <= lo else hi
-                pairs.append((lo, hi))
-            found = self._keep(self._ranges, key, tuple(pairs), 64)
-        return found
+        """Per band (low, high) percentiles over the whole flight (:meth:`flight_percentiles`)."""
+        pairs = []
+        for lo, hi in zip(*self.flight_percentiles(bands, mode, cubes, percentiles)[:2], strict=True):
+            lo = 0.0 if lo is None else lo
+            hi = lo + 1.0 if hi is None or hi <= lo else hi
+            pairs.append((lo, hi))
+        return tuple(pairs)
 
-    def stats(self, bbox, bands: Sequence[int], mode: str, cubes: range, geometry: Geometry,
+    def flight_percentiles(self, bands, mode: str, cubes: range, percentiles) -> tuple[list, list, int]:
+        """(low per band, high per band, values per band) of the whole flight's ``cubes``: the
+        ``percentiles`` of every STATS_STEP-th line and sample of each cube's band plane (finite
+        values; None where there is none). Per band, cached: a band, mode or cube-range change
+        computes only what is new, and ground height and sync offset (where the pixels land, not
+        their values) never do."""
+        lows, highs, count = [], [], 0
+        for b in bands:
+            key = (int(b), mode, cubes.start, cubes.stop, tuple(percentiles))
+            found = self._ranges.get(key)
+            if found is None:
+                parts = []
+                for c in cubes:
+                    info = self.cubes[c]
+                    plane = self.plane(c, int(b), mode)[:-1].reshape(info.lines, info.samples)
+                    part = plane[::STATS_STEP, ::STATS_STEP].reshape(-1)
+                    parts.append(part[np.isfinite(part)])
+                v = np.concatenate(parts) if parts else np.empty(0, np.float32)
+                lo = hi = None
+                if v.size:
+                    lo, hi = (float(x) for x in np.percentile(v, percentiles))
+                found = self._keep(self._ranges, key, (lo, hi, int(v.size)), 4096)
+            else:
+                self._ranges.move_to_end(key)
+            lows.append(found[0])
+            highs.append(found[1])
+            count = max(count, found[2])
+        return lows, highs, count
+
+    def stats(self, bbox, bands: Sequence[int], mode: str, cubes: range, geometry: Geometry | None,
               percentiles=(2.0, 98.0)) -> dict:
-        """Per band percentiles of the values inside ``bbox`` (W, S, E, N EPSG:3857 m; None: the
-        whole flight), drawn on a grid of at most 512 px a side over the covered part."""
-        union = geometry.union(cubes)
-        box = union
-        if union is not None and bbox is not None:
-            box = (max(union[0], bbox[0]), max(union[1], bbox[1]), min(union[2], bbox[2]), min(union[3], bbox[3]))
-            if box[0] >= box[2] or box[1] >= box[3]:
-                box = None
+        """Per band percentiles of the values inside ``bbox`` (W, S, E, N EPSG:3857 m), drawn on a
+        grid of at most 512 px a side over the covered part; ``bbox`` None: of the whole flight
+        (:meth:`flight_percentiles`: a sample of every cube's pixels, ``gsd`` None, ``sample``
+        the step in lines and samples)."""
         out = {"band": [int(b) for b in bands], "mode": mode, "percentiles": list(percentiles),
                "wavelength": self._wavelengths(bands), "low": [None] * len(bands), "high": [None] * len(bands),
                "count": 0, "gsd": None}
+        if bbox is None:
+            out["low"], out["high"], out["count"] = self.flight_percentiles(bands, mode, cubes, percentiles)
+            out["sample"] = STATS_STEP
+            return out
+        union = geometry.union(cubes)
+        box = None
+        if union is not None:
+            box = (max(union[0], bbox[0]), max(union[1], bbox[1]), min(union[2], bbox[2]), min(union[3], bbox[3]))
+            if box[0] >= box[2] or box[1] >= box[3]:
+                box = None
         if box is None:
             return out
         grid = bbox_grid(*box)
@@ -471,9 +547,8 @@ class Flight:
         cx, cy = col * gsd + gsd / 2, row * gsd + gsd / 2
         clon, clat = (float(v) for v in to_lonlat(cx, cy, geometry.epsg))
         nbands = self.cubes[0].bands
-        values = np.full(nbands, np.nan, np.float32)
-        hit = None
-        saturated = False
+        # every cube covering the pixel: (cube, line, sample, values, saturated, view zenith)
+        candidates = []
         for c in cubes:
             mesh = geometry.utm[c]
             if mesh.rows < 2:
@@ -487,16 +562,19 @@ class Flight:
                 continue
             one = Lookup(grid, np.zeros((1, 1), np.int32), np.zeros((1, 1), np.int32), 1, 1)
             source = self.source(None)
+            v = np.full(nbands, np.nan, np.float32)
+            flagged = False
             for b0 in range(0, nbands, POINT_BAND_GROUP):
                 group = list(range(b0, min(b0 + POINT_BAND_GROUP, nbands)))
                 dn = source.read_bands(c, group)[:, line:line + 1, sample:sample + 1]
                 rad = _slice_radiometry(self.radiometry(c, group, mode), slice(line, line + 1),
                                         slice(sample, sample + 1))
                 result = render_lookup(one, dn, rad)
-                v = result.values[:, 0, 0]
-                np.copyto(values[b0:b0 + len(group)], v, where=np.isfinite(v))
-                saturated = saturated or bool(result.saturated[0, 0])
-            hit = (c, line, sample)
+                v[b0:b0 + len(group)] = result.values[:, 0, 0]
+                flagged = flagged or bool(result.saturated[0, 0])
+            zenith = float(self.view_zenith(geometry, c, found)[0, 0]) if query.overlap == "nadir" else None
+            candidates.append((c, line, sample, v, flagged, zenith))
+        values, saturated, hit = self._overlap_pick(candidates, nbands, query.overlap)
         answer = {
             "id": self.id, "lon": lon, "lat": lat, "mode": mode, "gsd": gsd, "epsg": geometry.epsg,
             "pixel": {"x": cx, "y": cy, "lon": clon, "lat": clat},
@@ -512,6 +590,34 @@ class Flight:
             answer.update(cube=c, base=self.cubes[c].base, line=line, sample=sample, time=t,
                           utc=gps_seconds_to_datetime(t).isoformat().replace("+00:00", "Z"))
         return answer
+
+    @staticmethod
+    def _overlap_pick(candidates, nbands: int, overlap: str):
+        """(values (nbands,) float32, saturated, (cube, line, sample) shown or None) of one output
+        pixel from the cubes covering it, in capture order, by the rule ``archive render --overlap``
+        applies (:mod:`archive.graph.mosaic`): 'last', per band the latest finite value; 'nadir',
+        every band of the cube seen closest to nadir (the later one on a tie)."""
+        from archive.graph.mosaic import make_rule
+
+        if not candidates:
+            return np.full(nbands, np.nan, np.float32), False, None
+        rule = make_rule(overlap, nbands, 1, 1)
+        whole = (slice(0, 1), slice(0, 1))
+        for _, _, _, v, flagged, zenith in candidates:
+            key = None if zenith is None else np.full((1, 1), zenith, np.float32)
+            rule.feed(v.reshape(nbands, 1, 1), np.full((1, 1), flagged), *whole, key=key)
+        values, saturated = rule.result()
+        if overlap == "nadir":
+            zeniths = [z for *_, z in candidates]
+            finite = [k for k, z in enumerate(zeniths) if np.isfinite(z)]
+            if not finite:
+                return values[:, 0, 0], bool(saturated[0, 0]), None
+            best = min(np.float32(zeniths[k]) for k in finite)
+            shown = max(k for k in finite if np.float32(zeniths[k]) <= best)   # the later one on a tie
+        else:
+            shown = len(candidates) - 1
+        c, line, sample = candidates[shown][:3]
+        return values[:, 0, 0], bool(saturated[0, 0]), (c, line, sample)
 
     def outline(self, query: ViewQuery) -> dict:
         """GeoJSON MultiPolygon (lon, lat) of the cubes' ground meshes at the query's ground height,

@@ -163,8 +163,12 @@ def _cubes(params: Mapping[str, str]) -> tuple[int, int] | None:
         b = int(last) if sep else a
     except ValueError:
         raise InputError("cubes", f"expected FIRST-LAST (0-based cube indices), got {text!r}") from None
-    if a < 0 or b < a:
-        raise InputError("cubes", f"expected 0 <= first <= last, got {text!r}")
+    if a < 0:
+        raise InputError("cubes", f"expected 0-based cube indices (cube 1, as the files are numbered, is 0), "
+                         f"got {text!r}")
+    if b < a:
+        raise InputError("cubes", f"first cube {a + 1} comes after last cube {b + 1} (numbered from 1, as the cube "
+                         "files are)", "give a first cube at or before the last")
     return (a, b)
 
 

@@ -132,7 +132,8 @@ def _point_job(registry, cid, lon, lat, gsd, query, check):
 
 def _stats_job(registry, cid, box, query, percentiles, check):
     flight = registry.flight(cid)
-    geometry = flight.geometry(query.ground_height, query.sync_offset)
+    # the whole flight's statistics do not depend on where its pixels land: no meshes for them
+    geometry = None if box is None else flight.geometry(query.ground_height, query.sync_offset)
     return flight.stats(box, flight.bands(query), flight.mode(query), flight.cube_range(query.cubes), geometry,
                         percentiles)
 

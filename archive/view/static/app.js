@@ -272,7 +272,13 @@ layer.on("tileunload", (ev) => {
 });
 layer.addTo(map);
 
-const liveTiles = () => [...tiles.values()].filter((t) => t.coords.z === Math.round(map.getZoom()));
+// the tiles of the current zoom, those nearest the centre of the view first (asked for first)
+function liveTiles() {
+  const z = Math.round(map.getZoom());
+  const c = map.project(map.getCenter(), z).divideBy(TILE);
+  const d = (t) => (t.coords.x + 0.5 - c.x) ** 2 + (t.coords.y + 0.5 - c.y) ** 2;
+  return [...tiles.values()].filter((t) => t.coords.z === z).sort((a, b) => d(a) - d(b));
+}
 
 function tileReady(tile, spec) {
   const tb = tileBounds(tile.coords.z, tile.coords.x, tile.coords.y);
@@ -418,7 +424,14 @@ function stretchRanges(nm) {
   return pairs;
 }
 let lastRanges = null;
-const statsKey = (id, bands, kind) => `${id}|${flightParams(id, null)}|${bands}|${kind === "unscaled" ? "0,100" : "2,98"}`;
+// the whole flight's statistics depend on the mode and cube range, not on where its pixels land:
+// a ground-height or sync change keeps its stretch (and asks nothing)
+function statsParams(id) {
+  const q = new URLSearchParams(flightParams(id, null));
+  for (const name of ["ground_height", "sync_offset", "overlap"]) q.delete(name);
+  return q.toString();
+}
+const statsKey = (id, bands, kind) => `${id}|${statsParams(id)}|${bands}|${kind === "unscaled" ? "0,100" : "2,98"}`;
 const statsPending = new Set();
 function ensureRanges(spec) {
   const kind = $("stretch").value;
@@ -431,7 +444,7 @@ function ensureRanges(spec) {
   const key = statsKey(id, bands, kind);
   if (statsCache.has(key) || statsPending.has(key)) return;
   statsPending.add(key);
-  getJSON(`${idPath(id)}/stats?bands=${bands.join(",")}&${flightParams(id, null)}&percentiles=${kind === "unscaled" ? "0,100" : "2,98"}`)
+  getJSON(`${idPath(id)}/stats?bands=${bands.join(",")}&${statsParams(id)}&percentiles=${kind === "unscaled" ? "0,100" : "2,98"}`)
     .then((st) => { statsCache.set(key, st); refresh(); })
     .catch((err) => showError(err.message))
     .finally(() => statsPending.delete(key));

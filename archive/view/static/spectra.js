@@ -137,8 +137,15 @@ function drawSpectrum() {
   el("path", { class: "axis", d: `M${left},${top}V${H - bottom}H${W - right}`, stroke: "#445", fill: "none" });
   el("text", { x: (left + W - right) / 2, y: H - 4, "text-anchor": "middle", "font-size": 10 }, ref.wavelength ? "wavelength (nm)" : "band");
   const units = viewer.pins[0].units;
-  el("text", { x: 10, y: (top + H - bottom) / 2, "text-anchor": "middle", "font-size": 10,
-               transform: `rotate(-90 10 ${(top + H - bottom) / 2})` }, `${ref.mode} (${units})`);
+  // the y-axis label fits the plot's height: smaller type, then shortened (the whole of it as a tooltip)
+  const label = `${ref.mode} (${units})`, room = H - top - bottom - 4;
+  const yl = el("text", { class: "y-label", x: 10, y: (top + H - bottom) / 2, "text-anchor": "middle", "font-size": 10,
+                          transform: `rotate(-90 10 ${(top + H - bottom) / 2})` }, label);
+  for (let size = 10; size > 7 && yl.getComputedTextLength() > room; size -= 1) yl.setAttribute("font-size", size - 1);
+  for (let n = label.length - 1; n > 4 && yl.getComputedTextLength() > room; n -= 1) yl.textContent = label.slice(0, n) + "…";
+  const tip = document.createElementNS(NS, "title");
+  tip.textContent = label;
+  yl.append(tip);
   for (const pin of viewer.pins) {
     const p = pin.point, xs = xsOf(p);
     let run = [];
