@@ -161,16 +161,20 @@ def test_pitch_and_sync_of_straight_level_passes_are_reported_not_invented(tmp_p
     source = RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg))
     result = calibrate([source], truth.fov_deg, truth.ground_height + 5.0)
     assert result.observable["pitch"] is False and "pitch" in result.held
-    assert "sync" in result.held["pitch"]["with"]
+    assert set(result.held["pitch"]["with"]) <= {"yaw", "sync"} and result.held["pitch"]["with"]
     assert result.params.pitch == 0.0                      # held at the start, not invented
-    assert any(n.startswith("pitch cannot be separated from sync") for n in result.notes)
+    assert any(n.startswith("pitch cannot be separated from") for n in result.notes)
+    assert any(n.startswith("pitch and sync offset both shift along track") for n in result.notes)
+    # one along-track direction (pitch, yaw, sync) and one across (roll, ground): one parameter each
+    assert sum(n in result.held for n in ("pitch", "yaw", "sync")) == 2 and "sync" not in result.held
+    assert sum(n in result.held for n in ("roll", "ground")) == 1
     assert result.residual_after["median"] <= 0.1         # the combination still registers the passes
     out = result.to_json()
     assert out["observable"]["pitch_deg"] is False and out["sigma"]["pitch_deg"] is None
 
 
 def test_collection_apply_records_navigation_params(two_passes, tmp_path, capsys):
-    from archive.catalog.root import open_archive
+    from archive.catalog.root import open_root
     from archive.collection import read_attrs, verify_store
     from archive.ingest.command import ingest
     from archive.sources import open_source
@@ -182,7 +186,7 @@ def test_collection_apply_records_navigation_params(two_passes, tmp_path, capsys
     assert main(["calibrate", cid, "--archive", str(archive), "--apply", "--quiet"]) == 0
     text = capsys.readouterr().out
     assert "render / ingest with: --boresight" in text and "misregistration between passes" in text
-    store = open_archive(archive).require_collection(cid)
+    store = open_root(archive).require_collection(cid)
     attrs = read_attrs(store)
     recorded = attrs["navigation_params"]
     assert recorded["sync_offset"] == pytest.approx(truth.sync_offset, abs=0.002)
@@ -202,7 +206,7 @@ def test_dem_vertical_offset_over_hills(tmp_path):
     from archive.dem import open_dem
 
     directory = tmp_path / "hills"
-    truth = simulate_flight(directory, cubes=3, cubes_per_pass=1, bands=BANDS, samples=128, lines=1000, seed=7,
+    truth = simulate_flight(directory, cubes=3, cubes_per_pass=1, bands=BANDS, samples=128, lines=800, seed=7,
                             boresight_deg=(0.5, -0.8, 0.6), sync_offset=0.25, terrain="hills")
     source = RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg))
     dem = open_dem(directory / "dem.tif")

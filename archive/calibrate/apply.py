@@ -55,7 +55,7 @@ def _apply_raw(source, params: dict, ground, result) -> Path:
     from archive.sources.raw import NAVIGATION_SIDECAR
 
     path = Path(source.directory) / NAVIGATION_SIDECAR
-    record = {**params, "ground_height": ground, "fov_deg": float(result.params and source.params.fov_deg),
+    record = {**params, "ground_height": ground, "fov_deg": float(source.params.fov_deg),
               "calibration": _note(result)}
     if result.dem is not None:
         record["dem"] = result.dem
@@ -79,7 +79,7 @@ def _apply_collection(source, params: dict, ground, note: dict, archive) -> Path
     record_navigation(source.store, params, arrays, ground_height=ground, note=note)
     if archive is not None:
         from archive.catalog.describe import catalog_collection
-        from archive.catalog.root import open_archive
+        from archive.catalog.root import open_root
 
-        catalog_collection(open_archive(archive), source.id)
+        catalog_collection(open_root(archive), source.id)
     return Path(source.store)

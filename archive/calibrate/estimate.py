@@ -47,6 +47,8 @@ PARAMETER_GROUPS = {"boresight": ("roll", "pitch", "yaw"), "roll": ("roll",), "p
 SEPARABLE = 0.99
 #: |correlation| above which the flight cannot tell two parameters apart at all: one is held.
 DEGENERATE = 0.9999
+#: A held parameter is reported with the parameters it correlates with beyond this.
+PARTNER = 0.9
 #: Which parameter of a degenerate pair keeps its start value (first in this order).
 HOLD_ORDER = ("pitch", "yaw", "roll", "ground", "sync")
 #: Sync offsets searched about the start value, s.
@@ -54,9 +56,14 @@ SYNC_SEARCH = (-1.0, 1.0, 0.1)
 #: Fewest tie windows a calibration accepts (and under the start parameters, the first measurement).
 MIN_TIES = 30
 MIN_FIRST_TIES = 12
-#: Measurement grid spacing as a fraction of the nominal GSD; window side (grid pixels).
+#: Measurement grid spacing as a fraction of the nominal GSD, but at least the swath / SWATH_PIXELS
+#: (the geometry, not the sensor's sample count, sets how finely overlaps need sampling: a 900-sample
+#: camera is measured on the grid of a 128-sample one, its lines low-passed first); window side (grid
+#: pixels).
 SPACING = 0.5
+SWATH_PIXELS = 256
 WINDOW = 24
+MIN_WINDOW = 16     # tried where no WINDOW-sized window fits in an overlap
 #: Outer iterations (measure, solve) at most; stop when every parameter moves less than STOP.
 ITERATIONS = 6
 STOP = np.array([0.001, 0.001, 0.003, 0.0002, 0.005])   # a tenth of the accuracy goals
@@ -164,6 +171,21 @@ def _pass_images(source, model: FlightModel) -> tuple[np.ndarray, ...]:
     return tuple(out)
 
 
+def _prefiltered(flight, images, spacing: float, pixel: float) -> tuple[np.ndarray, ...]:
+    """Pass images low-passed (Gaussian) along lines and samples where the measurement grid samples
+    them more coarsely than 1.5 raw pixels (no aliasing in the point-sampled grid)."""
+    from scipy import ndimage
+
+    out = []
+    for p, image in zip(flight.model.passes, images, strict=True):
+        pos, _, valid = flight.model.line_poses(p, Params())
+        step = np.linalg.norm(np.diff(pos[valid][:, :2], axis=0), axis=1)
+        along = float(np.median(step)) if step.size else spacing
+        sigma = [0.4 * r if r > 1.5 else 0.0 for r in (spacing / max(along, 1e-9), spacing / pixel)]
+        out.append(ndimage.gaussian_filter(image, sigma, mode="nearest") if any(sigma) else image)
+    return tuple(out)
+
+
 def _nominal_pixel(flights, ground: float, dem_surface) -> float:
     """Across-track sample spacing at nadir at the median camera height above the ground, m."""
     heights, samples, fov = [], [], flights[0].model.fov_deg
@@ -196,6 +218,8 @@ def _measure(flights, params: Params, spacing: float, window: int, progress) -> 
                 if grid is None:
                     continue
                 found, stats = measure_pair(f.model, grid, f.images[i], f.images[j], params, window)
+                if stats["windows"] == 0 and window > MIN_WINDOW:   # a narrow overlap: smaller windows
+                    found, stats = measure_pair(f.model, grid, f.images[i], f.images[j], params, MIN_WINDOW)
                 grids[(i, j)] = grid
                 ties.extend(found)
                 pairs.append({"flight": fi, "passes": [i, j], "pixels": stats["overlap_px"],
@@ -236,8 +260,10 @@ def calibrate(sources: Sequence, fov_deg: float, ground: float, *, dem=None, dem
                          "crossing lines)")
     ground_for_pixel = ground if dem is None else float(np.median(dem.typical_height())) + ground
     pixel = _nominal_pixel(flights, ground_for_pixel, dem)
-    spacing = SPACING * pixel
-    flights = [_Flight(f.source, f.model, _pass_images(f.source, f.model)) for f in flights]
+    samples = float(np.median([c.samples for f in flights for c in f.source.cubes]))
+    spacing = max(SPACING * pixel, pixel * samples / SWATH_PIXELS)
+    flights = [_Flight(f.source, f.model, _prefiltered(f, _pass_images(f.source, f.model), spacing, pixel))
+               for f in flights]
     _check_overlap(flights, start, spacing, window)
 
     say = progress or (lambda text: None)
@@ -333,6 +359,9 @@ def _check_ties(ties, pairs, estimate, flights, first: bool = False) -> None:
     textured = sum(p["textured"] for p in pairs)
     tried = sum(p["tried"] for p in pairs)
     labels = ", ".join(str(f.source.label) for f in flights)
+    if tried == 0:
+        raise InputError(labels, "the overlaps between passes are too narrow: no measurement window fits in them",
+                         "calibrate passes flown closer together, or with more side overlap")
     if textured < need:
         raise InputError(labels, f"too little texture in the overlaps: {textured} of {tried} windows are "
                          f"textured, calibrate needs {need}", "calibrate over a flight with more ground "
@@ -369,12 +398,13 @@ def _fit_separable(sets, params: Params, start: Params, free: list, held: dict, 
         hold = min(pair, key=HOLD_ORDER.index)
         c = result.correlation()
         i = result.free.index(hold)
-        partners = sorted((p for p in pair if p != hold), key=lambda p: -abs(c[i, result.free.index(p)]))
-        r = float(c[i, result.free.index(partners[0])])
+        others = sorted((p for p in result.free if p != hold), key=lambda p: -abs(c[i, result.free.index(p)]))
+        partners = [p for p in others if abs(c[i, result.free.index(p)]) >= PARTNER] or others[:1]
+        r = float(c[i, result.free.index(partners[0])]) if partners else float("nan")
         w = float(np.linalg.eigvalsh(c)[0])
         held[hold] = {"with": partners, "correlation": round(r, 6), "eigenvalue": float(f"{w:.3g}")}
-        say(f"{hold} cannot be told apart from {', '.join(partners)} (correlation with {partners[0]} {r:+.6f}): "
-            "held at its start value")
+        say(f"{hold} cannot be told apart from {', '.join(partners) or 'nothing: it has no measurable effect'} "
+            f"(correlation {r:+.6f}): held at its start value")
         free.remove(hold)
         params = Params.from_vector(np.where(np.array(PARAM_NAMES) == hold, start.vector(), params.vector()))
         result = fit(sets, params, tuple(free), pixel)
@@ -393,7 +423,8 @@ def _degenerate(result: Fit) -> tuple[str, ...] | None:
     w, v = np.linalg.eigh(c)
     if w[0] >= 1.0 - DEGENERATE:
         return None
-    return tuple(n for i, n in enumerate(result.free) if abs(v[i, 0]) >= 0.2)
+    weight = np.abs(v[:, w < 1.0 - DEGENERATE]).max(axis=1)    # every blind direction at once
+    return tuple(n for i, n in enumerate(result.free) if weight[i] >= 0.2)
 
 
 def _report(result: Fit, start: Params, estimate, held: dict, before: dict, after: dict, pairs: list,
@@ -410,6 +441,9 @@ def _report(result: Fit, start: Params, estimate, held: dict, before: dict, afte
     for n in estimate:
         if n in held:
             observable[n] = False
+            if not held[n]["with"]:
+                notes.append(f"{n} has no measurable effect on the overlaps of this flight: held at its start value")
+                continue
             w = " and ".join(held[n]["with"])
             notes.append(f"{n} cannot be separated from {w} by this flight (correlation with "
                          f"{held[n]['with'][0]} {held[n]['correlation']:+.4f}, smallest eigenvalue of the "
@@ -424,6 +458,9 @@ def _report(result: Fit, start: Params, estimate, held: dict, before: dict, afte
         if not observable[n]:
             notes.append(f"{n} is not separable from {worst[1]} on this flight (correlation {worst[2]:+.4f}): "
                          f"their combination is measured, each alone only to +-{_fmt(n, sigma[n])}")
+    if dem_label is not None and "ground" in estimate:
+        notes.append(f"the DEM {dem_label} is {result.params.ground:+.3f} m off the flight's ground: renders take "
+                     "no DEM offset, so correct the DEM's heights (or its datum) by this much")
     if not observable.get("pitch", True) or not observable.get("sync", True):
         notes.append("pitch and sync offset both shift along track: they separate only through speed, height "
                      "or attitude changes during the passes")

@@ -138,7 +138,11 @@ class FlightModel:
         here): positions (n, 3) N, E, D; camera -> NED matrices (n, 3, 3); valid (n,) bool."""
         t = np.asarray(t, float) + params.sync
         valid = self._valid_time(t) & np.isfinite(t)
-        tc = np.clip(np.where(np.isfinite(t), t, 0.0), self._time[0], self._time[-1])
+        tc = np.where(np.isfinite(t), t, self._time[0])
+        # held at the end of the nearest navigation segment (never interpolated across a turn's gap)
+        outside = np.maximum(self._seg_start[None, :] - tc[:, None], 0) + np.maximum(tc[:, None] - self._seg_end[None, :], 0)
+        seg = np.argmin(outside, axis=1)
+        tc = np.clip(tc, self._seg_start[seg], self._seg_end[seg])
         pos = np.stack([np.interp(tc, self._time, self._pos[:, i]) for i in range(3)], axis=1)
         body = self._slerp(tc)
         if np.any(self.lever != 0.0):
@@ -151,9 +155,11 @@ class FlightModel:
         return float(self.frame.origin_alt - params.ground)
 
     # --- forward: image -> ground ------------------------------------------------------------
-    def forward(self, p: Pass, line: np.ndarray, u: np.ndarray, params: Params) -> np.ndarray:
+    def forward(self, p: Pass, line: np.ndarray, u: np.ndarray, params: Params, strict: bool = True) -> np.ndarray:
         """Ground points (n, 2) N, E metres of rays (pass line L (fractional), focal-plane u) under
-        ``params``; NaN where a ray has no navigation or misses the ground."""
+        ``params``; NaN where a ray misses the ground or, when ``strict``, has no navigation (else
+        its pose is held at the navigation's end: residuals stay continuous while a trial sync offset
+        moves a line past it, and grow instead of vanishing)."""
         line = np.asarray(line, float)
         t = np.interp(line, np.arange(p.lines), p.mid_time, left=np.nan, right=np.nan)
         pos, att, valid = self.poses(t, params)
@@ -169,7 +175,7 @@ class FlightModel:
                     h = self.surface(xy[:, 0], xy[:, 1]) + params.ground
                     lam = (self.frame.origin_alt - h - pos[:, 2]) / d[:, 2]
                     xy = pos[:, :2] + lam[:, None] * d[:, :2]
-        bad = ~valid | ~np.isfinite(lam) | (lam <= 0)
+        bad = (~valid if strict else np.zeros(valid.shape, bool)) | ~np.isfinite(lam) | (lam <= 0)
         xy[bad] = np.nan
         return xy
 

@@ -25,6 +25,10 @@ __all__ = ["Observations", "Fit", "observations", "fit", "residuals", "stacked",
 SCALE = np.array([0.05, 0.05, 0.05, 0.01, 0.5])
 #: Soft-L1 scale of the robust loss, pixels.
 F_SCALE = 0.3
+#: Residual charged for a tie whose ray loses its navigation under a trial (a sync offset moving its
+#: line past the end of the navigation): more than any real misregistration, so that a trial cannot
+#: win by pushing ties out of the flight.
+LOST_PX = 1000.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,7 +83,7 @@ def residuals(model: FlightModel, obs: Observations, params: Params, pixel: floa
         for k in np.unique(passes):
             sel = passes == k
             xy = model.forward(model.passes[int(k)], getattr(obs, f"line_{side}")[sel],
-                               getattr(obs, f"u_{side}")[sel], params)
+                               getattr(obs, f"u_{side}")[sel], params, strict=False)
             if side == "a":
                 out[sel] = xy
             else:
@@ -129,7 +133,7 @@ def fit(sets, start: Params, free: tuple[str, ...], pixel: float, max_nfev: int 
 
     def fun(x):
         r = stacked(sets, params_of(x), pixel).ravel()
-        return np.where(np.isfinite(r), r, 30.0 * F_SCALE)
+        return np.where(np.isfinite(r), r, LOST_PX)
 
     x0 = base[index]
     scale = SCALE[index]
