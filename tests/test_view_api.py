@@ -492,16 +492,17 @@ def test_overview_values_are_means_over_the_pixel_footprint(client, demo):
     mip_error = np.median(np.abs(coarse[both] - mean[both]))
     point_error = np.median(np.abs(point[both] - mean[both]))
     assert mip_error < 0.6 * point_error, (mip_error, point_error)
-    # a level: each value the mean of the f x f block of lines x samples centred on it
+    # a block mean: of the f x f block of lines x samples centred on the (line, sample), cut at the edges
     flight = FlightRegistry(demo[0]).flight(cid)
     lines, samples = flight.cubes[1].lines, flight.cubes[1].samples
-    full = flight.plane(1, 2, "radiance")[:-1].reshape(lines, samples)
-    level = flight.plane(1, 2, "radiance", f)
-    assert np.isnan(level[-1]) and level.size == lines * samples + 1
-    level = level[:-1].reshape(lines, samples)
+    full = flight.plane(1, 2, "radiance")
+    assert np.isnan(full[-1]) and full.size == lines * samples + 1
+    full = full[:-1].reshape(lines, samples)
     h = f // 2
-    assert np.allclose(level[40, 30], full[40 - h:40 - h + f, 30 - h:30 - h + f].mean(), rtol=1e-5)
-    assert np.allclose(level[0, 0], full[:f - h, :f - h].mean(), rtol=1e-5)   # cut at the edges
+    got = flight.block_means(1, 2, "radiance", f, np.array([40, 0, lines - 1, -1]), np.array([30, 0, samples - 1, 5]))
+    assert np.allclose(got[:3], [full[40 - h:40 - h + f, 30 - h:30 - h + f].mean(), full[:f - h, :f - h].mean(),
+                                 full[lines - 1 - h:, samples - 1 - h:].mean()], rtol=1e-5)
+    assert np.isnan(got[3])   # not covered
 
 
 def test_outline_follows_ground_and_cubes(client, demo):

@@ -12,9 +12,9 @@ named. :class:`Flight` holds one flight's caches and does its drawing with the i
   then a vertical offset of the DEM (m, 0 = the DEM as it is);
 - lookups (pass 1 of the renderer: which line and sample each tile pixel sees) per cube and tile
   grid, shared by every band choice;
-- band planes: a band of a cube in a mode, calibrated once for every (line, sample) by
-  :func:`archive.render.gather.gather_lookup` (the CPU pass 2 of ``archive render`` on software GL,
-  bit for bit llvmpipe's band pass) and kept, with its box-filtered levels for overview zooms (each
+- band planes: a band of a cube in a mode, calibrated once for every (line, sample) by the float32
+  operations of :func:`archive.render.gather.gather_lookup` (the CPU pass 2 of ``archive render`` on
+  software GL, bit for bit llvmpipe's band pass) and kept, with its box-filtered levels for overview zooms (each
   value the mean of the 2^k x 2^k block of lines x samples around it); a tile is then a gather
   through its lookup (no GL band pass per tile);
 - whole-flight 2/98 % statistics per (band, mode, cubes) from every 4th line and sample of those
@@ -55,7 +55,7 @@ GEOMETRIES_KEPT = 6
 FLIGHTS_KEPT = 16
 #: Whole-flight statistics sample every STATS_STEP-th line and sample of each cube.
 STATS_STEP = 4
-#: Widest box filter of a band plane for overviews (blocks of 2^k x 2^k lines x samples).
+#: Widest block averaged for an overview pixel (2^k x 2^k lines x samples).
 MAX_MIP = 8
 #: Rows of a cube's mesh kept in its outline (footprint drawn by the page).
 OUTLINE_ROWS = 64
@@ -126,18 +126,18 @@ def _block_mean(values: np.ndarray, factor: int) -> np.ndarray:
         return np.where(count > 0, total / np.maximum(count, 1), np.nan).astype(np.float32)
 
 
-def _box_mean(plane: np.ndarray, size: int) -> np.ndarray:
-    """(lines, samples) float32: at each (line, sample), the mean of the finite values of ``plane``
-    in the size x size block of lines x samples centred on it (rows and columns from index - size // 2;
-    cut at the edges), NaN where none is finite: the flight's pixels box-filtered to a coarser
-    pixel, sampled where the lookup lands (no block-grid offset, unlike a pyramid)."""
-    from scipy.ndimage import uniform_filter
-
-    finite = np.isfinite(plane)
-    total = uniform_filter(np.where(finite, plane, 0).astype(np.float64), size, mode="constant", cval=0.0)
-    count = uniform_filter(finite.astype(np.float64), size, mode="constant", cval=0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count > 0.5 / size**2, total / np.maximum(count, 1e-12), np.nan).astype(np.float32)
+def _block_corners(line: np.ndarray, sample: np.ndarray, size: int, lines: int, samples: int):
+    """(flat indices (4, n) into a (lines + 1, samples + 1) summed-area table of the corners of
+    each size x size block centred on (line, sample), cut at the edges: (l1, s1), (l0, s1),
+    (l1, s0), (l0, s0); the blocks' areas (n,) float64; covered (n,) bool: line >= 0)."""
+    line, sample = line.reshape(-1), sample.reshape(-1)
+    l0 = np.clip(line - size // 2, 0, lines)
+    l1 = np.clip(line - size // 2 + size, 0, lines)
+    s0 = np.clip(sample - size // 2, 0, samples)
+    s1 = np.clip(sample - size // 2 + size, 0, samples)
+    w = samples + 1
+    index = np.stack([l1 * w + s1, l0 * w + s1, l1 * w + s0, l0 * w + s0]).astype(np.int32)
+    return index, ((l1 - l0) * (s1 - s0)).astype(np.float64), line >= 0
 
 
 def _plane_index(lookup) -> np.ndarray:
@@ -286,39 +286,76 @@ class Flight:
             found = self._keep(self._radiometry, key, self.source(None).radiometry(cube, list(bands), mode), 256)
         return found
 
-    def plane(self, cube: int, band: int, mode: str, level: int = 1) -> np.ndarray:
+    def plane(self, cube: int, band: int, mode: str) -> np.ndarray:
         """(lines * samples + 1,) float32 values of one band of one cube in ``mode`` for every (line,
         sample), row-major, the last element NaN (what an uncovered pixel shows): the values
-        ``archive render`` gives those pixels (:func:`~archive.render.gather.gather_lookup` through
-        a lookup that sees each once). ``level`` > 1: each value the mean of the level x level
-        block of lines x samples centred on it (:func:`_box_mean`). Cached (the bands cache)."""
-        key = (self.id, cube, band, mode, level)
-
+        ``archive render`` gives those pixels (:meth:`_calibrate`). Cached (the bands cache)."""
         def make():
-            if level > 1:
-                lines, samples = self.cubes[cube].lines, self.cubes[cube].samples
-                full = self.plane(cube, band, mode)[:-1].reshape(lines, samples)
-                values = _box_mean(full, level).reshape(-1)
-            else:
-                values = self._calibrate(cube, band, mode).reshape(-1)
-            out = np.empty(values.size + 1, np.float32)
-            out[:-1] = values
+            info = self.cubes[cube]
+            out = np.empty(info.lines * info.samples + 1, np.float32)
+            out[:-1] = self._calibrate(cube, band, mode).reshape(-1)
             out[-1] = np.nan
             return out, out.nbytes
-        return self.bands_cache.get_or_make(key, make)
+        return self.bands_cache.get_or_make((self.id, cube, band, mode), make)
+
+    def box_sums(self, cube: int, band: int, mode: str) -> tuple[np.ndarray, np.ndarray | None]:
+        """Summed-area tables of a band plane: (lines + 1, samples + 1) float64 sums of its finite
+        values over [0, l) x [0, s), and the same of their count (None: every value is finite).
+        Any block mean is then four look-ups (:meth:`block_means`). Cached (the bands cache)."""
+        def make():
+            info = self.cubes[cube]
+            plane = self.plane(cube, band, mode)[:-1].reshape(info.lines, info.samples)
+            finite = np.isfinite(plane)
+            every = bool(finite.all())
+
+            def table(values):
+                out = np.zeros((info.lines + 1, info.samples + 1), np.float64)
+                np.cumsum(values, axis=0, dtype=np.float64, out=out[1:, 1:])
+                np.cumsum(out[1:, 1:], axis=1, out=out[1:, 1:])
+                return out
+            sums = table(plane if every else np.where(finite, plane, 0))
+            counts = None if every else table(finite)
+            return (sums, counts), sums.nbytes + (0 if counts is None else counts.nbytes)
+        return self.bands_cache.get_or_make((self.id, cube, band, mode, "sums"), make)
+
+    def block_means(self, cube: int, band: int, mode: str, size: int, line: np.ndarray,
+                    sample: np.ndarray, corners=None) -> np.ndarray:
+        """float32 (shape of ``line``): at each (line, sample), the mean of the finite values of the
+        band in the size x size block of lines x samples centred there (from index - size // 2, cut
+        at the cube's edges); NaN where ``line`` < 0 (not covered) or no value is finite: the
+        flight's pixels box-filtered to a coarser output pixel. ``corners``: :func:`_block_corners`
+        of these arguments (shared by the bands of one lookup)."""
+        info = self.cubes[cube]
+        if corners is None:
+            corners = _block_corners(line, sample, size, info.lines, info.samples)
+        index, area, covered = corners
+        sums, counts = self.box_sums(cube, band, mode)
+
+        def box(t):
+            t = t.reshape(-1)
+            return t.take(index[0]) - t.take(index[1]) - t.take(index[2]) + t.take(index[3])
+        n = box(counts) if counts is not None else area
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = (box(sums) / n).astype(np.float32)
+        mean[~covered | (n < 0.5)] = np.nan
+        return mean.reshape(line.shape)
 
     def _calibrate(self, cube: int, band: int, mode: str) -> np.ndarray:
-        """(lines, samples) float32: every pixel of one band of one cube in ``mode``."""
-        from archive.render.gather import gather_lookup
-        from archive.render.renderer import Lookup
+        """(lines, samples) float32: every pixel of one band of one cube in ``mode``, by the float32
+        operations of :func:`archive.render.gather.gather_lookup` in its order (``((DN - dark) *
+        gain) / response``, DN exact in float32), so the very values ``archive render`` writes; but
+        once per (line, sample) and without its per-pixel lookup, coverage and saturation work."""
+        from archive.render.renderer import dn_texture_format, radiometry_arrays
 
         info = self.cubes[cube]
         dn = self.source(None).read_bands(cube, [band])
-        grid = Grid(MERCATOR_EPSG, 1.0, 0.0, 0.0, info.samples, info.lines)   # only its shape matters
-        line = np.repeat(np.arange(info.lines, dtype=np.int32)[:, None], info.samples, axis=1)
-        sample = np.repeat(np.arange(info.samples, dtype=np.int32)[None], info.lines, axis=0)
-        every = Lookup(grid, line, sample, info.lines, info.samples)
-        return gather_lookup(every, dn, self.band_radiometry(cube, band, mode)).values[0]
+        dark, gain, resp, _ = radiometry_arrays(self.band_radiometry(cube, band, mode), 1, info.lines, info.samples)
+        plane = np.empty((info.lines, info.samples), np.float32)
+        plane[...] = dn_texture_format(dn)[0][0]
+        np.subtract(plane, dark[0], out=plane)
+        np.multiply(plane, gain[0], out=plane)
+        np.divide(plane, resp[:, None], out=plane)
+        return plane
 
     def band_radiometry(self, cube: int, band: int, mode: str):
         """The radiometric terms of one band of ``cube`` (None: raw DN), cut from those of every band
@@ -379,7 +416,7 @@ class Flight:
         ((height, width) float32, NaN where none; None for 'last'): what the browser compares
         between flights. Each pixel shows the value of the (line, sample) its lookup sees, from the
         band's plane (:meth:`plane`; ``level`` > 1: the mean of the level x level block of the
-        flight's pixels centred there)."""
+        flight's pixels centred there, :meth:`block_means`)."""
         from archive.graph.mosaic import make_rule, nadir_values, nadir_winners, rule_key
 
         rule = make_rule(overlap, len(bands), grid.height, grid.width)
@@ -396,10 +433,16 @@ class Flight:
             lookup = self.lookup(geometry, c, grid)
             if lookup is None:
                 continue
-            index = _plane_index(lookup)
             values = np.empty((len(bands), grid.height, grid.width), np.float32)
-            for i, b in enumerate(bands):
-                np.take(self.plane(c, b, mode, level), index, out=values[i].reshape(-1), mode="clip")
+            if level == 1:
+                index = _plane_index(lookup)
+                for i, b in enumerate(bands):
+                    np.take(self.plane(c, b, mode), index, out=values[i].reshape(-1), mode="clip")
+            else:
+                info = self.cubes[c]
+                corners = _block_corners(lookup.line, lookup.sample, level, info.lines, info.samples)
+                for i, b in enumerate(bands):
+                    values[i] = self.block_means(c, b, mode, level, lookup.line, lookup.sample, corners)
             key = self.view_zenith(geometry, c, lookup) if keyed else None
             if key is not None:
                 keys.append((key, *whole))
@@ -419,8 +462,8 @@ class Flight:
         Where a tile pixel spans several of the flight's pixels (``flight_gsd`` m, overview zooms),
         its value is the mean over the block of 2^k x 2^k of the flight's pixels (lines x samples)
         centred on the one it sees, 2^k (up to MAX_MIP) the power of two nearest the ratio of the
-        pixel sizes: anti-aliased as by a mipmapped texture (box-filtered planes made once per band
-        and level), at the cost of a full-resolution tile."""
+        pixel sizes: anti-aliased as by a mipmapped texture (the block means from summed-area tables
+        made once per band), at the cost of a full-resolution tile."""
         geometry = self.geometry(query.ground_height, query.sync_offset)
         cubes = self.cube_range(query.cubes)
         bands = self.bands(query)

@@ -10,7 +10,7 @@ const TILE = 256;
 const PALETTE = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b", "#e377c2"];
 const MAX_PINS = PALETTE.length;
 const CACHE_BYTES = 384 << 20;      // band planes kept in the browser
-const PREVIEW_SCALE = 4;            // slider previews: 64 x 64 tiles
+const PREVIEW_UP = 2;               // slider previews: the 256 px tiles 2 zooms up (64 px a shown tile, 1 request per 16)
 
 const viewer = (window.viewer = {
   map: null, features: [], byId: new Map(), order: [], hidden: new Set(), open: null, info: null,
@@ -141,11 +141,11 @@ function buildSpec() {
     const f = viewer.byId.get(id);
     const coarse = preview && id === viewer.open;
     return { id, params: flightParams(id, coarse ? preview : null), bands: nm.map((w) => nearestBand(f, w)),
-             scale: coarse ? PREVIEW_SCALE : 1, box: flightBox(id) };
+             up: coarse ? PREVIEW_UP : 0, box: flightBox(id) };
   });
   const ranges = stretchRanges(nm);
   const nadir = $("overlap").value === "nadir";
-  const data = JSON.stringify(flights.map((f) => [f.id, f.params, f.bands, f.scale]));
+  const data = JSON.stringify(flights.map((f) => [f.id, f.params, f.bands, f.up]));
   return { flights, nm, ranges, nadir, data, id: data + JSON.stringify(ranges) + nadir, grey: nm.length === 1 };
 }
 
@@ -165,7 +165,12 @@ let cacheBytes = 0;
 viewer.clearCache = () => { cache.clear(); cacheBytes = 0; statsCache.clear(); };
 const inflight = new Map();  // request key -> {controller, entry, bands}
 
-function entryKey(f, coords, scale) { return `${f.id}|${f.params}|${coords.z}/${coords.x}/${coords.y}|${scale}`; }
+// the tile whose values a shown tile uses: itself, or for a preview its ancestor f.up zooms up
+function entryCoords(f, c) {
+  const up = Math.min(f.up || 0, c.z);
+  return { z: c.z - up, x: c.x >> up, y: c.y >> up, up };
+}
+function entryKey(f, coords) { const c = entryCoords(f, coords); return `${f.id}|${f.params}|${c.z}/${c.x}/${c.y}`; }
 function entryOf(key) {
   let e = cache.get(key);
   if (e) { cache.delete(key); cache.set(key, e); return e; }   // most recently used last
@@ -187,7 +192,7 @@ function entryReady(e, f, nadir) {
 }
 
 function request(tile, f, spec) {
-  const ek = entryKey(f, tile.coords, f.scale);
+  const ek = entryKey(f, tile.coords);
   const e = entryOf(ek);
   if (entryReady(e, f, spec.nadir)) return;
   const missing = [...new Set(f.bands)].filter((b) => !e.planes.has(b));
@@ -197,9 +202,8 @@ function request(tile, f, spec) {
   if (inflight.has(rk)) return;
   const controller = new AbortController();
   inflight.set(rk, { controller, entry: ek, bands, nadir: spec.nadir, tile });
-  const { z, x, y } = tile.coords;
-  const url = `${idPath(f.id)}/values/${z}/${x}/${y}?bands=${bands.join(",")}&${f.params}` +
-              (f.scale > 1 ? `&scale=${f.scale}` : "");
+  const { z, x, y } = entryCoords(f, tile.coords);
+  const url = `${idPath(f.id)}/values/${z}/${x}/${y}?bands=${bands.join(",")}&${f.params}`;
   viewer.requests += 1;
   busy();
   fetch(url, { signal: controller.signal }).then(async (response) => {
@@ -282,7 +286,7 @@ function liveTiles() {
 
 function tileReady(tile, spec) {
   const tb = tileBounds(tile.coords.z, tile.coords.x, tile.coords.y);
-  return spec.flights.every((f) => !boxesMeet(f.box, tb) || entryReady(cache.get(entryKey(f, tile.coords, f.scale)), f, spec.nadir));
+  return spec.flights.every((f) => !boxesMeet(f.box, tb) || entryReady(cache.get(entryKey(f, tile.coords)), f, spec.nadir));
 }
 
 function schedule() {
@@ -305,7 +309,7 @@ function pump() {
     let ready = true;
     for (const f of spec.flights) {
       if (!boxesMeet(f.box, tb)) continue;
-      const ek = entryKey(f, tile.coords, f.scale);
+      const ek = entryKey(f, tile.coords);
       wanted.add(ek);
       if (!entryReady(cache.get(ek), f, spec.nadir)) {
         ready = false;
@@ -358,15 +362,17 @@ function draw(tile, spec) {
   const sc = spec.ranges ? spec.ranges.map((r) => 255 / (r[1] - r[0])) : [0, 0, 0];
   for (const f of spec.flights) {
     if (!boxesMeet(f.box, tb)) continue;
-    const e = cache.get(entryKey(f, tile.coords, f.scale));
+    const e = cache.get(entryKey(f, tile.coords));
     if (!e || e.empty) continue;
-    const n = e.side, shift = Math.log2(TILE / n);
+    // an ancestor's values (previews): this tile's part of it, each value over 2^shift pixels
+    const up = entryCoords(f, tile.coords).up, n = e.side, shift = Math.log2(TILE / n) + up, mask = (1 << up) - 1;
+    const ox = (tile.coords.x & mask) * (n >> up), oy = (tile.coords.y & mask) * (n >> up);
     const c0 = e.planes.get(f.bands[0]), c1 = e.planes.get(f.bands[k > 1 ? 1 : 0]), c2 = e.planes.get(f.bands[k > 1 ? 2 : 0]);
     const key = e.key;
     const l0 = lo[0], l1 = lo[k > 1 ? 1 : 0], l2 = lo[k > 1 ? 2 : 0];
     const s0 = sc[0], s1 = sc[k > 1 ? 1 : 0], s2 = sc[k > 1 ? 2 : 0];
     for (let i = 0; i < TILE; i++) {
-      const row = (i >> shift) * n;
+      const row = (oy + (i >> shift)) * n + ox;
       for (let j = 0; j < TILE; j++) {
         const s = row + (j >> shift);
         const v0 = c0[s], v1 = c1[s], v2 = c2[s];
@@ -460,7 +466,7 @@ function viewRanges(spec) {
     const tb = tileBounds(tile.coords.z, tile.coords.x, tile.coords.y);
     if (!boxesMeet(tb, view)) continue;
     for (const f of spec.flights) {
-      const e = cache.get(entryKey(f, tile.coords, f.scale));
+      const e = cache.get(entryKey(f, tile.coords));
       if (!e || e.empty || !f.bands.every((band) => e.planes.has(band))) continue;
       const planes = f.bands.map((band) => e.planes.get(band));
       const step = e.side >= 128 ? 3 : 1;
