@@ -147,6 +147,25 @@ def _plane_index(lookup) -> np.ndarray:
     return np.where(lookup.line >= 0, index, lookup.lines * lookup.samples).astype(np.int32).reshape(-1)
 
 
+class _PosesKept:
+    """A flight source whose per-cube poses are computed once: they do not depend on the ground
+    height, so a ground-height change (a slider being dragged) rebuilds only the meshes. Everything
+    else is the source's own."""
+
+    def __init__(self, source):
+        self._source = source
+        self._poses: dict = {}
+
+    def poses(self, cube: int, delay: float = 0.0):
+        key = (cube, delay)
+        if key not in self._poses:
+            self._poses[key] = self._source.poses(cube, delay)
+        return self._poses[key]
+
+    def __getattr__(self, name):
+        return getattr(self._source, name)
+
+
 class Flight:
     """One flight of the viewer: its caches and drawing (see the module docstring).
 
@@ -165,6 +184,7 @@ class Flight:
         self._geometries: OrderedDict = OrderedDict()
         self._radiometry: OrderedDict = OrderedDict()
         self._ranges: OrderedDict = OrderedDict()
+        self._posed: OrderedDict = OrderedDict()
         first = self.source(None)
         self.fov = float(fov if fov is not None else (first.fov_deg or math.nan))
         if not (0 < self.fov < 180):
@@ -219,13 +239,16 @@ class Flight:
         from archive.sources.select import resolve_ground_height
 
         source = self.source(sync_offset)
+        posed = self._posed.get(sync_offset)
+        if posed is None or posed._source is not source:
+            posed = self._keep(self._posed, sync_offset, _PosesKept(source), GEOMETRIES_KEPT)
         if terrain is not None:
             ground = 0.0 if ground_height is None else float(ground_height)
             dem = dataclasses.replace(terrain[0], offset=ground).open()
-            meshes = cube_meshes(source, self.fov, math.nan, terrain=dem, gsd=gsd)
+            meshes = cube_meshes(posed, self.fov, math.nan, terrain=dem, gsd=gsd)
         else:
             ground = resolve_ground_height("auto" if ground_height is None else ground_height, [source])
-            meshes = cube_meshes(source, self.fov, ground)
+            meshes = cube_meshes(posed, self.fov, ground)
         epsg = job_epsg([meshes])
         utm = tuple(m if m.epsg == epsg else m.to_epsg(epsg) for m in meshes)
         mercator = tuple(m.to_epsg(MERCATOR_EPSG) for m in meshes)
