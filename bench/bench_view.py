@@ -281,7 +281,7 @@ def browser_main(args, archive: Path, cid: str) -> str:
         *rows,
         "",
         f"Ground slider dragged (input events every 50 ms for 3 s): {out['preview_fps']:.1f} coarse previews drawn per "
-        f"second (64 x 64 tiles of the open flight; server CPU {out['preview_cpu_s']:.2f} s over the 3 s). "
+        f"second (the open flight at a quarter of the resolution; server CPU {out['preview_cpu_s']:.2f} s over the 3 s). "
         f"Band-value requests in all: {out['requests']}.",
         "",
     ]
