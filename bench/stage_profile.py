@@ -12,7 +12,9 @@ under ``distributed.get_task_stream``, and writes OUT.json:
 - ``cpu``: CPU-seconds (user + system) of this process (client, scheduler, planning, COG layout)
   and of each worker process, read before the cluster closes;
 - ``threads``: worker CPU-seconds by thread kind (``llvmpipe`` = Mesa's rasteriser threads,
-  ``archive-gl`` = the GL thread: uploads, interleaving, read-back; ``Dask`` = task threads);
+  ``archive-gl`` = the GL thread: uploads, interleaving, read-back; ``python`` = the others: task
+  threads, Dask's event loop); ``all_threads_in_gl_tasks_s``: seconds of the graph during which every
+  worker thread held a lookup or render task (waiting for the one GL thread: no writer could run);
 - ``tasks``: per key prefix (lookup, render, write, blank, overview, saturated, gate, ...) count and
   summed task seconds from the task stream;
 - ``stages``: CPU-seconds (thread CPU time; for GL calls plus the llvmpipe threads' CPU while the
@@ -32,8 +34,17 @@ import sys
 import time
 
 
+def _gl_thread_id() -> int | None:
+    """Native id of this process's GL thread, as the GL stage timers recorded it (asking the GL
+    thread from the worker's event loop hung the worker)."""
+    return getattr(sys, "_archive_gl_tid", None)
+
+
 def _thread_cpu_by_kind() -> dict:
-    """CPU-seconds of this process's threads by kind (name prefix), from /proc/self/task."""
+    """CPU-seconds of this process's threads by kind, from /proc/self/task: llvmpipe (Mesa's
+    rasteriser threads, named by Mesa), archive-gl (the GL thread), python (the others: Dask's task
+    threads, its event loop)."""
+    gl = _gl_thread_id()
     tick = os.sysconf("SC_CLK_TCK")
     out: dict[str, float] = {}
     for tid in os.listdir("/proc/self/task"):
@@ -45,8 +56,7 @@ def _thread_cpu_by_kind() -> dict:
         name = stat[stat.index("(") + 1:stat.rindex(")")]
         fields = stat[stat.rindex(")") + 2:].split()
         cpu = (int(fields[11]) + int(fields[12])) / tick
-        kind = ("llvmpipe" if name.startswith("llvmpipe") else "archive-gl" if name.startswith("archive-gl")
-                else "Dask" if name.startswith("Dask") else "other")
+        kind = ("llvmpipe" if name.startswith("llvmpipe") else "archive-gl" if int(tid) == gl else "python")
         out[kind] = out.get(kind, 0.0) + cpu
     return out
 
@@ -75,6 +85,8 @@ def install_stage_timers() -> list:
 
         @functools.wraps(fn)
         def timed(*args, **kwargs):
+            if gl:
+                sys._archive_gl_tid = threading.get_native_id()
             lp = _llvmpipe_cpu() if gl else 0.0
             t = time.thread_time()
             try:
@@ -113,7 +125,9 @@ def install_stage_timers() -> list:
         except ImportError:
             continue
         if cls is not None:
-            owner = getattr(owner, cls)
+            owner = getattr(owner, cls, None)
+            if owner is None:   # an older tree (compare with a baseline)
+                continue
         if wrap(owner, attr, stage, gl):
             done.append(f"{module}.{attr}")
     # Zarr compression: the codec's encode inside ChunkWriter.write (the chunk's NaN check and the
@@ -209,6 +223,23 @@ def main(argv=None) -> int:
             starts.append(ss["start"])
             stops.append(ss["stop"])
     graph_s = (max(stops) - min(starts)) if starts else 0.0
+    # Seconds during which every worker thread held a GL task (lookup or render): no writer could
+    # run then, whatever the GL thread was doing (one GL thread per process, llvmpipe's threads).
+    events = []
+    for task in ts.data:
+        key = task["key"] if isinstance(task["key"], str) else str(task["key"][0])
+        if key.startswith(("lookup-", "render-")):
+            for ss in task["startstops"]:
+                if ss["action"] == "compute":
+                    events += [(ss["start"], 1), (ss["stop"], -1)]
+    events.sort()
+    gl_bound = 0.0
+    level, since = 0, None
+    for t, d in events:
+        if level >= nthreads and since is not None:
+            gl_bound += t - since
+        level += d
+        since = t
     stages: dict[str, dict] = {}
     threads: dict[str, float] = {}
     for addr, w in workers.items():
@@ -224,6 +255,7 @@ def main(argv=None) -> int:
             threads[k] = threads.get(k, 0.0) + v
     own = (own1.ru_utime - own0.ru_utime) + (own1.ru_stime - own0.ru_stime)
     out = {"code": code, "render": render, "start_s": start_s, "wall_s": wall, "graph_s": graph_s,
+           "all_threads_in_gl_tasks_s": gl_bound,
            "nthreads": nthreads, "cores": os.cpu_count(),
            "cpu": {"client": own, "workers": {k: w["cpu_s"] for k, w in workers.items()}},
            "threads": threads, "tasks": tasks, "stages": stages, "load": os.getloadavg()}
