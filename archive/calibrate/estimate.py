@@ -51,6 +51,11 @@ DEGENERATE = 0.9999
 PARTNER = 0.9
 #: Which parameter of a degenerate pair keeps its start value (first in this order).
 HOLD_ORDER = ("pitch", "yaw", "roll", "ground", "sync")
+#: How far from the start the estimates may go: boresight deg, sync offset s, ground m (a mounting
+#: is off by a degree or two, not ten: a solution beyond these is a false match, not a camera).
+LIMITS = np.array([5.0, 5.0, 5.0, 1.5, 50.0])
+#: Misregistration left (median, px) above which the calibration says it did not converge.
+CONVERGED_PX = 0.3
 #: Sync offsets searched about the start value, s.
 SYNC_SEARCH = (-1.0, 1.0, 0.1)
 #: Fewest tie windows a calibration accepts (and under the start parameters, the first measurement).
@@ -293,7 +298,22 @@ def calibrate(sources: Sequence, fov_deg: float, ground: float, *, dem=None, dem
     before = _stats(ties_before, spacing, pixel_after)
     after = _stats(ties_after, spacing, pixel_after)
     pixel = pixel_after
+    _check_converged(result, start, after, flights)
     return _report(result, start, estimate, held, before, after, pairs, pixel, dem_label)
+
+
+def _check_converged(result: Fit, start: Params, after: dict, flights) -> None:
+    """InputError when the solution leaves the passes misregistered (median above CONVERGED_PX) or
+    sits on a limit (LIMITS): false matches, not a camera."""
+    labels = ", ".join(str(f.source.label) for f in flights)
+    x, s0 = result.params.vector(), start.vector()
+    at_limit = [n for i, n in enumerate(PARAM_NAMES) if n in result.free and abs(x[i] - s0[i]) >= LIMITS[i] * 0.999]
+    if after["median"] is None or after["median"] > CONVERGED_PX or at_limit:
+        what = (f"{', '.join(at_limit)} reached the search limit" if at_limit else
+                f"the passes still misregister by {after['median']} px (median)")
+        raise InputError(labels, f"calibration did not converge: {what}",
+                         "check --fov and the start parameters (--ground-height, --dem, the recorded mounting); "
+                         "the overlaps may hold too few distinct features")
 
 
 def _surface(dem, source, fov_deg: float, margin: float = 40.0):
@@ -379,7 +399,8 @@ def _search_sync(sets, start: Params, estimate, pixel: float, say) -> Params:
     best = None
     for ds in np.arange(lo, hi + step / 2, step):
         trial = Params.from_vector(np.where(np.array(PARAM_NAMES) == "sync", start.sync + ds, start.vector()))
-        f = fit(sets, trial, others, pixel, max_nfev=6) if others else fit(sets, trial, (), pixel)
+        bounds = (start.vector() - LIMITS, start.vector() + LIMITS)
+        f = fit(sets, trial, others, pixel, max_nfev=6, bounds=bounds) if others else fit(sets, trial, (), pixel)
         if best is None or f.cost < best.cost:
             best = f
     say(f"sync offset search (+-1 s): {best.params.sync:+.3f} s")
@@ -390,7 +411,8 @@ def _fit_separable(sets, params: Params, start: Params, free: list, held: dict, 
     """Fit ``free`` from ``params``; while two free parameters are degenerate (|correlation| above
     DEGENERATE: the flight cannot tell them apart at all), hold one (HOLD_ORDER) at its ``start``
     value, record it in ``held`` and fit again."""
-    result = fit(sets, params, tuple(free), pixel)
+    bounds = (start.vector() - LIMITS, start.vector() + LIMITS)
+    result = fit(sets, params, tuple(free), pixel, bounds=bounds)
     while True:
         pair = _degenerate(result)
         if pair is None:
@@ -407,7 +429,7 @@ def _fit_separable(sets, params: Params, start: Params, free: list, held: dict, 
             f"(correlation {r:+.6f}): held at its start value")
         free.remove(hold)
         params = Params.from_vector(np.where(np.array(PARAM_NAMES) == hold, start.vector(), params.vector()))
-        result = fit(sets, params, tuple(free), pixel)
+        result = fit(sets, params, tuple(free), pixel, bounds=bounds)
 
 
 def _degenerate(result: Fit) -> tuple[str, ...] | None:
@@ -450,6 +472,12 @@ def _report(result: Fit, start: Params, estimate, held: dict, before: dict, afte
                          f"correlation matrix {held[n]['eigenvalue']:.2g}): held at its start value, {w} absorb"
                          f"{'s' if len(held[n]['with']) == 1 else ''} it")
             continue
+        absorbs = [h for h, v in held.items() if n in v["with"]]
+        if absorbs:
+            observable[n] = False
+            notes.append(f"{n} absorbs {' and '.join(absorbs)} (held): its estimate is their combination on this "
+                         f"flight, right for registering it, not {n} alone")
+            continue
         i = result.free.index(n)
         others = [(abs(float(corr[i, j])), result.free[j], float(corr[i, j]))
                   for j in range(len(result.free)) if j != i]
@@ -458,7 +486,8 @@ def _report(result: Fit, start: Params, estimate, held: dict, before: dict, afte
         if not observable[n]:
             notes.append(f"{n} is not separable from {worst[1]} on this flight (correlation {worst[2]:+.4f}): "
                          f"their combination is measured, each alone only to +-{_fmt(n, sigma[n])}")
-    if dem_label is not None and "ground" in estimate:
+    if dem_label is not None and "ground" in estimate and sigma.get("ground") is not None \
+            and abs(result.params.ground) > max(2.0 * sigma["ground"], 0.01):
         notes.append(f"the DEM {dem_label} is {result.params.ground:+.3f} m off the flight's ground: renders take "
                      "no DEM offset, so correct the DEM's heights (or its datum) by this much")
     if not observable.get("pitch", True) or not observable.get("sync", True):

@@ -119,10 +119,12 @@ def stacked(sets, params: Params, pixel: float) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros((0, 2))
 
 
-def fit(sets, start: Params, free: tuple[str, ...], pixel: float, max_nfev: int = 200) -> Fit:
+def fit(sets, start: Params, free: tuple[str, ...], pixel: float, max_nfev: int = 200,
+        bounds: tuple[np.ndarray, np.ndarray] | None = None) -> Fit:
     """Least squares over the ``free`` parameters from ``start`` (the others held), shared by the
     flights of ``sets`` ((model, observations) pairs). Ties whose rays lose their navigation under a
-    trial (a sync offset moves lines past the ends) cost a constant: never zero."""
+    trial (a sync offset moves lines past the ends) cost a constant: never zero. ``bounds``: (low,
+    high) of all five parameters (model order), or None."""
     index = [PARAM_NAMES.index(n) for n in free]
     base = start.vector()
 
@@ -138,7 +140,11 @@ def fit(sets, start: Params, free: tuple[str, ...], pixel: float, max_nfev: int 
     x0 = base[index]
     scale = SCALE[index]
     if index:
+        lo, hi = (-np.inf * np.ones(len(index)), np.inf * np.ones(len(index))) if bounds is None else \
+            (np.asarray(bounds[0], float)[index], np.asarray(bounds[1], float)[index])
+        x0 = np.clip(x0, lo, hi)
         result = least_squares(fun, x0, x_scale=scale, diff_step=1e-4 * scale / np.maximum(np.abs(x0), 1.0),
+                               bounds=(lo, hi),
                                loss="soft_l1", f_scale=F_SCALE, max_nfev=max_nfev, method="trf")
         x = result.x
         cost = float(result.cost)
