@@ -523,3 +523,25 @@ def test_outline_follows_ground_and_cubes(client, demo):
     past = client.get(f"/api/collections/{cid}/values/{Z}/0/0", params={"bands": "0", "cubes": "1-4"})
     assert past.status_code == 400 and "cube 5 out of range: the flight has cubes 1..4" in past.json()["error"]
     assert client.get(f"/api/collections/{cid}/values/{Z}/0/0", params={"bands": "99"}).status_code == 400
+
+
+@pytest.mark.parametrize("mode", ["raw", "relative", "radiance"])
+def test_band_planes_are_the_renderers_values(demo, mode):
+    """A band plane (what every tile gathers from) holds, bit for bit, the values the renderer's CPU
+    band pass (``archive render`` on llvmpipe) gives each (line, sample) of the cube."""
+    from archive.grid import Grid
+    from archive.render.gather import gather_lookup
+    from archive.render.renderer import Lookup
+
+    path, cid, _ = demo
+    flight = FlightRegistry(path).flight(cid)
+    info = flight.cubes[2]
+    line, sample = np.meshgrid(np.arange(info.lines, dtype=np.int32), np.arange(info.samples, dtype=np.int32),
+                               indexing="ij")
+    every = Lookup(Grid(3857, 1.0, 0.0, 0.0, info.samples, info.lines), line, sample, info.lines, info.samples)
+    source = flight.source(None)
+    for band in (0, 4):
+        want = gather_lookup(every, source.read_bands(2, [band]), source.radiometry(2, [band], mode)).values[0]
+        got = flight.plane(2, band, mode)
+        assert np.isnan(got[-1])
+        assert np.array_equal(got[:-1].view(np.uint32), want.reshape(-1).view(np.uint32))

@@ -112,20 +112,6 @@ def _slice_radiometry(radiometry, lines: slice, samples: slice):
                       radiometry.saturation)
 
 
-def _block_mean(values: np.ndarray, factor: int) -> np.ndarray:
-    """(k, h / factor, w / factor) float32: the mean of the finite values of each factor x factor
-    block of (k, h, w) ``values``, NaN where none is finite."""
-    if factor == 1:
-        return values
-    k, h, w = values.shape
-    blocks = values.reshape(k, h // factor, factor, w // factor, factor)
-    finite = np.isfinite(blocks)
-    count = finite.sum(axis=(2, 4))
-    total = np.where(finite, blocks, 0).sum(axis=(2, 4), dtype=np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count > 0, total / np.maximum(count, 1), np.nan).astype(np.float32)
-
-
 def _block_corners(line: np.ndarray, sample: np.ndarray, size: int, lines: int, samples: int):
     """(flat indices (4, n) into a (lines + 1, samples + 1) summed-area table of the corners of
     each size x size block centred on (line, sample), cut at the edges: (l1, s1), (l0, s1),
