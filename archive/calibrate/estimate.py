@@ -27,13 +27,12 @@ rather than inventing it.
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from archive.calibrate.match import PairGrid, Tie, measure_pair, pair_grid
+from archive.calibrate.match import Tie, measure_pair, pair_grid
 from archive.calibrate.model import PARAM_NAMES, FlightModel, Params
 from archive.calibrate.solve import Fit, fit, observations
 from archive.errors import InputError

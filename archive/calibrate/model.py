@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Slerp
 
 from archive.navigation import boresight_rotation, frame_interval, joined
 from archive.sources.navigation import NAV_GAP
