@@ -507,5 +507,5 @@ def test_render_command_round_trips_every_option(tmp_path, monkeypatch):
                                    white_reference=str(tmp_path / "white.txt"), provenance=True)  # --provenance
     assert dataclasses.replace(again, ground_height=float(again.ground_height)) == expected
     assert keywords["out"] == str(tmp_path / "out dir" / "m.zarr") and keywords["quicklook"] == str(tmp_path / "q.png")
-    with pytest.raises(InputError, match="render request"):
+    with pytest.raises(InputError, match="render options"):
         render_command({"gsd": 1.0}, "x.tif")
