@@ -117,7 +117,7 @@ def test_render_mosaic_and_viewer_refuse_a_corrupt_chunk(flights, tmp_path, caps
     with pytest.raises(CorruptChunkError, match=expected):
         ds.radiance.compute(scheduler="threads")
 
-    from archive.view.flights import FlightRegistry
+    from archive.view.registry import FlightRegistry
     from archive.view.server import create_app
     from starlette.testclient import TestClient
 

@@ -110,7 +110,7 @@ def test_viewer_draws_the_collection_on_its_dem(ingested, tmp_path):
 
     from pyproj import Transformer
 
-    from archive.view.flights import FlightRegistry
+    from archive.view.registry import FlightRegistry
     from archive.view.server import create_app
 
     directory, dem, archive, cid = ingested

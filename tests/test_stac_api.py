@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from archive.cli import main
-from archive.view.flights import FlightRegistry
+from archive.view.registry import FlightRegistry
 from archive.view.server import create_app, LOOPBACK_NAMES
 from test_catalog import FLIGHTS, catalog  # noqa: F401  (the module fixture: 3 flights ingested)
 

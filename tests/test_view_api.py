@@ -26,7 +26,7 @@ from archive.catalog.footprint import points_in_polygon
 from archive.cli import main
 from archive.errors import InputError
 from archive.view.cache import ByteLRU
-from archive.view.flights import FlightRegistry
+from archive.view.registry import FlightRegistry
 from archive.view.server import LOOPBACK_NAMES, check_host, create_app
 from archive.view.tiles import HALF_WORLD, tile_grid
 

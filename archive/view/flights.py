@@ -1,8 +1,7 @@
 """The flights a viewer serves, and what it draws of them: tiles, point spectra, view statistics.
 
-:class:`FlightRegistry` knows which ids exist (the archive's catalog, plus raw flight directories
-named on the command line) and answers catalog queries as GeoJSON; nothing else on disk can be
-named. :class:`Flight` holds one flight's caches and does its drawing with the inverse renderer:
+Which ids exist is :class:`archive.view.registry.FlightRegistry`'s (the archive's catalog, plus raw
+flight directories named on the command line). :class:`Flight` holds one flight's caches and does its drawing with the inverse renderer:
 
 - geometry per (ground height, sync offset): the opened source, its cube meshes (the same
   :func:`~archive.graph.plan.cube_meshes` as ``archive render``) transformed to EPSG:3857 for tiles
@@ -27,129 +26,33 @@ Every method of :class:`Flight` may use OpenGL: call them from the viewer's one 
 from __future__ import annotations
 
 import math
-import threading
-import time
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 import dataclasses
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from archive.errors import InputError, MissingInputError
+from archive.errors import InputError
 from archive.grid import Grid
 from archive.params import NavigationParams
 from archive.view.cache import ByteLRU
+from archive.view.geometry import Geometry, PosesKept, block_corners, bounds_intersect, plane_index
 from archive.view.query import ViewQuery
 from archive.view.tiles import MERCATOR_EPSG, bbox_grid, encode_png, transparent_png
 
-__all__ = ["DEFAULT_RGB_NM", "Flight", "FlightRegistry", "Geometry", "UnknownFlight"]
+__all__ = ["DEFAULT_RGB_NM", "Flight"]
 
 #: Wavelengths of the default (true colour) channels, nm.
 DEFAULT_RGB_NM = (640.0, 550.0, 460.0)
-#: Bands read per group for a point spectrum (bounds the memory of a many-band click).
-POINT_BAND_GROUP = 16
-#: Geometries (ground height x sync offset) kept per flight; flights kept open.
+#: Geometries (ground height x sync offset) kept per flight.
 GEOMETRIES_KEPT = 6
-FLIGHTS_KEPT = 16
 #: Whole-flight statistics sample every STATS_STEP-th line and sample of each cube.
 STATS_STEP = 4
 #: Widest block averaged for an overview pixel (2^k x 2^k lines x samples).
 MAX_MIP = 8
 #: Rows of a cube's mesh kept in its outline (footprint drawn by the page).
 OUTLINE_ROWS = 64
-#: Seconds the list of catalog ids is trusted before the index is asked again.
-IDS_TTL_S = 5.0
-
-
-class UnknownFlight(MissingInputError):
-    """An id that is neither in the archive's catalog nor one of the flights named (HTTP 404)."""
-
-    def __init__(self, cid: str):
-        shown = cid if len(cid) <= 80 else cid[:77] + "..."
-        super().__init__(repr(shown), "collection", "GET /api/collections lists the ids this viewer serves")
-
-
-@dataclass(frozen=True, eq=False)
-class Geometry:
-    """A flight's meshes at one ground height and sync offset.
-
-    source: the opened flight source; ground_height: m above the ellipsoid (resolved);
-    epsg: the UTM zone ``archive render`` uses for this flight; utm / mercator: per cube, its mesh
-    in ``epsg`` / EPSG:3857; bounds: (cubes, 4) W, S, E, N EPSG:3857 metres of each cube's mesh
-    (NaN for a cube without a drawable mesh).
-    """
-
-    source: object
-    ground_height: float
-    epsg: int
-    utm: tuple
-    mercator: tuple
-    bounds: np.ndarray
-    gsd: float | None = None   #: terrain meshes: the output pixel they were built for (m); None: flat
-
-    def union(self, cubes: range) -> tuple[float, float, float, float] | None:
-        """W, S, E, N (EPSG:3857 m) of the cubes' meshes, None when none is drawable."""
-        b = self.bounds[list(cubes)]
-        b = b[np.isfinite(b).all(axis=1)]
-        if not len(b):
-            return None
-        return (float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max()))
-
-
-def _intersects(a, b) -> bool:
-    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
-
-
-def _slice_radiometry(radiometry, lines: slice, samples: slice):
-    """The radiometric terms of some lines and samples of a cube (None stays None: raw DN)."""
-    from archive.sources.base import Radiometry
-
-    if radiometry is None:
-        return None
-    return Radiometry(radiometry.dark[:, samples], radiometry.gain[:, samples], radiometry.response[lines],
-                      radiometry.saturation)
-
-
-def _block_corners(line: np.ndarray, sample: np.ndarray, size: int, lines: int, samples: int):
-    """(flat indices (4, n) into a (lines + 1, samples + 1) summed-area table of the corners of
-    each size x size block centred on (line, sample), cut at the edges: (l1, s1), (l0, s1),
-    (l1, s0), (l0, s0); the blocks' areas (n,) float64; covered (n,) bool: line >= 0)."""
-    line, sample = line.reshape(-1), sample.reshape(-1)
-    l0 = np.clip(line - size // 2, 0, lines)
-    l1 = np.clip(line - size // 2 + size, 0, lines)
-    s0 = np.clip(sample - size // 2, 0, samples)
-    s1 = np.clip(sample - size // 2 + size, 0, samples)
-    w = samples + 1
-    index = np.stack([l1 * w + s1, l0 * w + s1, l1 * w + s0, l0 * w + s0]).astype(np.int32)
-    return index, ((l1 - l0) * (s1 - s0)).astype(np.float64), line >= 0
-
-
-def _plane_index(lookup) -> np.ndarray:
-    """(height * width,) int32 index into a band plane (:meth:`Flight.plane`) of the (line, sample)
-    each pixel of ``lookup`` sees; the plane's last (NaN) element where none."""
-    index = lookup.line * np.int32(lookup.samples) + lookup.sample
-    return np.where(lookup.line >= 0, index, lookup.lines * lookup.samples).astype(np.int32).reshape(-1)
-
-
-class _PosesKept:
-    """A flight source whose per-cube poses are computed once: they do not depend on the ground
-    height, so a ground-height change (a slider being dragged) rebuilds only the meshes. Everything
-    else is the source's own."""
-
-    def __init__(self, source):
-        self._source = source
-        self._poses: dict = {}
-
-    def poses(self, cube: int, delay: float = 0.0):
-        key = (cube, delay)
-        if key not in self._poses:
-            self._poses[key] = self._source.poses(cube, delay)
-        return self._poses[key]
-
-    def __getattr__(self, name):
-        return getattr(self._source, name)
 
 
 class Flight:
@@ -226,8 +129,8 @@ class Flight:
 
         source = self.source(sync_offset)
         posed = self._posed.get(sync_offset)
-        if posed is None or posed._source is not source:
-            posed = self._keep(self._posed, sync_offset, _PosesKept(source), GEOMETRIES_KEPT)
+        if posed is None or posed.source is not source:
+            posed = self._keep(self._posed, sync_offset, PosesKept(source), GEOMETRIES_KEPT)
         if terrain is not None:
             ground = 0.0 if ground_height is None else float(ground_height)
             dem = dataclasses.replace(terrain[0], offset=ground).open()
@@ -332,11 +235,11 @@ class Flight:
         """float32 (shape of ``line``): at each (line, sample), the mean of the finite values of the
         band in the size x size block of lines x samples centred there (from index - size // 2, cut
         at the cube's edges); NaN where ``line`` < 0 (not covered) or no value is finite: the
-        flight's pixels box-filtered to a coarser output pixel. ``corners``: :func:`_block_corners`
+        flight's pixels box-filtered to a coarser output pixel. ``corners``: :func:`block_corners`
         of these arguments (shared by the bands of one lookup)."""
         info = self.cubes[cube]
         if corners is None:
-            corners = _block_corners(line, sample, size, info.lines, info.samples)
+            corners = block_corners(line, sample, size, info.lines, info.samples)
         index, area, covered = corners
         sums, counts = self.box_sums(cube, band, mode)
 
@@ -436,7 +339,7 @@ class Flight:
         unflagged = np.zeros(grid.shape, bool)   # saturation does not change which value shows
         for c in cubes:
             if grid.epsg == MERCATOR_EPSG and not (np.isfinite(geometry.bounds[c]).all()
-                                                    and _intersects(geometry.bounds[c], box)):
+                                                    and bounds_intersect(geometry.bounds[c], box)):
                 continue
             check()
             lookup = self.lookup(geometry, c, grid)
@@ -444,12 +347,12 @@ class Flight:
                 continue
             values = np.empty((len(bands), grid.height, grid.width), np.float32)
             if level == 1:
-                index = _plane_index(lookup)
+                index = plane_index(lookup)
                 for i, b in enumerate(bands):
                     np.take(self.plane(c, b, mode), index, out=values[i].reshape(-1), mode="clip")
             else:
                 info = self.cubes[c]
-                corners = _block_corners(lookup.line, lookup.sample, level, info.lines, info.samples)
+                corners = block_corners(lookup.line, lookup.sample, level, info.lines, info.samples)
                 for i, b in enumerate(bands):
                     values[i] = self.block_means(c, b, mode, level, lookup.line, lookup.sample, corners)
             key = self.view_zenith(geometry, c, lookup) if keyed else None
@@ -478,7 +381,7 @@ class Flight:
         bands = self.bands(query)
         mode = self.mode(query)
         union = geometry.union(cubes)
-        if union is None or not _intersects(union, grid.bounds):
+        if union is None or not bounds_intersect(union, grid.bounds):
             return None
         side = grid.width // scale
         gsd = grid.gsd * scale
@@ -499,7 +402,7 @@ class Flight:
         bands = self.bands(query)
         mode = self.mode(query)
         union = geometry.union(cubes)
-        if union is None or not _intersects(union, grid.bounds):
+        if union is None or not bounds_intersect(union, grid.bounds):
             return transparent_png()
         ranges = query.stretch.ranges
         if ranges is None:
@@ -554,7 +457,7 @@ class Flight:
         (:meth:`flight_percentiles`: a sample of every cube's pixels, ``gsd`` None, ``sample``
         the step in lines and samples)."""
         out = {"band": [int(b) for b in bands], "mode": mode, "percentiles": list(percentiles),
-               "wavelength": self._wavelengths(bands), "low": [None] * len(bands), "high": [None] * len(bands),
+               "wavelength": self.wavelengths_of(bands), "low": [None] * len(bands), "high": [None] * len(bands),
                "count": 0, "gsd": None}
         if bbox is None:
             out["low"], out["high"], out["count"] = self.flight_percentiles(bands, mode, cubes, percentiles)
@@ -579,97 +482,14 @@ class Flight:
                 out["low"][i], out["high"][i] = float(lo), float(hi)
         return out
 
-    def _wavelengths(self, bands) -> list | None:
+    def wavelengths_of(self, bands) -> list | None:
         return None if self.wavelengths is None else [float(self.wavelengths[b]) for b in bands]
 
     def point(self, lon: float, lat: float, gsd: float, query: ViewQuery) -> dict:
-        """The full spectrum of the output pixel at (lon, lat): the pixel of ``archive render``'s
-        grid at ``gsd`` (UTM, corners on multiples of ``gsd``) holding the point, rendered alone
-        by the same two passes (bit-identical values), with the cube, line and sample it shows."""
-        from archive.formats.lcf import gps_seconds_to_datetime
-        from archive.navigation import project, to_lonlat
-        from archive.render.renderer import Lookup, rasterize_lookup, render_lookup
+        """The full spectrum of the output pixel at (lon, lat) (:func:`archive.view.point.point_spectrum`)."""
+        from archive.view.point import point_spectrum
 
-        geometry = self.geometry(query.ground_height, query.sync_offset, gsd)
-        cubes = self.cube_range(query.cubes)
-        mode = self.mode(query)
-        x, y = (float(v) for v in project(lon, lat, geometry.epsg))
-        col, row = math.floor(x / gsd), math.floor(y / gsd)
-        grid = Grid(geometry.epsg, gsd, col * gsd, (row + 1) * gsd, 1, 1)
-        cx, cy = col * gsd + gsd / 2, row * gsd + gsd / 2
-        clon, clat = (float(v) for v in to_lonlat(cx, cy, geometry.epsg))
-        nbands = self.cubes[0].bands
-        # every cube covering the pixel: (cube, line, sample, values, saturated, view zenith)
-        candidates = []
-        for c in cubes:
-            mesh = geometry.utm[c]
-            if mesh.rows < 2:
-                continue
-            w, s, e, n = mesh.bounds_utm()
-            if not (w <= cx <= e and s <= cy <= n):
-                continue
-            found = rasterize_lookup(mesh, grid, self.cubes[c].samples)
-            line, sample = int(found.line[0, 0]), int(found.sample[0, 0])
-            if line < 0:
-                continue
-            one = Lookup(grid, np.zeros((1, 1), np.int32), np.zeros((1, 1), np.int32), 1, 1)
-            source = self.source(None)
-            v = np.full(nbands, np.nan, np.float32)
-            flagged = False
-            for b0 in range(0, nbands, POINT_BAND_GROUP):
-                group = list(range(b0, min(b0 + POINT_BAND_GROUP, nbands)))
-                dn = source.read_bands(c, group)[:, line:line + 1, sample:sample + 1]
-                rad = _slice_radiometry(self.radiometry(c, group, mode), slice(line, line + 1),
-                                        slice(sample, sample + 1))
-                result = render_lookup(one, dn, rad)
-                v[b0:b0 + len(group)] = result.values[:, 0, 0]
-                flagged = flagged or bool(result.saturated[0, 0])
-            zenith = float(self.view_zenith(geometry, c, found)[0, 0]) if query.overlap == "nadir" else None
-            candidates.append((c, line, sample, v, flagged, zenith))
-        values, saturated, hit = self._overlap_pick(candidates, nbands, query.overlap)
-        answer = {
-            "id": self.id, "lon": lon, "lat": lat, "mode": mode, "gsd": gsd, "epsg": geometry.epsg,
-            "pixel": {"x": cx, "y": cy, "lon": clon, "lat": clat},
-            "ground_height": geometry.ground_height, "sync_offset": float(geometry.source.params.sync_offset),
-            "wavelength": self._wavelengths(range(nbands)),
-            "values": [float(v) if np.isfinite(v) else None for v in values],
-            "covered": hit is not None, "cube": None, "line": None, "sample": None, "time": None,
-            "utc": None, "saturated": saturated,
-        }
-        if hit is not None:
-            c, line, sample = hit
-            t = float(geometry.source.line_times(c)[line])
-            answer.update(cube=c, base=self.cubes[c].base, line=line, sample=sample, time=t,
-                          utc=gps_seconds_to_datetime(t).isoformat().replace("+00:00", "Z"))
-        return answer
-
-    @staticmethod
-    def _overlap_pick(candidates, nbands: int, overlap: str):
-        """(values (nbands,) float32, saturated, (cube, line, sample) shown or None) of one output
-        pixel from the cubes covering it, in capture order, by the rule ``archive render --overlap``
-        applies (:mod:`archive.graph.mosaic`): 'last', per band the latest finite value; 'nadir',
-        every band of the cube seen closest to nadir (the later one on a tie)."""
-        from archive.graph.mosaic import make_rule
-
-        if not candidates:
-            return np.full(nbands, np.nan, np.float32), False, None
-        rule = make_rule(overlap, nbands, 1, 1)
-        whole = (slice(0, 1), slice(0, 1))
-        for _, _, _, v, flagged, zenith in candidates:
-            key = None if zenith is None else np.full((1, 1), zenith, np.float32)
-            rule.feed(v.reshape(nbands, 1, 1), np.full((1, 1), flagged), *whole, key=key)
-        values, saturated = rule.result()
-        if overlap == "nadir":
-            zeniths = [z for *_, z in candidates]
-            finite = [k for k, z in enumerate(zeniths) if np.isfinite(z)]
-            if not finite:
-                return values[:, 0, 0], bool(saturated[0, 0]), None
-            best = min(np.float32(zeniths[k]) for k in finite)
-            shown = max(k for k in finite if np.float32(zeniths[k]) <= best)   # the later one on a tie
-        else:
-            shown = len(candidates) - 1
-        c, line, sample = candidates[shown][:3]
-        return values[:, 0, 0], bool(saturated[0, 0]), (c, line, sample)
+        return point_spectrum(self, lon, lat, gsd, query)
 
     def outline(self, query: ViewQuery) -> dict:
         """GeoJSON MultiPolygon (lon, lat) of the cubes' ground meshes at the query's ground height,
@@ -701,7 +521,7 @@ class Flight:
         modes = ["raw", "relative"] + (["radiance"] if self.has_calibration else [])
         return {
             "id": self.id, "fov_deg": self.fov, "bands": self.cubes[0].bands,
-            "wavelength": self._wavelengths(range(self.cubes[0].bands)),
+            "wavelength": self.wavelengths_of(range(self.cubes[0].bands)),
             "default_bands": self.default_bands(), "modes": modes,
             "default_mode": "radiance" if self.has_calibration else "raw",
             "units": {"raw": "DN", "relative": "DN per ms of exposure (0 dB)",
@@ -715,183 +535,3 @@ class Flight:
                       for c in self.cubes],
             "bounds_3857": geometry.union(range(len(self.cubes))),
         }
-
-
-class FlightRegistry:
-    """The flights one viewer serves: the collections of ``archive`` (ids from its catalog index)
-    and the raw flight ``directories`` (ids from their files; ``fov`` needed for those).
-
-    ids are checked here (:meth:`check`) before anything opens a store: nothing else on disk is
-    reachable. :meth:`flight` opens flights lazily and keeps the last FLIGHTS_KEPT (call it from
-    the render thread).
-    """
-
-    def __init__(self, archive=None, directories: Sequence = (), fov: float | None = None,
-                 bands_cache: ByteLRU | None = None, lookup_cache: ByteLRU | None = None):
-        from archive.api import open_archive
-
-        self.archive = None if archive is None else open_archive(archive)
-        self.fov = fov
-        self.bands_cache = bands_cache if bands_cache is not None else ByteLRU(256 << 20)
-        self.lookup_cache = lookup_cache if lookup_cache is not None else ByteLRU(64 << 20)
-        self._lock = threading.Lock()
-        self._ids: tuple[float, frozenset] | None = None
-        self._items: dict[str, tuple[int, dict]] = {}
-        self._flights: OrderedDict[str, Flight] = OrderedDict()
-        self.raw: dict[str, tuple[Path, dict]] = {}
-        if directories and fov is None:
-            raise InputError("--fov", "the field of view is required for raw flight directories",
-                             "pass --fov DEG (47.5 for a Pika L and for 'archive simulate' flights)")
-        for d in directories:
-            path = Path(d).absolute()
-            if not path.is_dir():
-                raise MissingInputError(path, "flight directory")
-            feature = _raw_feature(path, float(fov))
-            self.raw[feature["id"]] = (path, feature)
-        if self.archive is None and not self.raw:
-            raise InputError(None, "nothing to view", "give --archive ARCHIVE and/or raw flight directories")
-
-    # ---- ids and the catalog -------------------------------------------------------------
-    def catalog_ids(self) -> frozenset:
-        if self.archive is None:
-            return frozenset()
-        with self._lock:
-            now = time.monotonic()
-            if self._ids is None or now - self._ids[0] > IDS_TTL_S:
-                from archive.catalog.index import ensure_index, search
-
-                self._ids = (now, frozenset(row.id for row in search(ensure_index(self.archive))))
-            return self._ids[1]
-
-    def check(self, cid: str) -> str:
-        """``cid`` if this viewer serves it, else :class:`UnknownFlight`."""
-        if cid in self.raw or cid in self.catalog_ids():
-            return cid
-        raise UnknownFlight(cid)
-
-    def _item(self, cid: str) -> dict:
-        path = self.archive.item_path(cid)
-        try:
-            stamp = path.stat().st_mtime_ns
-        except OSError:
-            raise UnknownFlight(cid) from None
-        with self._lock:
-            found = self._items.get(cid)
-        if found is None or found[0] != stamp:
-            from archive.catalog.index import read_item_file
-
-            found = (stamp, _feature_of_item(read_item_file(path)))
-            with self._lock:
-                self._items[cid] = found
-        return found[1]
-
-    def feature(self, cid: str) -> dict:
-        """The GeoJSON Feature of one served flight."""
-        self.check(cid)
-        if cid in self.raw:
-            return self.raw[cid][1]
-        return self._item(cid)
-
-    def features(self, bbox=None, datetime: str | None = None, wavelength: float | None = None) -> dict:
-        """GeoJSON FeatureCollection of the footprints matching every given filter (as ``archive
-        catalog search``): bbox (W, S, E, N degrees), datetime 'A/B' (ISO 8601, '..' open),
-        wavelength (nm, within the flight's bands). Catalog flights first (by start time), then
-        raw flights."""
-        features = []
-        if self.archive is not None:
-            ids = self.archive.search(bbox=bbox, datetime=datetime, wavelength=wavelength)
-            features += [self._item(cid) for cid in ids]
-        if self.raw:
-            from archive.catalog.index import parse_datetime_range
-
-            start, end = (None, None) if datetime is None else parse_datetime_range(datetime)
-            for _, feature in self.raw.values():
-                p = feature["properties"]
-                fb = feature["bbox"]
-                if bbox is not None and not (bbox[0] <= fb[2] and fb[0] <= bbox[2] and bbox[1] <= fb[3]
-                                             and fb[1] <= bbox[3]):
-                    continue
-                if start is not None and p["end_time"] < start or end is not None and p["start_time"] > end:
-                    continue
-                if wavelength is not None and not (p["min_wavelength"] is not None
-                                                   and p["min_wavelength"] <= wavelength <= p["max_wavelength"]):
-                    continue
-                features.append(feature)
-        return {"type": "FeatureCollection", "features": features, "numberMatched": len(features)}
-
-    # ---- opened flights ------------------------------------------------------------------
-    def flight(self, cid: str) -> Flight:
-        """The opened :class:`Flight` of a checked id (render thread only)."""
-        self.check(cid)
-        found = self._flights.get(cid)
-        if found is not None:
-            self._flights.move_to_end(cid)
-            return found
-        from archive.sources import open_source
-
-        if cid in self.raw:
-            directory = self.raw[cid][0]
-
-            def opener(params):
-                return open_source(directory, params)
-        else:
-            archive = self.archive.path
-
-            def opener(params):
-                return open_source(cid, params, archive=archive)
-        found = Flight(cid, opener, self.fov, self.bands_cache, self.lookup_cache)
-        self._flights[cid] = found
-        while len(self._flights) > FLIGHTS_KEPT:
-            self._flights.popitem(last=False)
-        return found
-
-
-def _feature_of_item(item: dict) -> dict:
-    """A catalog Item as the viewer's GeoJSON Feature: geometry, bbox and the properties the
-    page shows and filters by."""
-    from archive.catalog.stac import item_summary
-
-    s = item_summary(item)
-    p = item.get("properties", {})
-    props = {
-        "id": s["id"], "kind": "collection", "start_datetime": s["start_iso"], "end_datetime": s["end_iso"],
-        "start_time": s["start_time"], "end_time": s["end_time"], "bands": s["bands"],
-        "min_wavelength": s["min_wavelength"], "max_wavelength": s["max_wavelength"],
-        "wavelength": p.get("archive:wavelengths"), "sensor": s["sensor"], "gsd": s["gsd"],
-        "fov_deg": p.get("archive:fov_deg"), "ground_height": p.get("archive:ground_height"),
-        "cubes": p.get("archive:cubes"), "lines": p.get("archive:lines"), "samples": p.get("archive:samples"),
-    }
-    return {"type": "Feature", "id": s["id"], "geometry": item.get("geometry"), "bbox": s["bbox"],
-            "properties": props}
-
-
-def _raw_feature(directory: Path, fov: float) -> dict:
-    """The Feature of a raw flight directory: its footprint at the headers' ground height (as the
-    catalog computes it for a collection), time range and wavelengths."""
-    from scipy.spatial.transform import Rotation
-
-    from archive.catalog.footprint import flight_footprint
-    from archive.formats.lcf import gps_seconds_to_datetime
-    from archive.sources import open_source
-    from archive.sources.ground import auto_ground_height
-
-    source = open_source(directory, NavigationParams(fov_deg=fov))
-    ground = auto_ground_height([source])
-    poses = [source.poses(i) for i in range(len(source.cubes))]
-    times = np.concatenate([p.time for p in poses])
-    fp = flight_footprint(times, np.concatenate([p.position for p in poses]),
-                          Rotation.concatenate([p.attitude for p in poses]), source.frame, fov, ground,
-                          source.cubes[0].samples, where=str(directory))
-    start, end = gps_seconds_to_datetime(float(times[0])), gps_seconds_to_datetime(float(times[-1]))
-    wl = source.wavelengths
-    iso = [t.isoformat().replace("+00:00", "Z") for t in (start, end)]
-    props = {
-        "id": source.id, "kind": "raw", "start_datetime": iso[0], "end_datetime": iso[1],
-        "start_time": start.timestamp(), "end_time": end.timestamp(), "bands": source.cubes[0].bands,
-        "min_wavelength": None if wl is None else float(min(wl)),
-        "max_wavelength": None if wl is None else float(max(wl)),
-        "wavelength": None if wl is None else [float(w) for w in wl], "sensor": None, "gsd": round(fp.gsd, 4),
-        "fov_deg": fov, "ground_height": ground, "cubes": len(source.cubes),
-        "lines": int(sum(c.lines for c in source.cubes)), "samples": source.cubes[0].samples,
-    }
-    return {"type": "Feature", "id": source.id, "geometry": fp.geometry(), "bbox": fp.bbox(), "properties": props}

@@ -43,7 +43,7 @@ from archive.catalog.api import stac_routes
 from archive.catalog.root import ArchiveRoot
 from archive.errors import ArchiveError, InputError, MissingInputError, RenderError
 from archive.view.cache import ByteLRU
-from archive.view.flights import FlightRegistry
+from archive.view.registry import FlightRegistry
 from archive.view.query import Stretch, parse_bbox, parse_number, parse_query
 from archive.view.tiles import MAX_ZOOM, TILE, encode_values, mercator_box, tile_grid
 from archive.view.worker import Cancelled, RenderThread

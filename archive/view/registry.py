@@ -1,0 +1,212 @@
+"""Which flights a viewer serves: the archive's catalog plus raw flight directories named on the
+command line (ids checked before anything opens a store), as GeoJSON; opened flights kept."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from archive.errors import InputError, MissingInputError
+from archive.params import NavigationParams
+from archive.view.cache import ByteLRU
+from archive.view.flights import Flight
+
+__all__ = ["FLIGHTS_KEPT", "IDS_TTL_S", "FlightRegistry", "UnknownFlight"]
+
+#: Flights kept open.
+FLIGHTS_KEPT = 16
+#: Seconds the list of catalog ids is trusted before the index is asked again.
+IDS_TTL_S = 5.0
+
+
+class UnknownFlight(MissingInputError):
+    """An id that is neither in the archive's catalog nor one of the flights named (HTTP 404)."""
+
+    def __init__(self, cid: str):
+        shown = cid if len(cid) <= 80 else cid[:77] + "..."
+        super().__init__(repr(shown), "collection", "GET /api/collections lists the ids this viewer serves")
+
+
+class FlightRegistry:
+    """The flights one viewer serves: the collections of ``archive`` (ids from its catalog index)
+    and the raw flight ``directories`` (ids from their files; ``fov`` needed for those).
+
+    ids are checked here (:meth:`check`) before anything opens a store: nothing else on disk is
+    reachable. :meth:`flight` opens flights lazily and keeps the last FLIGHTS_KEPT (call it from
+    the render thread).
+    """
+
+    def __init__(self, archive=None, directories: Sequence = (), fov: float | None = None,
+                 bands_cache: ByteLRU | None = None, lookup_cache: ByteLRU | None = None):
+        from archive.api import open_archive
+
+        self.archive = None if archive is None else open_archive(archive)
+        self.fov = fov
+        self.bands_cache = bands_cache if bands_cache is not None else ByteLRU(256 << 20)
+        self.lookup_cache = lookup_cache if lookup_cache is not None else ByteLRU(64 << 20)
+        self._lock = threading.Lock()
+        self._ids: tuple[float, frozenset] | None = None
+        self._items: dict[str, tuple[int, dict]] = {}
+        self._flights: OrderedDict[str, Flight] = OrderedDict()
+        self.raw: dict[str, tuple[Path, dict]] = {}
+        if directories and fov is None:
+            raise InputError("--fov", "the field of view is required for raw flight directories",
+                             "pass --fov DEG (47.5 for a Pika L and for 'archive simulate' flights)")
+        for d in directories:
+            path = Path(d).absolute()
+            if not path.is_dir():
+                raise MissingInputError(path, "flight directory")
+            feature = _raw_feature(path, float(fov))
+            self.raw[feature["id"]] = (path, feature)
+        if self.archive is None and not self.raw:
+            raise InputError(None, "nothing to view", "give --archive ARCHIVE and/or raw flight directories")
+
+    # ---- ids and the catalog -------------------------------------------------------------
+    def catalog_ids(self) -> frozenset:
+        if self.archive is None:
+            return frozenset()
+        with self._lock:
+            now = time.monotonic()
+            if self._ids is None or now - self._ids[0] > IDS_TTL_S:
+                from archive.catalog.index import ensure_index, search
+
+                self._ids = (now, frozenset(row.id for row in search(ensure_index(self.archive))))
+            return self._ids[1]
+
+    def check(self, cid: str) -> str:
+        """``cid`` if this viewer serves it, else :class:`UnknownFlight`."""
+        if cid in self.raw or cid in self.catalog_ids():
+            return cid
+        raise UnknownFlight(cid)
+
+    def _item(self, cid: str) -> dict:
+        path = self.archive.item_path(cid)
+        try:
+            stamp = path.stat().st_mtime_ns
+        except OSError:
+            raise UnknownFlight(cid) from None
+        with self._lock:
+            found = self._items.get(cid)
+        if found is None or found[0] != stamp:
+            from archive.catalog.index import read_item_file
+
+            found = (stamp, _feature_of_item(read_item_file(path)))
+            with self._lock:
+                self._items[cid] = found
+        return found[1]
+
+    def feature(self, cid: str) -> dict:
+        """The GeoJSON Feature of one served flight."""
+        self.check(cid)
+        if cid in self.raw:
+            return self.raw[cid][1]
+        return self._item(cid)
+
+    def features(self, bbox=None, datetime: str | None = None, wavelength: float | None = None) -> dict:
+        """GeoJSON FeatureCollection of the footprints matching every given filter (as ``archive
+        catalog search``): bbox (W, S, E, N degrees), datetime 'A/B' (ISO 8601, '..' open),
+        wavelength (nm, within the flight's bands). Catalog flights first (by start time), then
+        raw flights."""
+        features = []
+        if self.archive is not None:
+            ids = self.archive.search(bbox=bbox, datetime=datetime, wavelength=wavelength)
+            features += [self._item(cid) for cid in ids]
+        if self.raw:
+            from archive.catalog.index import parse_datetime_range
+
+            start, end = (None, None) if datetime is None else parse_datetime_range(datetime)
+            for _, feature in self.raw.values():
+                p = feature["properties"]
+                fb = feature["bbox"]
+                if bbox is not None and not (bbox[0] <= fb[2] and fb[0] <= bbox[2] and bbox[1] <= fb[3]
+                                             and fb[1] <= bbox[3]):
+                    continue
+                if start is not None and p["end_time"] < start or end is not None and p["start_time"] > end:
+                    continue
+                if wavelength is not None and not (p["min_wavelength"] is not None
+                                                   and p["min_wavelength"] <= wavelength <= p["max_wavelength"]):
+                    continue
+                features.append(feature)
+        return {"type": "FeatureCollection", "features": features, "numberMatched": len(features)}
+
+    # ---- opened flights ------------------------------------------------------------------
+    def flight(self, cid: str) -> Flight:
+        """The opened :class:`Flight` of a checked id (render thread only)."""
+        self.check(cid)
+        found = self._flights.get(cid)
+        if found is not None:
+            self._flights.move_to_end(cid)
+            return found
+        from archive.sources import open_source
+
+        if cid in self.raw:
+            directory = self.raw[cid][0]
+
+            def opener(params):
+                return open_source(directory, params)
+        else:
+            archive = self.archive.path
+
+            def opener(params):
+                return open_source(cid, params, archive=archive)
+        found = Flight(cid, opener, self.fov, self.bands_cache, self.lookup_cache)
+        self._flights[cid] = found
+        while len(self._flights) > FLIGHTS_KEPT:
+            self._flights.popitem(last=False)
+        return found
+
+
+def _feature_of_item(item: dict) -> dict:
+    """A catalog Item as the viewer's GeoJSON Feature: geometry, bbox and the properties the
+    page shows and filters by."""
+    from archive.catalog.stac import item_summary
+
+    s = item_summary(item)
+    p = item.get("properties", {})
+    props = {
+        "id": s["id"], "kind": "collection", "start_datetime": s["start_iso"], "end_datetime": s["end_iso"],
+        "start_time": s["start_time"], "end_time": s["end_time"], "bands": s["bands"],
+        "min_wavelength": s["min_wavelength"], "max_wavelength": s["max_wavelength"],
+        "wavelength": p.get("archive:wavelengths"), "sensor": s["sensor"], "gsd": s["gsd"],
+        "fov_deg": p.get("archive:fov_deg"), "ground_height": p.get("archive:ground_height"),
+        "cubes": p.get("archive:cubes"), "lines": p.get("archive:lines"), "samples": p.get("archive:samples"),
+    }
+    return {"type": "Feature", "id": s["id"], "geometry": item.get("geometry"), "bbox": s["bbox"],
+            "properties": props}
+
+
+def _raw_feature(directory: Path, fov: float) -> dict:
+    """The Feature of a raw flight directory: its footprint at the headers' ground height (as the
+    catalog computes it for a collection), time range and wavelengths."""
+    from scipy.spatial.transform import Rotation
+
+    from archive.catalog.footprint import flight_footprint
+    from archive.formats.lcf import gps_seconds_to_datetime
+    from archive.sources import open_source
+    from archive.sources.ground import auto_ground_height
+
+    source = open_source(directory, NavigationParams(fov_deg=fov))
+    ground = auto_ground_height([source])
+    poses = [source.poses(i) for i in range(len(source.cubes))]
+    times = np.concatenate([p.time for p in poses])
+    fp = flight_footprint(times, np.concatenate([p.position for p in poses]),
+                          Rotation.concatenate([p.attitude for p in poses]), source.frame, fov, ground,
+                          source.cubes[0].samples, where=str(directory))
+    start, end = gps_seconds_to_datetime(float(times[0])), gps_seconds_to_datetime(float(times[-1]))
+    wl = source.wavelengths
+    iso = [t.isoformat().replace("+00:00", "Z") for t in (start, end)]
+    props = {
+        "id": source.id, "kind": "raw", "start_datetime": iso[0], "end_datetime": iso[1],
+        "start_time": start.timestamp(), "end_time": end.timestamp(), "bands": source.cubes[0].bands,
+        "min_wavelength": None if wl is None else float(min(wl)),
+        "max_wavelength": None if wl is None else float(max(wl)),
+        "wavelength": None if wl is None else [float(w) for w in wl], "sensor": None, "gsd": round(fp.gsd, 4),
+        "fov_deg": fov, "ground_height": ground, "cubes": len(source.cubes),
+        "lines": int(sum(c.lines for c in source.cubes)), "samples": source.cubes[0].samples,
+    }
+    return {"type": "Feature", "id": source.id, "geometry": fp.geometry(), "bbox": fp.bbox(), "properties": props}
