@@ -148,6 +148,17 @@ def _add_simulate(sub) -> None:
     _add_run_flags(p, "replace DIR if it exists")
 
 
+def _add_sources(p, nargs: str, note: str) -> None:
+    """SOURCE... and --archive, as ``render`` and ``calibrate`` take them."""
+    p.add_argument("sources", nargs=nargs, metavar="SOURCE",
+                   help=f"raw flight directory, or a collection id of --archive ({note})")
+    p.add_argument("--archive", metavar="ARCHIVE", help="archive holding the collections named as SOURCE")
+
+
+def _add_fov(p, note: str) -> None:
+    p.add_argument("--fov", type=float, metavar="DEG", help=f"across-track field of view of the camera, degrees ({note})")
+
+
 def _add_render(sub) -> None:
     p = _command(sub, "render", "georectify flights into a mosaicked, georeferenced cube", (
         "Georectify one or more flights by the inverse (mesh + OpenGL) method and write one "
@@ -155,14 +166,10 @@ def _add_render(sub) -> None:
         "where no line covers a pixel. SOURCE is a raw flight directory (rendered without "
         "intermediate files). From Python: archive.georectify(sources, out, gsd=..., ...), keyword "
         "names as these options (--ground-height is ground_height)."))
-    p.add_argument("sources", nargs="*", metavar="SOURCE",
-                   help="raw flight directory, or a collection id of --archive (optional with --query-*)")
-    p.add_argument("--archive", metavar="ARCHIVE", help="archive holding the collections named as SOURCE")
+    _add_sources(p, "*", "optional with --query-*")
     p.add_argument("--out", required=True, metavar="PATH", help="output path ending in .zarr, .tif or .hdr")
     p.add_argument("--gsd", required=True, type=float, metavar="M", help="output pixel size, metres")
-    p.add_argument("--fov", type=float, metavar="DEG",
-                   help="across-track field of view of the camera, degrees (required for raw sources; 47.5 for a Pika L "
-                        "and for 'archive simulate' flights)")
+    _add_fov(p, "required for raw sources; 47.5 for a Pika L and for 'archive simulate' flights")
     p.add_argument("--calibration", metavar="FILE.icp", help="radiometric calibration (default: the *.icp in the flight directory)")
     p.add_argument("--ground-height", default="auto", metavar="M|auto",
                    help="height of the flat ground, metres above the ellipsoid, or 'auto' (default auto)")
@@ -354,11 +361,8 @@ def _add_calibrate(sub) -> None:
         "(or, with --dem, the DEM's vertical offset). Prints the estimates with 1-sigma uncertainties, "
         "what the flight cannot separate, the misregistration before and after, and the render/ingest "
         "flags; starts from the parameters the flight records (a collection's as ingested)."))
-    p.add_argument("sources", nargs="+", metavar="SOURCE",
-                   help="raw flight directory, or a collection id of --archive (several: one camera, one estimate)")
-    p.add_argument("--archive", metavar="ARCHIVE", help="archive holding the collections named as SOURCE")
-    p.add_argument("--fov", type=float, metavar="DEG",
-                   help="across-track field of view, degrees (required for raw sources; 47.5 for a Pika L)")
+    _add_sources(p, "+", "several: one camera, one estimate")
+    _add_fov(p, "required for raw sources; 47.5 for a Pika L")
     p.add_argument("--ground-height", type=float, metavar="M",
                    help="start ground height, metres above the ellipsoid (default: as ingested, else the headers')")
     _add_dem(p, "estimate its vertical offset instead of a flat ground height; exclusive with --ground-height")

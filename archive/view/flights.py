@@ -376,12 +376,8 @@ class Flight:
         centred on the one it sees, 2^k (up to MAX_MIP) the power of two nearest the ratio of the
         pixel sizes: anti-aliased as by a mipmapped texture (the block means from summed-area tables
         made once per band), at the cost of a full-resolution tile."""
-        geometry = self.geometry(query.ground_height, query.sync_offset)
-        cubes = self.cube_range(query.cubes)
-        bands = self.bands(query)
-        mode = self.mode(query)
-        union = geometry.union(cubes)
-        if union is None or not bounds_intersect(union, grid.bounds):
+        geometry, cubes, bands, mode, drawn = self._drawing(grid, query)
+        if not drawn:
             return None
         side = grid.width // scale
         gsd = grid.gsd * scale
@@ -394,15 +390,19 @@ class Flight:
             return None
         return values, key
 
+    def _drawing(self, grid: Grid, query: ViewQuery):
+        """(geometry, cube range, bands, mode, whether the cubes' meshes reach ``grid``) of a query."""
+        geometry = self.geometry(query.ground_height, query.sync_offset)
+        cubes = self.cube_range(query.cubes)
+        union = geometry.union(cubes)
+        drawn = union is not None and bounds_intersect(union, grid.bounds)
+        return geometry, cubes, self.bands(query), self.mode(query), drawn
+
     # ---- what the API answers ----------------------------------------------------------
     def tile(self, grid: Grid, query: ViewQuery, check: Callable[[], None] = lambda: None) -> bytes:
         """PNG of one EPSG:3857 tile grid (transparent where no line covers)."""
-        geometry = self.geometry(query.ground_height, query.sync_offset)
-        cubes = self.cube_range(query.cubes)
-        bands = self.bands(query)
-        mode = self.mode(query)
-        union = geometry.union(cubes)
-        if union is None or not bounds_intersect(union, grid.bounds):
+        geometry, cubes, bands, mode, drawn = self._drawing(grid, query)
+        if not drawn:
             return transparent_png()
         ranges = query.stretch.ranges
         if ranges is None:

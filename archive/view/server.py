@@ -210,16 +210,18 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
         found = await run_in_threadpool(registry.features, bbox, when, wavelength)
         return JSONResponse(found, media_type="application/geo+json")
 
+    def tile_request(request):
+        """(id, z, x, y, its EPSG:3857 grid, the parsed query) of a tile request."""
+        z, x, y = (request.path_params[k] for k in ("z", "x", "y"))
+        if z > MAX_ZOOM:
+            raise InputError("z", f"zoom {z} is out of range 0..{MAX_ZOOM}", "request a shallower tile")
+        return cid_of(request), z, x, y, tile_grid(z, x, y), parse_query(request.query_params)
+
     async def describe(request):
         return JSONResponse(await drawn(request, _describe_job, registry, cid_of(request)))
 
     async def tile(request):
-        cid = cid_of(request)
-        z, x, y = (request.path_params[k] for k in ("z", "x", "y"))
-        if z > MAX_ZOOM:
-            raise InputError("z", f"zoom {z} is out of range 0..{MAX_ZOOM}", "request a shallower tile")
-        grid = tile_grid(z, x, y)
-        query = parse_query(request.query_params)
+        cid, z, x, y, grid, query = tile_request(request)
         key = (cid, z, x, y, query)
         png = viewer.tiles.get(key)
         if png is None:
@@ -234,12 +236,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
 
         import numpy as np
 
-        cid = cid_of(request)
-        z, x, y = (request.path_params[k] for k in ("z", "x", "y"))
-        if z > MAX_ZOOM:
-            raise InputError("z", f"zoom {z} is out of range 0..{MAX_ZOOM}", "request a shallower tile")
-        grid = tile_grid(z, x, y)
-        query = parse_query(request.query_params)
+        cid, z, x, y, grid, query = tile_request(request)
         if query.bands is None:
             raise InputError("bands", "give the 0-based band indices wanted, e.g. bands=3,5,7")
         scale = parse_number(request.query_params, "scale", 1, 16, 1)
