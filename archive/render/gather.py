@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from archive.errors import InputError
-from archive.render.renderer import Lookup, RenderResult, dn_texture_format, radiometry_arrays
+from archive.render.renderer import Lookup, RenderResult, checked_cube, dn_texture_format, radiometry_arrays
 
 __all__ = ["CPU_RENDERERS", "MAX_ULP", "gather_lookup", "is_cpu_renderer", "use_cpu_gather"]
 
@@ -63,13 +63,7 @@ def gather_lookup(lookup: Lookup, dn: np.ndarray, radiometry) -> RenderResult:
     float32); radiometry with dark / gain (bands, samples), response (lines,), saturation, or None
     for raw DN. Returns values (bands, height, width) float32, NaN where not covered.
     """
-    dn = np.asarray(dn)
-    if dn.ndim != 3:
-        raise InputError("dn", f"expected a (bands, lines, samples) cube, got shape {dn.shape}")
-    nb, lines, samples = dn.shape
-    if (lines, samples) != (lookup.lines, lookup.samples):
-        raise InputError("dn", f"cube has {lines} lines x {samples} samples but its lookup "
-                         f"{lookup.lines} x {lookup.samples}", "rasterize the lookup for this cube")
+    dn, (nb, lines, samples) = checked_cube(dn, lookup)
     dark, gain, resp, saturation = radiometry_arrays(radiometry, nb, lines, samples)
     dn_up, _, _ = dn_texture_format(dn)   # the values the GL path uploads (exact in float32)
     grid = lookup.grid

@@ -106,6 +106,19 @@ def dn_texture_format(dn: np.ndarray) -> tuple[np.ndarray, str, tuple[str, ...]]
     raise InputError("dn", f"unsupported DN dtype {dn.dtype}", "use uint16, an integer type or float32")
 
 
+def checked_cube(dn, lookup) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """(dn as an array, its (bands, lines, samples)): InputError unless a 3-D cube of the lookup's
+    lines and samples (pass 2's input, GL or CPU)."""
+    dn = np.asarray(dn)
+    if dn.ndim != 3:
+        raise InputError("dn", f"expected a (bands, lines, samples) cube, got shape {dn.shape}")
+    nb, lines, samples = dn.shape
+    if (lines, samples) != (lookup.lines, lookup.samples):
+        raise InputError("dn", f"cube has {lines} lines x {samples} samples but its lookup "
+                         f"{lookup.lines} x {lookup.samples}", "rasterize the lookup for this cube")
+    return dn, (nb, lines, samples)
+
+
 def radiometry_arrays(radiometry, nb: int, lines: int, samples: int):
     if radiometry is None:
         return (np.zeros((nb, samples), np.float32), np.ones((nb, samples), np.float32),
@@ -309,13 +322,7 @@ def render_lookup(
     ``values`` when the window spans whole output rows (else through one scratch block). The
     saturation flag is the lookup applied to the per-(line, sample) maximum DN over the bands (CPU).
     """
-    dn = np.asarray(dn)
-    if dn.ndim != 3:
-        raise InputError("dn", f"expected a (bands, lines, samples) cube, got shape {dn.shape}")
-    nb, lines, samples = dn.shape
-    if (lines, samples) != (lookup.lines, lookup.samples):
-        raise InputError("dn", f"cube has {lines} lines x {samples} samples but its lookup "
-                         f"{lookup.lines} x {lookup.samples}", "rasterize the lookup for this cube")
+    dn, (nb, lines, samples) = checked_cube(dn, lookup)
     if not 1 <= bands_per_pass <= 8:
         raise InputError("bands_per_pass", f"must be 1..8, got {bands_per_pass}")
     dark, gain, resp, saturation = radiometry_arrays(radiometry, nb, lines, samples)
