@@ -9,19 +9,14 @@ import pytest
 
 from archive.errors import InputError
 from archive.grid import Grid
-from archive.render.context import get_context, gl_info
+from archive.render.context import gl_info
 from archive.render.gather import MAX_ULP, gather_lookup, is_cpu_renderer, use_cpu_gather
 from archive.render.mesh import build_mesh
 from archive.render.renderer import rasterize_lookup, render_lookup
-from tests.test_render import FOV, FRAME, GSD, RATE, SHUTTER, flight, grid_around, pattern, radiometry, rolled_pitched
+from tests.test_render import (FOV, FRAME, GSD, RATE, SHUTTER, flight, grid_around, no_gl_errors,  # noqa: F401
+                               pattern, radiometry, rolled_pitched)
 
 
-@pytest.fixture(autouse=True)
-def no_gl_errors():
-    ctx = get_context()
-    assert ctx.error == "GL_NO_ERROR"
-    yield
-    assert ctx.error == "GL_NO_ERROR"
 
 
 def ulp_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -8,9 +8,6 @@ links; the store asset opened with xarray as its Item says.
 from __future__ import annotations
 
 import json
-import socket
-import threading
-import time
 import urllib.request
 from pathlib import Path
 
@@ -27,24 +24,11 @@ pystac_client = pytest.importorskip("pystac_client")
 @pytest.fixture(scope="module")
 def stac(catalog):  # noqa: F811
     """(base URL of the STAC API of a live server on loopback, archive, ids by flight name)."""
-    import uvicorn
+    from tests.conftest import serve_loopback
 
     archive_dir, ids, _ = catalog
-    app = create_app(FlightRegistry(archive_dir), allowed_hosts=LOOPBACK_NAMES)
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    sock.listen(64)
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 20
-    while not server.started:
-        assert time.monotonic() < deadline, "uvicorn did not start"
-        time.sleep(0.02)
-    yield f"http://127.0.0.1:{sock.getsockname()[1]}/stac", archive_dir, ids
-    server.should_exit = True
-    thread.join(10)
-    sock.close()
+    with serve_loopback(create_app(FlightRegistry(archive_dir), allowed_hosts=LOOPBACK_NAMES), 64) as url:
+        yield f"{url}/stac", archive_dir, ids
 
 
 def _get(url: str) -> dict:

@@ -336,23 +336,11 @@ def test_byte_lru_keeps_its_limit():
 @pytest.fixture
 def live(demo):
     """A real uvicorn server on a free loopback port, in a thread; yields (base URL, Viewer)."""
-    import uvicorn
+    from tests.conftest import serve_loopback
 
     app = create_app(FlightRegistry(demo[0]))
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    sock.listen(16)
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on"))
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 20
-    while not server.started:
-        assert time.monotonic() < deadline, "uvicorn did not start"
-        time.sleep(0.02)
-    yield f"http://127.0.0.1:{sock.getsockname()[1]}", app.state.viewer
-    server.should_exit = True
-    thread.join(10)
-    sock.close()
+    with serve_loopback(app) as url:
+        yield url, app.state.viewer
 
 
 def _get_json(url):
