@@ -83,10 +83,13 @@ def task_group_size(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> int:
     """Bands per render task for ``plan``: as many whole 8-band GL passes as fit the bytes of values
     one render may hold for the largest cube window (at most MAX_GROUP), but never fewer than GROUP
     (4) bands; a render may hold ``budget`` bytes, and all renders held at once
-    (:func:`live_renders` + RENDERS_AHEAD) HELD_VALUES_BYTES."""
+    (:func:`live_renders` + RENDERS_AHEAD) HELD_VALUES_BYTES, scaled down with ``budget`` (small
+    workers get a tenth of their memory as ``budget``, :func:`archive.cluster.task_budget`: the
+    renders they hold at once shrink in proportion)."""
     biggest = max((job.window.width * job.window.height for job in plan.jobs), default=1)
     held = live_renders(plan) + RENDERS_AHEAD
-    fit = min(budget, HELD_VALUES_BYTES // held) // (4 * max(biggest, 1))
+    held_bytes = HELD_VALUES_BYTES * min(1.0, budget / TASK_VALUES_BYTES)
+    fit = int(min(budget, held_bytes // held)) // (4 * max(biggest, 1))
     if fit < BANDS_PER_PASS:
         return max(GROUP, fit // GROUP * GROUP)
     return min(MAX_GROUP, fit // BANDS_PER_PASS * BANDS_PER_PASS)
