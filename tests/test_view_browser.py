@@ -410,6 +410,8 @@ def test_invalid_cube_range_shows_the_server_message(server, browser, archive_of
     assert (page.shot() == before).all(), "the picture should stay when a change is refused"
     page.page.click("#reset")
     page.settled()
+    # the message goes once the reset view has settled (its requests may still be arriving)
+    page.page.wait_for_function("() => document.getElementById('err-cubes').textContent === ''", timeout=30_000)
     assert page.page.inner_text("#err-cubes") == ""
 
     # docs/viewer.png: several flights, two pinned spectra
