@@ -280,15 +280,21 @@ def test_one_flight_where_the_mosaic_is_and_pinned_spectra(server, browser, arch
     page.close()
 
 
+def opened(browser, server, cid: str) -> Page:
+    """A page showing flight ``cid`` alone, open, its tiles settled and its request logs cleared."""
+    page = Page(browser, server, f"flights={cid}&open={cid}")
+    page.page.wait_for_function(f"() => window.viewer.open === '{cid}'")
+    page.settled()
+    page.clean()
+    return page
+
+
 def test_never_blank_during_band_and_ground_changes(server, browser, archive_of_flights):
     from scipy.ndimage import binary_erosion
 
     _, ids = archive_of_flights
     cid = ids[0]
-    page = Page(browser, server, f"flights={cid}&open={cid}")
-    page.page.wait_for_function(f"() => window.viewer.open === '{cid}'")
-    page.settled()
-    page.clean()
+    page = opened(browser, server, cid)
     interior = binary_erosion(page.drawn(), iterations=8)
     assert interior.sum() > 5_000
 
@@ -320,10 +326,7 @@ def test_never_blank_during_band_and_ground_changes(server, browser, archive_of_
 def test_stretch_needs_no_request_and_hash_drives_the_view(server, browser, archive_of_flights):
     _, ids = archive_of_flights
     cid = ids[0]
-    page = Page(browser, server, f"flights={cid}&open={cid}")
-    page.page.wait_for_function(f"() => window.viewer.open === '{cid}'")
-    page.settled()
-    page.clean()
+    page = opened(browser, server, cid)
     before_shot, before = page.shot(), len(page.values_requests)
     page.page.select_option("#stretch", "view")
     page.settled()
@@ -396,10 +399,7 @@ def test_several_flights_on_one_map(server, browser, archive_of_flights):
 def test_invalid_cube_range_shows_the_server_message(server, browser, archive_of_flights, tmp_path):
     _, ids = archive_of_flights
     cid = ids[2]
-    page = Page(browser, server, f"flights={cid}&open={cid}")
-    page.page.wait_for_function(f"() => window.viewer.open === '{cid}'")
-    page.settled()
-    page.clean()
+    page = opened(browser, server, cid)
     before = page.shot()
     page.page.fill("#cube-first", "2")
     page.page.fill("#cube-last", "1")
