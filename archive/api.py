@@ -20,9 +20,13 @@ import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from archive.catalog.root import ArchiveRoot
 from archive.errors import InputError
+
+if TYPE_CHECKING:
+    from archive.cluster import SlurmJobs
 
 __all__ = ["Archive", "georectify", "mosaic", "open_archive", "plan"]
 
@@ -150,7 +154,7 @@ def mosaic(sources: Source | Sequence[Source], *, band_group: int | None = None,
 
 
 def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: Source | None = None,
-               scheduler: str | None = None, workers: int | None = None, threads: int | None = None,
+               scheduler: str | SlurmJobs | None = None, workers: int | None = None, threads: int | None = None,
                overwrite: bool = False, quiet: bool = True, per_flight: bool = False, format: str = "zarr",
                resume: bool = False, tell=None, **options) -> dict:
     """Georectify ``sources`` into ``out`` (.zarr, .tif or .hdr) exactly as ``archive render``;
@@ -160,8 +164,9 @@ def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: So
     Render options as :func:`mosaic`, plus provenance: also write the per-pixel provenance layers
     (:mod:`archive.provenance`: variables of a Zarr output, a sibling ``<stem>_provenance.tif`` /
     ``.hdr`` beside a COG / ENVI output; needs overlap 'last' or 'nadir'). And: quicklook: also
-    write an RGB .png; scheduler: a Dask scheduler address (default: a local cluster of ``workers``
-    processes, 1, of ``threads`` threads each, default the cores); overwrite: replace an existing
+    write an RGB .png; scheduler: a Dask scheduler address, or an :class:`archive.cluster.SlurmJobs`
+    (workers as Slurm jobs, ``--cluster slurm``) (default: a local cluster of ``workers`` processes, 1,
+    of ``threads`` threads each, default the cores); overwrite: replace an existing
     output; quiet: no progress bar or notes; per_flight: one output per source,
     ``out/<name>.<format>`` (then the summary holds ``outputs``, and ``out/report.json`` the batch
     report; each flight succeeds or fails alone, :mod:`archive.batch`); resume: skip per-flight
