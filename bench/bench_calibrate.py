@@ -90,33 +90,22 @@ def main(argv=None) -> int:
             f"{args.bands} bands) | {cal_s:.1f} | " + " | ".join(_cell(err[n], result.sigma.get(n), n) for n in NAMES)
             + f" | {result.residual_before['median']:.2f} / {result.residual_after['median']:.3f} | "
               f"{result.residual_after['windows']} |"]
-    overlap_rows = []
-    for fov in (float(v) for v in args.fovs.split(",")):
-        path = work / f"overlap_fov{fov:g}"
-        t, _ = _flight(path, cubes=4, cubes_per_pass=1, bands=4, samples=128, lines=1500, seed=11, fov_deg=fov)
-        width = 2 * 40.0 * math.tan(math.radians(fov) / 2) - 25.0
+    def sweep_row(path: Path, first_cells: str, **flight) -> str:
+        """One row of a sweep: calibrate a 4-cube, one-cube-per-pass flight of 128 x ``lines`` x 4 bands."""
+        t, _ = _flight(path, cubes=4, cubes_per_pass=1, bands=4, samples=128, seed=11, **flight)
         try:
             r, s = _calibrate(path, t)
         except Exception as exc:  # noqa: BLE001 - a refusal is a result too
-            overlap_rows.append(f"| {fov:g} | {width:.1f} | refused: {exc} |||||||")
-            continue
+            return f"| {first_cells} | refused: {exc} |||||||"
         e = _errors(r, t)
-        overlap_rows.append(f"| {fov:g} | {width:.1f} | {r.residual_after['windows']} | {s:.1f} | "
-                            + " | ".join(_cell(e[n], r.sigma.get(n), n) for n in NAMES)
-                            + f" | {r.residual_after['median']:.3f} |")
-    length_rows = []
-    for lines in (int(v) for v in args.lengths.split(",")):
-        path = work / f"length_{lines}"
-        t, _ = _flight(path, cubes=4, cubes_per_pass=1, bands=4, samples=128, lines=lines, seed=11)
-        try:
-            r, s = _calibrate(path, t)
-        except Exception as exc:  # noqa: BLE001 - a refusal is a result too
-            length_rows.append(f"| {lines} | {lines / 24.9:.0f} | refused: {exc} |||||||")
-            continue
-        e = _errors(r, t)
-        length_rows.append(f"| {lines} | {lines / 24.9:.0f} | {r.residual_after['windows']} | {s:.1f} | "
-                           + " | ".join(_cell(e[n], r.sigma.get(n), n) for n in NAMES)
-                           + f" | {r.residual_after['median']:.3f} |")
+        return (f"| {first_cells} | {r.residual_after['windows']} | {s:.1f} | "
+                + " | ".join(_cell(e[n], r.sigma.get(n), n) for n in NAMES) + f" | {r.residual_after['median']:.3f} |")
+
+    overlap_rows = [sweep_row(work / f"overlap_fov{fov:g}", f"{fov:g} | {2 * 40.0 * math.tan(math.radians(fov) / 2) - 25.0:.1f}",
+                              lines=1500, fov_deg=fov)
+                    for fov in (float(v) for v in args.fovs.split(","))]
+    length_rows = [sweep_row(work / f"length_{lines}", f"{lines} | {lines / 24.9:.0f}", lines=lines)
+                   for lines in (int(v) for v in args.lengths.split(","))]
     machine = br.machine()
     text = "\n".join([
         "## Self-calibration (issue 23): archive calibrate",

@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_render as br  # noqa: E402  (machine)
+import bench_render as br  # noqa: E402  (machine, the flight options)
 
 FOV = 47.5
 
@@ -238,20 +238,12 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="what", required=True)
     s = sub.add_parser("scaling")
-    s.add_argument("--cubes", type=int, default=4)
-    s.add_argument("--bands", type=int, default=32)
-    s.add_argument("--samples", type=int, default=256)
-    s.add_argument("--lines", type=int, default=500)
-    s.add_argument("--gsd", type=float, default=0.04)
+    br.add_flight_arguments(s, bands=32, workdir="/tmp/archive-bench-cluster", cubes=4, samples=256, lines=500)
     s.add_argument("--workers", default="1,2")
-    o = sub.add_parser("overhead")
-    o.add_argument("--cubes", type=int, default=40)
-    o.add_argument("--bands", type=int, default=300)
-    o.add_argument("--lines", type=int, default=1000)
-    o.add_argument("--gsd", type=float, default=0.04)
+    o = sub.add_parser("overhead")   # its flight has 32 samples per line
+    br.add_flight_arguments(o, bands=300, workdir="/tmp/archive-bench-cluster", cubes=40, samples=None)
     o.add_argument("--workers", type=int, default=2)
     for p in (s, o):
-        p.add_argument("--workdir", default="/tmp/archive-bench-cluster")
         p.add_argument("--json", help="also write the result here")
     args = parser.parse_args(argv)
     result = scaling(args) if args.what == "scaling" else overhead(args)

@@ -16,21 +16,20 @@ import argparse
 import os
 import shutil
 import statistics
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_render as br  # noqa: E402  (the flight options)
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cubes", type=int, default=4)
-    ap.add_argument("--lines", type=int, default=500)
-    ap.add_argument("--samples", type=int, default=256)
-    ap.add_argument("--bands", type=int, default=32)
-    ap.add_argument("--gsd", type=float, default=0.05)
+    br.add_flight_arguments(ap, bands=32, workdir="/tmp/bench_integrity", cubes=4, samples=256, lines=500, gsd=0.05)
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--workdir", default="/tmp/bench_integrity")
     args = ap.parse_args()
 
     import archive

@@ -129,14 +129,17 @@ class MemoryPoll:
 # ---------------------------------------------------------------------------------------------
 # Data
 # ---------------------------------------------------------------------------------------------
-def add_flight_arguments(ap: argparse.ArgumentParser, bands: int, workdir: str) -> None:
-    """The options of the simulated flight (--cubes, --bands, --samples, --lines), --gsd and --workdir."""
-    ap.add_argument("--cubes", type=int, default=2)
-    ap.add_argument("--bands", type=int, default=bands)
-    ap.add_argument("--samples", type=int, default=900)
-    ap.add_argument("--lines", type=int, default=1000)
-    ap.add_argument("--gsd", type=float, default=0.04)
-    ap.add_argument("--workdir", default=workdir)
+def add_flight_arguments(ap: argparse.ArgumentParser, bands: int, workdir: str, *, cubes: int = 2,
+                         samples: int | None = 900, lines: int = 1000, gsd: float = 0.04) -> None:
+    """The options of the simulated flight (--cubes, --bands, --samples, --lines), --gsd (metres) and
+    --workdir, with these defaults (samples None: no --samples, the bench fixes it)."""
+    ap.add_argument("--cubes", type=int, default=cubes, help=f"cubes of the simulated flight (default {cubes})")
+    ap.add_argument("--bands", type=int, default=bands, help=f"bands per cube (default {bands})")
+    if samples is not None:
+        ap.add_argument("--samples", type=int, default=samples, help=f"samples per line (default {samples})")
+    ap.add_argument("--lines", type=int, default=lines, help=f"lines per cube (default {lines})")
+    ap.add_argument("--gsd", type=float, default=gsd, help=f"output pixel size, metres (default {gsd:g})")
+    ap.add_argument("--workdir", default=workdir, help=f"where the flight and outputs go (default {workdir})")
 
 
 def flight_dir(args) -> Path:

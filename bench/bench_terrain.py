@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_render as br  # noqa: E402  (machine)
+import bench_render as br  # noqa: E402  (machine, the flight options)
 
 FOV = 47.5
 MODE = "radiance"
@@ -171,13 +171,8 @@ def median(rows: list[dict], key: str) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--cubes", type=int, default=4)
-    ap.add_argument("--bands", type=int, default=60)
-    ap.add_argument("--samples", type=int, default=900)
-    ap.add_argument("--lines", type=int, default=1000)
-    ap.add_argument("--gsd", type=float, default=0.04)
+    br.add_flight_arguments(ap, bands=60, workdir="/tmp/bench_terrain", cubes=4)
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--workdir", default="/tmp/bench_terrain")
     ap.add_argument("--results", help="append the Markdown section to this file")
     args = ap.parse_args()
     Path(args.workdir).mkdir(parents=True, exist_ok=True)
