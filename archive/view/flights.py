@@ -37,7 +37,7 @@ from archive.errors import InputError
 from archive.grid import Grid
 from archive.params import NavigationParams
 from archive.view.cache import ByteLRU
-from archive.view.geometry import Geometry, PosesKept, block_corners, bounds_intersect, plane_index
+from archive.view.geometry import Geometry, PosesKept, bounds_intersect, plane_index
 from archive.view.query import ViewQuery
 from archive.view.tiles import MERCATOR_EPSG, bbox_grid, encode_png, transparent_png
 
@@ -210,47 +210,49 @@ class Flight:
             return out, out.nbytes
         return self.bands_cache.get_or_make((self.id, cube, band, mode), make)
 
-    def box_sums(self, cube: int, band: int, mode: str) -> tuple[np.ndarray, np.ndarray | None]:
-        """Summed-area tables of a band plane: (lines + 1, samples + 1) float64 sums of its finite
-        values over [0, l) x [0, s), and the same of their count (None: every value is finite).
-        Any block mean is then four look-ups (:meth:`block_means`). Cached (the bands cache)."""
+    def filtered(self, cube: int, band: int, mode: str, size: int) -> np.ndarray:
+        """(lines * samples + 1,) float32 like :meth:`plane`, each value the mean of the finite values
+        of the size x size block of lines x samples centred on its (line, sample) (from index - size
+        // 2, cut at the cube's edges), NaN where none is; ``size`` 1: the plane itself. The
+        flight's pixels box-filtered for overview zooms; a tile then gathers from it as from the
+        plane. Cached per size (the bands cache): one plane's worth of memory per level shown."""
+        if size == 1:
+            return self.plane(cube, band, mode)
+
         def make():
+            from scipy.ndimage import uniform_filter
+
             info = self.cubes[cube]
             plane = self.plane(cube, band, mode)[:-1].reshape(info.lines, info.samples)
             finite = np.isfinite(plane)
-            every = bool(finite.all())
-
-            def table(values):
-                out = np.zeros((info.lines + 1, info.samples + 1), np.float64)
-                np.cumsum(values, axis=0, dtype=np.float64, out=out[1:, 1:])
-                np.cumsum(out[1:, 1:], axis=1, out=out[1:, 1:])
-                return out
-            sums = table(plane if every else np.where(finite, plane, 0))
-            counts = None if every else table(finite)
-            return (sums, counts), sums.nbytes + (0 if counts is None else counts.nbytes)
-        return self.bands_cache.get_or_make((self.id, cube, band, mode, "sums"), make)
+            # uniform_filter's window for even sizes starts at index - size // 2, as wanted; zeros
+            # beyond the edges, so the sums are divided by the number of values inside instead
+            sums = uniform_filter(np.where(finite, plane, np.float32(0)), size=size, mode="constant", cval=0.0,
+                                  output=np.float32)
+            if finite.all():
+                def inside(n):
+                    i = np.arange(n)
+                    return (np.minimum(i - size // 2 + size, n) - np.maximum(i - size // 2, 0)).astype(np.float32)
+                count = np.outer(inside(info.lines), inside(info.samples)) / np.float32(size * size)
+            else:
+                count = uniform_filter(finite.astype(np.float32), size=size, mode="constant", cval=0.0)
+            out = np.empty(info.lines * info.samples + 1, np.float32)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                np.divide(sums.reshape(-1), count.reshape(-1), out=out[:-1])
+            out[:-1][count.reshape(-1) < 0.5 / (size * size)] = np.nan
+            out[-1] = np.nan
+            return out, out.nbytes
+        return self.bands_cache.get_or_make((self.id, cube, band, mode, "filtered", int(size)), make)
 
     def block_means(self, cube: int, band: int, mode: str, size: int, line: np.ndarray,
-                    sample: np.ndarray, corners=None) -> np.ndarray:
+                    sample: np.ndarray) -> np.ndarray:
         """float32 (shape of ``line``): at each (line, sample), the mean of the finite values of the
-        band in the size x size block of lines x samples centred there (from index - size // 2, cut
-        at the cube's edges); NaN where ``line`` < 0 (not covered) or no value is finite: the
-        flight's pixels box-filtered to a coarser output pixel. ``corners``: :func:`block_corners`
-        of these arguments (shared by the bands of one lookup)."""
+        band in the size x size block of lines x samples centred there (:meth:`filtered`); NaN where
+        ``line`` < 0 (not covered) or no value is finite."""
         info = self.cubes[cube]
-        if corners is None:
-            corners = block_corners(line, sample, size, info.lines, info.samples)
-        index, area, covered = corners
-        sums, counts = self.box_sums(cube, band, mode)
-
-        def box(t):
-            t = t.reshape(-1)
-            return t.take(index[0]) - t.take(index[1]) - t.take(index[2]) + t.take(index[3])
-        n = box(counts) if counts is not None else area
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mean = (box(sums) / n).astype(np.float32)
-        mean[~covered | (n < 0.5)] = np.nan
-        return mean.reshape(line.shape)
+        line, sample = np.asarray(line), np.asarray(sample)
+        index = np.where(line >= 0, line * info.samples + sample, info.lines * info.samples)
+        return self.filtered(cube, band, mode, size).take(index.astype(np.int64))
 
     def _calibrate(self, cube: int, band: int, mode: str) -> np.ndarray:
         """(lines, samples) float32: every pixel of one band of one cube in ``mode``, by the float32
@@ -328,7 +330,7 @@ class Flight:
         ((height, width) float32, NaN where none; None for 'last'): what the browser compares
         between flights. Each pixel shows the value of the (line, sample) its lookup sees, from the
         band's plane (:meth:`plane`; ``level`` > 1: the mean of the level x level block of the
-        flight's pixels centred there, :meth:`block_means`)."""
+        flight's pixels centred there, :meth:`filtered`)."""
         from archive.graph.mosaic import make_rule, nadir_values, nadir_winners, rule_key
 
         rule = make_rule(overlap, len(bands), grid.height, grid.width)
@@ -346,15 +348,9 @@ class Flight:
             if lookup is None:
                 continue
             values = np.empty((len(bands), grid.height, grid.width), np.float32)
-            if level == 1:
-                index = plane_index(lookup)
-                for i, b in enumerate(bands):
-                    np.take(self.plane(c, b, mode), index, out=values[i].reshape(-1), mode="clip")
-            else:
-                info = self.cubes[c]
-                corners = block_corners(lookup.line, lookup.sample, level, info.lines, info.samples)
-                for i, b in enumerate(bands):
-                    values[i] = self.block_means(c, b, mode, level, lookup.line, lookup.sample, corners)
+            index = plane_index(lookup)
+            for i, b in enumerate(bands):
+                np.take(self.filtered(c, b, mode, level), index, out=values[i].reshape(-1), mode="clip")
             key = self.view_zenith(geometry, c, lookup) if keyed else None
             if key is not None:
                 keys.append((key, *whole))
@@ -374,8 +370,8 @@ class Flight:
         Where a tile pixel spans several of the flight's pixels (``flight_gsd`` m, overview zooms),
         its value is the mean over the block of 2^k x 2^k of the flight's pixels (lines x samples)
         centred on the one it sees, 2^k (up to MAX_MIP) the power of two nearest the ratio of the
-        pixel sizes: anti-aliased as by a mipmapped texture (the block means from summed-area tables
-        made once per band), at the cost of a full-resolution tile."""
+        pixel sizes: anti-aliased as by a mipmapped texture (the band box-filtered once per cube,
+        band and level, :meth:`filtered`), at the cost of a full-resolution tile."""
         geometry, cubes, bands, mode, drawn = self._drawing(grid, query)
         if not drawn:
             return None

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Geometry", "PosesKept", "block_corners", "bounds_intersect", "plane_index", "slice_radiometry"]
+__all__ = ["Geometry", "PosesKept", "bounds_intersect", "plane_index", "slice_radiometry"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,20 +50,6 @@ def slice_radiometry(radiometry, lines: slice, samples: slice):
         return None
     return Radiometry(radiometry.dark[:, samples], radiometry.gain[:, samples], radiometry.response[lines],
                       radiometry.saturation)
-
-
-def block_corners(line: np.ndarray, sample: np.ndarray, size: int, lines: int, samples: int):
-    """(flat indices (4, n) into a (lines + 1, samples + 1) summed-area table of the corners of
-    each size x size block centred on (line, sample), cut at the edges: (l1, s1), (l0, s1),
-    (l1, s0), (l0, s0); the blocks' areas (n,) float64; covered (n,) bool: line >= 0)."""
-    line, sample = line.reshape(-1), sample.reshape(-1)
-    l0 = np.clip(line - size // 2, 0, lines)
-    l1 = np.clip(line - size // 2 + size, 0, lines)
-    s0 = np.clip(sample - size // 2, 0, samples)
-    s1 = np.clip(sample - size // 2 + size, 0, samples)
-    w = samples + 1
-    index = np.stack([l1 * w + s1, l0 * w + s1, l1 * w + s0, l0 * w + s0]).astype(np.int32)
-    return index, ((l1 - l0) * (s1 - s0)).astype(np.float64), line >= 0
 
 
 def plane_index(lookup) -> np.ndarray:
