@@ -14,9 +14,9 @@ Layout of ``<ARCHIVE>/collections/<id>.zarr`` (axis orders in brackets)::
     position      [line, 3]             camera N, E, D (m) in the collection frame (ingest's navigation_params)
     attitude      [line, 4]             camera -> NED quaternion (x, y, z, w) (ingest's navigation_params)
     response      [line]                exposure factor vs the calibration (1 ms at 0 dB if none)
-    navigation    [sample, 7]           raw .lcf samples of all cubes: time, roll, pitch, yaw, lon, lat, alt
+    navigation    [nav_sample, 7]       raw .lcf samples of all cubes: time, roll, pitch, yaw, lon, lat, alt
     navigation_offset [cube + 1]        rows of cube k are navigation[offset[k]:offset[k+1]]
-    navigation_use [sample]             1 = use, 0 = flagged 'do not use' (.lcf column 10); only when some row is
+    navigation_use [nav_sample]         1 = use, 0 = flagged 'do not use' (.lcf column 10); only when some row is
     wavelength    [band]                nm (NaN when the header has none)
     fwhm          [band]                spectral full width at half maximum, nm (NaN when the header has
                   none; absent in stores ingested before it was recorded)
@@ -26,7 +26,10 @@ Layout of ``<ARCHIVE>/collections/<id>.zarr`` (axis orders in brackets)::
 
 Group attributes hold the id, software version, field of view, ground height, the local frame,
 every cube's full header metadata, the source files (name, size, sha256), calibration reference
-exposure, sha256 of every small array, and LAST ``"archive:complete": true``. Nothing depends on
+exposure, sha256 of every small array, and LAST ``"archive:complete": true``.
+Every dimension name means one length, so ``xarray.open_zarr(store, consolidated=False)`` opens a
+collection as it is (stores ingested before 2026-11-24 named navigation's rows 'sample' too: open
+those with ``drop_variables=["navigation", "navigation_use"]``). Nothing depends on
 the wall clock, so ingesting the same flight twice gives byte-identical stores.
 
 Chunking: Zarr 3 needs a regular chunk grid, so the line chunk length is the most common cube

@@ -120,6 +120,21 @@ def test_read_back_bit_identical(flight, ingested):
     assert group.attrs["calibration"]["shutter_cal"] == cal.shutter_cal
 
 
+def test_xarray_opens_the_collection(flight, ingested):
+    """A collection opens as an xarray Dataset as it is: every dimension name means one length
+    (the .lcf samples have their own, not the image's 'sample')."""
+    import xarray as xr
+
+    d, _ = flight
+    archive_dir, cid = ingested
+    ds = xr.open_zarr(archive_dir / "collections" / f"{cid}.zarr", consolidated=False)
+    assert ds["dn"].dims == ("band", "line", "sample") and ds.sizes["sample"] == 64
+    rows = sum(len(read_lcf(c.lcf).time) for c in discover_flight(d).cubes)
+    assert ds["navigation"].dims == ("nav_sample", "column") and ds.sizes["nav_sample"] == rows
+    raw = EnviCube(discover_flight(d).cubes[1].data).read()   # [band, line, sample]; line 150 is its line 50
+    np.testing.assert_array_equal(ds["dn"][2, 150].values, raw[2, 50])
+
+
 @pytest.mark.parametrize("params", PARAMS, ids=["default", "offset-boresight-lever"])
 def test_collection_source_equals_raw(flight, ingested, params):
     d, _ = flight

@@ -172,12 +172,12 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
         "fwhm": np.asarray(first.fwhm if first.fwhm else [np.nan] * first.bands, np.float64),
     }
     dims = {"time": ("line",), "camera_time": ("line",), "cube": ("line",), "position": ("line", "ned"),
-            "attitude": ("line", "xyzw"), "response": ("line",), "navigation": ("sample", "column"),
+            "attitude": ("line", "xyzw"), "response": ("line",), "navigation": ("nav_sample", "column"),
             "navigation_offset": ("cube_edge",), "wavelength": ("band",), "fwhm": ("band",)}
     if any(lcf.use is not None for lcf in lcfs):  # rows flagged 'do not use' (.lcf column 10 = 0)
         arrays["navigation_use"] = np.concatenate([np.ones(len(lcf.time), np.uint8) if lcf.use is None
                                                    else lcf.use.astype(np.uint8) for lcf in lcfs])
-        dims["navigation_use"] = ("sample",)
+        dims["navigation_use"] = ("nav_sample",)
     if cal is not None:
         arrays["dark"] = np.stack(darks).astype(np.float32)
         arrays["gain"] = np.stack(gains).astype(np.float32)
