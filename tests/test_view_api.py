@@ -383,6 +383,43 @@ def test_abandoned_tile_requests_are_not_rendered(live, demo):
     assert _get_json(base + "/api/status")["render"]["done"] == 2
 
 
+def test_the_latest_view_is_drawn_first(live, demo):
+    """Two tile requests wait while the render thread is busy: the one of the newer view
+    (X-Generation) is drawn first although it came second."""
+    import select
+
+    base, viewer = live
+    _, cid, _ = demo
+    viewer.render.call(lambda: viewer.registry.flight(cid).describe())   # the flight open, its meshes made
+    (xa, ya), (xb, yb), *_ = _tiles_over(demo[2]["bbox"], Z)
+    gate, started = threading.Event(), threading.Event()
+    viewer.render.submit(lambda check: (started.set(), gate.wait(20)))
+    assert started.wait(10)
+    port = int(base.rsplit(":", 1)[1])
+    socks = {}
+    for name, (x, y), gen in (("old", (xa, ya), "1000"), ("new", (xb, yb), "2000")):
+        s = socket.create_connection(("127.0.0.1", port))
+        s.sendall(f"GET /api/collections/{cid}/values/{Z}/{x}/{y}?bands=0 HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                  f"X-Generation: {gen}\r\n\r\n".encode())
+        socks[name] = s
+        deadline = time.monotonic() + 10
+        while viewer.render.queued < len(socks) + 1:   # queued in this order
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+    try:
+        overtaken = viewer.render.counts["overtaken"]
+        gate.set()
+        readable, _, _ = select.select(list(socks.values()), [], [], 20)
+        assert socks["new"] in readable
+        for s in socks.values():
+            s.settimeout(20)
+            assert s.recv(12).startswith(b"HTTP/1.1 20")
+        assert viewer.render.counts["overtaken"] == overtaken + 1   # the old view's tile, drawn after
+    finally:
+        for s in socks.values():
+            s.close()
+
+
 def test_raw_flight_directories(demo):
     """``archive view FLIGHT_DIR --fov DEG``: a raw flight served like a collection (its footprint
     computed as the catalog does; tiles and points drawn from the raw files)."""

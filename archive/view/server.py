@@ -23,8 +23,10 @@ trace):
 - ``GET /api/status`` counters, cache sizes and the server's resident memory;
 - ``/stac/...`` the STAC API of the archive's catalog (:mod:`archive.catalog.api`).
 
-All drawing runs on one render thread (:class:`~archive.view.worker.RenderThread`); a request whose
-client has gone is cancelled before it draws. Binding anything but a loopback address needs
+All drawing runs on one render thread (:class:`~archive.view.worker.RenderThread`), the latest view
+first: a request's ``X-Generation`` header (the page's clock at the view change, ms) orders the
+queue, newest first (:func:`view_generation`); a request whose client has gone is cancelled before
+it draws. Binding anything but a loopback address needs
 ``--allow-remote``; on loopback, requests must name a loopback Host (no DNS rebinding).
 """
 
@@ -33,6 +35,7 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import logging
+import math
 import socket
 import sys
 import time
@@ -48,7 +51,7 @@ from archive.view.query import Stretch, parse_bbox, parse_number, parse_query
 from archive.view.tiles import MAX_ZOOM, TILE, encode_values, mercator_box, tile_grid
 from archive.view.worker import Cancelled, RenderThread
 
-__all__ = ["check_host", "create_app", "is_loopback", "run", "serve"]
+__all__ = ["check_host", "create_app", "is_loopback", "run", "serve", "view_generation"]
 
 log = logging.getLogger("archive.view")
 
@@ -142,6 +145,21 @@ def _describe_job(registry, cid, check):
     return registry.flight(cid).describe()
 
 
+def view_generation(header: str | None, now: float | None = None) -> float:
+    """The render priority of a request: its ``X-Generation`` header (milliseconds since the epoch
+    of the view change that asked for it, as the page sends), else (absent or not a number) the
+    time it arrived, in the same unit. The render thread draws the highest first: the latest view
+    before superseded ones still waiting."""
+    if header is not None:
+        try:
+            value = float(header)
+        except ValueError:
+            value = math.nan
+        if math.isfinite(value):
+            return value
+    return (time.time() if now is None else now) * 1000.0
+
+
 def registry_gsd(registry: FlightRegistry, cid: str) -> float:
     """The nominal pixel size of a flight (its catalog entry), m."""
     gsd = registry.feature(cid)["properties"].get("gsd")
@@ -192,7 +210,8 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
     async def drawn(request, fn, *args):
         if await request.is_disconnected():
             raise Cancelled()
-        return await viewer.render.run(fn, *args, abandoned=request.is_disconnected)
+        return await viewer.render.run(fn, *args, abandoned=request.is_disconnected,
+                                       priority=view_generation(request.headers.get("x-generation")))
 
     def cid_of(request) -> str:
         return registry.check(request.path_params["cid"])

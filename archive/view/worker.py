@@ -1,18 +1,25 @@
-"""The viewer's one render thread: every OpenGL call runs on it, one job at a time, in order.
+"""The viewer's one render thread: every OpenGL call runs on it, one job at a time, the latest
+view's first.
 
 A GL context belongs to the thread that made it (``archive.render.context``), so the server hands
-all drawing to a single-thread executor instead of the event loop's thread pool. Each job can be
-cancelled while it waits (its request was abandoned: the browser dropped a tile that left the
-view): it is then skipped without drawing, and a running job stops at its next
-:meth:`Job.check` (between cubes).
+all drawing to one thread of its own instead of the event loop's thread pool. Jobs wait in a
+priority queue: the highest ``priority`` first (the server gives each request its view's
+generation, so after fast changes the newest picture is drawn before the superseded ones still
+queued), in submission order among equals. Each job can be cancelled while it waits (its request
+was abandoned: the browser dropped a tile that left the view, or a picture nobody waits for any
+more): it is then skipped without drawing, and a running job stops at its next :meth:`Job.check`
+(between cubes).
 """
 
 from __future__ import annotations
 
 import asyncio
+import heapq
+import itertools
+import math
 import threading
 from collections.abc import Awaitable, Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 
 __all__ = ["Cancelled", "Job", "RenderThread"]
 
@@ -24,9 +31,10 @@ class Cancelled(Exception):
 class Job:
     """One unit of drawing: ``future`` gives its result; :meth:`cancel` abandons it."""
 
-    def __init__(self):
+    def __init__(self, priority: float = 0.0):
         self.cancelled = threading.Event()
-        self.future: Future | None = None
+        self.future: Future = Future()
+        self.priority = float(priority)
 
     def cancel(self) -> None:
         self.cancelled.set()
@@ -38,14 +46,20 @@ class Job:
 
 
 class RenderThread:
-    """A single worker thread for GL jobs, with counters: ``done`` (finished), ``skipped``
-    (cancelled before they started), ``stopped`` (cancelled while drawing), ``failed``."""
+    """A single worker thread for GL jobs, the highest priority first, with counters: ``done``
+    (finished), ``skipped`` (cancelled before they started), ``stopped`` (cancelled while drawing),
+    ``failed``, ``overtaken`` (jobs that ran before one submitted earlier: a newer view first)."""
 
     def __init__(self, name: str = "archive-view-render"):
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=name)
         self._lock = threading.Lock()
-        self.counts = {"submitted": 0, "done": 0, "skipped": 0, "stopped": 0, "failed": 0}
+        self._ready = threading.Condition(self._lock)
+        self._heap: list = []
+        self._seq = itertools.count()
+        self._closed = False
+        self.counts = {"submitted": 0, "done": 0, "skipped": 0, "stopped": 0, "failed": 0, "overtaken": 0}
         self._queued = 0
+        self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
+        self._thread.start()
 
     def _count(self, key: str, delta: int = 1) -> None:
         with self._lock:
@@ -57,41 +71,63 @@ class RenderThread:
         with self._lock:
             return self._queued
 
-    def submit(self, fn: Callable, *args) -> Job:
-        """Run ``fn(*args, check=job.check)`` on the render thread unless cancelled first."""
-        job = Job()
-
-        def run():
-            try:
-                if job.cancelled.is_set():
-                    self._count("skipped")
-                    raise Cancelled()
-                try:
-                    result = fn(*args, check=job.check)
-                except Cancelled:
-                    self._count("stopped")
-                    raise
-                except BaseException:
-                    self._count("failed")
-                    raise
-                self._count("done")
-                return result
-            finally:
-                with self._lock:
-                    self._queued -= 1
-
+    def submit(self, fn: Callable, *args, priority: float = 0.0) -> Job:
+        """Run ``fn(*args, check=job.check)`` on the render thread unless cancelled first; jobs of
+        a higher ``priority`` (e.g. a later view generation) run before those waiting with a lower one."""
+        job = Job(priority)
         with self._lock:
+            if self._closed:
+                raise RuntimeError("the render thread has been shut down")
             self._queued += 1
             self.counts["submitted"] += 1
-        job.future = self._pool.submit(run)
+            heapq.heappush(self._heap, (-job.priority, next(self._seq), job, fn, args))
+            self._ready.notify()
         return job
 
+    def _loop(self) -> None:
+        last = -1
+        while True:
+            with self._lock:
+                while not self._heap and not self._closed:
+                    self._ready.wait()
+                if not self._heap:
+                    return
+                _, seq, job, fn, args = heapq.heappop(self._heap)
+                if seq < last:
+                    self.counts["overtaken"] += 1
+                last = max(last, seq)
+            self._run(job, fn, args)
+
+    def _run(self, job: Job, fn: Callable, args: tuple) -> None:
+        try:
+            if not job.future.set_running_or_notify_cancel():
+                self._count("skipped")
+                return
+            if job.cancelled.is_set():
+                self._count("skipped")
+                job.future.set_exception(Cancelled())
+                return
+            try:
+                result = fn(*args, check=job.check)
+            except Cancelled as exc:
+                self._count("stopped")
+                job.future.set_exception(exc)
+            except BaseException as exc:  # noqa: BLE001 - handed to the waiting request
+                self._count("failed")
+                job.future.set_exception(exc)
+            else:
+                self._count("done")
+                job.future.set_result(result)
+        finally:
+            with self._lock:
+                self._queued -= 1
+
     async def run(self, fn: Callable, *args, abandoned: Callable[[], Awaitable[bool]] | None = None,
-                  poll_s: float = 0.05):
-        """Await ``fn(*args, check=...)`` on the render thread. While it waits, ``abandoned()`` is
-        polled every ``poll_s`` seconds; when it says True the job is cancelled and
-        :class:`Cancelled` raised here (nothing is drawn for an abandoned request)."""
-        job = self.submit(fn, *args)
+                  poll_s: float = 0.05, priority: float = 0.0):
+        """Await ``fn(*args, check=...)`` on the render thread (``priority``: :meth:`submit`). While
+        it waits, ``abandoned()`` is polled every ``poll_s`` seconds; when it says True the job is
+        cancelled and :class:`Cancelled` raised here (nothing is drawn for an abandoned request)."""
+        job = self.submit(fn, *args, priority=priority)
         waiting = asyncio.wrap_future(job.future)
         while True:
             done, _ = await asyncio.wait({waiting}, timeout=poll_s)
@@ -104,9 +140,20 @@ class RenderThread:
                 raise Cancelled()
 
     def call(self, fn: Callable, *args):
-        """Run ``fn(*args)`` on the render thread and wait for it (blocking; for set-up and tests)."""
-        return self._pool.submit(fn, *args).result()
+        """Run ``fn(*args)`` on the render thread before anything queued, and wait for it
+        (blocking; for set-up and tests)."""
+        return self.submit(lambda *a, check: fn(*a), *args, priority=math.inf).future.result()
 
     def shutdown(self) -> None:
         """Cancel what has not started and stop the thread (after the running job)."""
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        with self._lock:
+            self._closed = True
+            pending, self._heap = self._heap, []
+            self._ready.notify_all()
+        for _, _, job, _, _ in pending:
+            job.future.cancel()
+            self._count("skipped")
+            with self._lock:
+                self._queued -= 1
+        if threading.current_thread() is not self._thread:
+            self._thread.join()

@@ -42,8 +42,13 @@ map.getContainer().addEventListener("wheel", (ev) => {
 }, { passive: false });
 
 // ---- small helpers ---------------------------------------------------------------------------
+// the view generation: the time (ms) of the latest change of what the page shows; every request
+// carries it (X-Generation) and the server draws the newest generation's requests first
+let generation = Date.now();
+const newGeneration = () => { generation = Math.max(Date.now(), generation + 1); };
+const generationHeaders = () => ({ "X-Generation": String(generation) });
 async function getJSON(url, options) {
-  const response = await fetch(url, options);
+  const response = await fetch(url, { ...(options || {}), headers: { ...generationHeaders(), ...((options || {}).headers || {}) } });
   let body = null;
   try { body = await response.json(); } catch (e) { /* not JSON */ }
   if (!response.ok) throw new Error((body && body.error) || `${response.status} ${response.statusText}`);
@@ -206,7 +211,7 @@ function request(tile, f, spec) {
   const url = `${idPath(f.id)}/values/${z}/${x}/${y}?bands=${bands.join(",")}&${f.params}`;
   viewer.requests += 1;
   busy();
-  fetch(url, { signal: controller.signal }).then(async (response) => {
+  fetch(url, { signal: controller.signal, headers: generationHeaders() }).then(async (response) => {
     if (response.status === 204) { e.empty = true; return; }
     if (!response.ok) {
       let body = null;
@@ -488,7 +493,7 @@ function viewRanges(spec) {
 function refresh() {
   const spec = buildSpec();
   if (spec.ranges) lastRanges = spec.ranges;   // else new statistics are coming: draw when they arrive
-  if (!current || spec.id !== current.id) failedSpec = null;
+  if (!current || spec.id !== current.id) { failedSpec = null; newGeneration(); }
   current = spec;
   viewer.ready = viewer.settled = false;
   showOutputs();
@@ -653,6 +658,7 @@ $("stretch").addEventListener("change", () => {
 for (const id of ["per-channel", "stretch-low", "stretch-high"]) $(id).addEventListener("change", () => refresh());
 map.on("movestart zoomstart", () => { viewer.settled = viewer.ready = false; });
 map.on("moveend", () => {
+  newGeneration();
   if ($("stretch").value === "view" && current) { current.viewStretchFresh = false; }
   writeHash();
   schedule();

@@ -1,6 +1,6 @@
 // archive view: pinned spectra of the open flight (the pixel of archive render's grid at the
 // flight's nominal GSD holding a click, float32 as render writes it), their chart, CSV and PNG.
-// Loaded after app.js (shares its globals: viewer, map, $, PALETTE, channelsNm, flightParams).
+// Loaded after app.js (shares its globals: viewer, map, $, PALETTE, channelsNm, flightParams, newGeneration).
 "use strict";
 
 async function pinPoint(latlng) {
@@ -12,6 +12,7 @@ async function pinPoint(latlng) {
   const gsd = viewer.byId.get(id).properties.gsd;
   if (gsd) q.set("gsd", String(gsd));
   let p;
+  newGeneration();   // a click: drawn before the tiles of views it replaces
   try { p = await getJSON(`${idPath(id)}/point?${q}`); } catch (e) { status(e.message, true); return; }
   viewer.lastPoint = p;
   if (!p.covered) { showPixel(p); return; }
