@@ -9,10 +9,10 @@ store and :func:`archive.mosaic` have (CF and GeoZarr attributes, :func:`geozarr
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import sys
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,26 +25,12 @@ from archive.files import write_atomic
 from archive.grid import Grid
 from archive.outputs.base import CHUNK, OutputMeta, Sink, TileWriter, check_bands, chunk_buffer
 from archive.outputs.layers import layer_attrs, layers_metadata
+from archive.outputs.zarr_metadata import ArraySpec, add_arrays, write_store
 
 __all__ = ["ChunkWriter", "LayersStore", "MosaicStore", "ZarrWriter", "add_zarr_layers", "geozarr_attrs",
-           "mosaic_dataset"]
+           "mosaic_dataset", "store_layout"]
 
 _GRID_ATTR = "archive_grid"
-
-
-def _values_codecs(zarr_format: int = 3) -> tuple:
-    """Compressor of the float32 mosaic chunks: Blosc LZ4 with byte shuffle (zarr's codec for Zarr
-    v3, the same numcodecs Blosc for v2).
-
-    Measured on rendered 1024^2 radiance chunks (25 % NaN; bench/RESULTS.md "Render (issue 4)"):
-    about 560 MB/s to write at ratio 1.7, against 130 MB/s (ratio 2.1) for zarr's default zstd
-    level 0 and 260 MB/s (ratio 1.9) for zstd level 1: writing is on the render's critical path.
-    """
-    if zarr_format == 2:
-        return (numcodecs_blosc("lz4", 5, "shuffle"),)
-    from zarr.codecs import BloscCodec
-
-    return (BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"),)
 
 
 def _direct_codec(array, directory: str):
@@ -187,6 +173,31 @@ def geozarr_attrs(grid: Grid, wkt2: bool = False) -> dict:
     return attrs
 
 
+#: CF attributes of the coordinates and of the saturation flags (the Zarr output's and archive.mosaic's).
+_BAND_ATTRS = {"long_name": "source band index (0-based)"}
+_WAVELENGTH_ATTRS = {"units": "nm", "long_name": "band centre wavelength", "standard_name": "radiation_wavelength"}
+_FWHM_ATTRS = {"units": "nm", "long_name": "band spectral full width at half maximum"}
+_X_ATTRS = {"units": "m", "standard_name": "projection_x_coordinate", "long_name": "easting of the pixel centre",
+            "axis": "X"}
+_Y_ATTRS = {"units": "m", "standard_name": "projection_y_coordinate", "long_name": "northing of the pixel centre",
+            "axis": "Y"}
+_SATURATED_ATTRS = {"long_name": "saturated", "flag_values": [0, 1], "flag_meanings": "ok saturated_in_some_band"}
+
+
+def _values_attrs(variable: str) -> dict:
+    attrs = {"long_name": variable, "_description": "NaN where no image line covers the pixel"}
+    if variable in _CF_UNITS:  # radiance is in the calibration's units, which it does not name
+        attrs["units"] = _CF_UNITS[variable]
+    return attrs
+
+
+def _root_attrs(grid: Grid, attrs: dict | None) -> dict:
+    out = dict(attrs or {})
+    out.setdefault("Conventions", "CF-1.10")
+    out.update(geozarr_attrs(grid, wkt2=True))
+    return out
+
+
 def mosaic_dataset(grid: Grid, values, saturated, band_indices: Sequence[int],
                    wavelengths: Sequence[float] | None, fwhm: Sequence[float] | None, variable: str,
                    attrs: dict | None = None):
@@ -205,21 +216,15 @@ def mosaic_dataset(grid: Grid, values, saturated, band_indices: Sequence[int],
     if fwhm is not None:
         coords["fwhm"] = ("band", np.asarray(fwhm, dtype=np.float64))
     ds = xr.Dataset({variable: (("band", "y", "x"), values), "saturated": (("y", "x"), saturated)}, coords=coords)
-    ds[variable].attrs.update({"long_name": variable, "_description": "NaN where no image line covers the pixel"})
-    if variable in _CF_UNITS:  # radiance is in the calibration's units, which it does not name
-        ds[variable].attrs["units"] = _CF_UNITS[variable]
-    ds["saturated"].attrs.update({"long_name": "saturated", "flag_values": [0, 1],
-                                  "flag_meanings": "ok saturated_in_some_band"})
-    ds["band"].attrs.update({"long_name": "source band index (0-based)"})
+    ds[variable].attrs.update(_values_attrs(variable))
+    ds["saturated"].attrs.update(_SATURATED_ATTRS)
+    ds["band"].attrs.update(_BAND_ATTRS)
     if wavelengths is not None:
-        ds["wavelength"].attrs.update({"units": "nm", "long_name": "band centre wavelength",
-                                       "standard_name": "radiation_wavelength"})
+        ds["wavelength"].attrs.update(_WAVELENGTH_ATTRS)
     if fwhm is not None:
-        ds["fwhm"].attrs.update({"units": "nm", "long_name": "band spectral full width at half maximum"})
-    ds["x"].attrs.update({"units": "m", "standard_name": "projection_x_coordinate",
-                          "long_name": "easting of the pixel centre", "axis": "X"})
-    ds["y"].attrs.update({"units": "m", "standard_name": "projection_y_coordinate",
-                          "long_name": "northing of the pixel centre", "axis": "Y"})
+        ds["fwhm"].attrs.update(_FWHM_ATTRS)
+    ds["x"].attrs.update(_X_ATTRS)
+    ds["y"].attrs.update(_Y_ATTRS)
     ds.attrs.update(attrs or {})
     ds.attrs.setdefault("Conventions", "CF-1.10")
     ds = ds.rio.write_crs(grid.epsg).rio.write_transform(grid.transform)
@@ -227,6 +232,56 @@ def mosaic_dataset(grid: Grid, values, saturated, band_indices: Sequence[int],
     for name in (variable, "saturated"):
         ds[name].attrs.update(geozarr_attrs(grid))
     return ds
+
+
+@functools.lru_cache(maxsize=16)
+def _crs_attrs(epsg: int) -> tuple:
+    import rioxarray  # noqa: F401  (registers .rio)
+    import xarray as xr
+
+    return tuple(xr.Dataset().rio.write_crs(int(epsg))["spatial_ref"].attrs.items())
+
+
+def _spatial_ref_attrs(grid: Grid) -> dict:
+    """rioxarray's grid-mapping attributes of ``grid`` (CF projection parameters, ``crs_wkt``,
+    ``spatial_ref``, then ``GeoTransform`` written as rioxarray's ``write_transform`` writes it), as
+    :func:`mosaic_dataset` gets them; the CRS part made once per EPSG code (~2 ms)."""
+    attrs = dict(_crs_attrs(grid.epsg))
+    attrs["GeoTransform"] = " ".join(str(item) for item in grid.transform.to_gdal())
+    return attrs
+
+
+def store_layout(grid: Grid, band_indices: Sequence[int], wavelengths: Sequence[float] | None,
+                 fwhm: Sequence[float] | None, variable: str, attrs: dict | None = None
+                 ) -> tuple[dict, list[ArraySpec]]:
+    """(root attributes, arrays) of the Zarr output: what ``to_zarr`` of :func:`mosaic_dataset`
+    writes (its CF encoding: ``coordinates`` and ``grid_mapping`` on the data variables), values
+    (band, y, x) float32 chunked (1, CHUNK, CHUNK) and saturation (y, x) uint8 chunked (CHUNK,
+    CHUNK) without data, the coordinates with theirs; ``attrs`` at the root, then the grid's."""
+    nb = len(band_indices)
+    x, y = grid.xy_centres()
+    extra = sorted(name for name, v in (("wavelength", wavelengths), ("fwhm", fwhm)) if v is not None)
+    located = {"coordinates": " ".join(extra)} if extra else {}
+    values_attrs = {**_values_attrs(variable), **geozarr_attrs(grid), **located, "grid_mapping": "spatial_ref"}
+    saturated_attrs = {**_SATURATED_ATTRS, **geozarr_attrs(grid), "grid_mapping": "spatial_ref"}
+    arrays = [
+        ArraySpec(variable, np.dtype(np.float32), (nb, grid.height, grid.width), (1, CHUNK, CHUNK), ("band", "y", "x"),
+                  values_attrs, fill=float("nan"), values_codec=True),
+        ArraySpec("saturated", np.dtype(np.uint8), grid.shape, (CHUNK, CHUNK), ("y", "x"), saturated_attrs),
+        ArraySpec("band", np.dtype(np.int32), (nb,), (nb,), ("band",), dict(_BAND_ATTRS),
+                  data=np.asarray(band_indices, np.int32)),
+        ArraySpec("x", np.dtype(np.float64), (grid.width,), (grid.width,), ("x",), dict(_X_ATTRS), data=x),
+        ArraySpec("y", np.dtype(np.float64), (grid.height,), (grid.height,), ("y",), dict(_Y_ATTRS), data=y),
+        ArraySpec("spatial_ref", np.dtype(np.int64), (), (), (), _spatial_ref_attrs(grid), data=np.int64(0)),
+    ]
+    for name, v, cf in (("wavelength", wavelengths, _WAVELENGTH_ATTRS), ("fwhm", fwhm, _FWHM_ATTRS)):
+        if v is not None:
+            arrays.append(ArraySpec(name, np.dtype(np.float64), (nb,), (nb,), ("band",), dict(cf),
+                                    data=np.asarray(v, np.float64)))
+    root = _root_attrs(grid, attrs)
+    root[_GRID_ATTR] = json.dumps({"epsg": grid.epsg, "gsd": grid.gsd, "x0": grid.x0, "y0": grid.y0,
+                                   "width": grid.width, "height": grid.height})
+    return root, arrays
 
 
 @dataclass(frozen=True)
@@ -271,31 +326,13 @@ class MosaicStore(Sink):
         fwhm: spectral full width at half maximum per output band, nm (or None); zarr_format: 2
         (GDAL >= 3.10 opens it) or 3.
         """
-        import dask.array as da
-
         nb = len(band_indices)
         if wavelengths is not None and len(wavelengths) != nb:
             raise ValueError(f"{len(wavelengths)} wavelengths for {nb} bands")
         if fwhm is not None and len(fwhm) != nb:
             raise ValueError(f"{len(fwhm)} fwhm values for {nb} bands")
-        values = da.full((nb, grid.height, grid.width), np.nan, dtype=np.float32,
-                         chunks=(1, CHUNK, CHUNK))
-        saturated = da.zeros(grid.shape, dtype=np.uint8, chunks=(CHUNK, CHUNK))
-        ds = mosaic_dataset(grid, values, saturated, band_indices, wavelengths, fwhm, variable, attrs)
-        ds.attrs[_GRID_ATTR] = json.dumps(
-            {"epsg": grid.epsg, "gsd": grid.gsd, "x0": grid.x0, "y0": grid.y0,
-             "width": grid.width, "height": grid.height}
-        )
-        ds[variable].encoding.update({"chunks": (1, CHUNK, CHUNK), "_FillValue": np.float32(np.nan),
-                                      "compressors": _values_codecs(zarr_format)})
-        ds["saturated"].encoding.update({"chunks": (CHUNK, CHUNK)})
-        for name in ("x", "y", "wavelength", "fwhm"):
-            if name in ds.coords:  # CF: coordinate variables have no missing values
-                ds[name].encoding["_FillValue"] = None
-        with warnings.catch_warnings():
-            # zarr warns that consolidated metadata is not yet in the v3 spec; xarray reads it fine.
-            warnings.simplefilter("ignore")
-            ds.to_zarr(os.fspath(path), mode="w-", compute=False, zarr_format=zarr_format, consolidated=True)
+        root, arrays = store_layout(grid, band_indices, wavelengths, fwhm, variable, attrs)
+        write_store(path, root, arrays, zarr_format)
         return cls(os.fspath(path), variable)
 
     # ---- reading back ------------------------------------------------------------------------
@@ -365,31 +402,12 @@ class _ZarrTileWriter(TileWriter):
 def add_zarr_layers(path: str | os.PathLike, grid: Grid, spec, grid_attrs: dict | None = None) -> None:
     """Add the (y, x) float32 layer variables of ``spec`` to the mosaic store at ``path`` (metadata
     only: unwritten chunks read as NaN), with their attributes (plus ``grid_attrs``, the store's
-    GeoZarr attributes of ``grid``), and the cube table at the root."""
-    import dask.array as da
-    import xarray as xr
-
-    import zarr
-
-    version = zarr.open_group(os.fspath(path), mode="r").metadata.zarr_format   # the store's own
-    x, y = grid.xy_centres()
-    data = {name: (("y", "x"), da.full(grid.shape, np.nan, dtype=np.float32, chunks=(CHUNK, CHUNK)))
-            for name in spec.names}
-    ds = xr.Dataset(data, coords={"y": y, "x": x})
-    for name in spec.names:
-        ds[name].attrs.update(layer_attrs(spec, name))
-        ds[name].attrs.update(grid_attrs or {})
-        ds[name].encoding.update({"chunks": (CHUNK, CHUNK), "_FillValue": np.float32(np.nan)})
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")   # consolidated metadata is not in the Zarr v3 spec yet
-        ds.drop_vars(["x", "y"]).to_zarr(os.fspath(path), mode="a", compute=False, zarr_format=version,
-                                         consolidated=True)
-
-    group = zarr.open_group(os.fspath(path), mode="r+")
-    group.attrs.update(layers_metadata(spec))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        zarr.consolidate_metadata(os.fspath(path))
+    GeoZarr attributes of ``grid``), and the cube table at the root (beside the store's own root
+    attributes)."""
+    arrays = [ArraySpec(name, np.dtype(np.float32), grid.shape, (CHUNK, CHUNK), ("y", "x"),
+                        {**layer_attrs(spec, name), **(grid_attrs or {})}, fill=float("nan"))
+              for name in spec.names]
+    add_arrays(path, arrays, layers_metadata(spec))
 
 
 @dataclass(frozen=True)
