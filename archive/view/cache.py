@@ -74,13 +74,18 @@ class ByteLRU:
 
     def get_or_make(self, key: Hashable, make: Callable[[], tuple[Any, int]]):
         """The value of ``key``, made by ``make() -> (value, nbytes)`` and kept when missing.
-        (Not atomic: two threads may both make it; the viewer calls it from its one render thread.)"""
+        (Not atomic: two threads may both make it; the viewer's band workers make distinct keys.)"""
         sentinel = object()
         value = self.get(key, sentinel)
         if value is sentinel:
             value, nbytes = make()
             self.put(key, value, nbytes)
         return value
+
+    def __contains__(self, key: Hashable) -> bool:
+        """Whether ``key`` is held (neither a use nor a hit or miss)."""
+        with self._lock:
+            return key in self._items
 
     def __len__(self) -> int:
         with self._lock:

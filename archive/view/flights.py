@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Executor
 import dataclasses
 from pathlib import Path
 
@@ -60,15 +61,17 @@ class Flight:
 
     cid: the id it is served under; opener(params) -> a flight source with these navigation
     parameters; fov: field of view (deg) for the meshes, None: the one the source records;
-    bands_cache / lookup_cache: shared byte-bounded caches of cube bands and lookups.
+    bands_cache / lookup_cache: shared byte-bounded caches of cube bands and lookups; workers:
+    threads that make several band planes at once (:meth:`prepare`; None: one after the other).
     """
 
     def __init__(self, cid: str, opener: Callable, fov: float | None, bands_cache: ByteLRU,
-                 lookup_cache: ByteLRU):
+                 lookup_cache: ByteLRU, workers: Executor | None = None):
         self.id = cid
         self.opener = opener
         self.bands_cache = bands_cache
         self.lookup_cache = lookup_cache
+        self.workers = workers
         self._sources: OrderedDict = OrderedDict()
         self._geometries: OrderedDict = OrderedDict()
         self._radiometry: OrderedDict = OrderedDict()
@@ -244,6 +247,20 @@ class Flight:
             return out, out.nbytes
         return self.bands_cache.get_or_make((self.id, cube, band, mode, "filtered", int(size)), make)
 
+    def prepare(self, cubes: Iterable[int], bands: Sequence[int], mode: str, size: int = 1) -> None:
+        """Make the :meth:`filtered` planes of these cubes and bands that are not cached yet, on the
+        worker threads when there are several (reading, checking, calibrating and filtering a plane
+        release the GIL: a new band of 8 cubes in about half the time on 2 cores)."""
+        missing = [(int(c), int(b)) for c in cubes for b in bands
+                   if (self.id, int(c), int(b), mode, "filtered", int(size)) not in self.bands_cache
+                   and (size > 1 or (self.id, int(c), int(b), mode) not in self.bands_cache)]
+        if len(missing) < 2 or self.workers is None:
+            return
+        self.source(None)
+        for c in {c for c, _ in missing}:
+            self.band_radiometry(c, 0, mode)   # shared per cube and mode: made here, not by two threads
+        list(self.workers.map(lambda cb: self.filtered(cb[0], cb[1], mode, size), missing))
+
     def block_means(self, cube: int, band: int, mode: str, size: int, line: np.ndarray,
                     sample: np.ndarray) -> np.ndarray:
         """float32 (shape of ``line``): at each (line, sample), the mean of the finite values of the
@@ -339,14 +356,18 @@ class Flight:
         keys = []
         box = grid.bounds
         unflagged = np.zeros(grid.shape, bool)   # saturation does not change which value shows
+        seen = []   # (cube, lookup): pass 1 first (GL, this thread), then the planes they need at once
         for c in cubes:
             if grid.epsg == MERCATOR_EPSG and not (np.isfinite(geometry.bounds[c]).all()
                                                     and bounds_intersect(geometry.bounds[c], box)):
                 continue
             check()
             lookup = self.lookup(geometry, c, grid)
-            if lookup is None:
-                continue
+            if lookup is not None:
+                seen.append((c, lookup))
+        self.prepare([c for c, _ in seen], bands, mode, level)
+        for c, lookup in seen:
+            check()
             values = np.empty((len(bands), grid.height, grid.width), np.float32)
             index = plane_index(lookup)
             for i, b in enumerate(bands):
@@ -424,6 +445,8 @@ class Flight:
         computes only what is new, and ground height and sync offset (where the pixels land, not
         their values) never do."""
         lows, highs, count = [], [], 0
+        new = [int(b) for b in bands if (int(b), mode, cubes.start, cubes.stop, tuple(percentiles)) not in self._ranges]
+        self.prepare(cubes, new, mode)
         for b in bands:
             key = (int(b), mode, cubes.start, cubes.stop, tuple(percentiles))
             found = self._ranges.get(key)

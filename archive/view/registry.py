@@ -7,6 +7,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -16,10 +17,12 @@ from archive.params import NavigationParams
 from archive.view.cache import ByteLRU
 from archive.view.flights import Flight
 
-__all__ = ["FLIGHTS_KEPT", "IDS_TTL_S", "FlightRegistry", "UnknownFlight"]
+__all__ = ["BAND_WORKERS", "FLIGHTS_KEPT", "IDS_TTL_S", "FlightRegistry", "UnknownFlight"]
 
 #: Flights kept open.
 FLIGHTS_KEPT = 16
+#: Threads making band planes (:meth:`Flight.prepare`): the VM's cores.
+BAND_WORKERS = 2
 #: Seconds the list of catalog ids is trusted before the index is asked again.
 IDS_TTL_S = 5.0
 
@@ -38,7 +41,8 @@ class FlightRegistry:
 
     ids are checked here (:meth:`check`) before anything opens a store: nothing else on disk is
     reachable. :meth:`flight` opens flights lazily and keeps the last FLIGHTS_KEPT (call it from
-    the render thread).
+    the render thread); its flights share ``workers``, BAND_WORKERS threads making band planes
+    (:meth:`close` stops them).
     """
 
     def __init__(self, archive=None, directories: Sequence = (), fov: float | None = None,
@@ -53,6 +57,7 @@ class FlightRegistry:
         self._ids: tuple[float, frozenset] | None = None
         self._items: dict[str, tuple[int, dict]] = {}
         self._flights: OrderedDict[str, Flight] = OrderedDict()
+        self.workers = ThreadPoolExecutor(max_workers=BAND_WORKERS, thread_name_prefix="archive-view-bands")
         self.raw: dict[str, tuple[Path, dict]] = {}
         if directories and fov is None:
             raise InputError("--fov", "the field of view is required for raw flight directories",
@@ -154,11 +159,15 @@ class FlightRegistry:
 
             def opener(params):
                 return open_source(cid, params, archive=archive)
-        found = Flight(cid, opener, self.fov, self.bands_cache, self.lookup_cache)
+        found = Flight(cid, opener, self.fov, self.bands_cache, self.lookup_cache, self.workers)
         self._flights[cid] = found
         while len(self._flights) > FLIGHTS_KEPT:
             self._flights.popitem(last=False)
         return found
+
+    def close(self) -> None:
+        """Stop the band workers (after what they are making)."""
+        self.workers.shutdown(wait=True, cancel_futures=True)
 
 
 def _feature_of_item(item: dict) -> dict:

@@ -328,6 +328,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
     async def lifespan(app):
         yield
         viewer.render.shutdown()
+        registry.close()
 
     routes = [
         Route("/", index),
