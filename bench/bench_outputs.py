@@ -144,7 +144,7 @@ def sidelap() -> dict:
     return {"height_m": HEIGHT, "spacing_m": SPACING, "swath_m": swath, "sidelap": 1 - SPACING / swath}
 
 
-STAGES = ("GL lookup", "GL band passes", "CPU band gather", "lookup unpack", "read DN", "radiometry terms",
+STAGES = ("GL lookup", "GL band passes", "CPU band gather", "lookup unpack", "lookup decode", "read DN", "radiometry terms",
           "mosaic (last)", "mosaic (nadir)", "NaN checks", "compression (Zarr Blosc)", "compression (COG)",
           "overviews (2x2 mean)", "writes (pwrite)", "writes (Zarr chunk files)", "writes (COG spool)")
 

@@ -110,6 +110,7 @@ def install_stage_timers() -> list:
         ("archive.sources.collection", "CollectionSource", "read_bands", "read DN", False),
         ("archive.sources.raw", "RawFlightSource", "radiometry", "radiometry terms", False),
         ("archive.graph.tasks", "PackedLookup", "unpack", "lookup unpack", False),
+        ("archive.graph.tasks", "PackedLookup", "gather_index", "lookup decode", False),
         ("archive.graph.tasks", None, "last_values", "mosaic (last)", False),
         ("archive.graph.tasks", None, "nadir_values", "mosaic (nadir)", False),
         ("archive.outputs.cog", None, "all_nan", "NaN checks", False),

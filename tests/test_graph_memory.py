@@ -1,16 +1,19 @@
-"""What bounds a render's memory whatever the flight's length (issue 20): band groups sized from the
-renders a group holds at once, and lookups held packed."""
+"""What bounds a render's memory whatever the flight's length (issue 20): cubes rendered in the order
+that holds the fewest renders, band groups sized from the renders a group holds at once, and
+lookups held packed."""
 
 from __future__ import annotations
 
+import gc
 import pickle
 
 import numpy as np
 
-from archive.graph.build import HELD_VALUES_BYTES, RENDERS_AHEAD, live_renders, task_group_size
+from archive.graph.build import HELD_VALUES_BYTES, RENDERS_AHEAD, live_renders, render_order, task_group_size
 from archive.graph.plan import CubeJob, RenderPlan, band_groups
-from archive.graph.tasks import PackedLookup, unpacked
+from archive.graph.tasks import PackedLookup, ValuesPool, unpacked
 from archive.grid import Grid
+from archive.render.gather import gather_lookup
 from archive.render.renderer import Lookup
 
 TILE = 1024
@@ -31,11 +34,20 @@ def lawn_mower(cubes_per_pass: int, passes: int = 2) -> RenderPlan:
 
 def test_live_renders_follow_the_passes_and_groups_shrink_to_fit():
     assert live_renders(lawn_mower(4, passes=1)) == 1     # each tile written as soon as its cube is drawn
-    # two passes: the first pass's renders wait for the second pass to come back over their tiles
-    assert live_renders(lawn_mower(4)) == 5
-    assert live_renders(lawn_mower(8)) == 9
+    # two passes in capture order: the first pass's renders wait for the second pass to come back
+    # over their tiles (a whole pass: grows with the flight's length)
+    capture = range(8)
+    assert live_renders(lawn_mower(4), order=capture) == 5
+    assert live_renders(lawn_mower(8), order=range(16)) == 9
+    # the graph's order sweeps along the passes: a tile is complete once both passes crossed it,
+    # whatever the length (the renders of its two cubes)
+    for n in (4, 8, 16):
+        order = render_order(lawn_mower(n))
+        assert sorted(order) == list(range(2 * n))
+        assert live_renders(lawn_mower(n), order=order) == live_renders(lawn_mower(n)) == 2
+    assert render_order(lawn_mower(4, passes=1)) == tuple(range(4))   # capture order when it is as good
     sizes = [task_group_size(lawn_mower(n)) for n in (2, 4, 8, 16)]
-    assert sizes == sorted(sizes, reverse=True) and sizes[-1] >= 4
+    assert sizes == sorted(sizes, reverse=True) and sizes[-1] >= 4 and all(size % 4 == 0 for size in sizes)
     for n, size in zip((2, 4, 8, 16), sizes):   # all renders held at once fit the budget (or 4 bands)
         held = (live_renders(lawn_mower(n)) + RENDERS_AHEAD) * size * TILE * TILE * 4
         assert held <= HELD_VALUES_BYTES or size == 4
@@ -59,3 +71,35 @@ def test_packed_lookup_gives_the_lookup_back():
         else:
             np.testing.assert_array_equal(back.count, count)
         assert unpacked(back) is back
+        # the flat index a render gathers through, decoded in one step: the same values as the lookup's
+        dn = (np.arange(3 * 300 * 128) % 4093).reshape(3, 300, 128).astype(np.uint16)
+        want, got = gather_lookup(lookup, dn, None), gather_lookup(packed.gather_index(), dn, None)
+        assert np.array_equal(want.values.view(np.uint32), got.values.view(np.uint32))
+        np.testing.assert_array_equal(got.covered, lookup.covered)
+    # a lookup pass 1 never makes (a sample without its line): kept as it is
+    odd = Lookup(grid, line, np.where(cols % 7 == 0, -1, sample).astype(np.int32), 300, 128)
+    back = unpacked(pickle.loads(pickle.dumps(PackedLookup(odd))))
+    np.testing.assert_array_equal(back.line, odd.line)
+    np.testing.assert_array_equal(back.sample, odd.sample)
+
+
+def test_values_pool_reuses_a_buffer_only_once_no_view_of_it_is_left():
+    pool = ValuesPool(keep=2)
+    values = pool.take((2, 3, 4))
+    values[...] = 1.0
+    part = values[1][:, 1:]          # what a writer slices out of a render
+    buffer = values.base.base.obj   # the pool's buffer behind it (holding it keeps no view alive)
+    del values
+    gc.collect()
+    assert pool.free == [] and (part == 1.0).all()   # still in use: not handed out again
+    del part
+    gc.collect()
+    assert len(pool.free) == 1 and pool.free[0] is buffer
+    again = pool.take((2, 3, 4))
+    assert pool.free == [] and again.base.base.obj is buffer and again.flags.writeable and again.flags.c_contiguous
+    assert pickle.loads(pickle.dumps(again)).shape == (2, 3, 4)
+    assert pool.take((4, 3, 4)).size == 48             # too big for any free buffer: a new one
+    for shape in ((5,), (6,), (7,)):
+        pool.take(shape)                               # released at once
+    gc.collect()
+    assert len(pool.free) == 2                         # at most ``keep`` wait free

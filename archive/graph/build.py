@@ -30,6 +30,7 @@ import dataclasses
 from collections.abc import Sequence
 
 import dask
+import numpy as np
 from dask.base import tokenize
 from dask.delayed import Delayed, delayed
 
@@ -40,9 +41,13 @@ from archive.graph.plan import GROUP, RenderPlan, band_groups
 from archive.graph.tasks import (assemble_write_task, blank_write_task, gate_task, overview_task, write_layers_task,
                                  write_saturated_task)
 
-__all__ = ["HELD_VALUES_BYTES", "RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "live_renders", "task_group_size",
+__all__ = ["HELD_VALUES_BYTES", "RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "live_renders", "render_order", "task_group_size",
            "with_task_groups"]
 
+#: Directions (degrees apart) along which :func:`render_order` tries sweeping the cubes.
+SWEEP_STEP = 15
+#: Most (tile, cube) pairs :func:`live_renders` looks at (beyond: an absurd grid, every render held).
+MAX_TILE_TOUCHES = 1 << 18
 #: Rendered values one render task may hold, bytes (window px x bands x 4 B): 32 bands of a 1.4 Mpx
 #: cube window. Larger groups mean fewer GL set-ups and reads per band; smaller ones less memory.
 TASK_VALUES_BYTES = 192 * 1024**2
@@ -64,25 +69,80 @@ LOOKUP_PACKING = 8
 HELD_VALUES_BYTES = 640 * 1024**2
 
 
-def live_renders(plan: RenderPlan, tile: tuple[int, int] = (CHUNK, CHUNK)) -> int:
-    """Most renders of one band group alive at once in capture order: render j lives until the
-    render of the last cube touching any output tile (``tile`` px, height x width) that cube j
-    touches (that tile's writer needs them all)."""
-    jobs = plan.jobs
-    last = list(range(len(jobs)))
-    for row0, col0, tile_grid in plan.grid.tiles(tile):
-        box = (row0, col0, tile_grid.height, tile_grid.width)
-        touching = [j for j, job in enumerate(jobs) if boxes_intersect(box, job.box)]
-        for j in touching:
-            last[j] = max(last[j], touching[-1])
-    ends = sorted(last)   # render j is alive from k = j to k = last[j]: started (0..k) minus ended before k
-    return max([1] + [(k + 1) - bisect.bisect_left(ends, k) for k in range(len(jobs))])
+def _touching(plan: RenderPlan, tile: tuple[int, int]) -> list[list[int]] | None:
+    """For each output tile (``tile`` px) some cube touches, the jobs touching it (capture order),
+    from each job's box (not from every tile of the grid); None past MAX_TILE_TOUCHES (an absurd
+    grid, refused later by the size check)."""
+    th, tw = tile
+    tiles: dict[tuple[int, int], list[int]] = {}
+    pairs = 0
+    for j, job in enumerate(plan.jobs):
+        row0, col0, height, width = job.box
+        if height <= 0 or width <= 0:
+            continue
+        rows = range(row0 // th, (row0 + height - 1) // th + 1)
+        cols = range(col0 // tw, (col0 + width - 1) // tw + 1)
+        pairs += len(rows) * len(cols)
+        if pairs > MAX_TILE_TOUCHES:
+            return None
+        for r in rows:
+            for c in cols:
+                tiles.setdefault((r, c), []).append(j)
+    return list(tiles.values())
+
+
+def live_renders(plan: RenderPlan, tile: tuple[int, int] = (CHUNK, CHUNK), order: Sequence[int] | None = None) -> int:
+    """Most renders of one band group alive at once when the cubes are rendered in ``order`` (job
+    indices; default :func:`render_order`): a render lives until the render of the last cube (in
+    that order) touching any output tile (``tile`` px, height x width) it touches (that tile's
+    writer needs them all). Every cube's, on a grid of more tiles than MAX_TILE_TOUCHES."""
+    touching = _touching(plan, tile)
+    if touching is None:
+        return max(1, len(plan.jobs))
+    return _live(touching, len(plan.jobs), render_order(plan, tile) if order is None else order)
+
+
+def _live(touching: list[list[int]], njobs: int, order: Sequence[int]) -> int:
+    """:func:`live_renders` from the tiles' touching jobs (:func:`_touching`)."""
+    position = {j: k for k, j in enumerate(order)}
+    last = list(range(njobs))   # by position in the order
+    for cubes in touching:
+        at = [position[j] for j in cubes]
+        end = max(at)
+        for k in at:
+            last[k] = max(last[k], end)
+    ends = sorted(last)   # render k is alive from k to last[k]: started (0..k) minus ended before k
+    return max([1] + [(k + 1) - bisect.bisect_left(ends, k) for k in range(njobs)])
+
+
+def render_order(plan: RenderPlan, tile: tuple[int, int] = (CHUNK, CHUNK)) -> tuple[int, ...]:
+    """The order in which the graph renders the cubes of a band group (job indices): the one that
+    keeps the fewest renders alive (:func:`live_renders`) among capture order and the cubes sorted
+    by their window's centre along directions every 15 degrees. A tile's writer needs every cube
+    touching it, so in capture order the renders of a lawn mower's first pass wait for the passes
+    that come back over their tiles (a whole pass: memory grows with the flight's length); swept
+    along the passes, a tile is complete once the sweep has crossed it in every pass, whatever the
+    length. The writers still mosaic in capture order: the order changes no value."""
+    capture = tuple(range(len(plan.jobs)))
+    touching = _touching(plan, tile)
+    if touching is None:
+        return capture
+    centres = np.array([(job.box[0] + job.box[2] / 2, job.box[1] + job.box[3] / 2) for job in plan.jobs])
+    best, fewest = capture, _live(touching, len(capture), capture)
+    for degrees in range(0, 180, SWEEP_STEP):
+        angle = np.radians(degrees)
+        along = centres @ np.array([np.cos(angle), np.sin(angle)]) if len(capture) else np.zeros(0)
+        order = tuple(int(j) for j in np.argsort(along, kind="stable"))
+        live = _live(touching, len(capture), order)
+        if live < fewest:
+            best, fewest = order, live
+    return best
 
 
 def task_group_size(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> int:
-    """Bands per render task for ``plan``: as many whole 8-band GL passes as fit the bytes of values
-    one render may hold for the largest cube window (at most MAX_GROUP), but never fewer than GROUP
-    (4) bands; a render may hold ``budget`` bytes, and all renders held at once
+    """Bands per render task for ``plan``: as many bands, in multiples of GROUP (4: one RGBA texel
+    fetch), as fit the bytes of values one render may hold for the largest cube window (at most
+    MAX_GROUP), but never fewer than GROUP; a render may hold ``budget`` bytes, and all renders held at once
     (:func:`live_renders` + RENDERS_AHEAD) HELD_VALUES_BYTES, scaled down with ``budget`` (small
     workers get a tenth of their memory as ``budget``, :func:`archive.cluster.task_budget`: the
     renders they hold at once shrink in proportion)."""
@@ -90,9 +150,7 @@ def task_group_size(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> int:
     held = live_renders(plan) + RENDERS_AHEAD
     held_bytes = HELD_VALUES_BYTES * min(1.0, budget / TASK_VALUES_BYTES)
     fit = int(min(budget, held_bytes // held)) // (4 * max(biggest, 1))
-    if fit < BANDS_PER_PASS:
-        return max(GROUP, fit // GROUP * GROUP)
-    return min(MAX_GROUP, fit // BANDS_PER_PASS * BANDS_PER_PASS)
+    return min(MAX_GROUP, max(GROUP, fit // GROUP * GROUP))
 
 
 def with_task_groups(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> RenderPlan:
@@ -141,7 +199,7 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
     ngroups, njobs = len(plan.groups), len(plan.jobs)
 
     def priority(g: int, stage: int, j: int = 0) -> int:
-        """Group first, then stage (renders 0 < writers 1 < overviews 2), then capture order."""
+        """Group first, then stage (renders 0 < writers 1 < overviews 2), then render order."""
         return (3 * (ngroups - g) + stage) * (njobs + 1) + (njobs - j)
 
     def task(node: Node, priority: int) -> Delayed:
@@ -151,17 +209,22 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
             made[node.key] = delayed(node.func, pure=True)(*args, dask_key_name=node.key, **node.kwargs)
         return made[node.key]
 
-    # The tiles to write, and for each cube the tiles it completes (their last touching cube).
+    # The order the cubes are rendered in (fewest renders held; the writers still mosaic in capture
+    # order), the tiles to write, and for each render the tiles it completes (their last touching
+    # cube in that order).
+    tile_size = getattr(sink, "tile_size", (CHUNK, CHUNK))
+    order = render_order(plan, tile_size)
+    position = {j: s for s, j in enumerate(order)}
     tiles = []
-    for row0, col0, tile_grid in plan.grid.tiles(getattr(sink, "tile_size", (CHUNK, CHUNK))):
+    for row0, col0, tile_grid in plan.grid.tiles(tile_size):
         tile = (row0, col0, tile_grid.height, tile_grid.width)
         touching = [j for j, job in enumerate(plan.jobs) if boxes_intersect(tile, job.box)]
         if touching or sink.blank_tiles:
             tiles.append((tile, touching))
-    completes: dict[int, list[int]] = {}  # job index -> tiles whose last touching render it is
+    completes: dict[int, list[int]] = {}  # position in the order -> tiles whose last touching render it is
     for t, (_, touching) in enumerate(tiles):
         if touching:
-            completes.setdefault(max(touching), []).append(t)
+            completes.setdefault(max(position[j] for j in touching), []).append(t)
 
     # One lookup (GL pass 1) per cube, shared by its band groups while all of them fit
     # LOOKUP_BYTES (8 B per window pixel, packed); beyond that (long flights and several groups) each group
@@ -176,7 +239,7 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
             return lookups[j, 0]
         node = nodes.lookup(j, count=count and (shared or g == 0),   # layers come from group 0's lookups
                             group=None if shared else g, after=None if gate is None else gate.key)
-        lookups[j, 0 if shared else g] = task(node, priority(g, 0, j))
+        lookups[j, 0 if shared else g] = task(node, priority(g, 0, position[j]))
         return lookups[j, 0 if shared else g]
 
     # Provenance layers (and the overlap rule's key): per cube from group 0's lookup, on any thread.
@@ -186,12 +249,12 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
 
     def layers_of(j: int, lk: Delayed) -> Delayed:
         if j not in cube_layers:
-            cube_layers[j] = task(nodes.cube_layers(j, lk.key), priority(0, 0, j))
+            cube_layers[j] = task(nodes.cube_layers(j, lk.key), priority(0, 0, position[j]))
             if key_layer is not None:
-                keys[j] = task(nodes.rule_key(cube_layers[j].key, key_layer), priority(0, 0, j))
+                keys[j] = task(nodes.rule_key(cube_layers[j].key, key_layer), priority(0, 0, position[j]))
         return cube_layers[j]
 
-    # Renders in (group, capture) order. Backpressure: render number s (and its lookup) waits for
+    # Renders in (group, render order) order. Backpressure: render number s (and its lookup) waits for
     # the writers that render s - RENDERS_AHEAD completed (a token of them), so renders never run
     # further ahead of the writers than that, however long the flight and however fast the GPU.
     renders: dict[tuple[int, int], Delayed] = {}
@@ -200,7 +263,7 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
     masks: dict[int, Delayed] = {}  # tile number -> saturation so far (Zarr: a chain per tile)
     assemblies = 0
     for g, (b0, b1) in enumerate(plan.groups):
-        for j, job in enumerate(plan.jobs):
+        for s, j in enumerate(order):
             # the latest writers' token at or before s - RENDERS_AHEAD: each render waits at least
             # for what the render before it waited for
             gate = next((t for t in reversed(gates[:max(0, len(gates) - RENDERS_AHEAD + 1)]) if t is not None),
@@ -209,9 +272,9 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
             if layers is not None and g == 0:
                 layers_of(j, lk)
             renders[j, g] = task(nodes.render(j, g, lk.key, after=None if gate is None else gate.key),
-                                 priority(g, 0, j))
+                                 priority(g, 0, s))
             done = []
-            for t in completes.get(j, []):
+            for t in completes.get(s, []):
                 tile, touching = tiles[t]
                 boxes = tuple(plan.jobs[i].box for i in touching)
                 parts = [renders[i, g] for i in touching]
@@ -220,14 +283,14 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
                 akey = tokenize(overlap, tile, b1 - b0, boxes, [p.key for p in parts],
                                 None if tile_keys is None else [k.key for k in tile_keys])
                 wkey = f"write-{tokenize(sink, b0, tile, akey, None if mask is None else mask.key)}"
-                with dask.annotate(priority=priority(g, 1, j)):
+                with dask.annotate(priority=priority(g, 1, s)):
                     writers[t, g] = delayed(assemble_write_task)(sink, overlap, b0, tile, b1 - b0, boxes, mask,
                                                                  *parts, keys=tile_keys, dask_key_name=wkey)
                 assemblies += 1
                 if layers_sink is not None and g == 0:
                     stacks = [cube_layers[i] for i in touching]
                     lwkey = f"write-layers-{tokenize(layers_sink, tile, overlap, boxes, [x.key for x in stacks])}"
-                    with dask.annotate(priority=priority(g, 1, j)):
+                    with dask.annotate(priority=priority(g, 1, s)):
                         layer_writers[t] = delayed(write_layers_task)(layers_sink, overlap, tile, layers.names,
                                                                       boxes, *stacks, dask_key_name=lwkey)
                     done.append(layer_writers[t])
@@ -237,7 +300,7 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
             gate = None
             if done:
                 gkey = f"gate-{tokenize([d.key for d in done])}"
-                with dask.annotate(priority=priority(g, 1, j)):
+                with dask.annotate(priority=priority(g, 1, s)):
                     gate = made[gkey] = delayed(gate_task)(*done, dask_key_name=gkey)
             gates.append(gate)
 

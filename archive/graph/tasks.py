@@ -28,7 +28,7 @@ from archive.grid import Grid
 Box = tuple[int, int, int, int]
 
 __all__ = ["Box", "assemble_layers", "assemble_task", "assemble_write_task", "blank_write_task", "cpu_band_pass", "gate_task", "gl_call",
-           "layers_task", "lookup_task", "PackedLookup", "unpacked", "overview_task", "pick_task", "render_task", "write_layers_task",
+           "layers_task", "lookup_task", "PackedLookup", "ValuesPool", "VALUES_POOL", "unpacked", "overview_task", "pick_task", "render_task", "write_layers_task",
            "write_saturated_task", "write_values_task"]
 
 _GL_LOCK = threading.Lock()
@@ -65,36 +65,113 @@ def cpu_band_pass() -> bool:
     return known
 
 
+class ValuesPool:
+    """Float32 buffers for render tasks' values, reused once the graph has released them.
+
+    A render's values (bands x window px x 4 B: ~50 MB for 8 bands of a paper cube) live until the
+    writers of every tile they touch have run; a fresh array of that size is fresh pages (memory
+    mapped above glibc's mmap threshold) that the kernel zeroes and faults in, which cost the CPU
+    gather ~40 % more on the paper flight. :meth:`take` gives an array backed by a free buffer of
+    about the right size (at most ``slack`` times larger) or a new one; when every array (and view)
+    of it is gone (the graph released the render), its buffer comes back here. At most ``keep``
+    buffers wait free (a bounded addition to the renders held)."""
+
+    def __init__(self, keep: int = 2, slack: float = 1.5):
+        self.keep, self.slack = keep, slack
+        self.free: list[np.ndarray] = []
+        self.lock = threading.Lock()
+
+    def take(self, shape: tuple[int, ...]) -> np.ndarray:
+        """An uninitialised C-contiguous float32 array of ``shape`` (values of one render)."""
+        import weakref
+
+        n = int(np.prod(shape))
+        with self.lock:
+            fits = [k for k, raw in enumerate(self.free) if n <= raw.size <= self.slack * n]
+            raw = self.free.pop(min(fits, key=lambda k: self.free[k].size)) if fits else None
+        if raw is None:
+            raw = np.empty(n, np.float32)
+        # ``flat`` does not own its memory and its base is no array, so every view of it (the
+        # reshaped values, the slices writers take) has ``flat`` as its base: it dies with the last
+        # of them, and only then is the buffer free again
+        flat = np.frombuffer(memoryview(raw), np.float32, count=n)
+        weakref.finalize(flat, self._give_back, raw)
+        return flat.reshape(shape)
+
+    def _give_back(self, raw: np.ndarray) -> None:
+        with self.lock:
+            self.free.append(raw)
+            while len(self.free) > self.keep:
+                self.free.pop(0)
+
+
+#: The process's pool of render values (worker processes: one per process, shared by its threads).
+VALUES_POOL = ValuesPool()
+
+
 class PackedLookup:
     """A :class:`archive.render.renderer.Lookup` as the graph holds it between its lookup task and
-    the render tasks of every band group: line and sample (and count) compressed (Blosc LZ4 with
-    byte shuffle: ~20x on cube windows, 2-3 ms to unpack 1.5 Mpx), so that the lookups held for a
-    whole flight stay small (8 B per window pixel unpacked: 480 MB for the paper's 40 cubes).
-    Picklable; :meth:`unpack` gives the Lookup back, equal array for array."""
+    the render tasks of every band group: its flat gather index
+    (:class:`archive.render.gather.GatherIndex`, ``line * samples + sample`` over the covered rows)
+    and its count compressed (Blosc LZ4 with byte shuffle), so that the lookups held for a whole
+    flight stay small (8 B per window pixel unpacked: 480 MB for the paper's 40 cubes) and a render
+    decodes the index it gathers through in one step (:meth:`gather_index`) instead of unpacking
+    line and sample and rebuilding it. Picklable; :meth:`unpack` gives the Lookup back, equal array
+    for array (a lookup whose line and sample are not both -1 at the same pixels, or out of the
+    cube, which pass 1 never makes, also keeps them as they are)."""
 
     def __init__(self, lookup):
         import numcodecs
 
+        from archive.render.gather import gather_index
+
         codec = numcodecs.Blosc("lz4", 5, numcodecs.Blosc.SHUFFLE)
         self.grid, self.lines, self.samples = lookup.grid, lookup.lines, lookup.samples
-        self.index = codec.encode(np.stack([lookup.line, lookup.sample]))
+        gather = gather_index(lookup)
+        self.row0, self.height, self.dtype = gather.row0, gather.height, gather.index.dtype
+        self.index = codec.encode(gather.index)
         self.count = None if lookup.count is None else codec.encode(lookup.count)
+        line, sample = lookup.line, lookup.sample
+        regular = (np.array_equal(line < 0, sample < 0) and np.min(line, initial=0) >= -1
+                   and np.min(sample, initial=0) >= -1 and np.max(line, initial=-1) < lookup.lines
+                   and np.max(sample, initial=-1) < lookup.samples)
+        self.pairs = None if regular else codec.encode(np.stack([line, sample]))
 
     @property
     def nbytes(self) -> int:
-        return len(self.index) + (0 if self.count is None else len(self.count))
+        return len(self.index) + sum(0 if b is None else len(b) for b in (self.count, self.pairs))
+
+    def gather_index(self):
+        """The :class:`archive.render.gather.GatherIndex` of the lookup (one decode)."""
+        import numcodecs
+
+        from archive.render.gather import GatherIndex
+
+        index = np.frombuffer(numcodecs.Blosc().decode(self.index), self.dtype)
+        return GatherIndex(self.grid, self.lines, self.samples, self.row0, self.height, index)
 
     def unpack(self):
+        """The :class:`archive.render.renderer.Lookup` (line and sample from the flat index)."""
         import numcodecs
 
         from archive.render.renderer import Lookup
 
         codec = numcodecs.Blosc()
         shape = self.grid.shape
-        index = np.frombuffer(codec.decode(self.index), np.int32).reshape(2, *shape)
         count = (None if self.count is None
                  else np.frombuffer(codec.decode(self.count), np.uint16).reshape(shape))
-        return Lookup(self.grid, index[0], index[1], self.lines, self.samples, count)
+        if self.pairs is not None:
+            pairs = np.frombuffer(codec.decode(self.pairs), np.int32).reshape(2, *shape)
+            return Lookup(self.grid, pairs[0], pairs[1], self.lines, self.samples, count)
+        gather = self.gather_index()
+        line = np.full(shape, -1, np.int32)
+        sample = np.full(shape, -1, np.int32)
+        rows = slice(self.row0, self.row0 + self.height)
+        index = gather.index.reshape(self.height, shape[1])
+        covered = index != gather.sentinel
+        line[rows] = np.where(covered, index // self.samples, -1)
+        sample[rows] = np.where(covered, index % self.samples, -1)
+        return Lookup(self.grid, line, sample, self.lines, self.samples, count)
 
 
 def unpacked(lookup):
@@ -145,16 +222,18 @@ def render_task(source, cube: int, bands: Sequence[int], lookup, mode: str,
     from archive.render.renderer import render_lookup  # GL only on workers
 
     bands = list(bands)
-    lookup = unpacked(lookup)
     try:
         dn = source.read_bands(cube, bands)
         radiometry = source.radiometry(cube, bands, mode)
         if cpu_band_pass():   # software GL: the numpy gather, in this thread (same values, tested)
             from archive.render.gather import gather_lookup
 
-            result = gather_lookup(lookup, dn, radiometry)
+            gather = lookup.gather_index() if isinstance(lookup, PackedLookup) else lookup
+            out = VALUES_POOL.take((len(bands), *gather.grid.shape))
+            result = gather_lookup(gather, dn, radiometry, out=out)
         else:
-            result = gl_call(render_lookup, lookup, dn, radiometry, bands_per_pass=min(bands_per_pass, len(bands)))
+            result = gl_call(render_lookup, unpacked(lookup), dn, radiometry,
+                             bands_per_pass=min(bands_per_pass, len(bands)))
     except (InputError, RenderError) as exc:  # say which cube: the renderer cannot know
         where = f"{source.label} cube {source.cubes[cube].base}"
         if isinstance(exc, InputError):

@@ -22,9 +22,10 @@ from __future__ import annotations
 import numpy as np
 
 from archive.errors import InputError
-from archive.render.renderer import Lookup, RenderResult, checked_cube, dn_texture_format, radiometry_arrays
+from archive.render.renderer import (GatherIndex, Lookup, RenderResult, checked_cube, dn_texture_format, gather_index,
+                                     radiometry_arrays)
 
-__all__ = ["CPU_RENDERERS", "MAX_ULP", "gather_lookup", "is_cpu_renderer", "use_cpu_gather"]
+__all__ = ["CPU_RENDERERS", "GatherIndex", "MAX_ULP", "gather_index", "gather_lookup", "is_cpu_renderer", "use_cpu_gather"]
 
 #: GL renderer names (substrings, lower case) of software rasterisers, where the CPU gather wins.
 CPU_RENDERERS = ("llvmpipe", "softpipe", "swrast", "lavapipe")
@@ -55,42 +56,42 @@ def use_cpu_gather(renderer: str | None, setting: str | None = None) -> bool:
     return is_cpu_renderer(renderer)
 
 
-def gather_lookup(lookup: Lookup, dn: np.ndarray, radiometry) -> RenderResult:
+def gather_lookup(lookup: Lookup | GatherIndex, dn: np.ndarray, radiometry,
+                  out: np.ndarray | None = None) -> RenderResult:
     """Pass 2 on the CPU: the values of the bands of ``dn`` at each pixel of ``lookup.grid``.
 
     Same arguments and result as :func:`archive.render.renderer.render_lookup` (without GL
-    options): dn (bands, lines, samples) uint16 (other integers in 0..65535 or -2^24..2^24, or
-    float32); radiometry with dark / gain (bands, samples), response (lines,), saturation, or None
-    for raw DN. Returns values (bands, height, width) float32, NaN where not covered.
+    options): lookup a Lookup or its :class:`GatherIndex` (the same values); dn (bands, lines,
+    samples) uint16 (other integers in 0..65535 or -2^24..2^24, or float32); radiometry with dark /
+    gain (bands, samples), response (lines,), saturation, or None for raw DN. Returns values
+    (bands, height, width) float32, NaN where not covered: written into ``out`` when given (a
+    C-contiguous float32 array of that shape, e.g. a reused buffer: every value is overwritten).
     """
-    dn, (nb, lines, samples) = checked_cube(dn, lookup)
+    gather = lookup if isinstance(lookup, GatherIndex) else gather_index(lookup)
+    dn, (nb, lines, samples) = checked_cube(dn, gather)
     dark, gain, resp, saturation = radiometry_arrays(radiometry, nb, lines, samples)
     dn_up, _, _ = dn_texture_format(dn)   # the values the GL path uploads (exact in float32)
-    grid = lookup.grid
-    covered = lookup.covered
-    box = lookup.box() if nb > 0 else None
-    values = np.empty((nb, grid.height, grid.width), np.float32)
-    result = RenderResult(grid, values, np.zeros(grid.shape, bool), covered)
-    if box is None:
+    grid = gather.grid
+    shape = (nb, grid.height, grid.width)
+    if out is None:
+        values = np.empty(shape, np.float32)
+    elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous float32 array of shape {shape}, got {out.dtype} {out.shape}")
+    else:
+        values = out
+    result = RenderResult(grid, values, np.zeros(grid.shape, bool), gather.covered)
+    if nb == 0 or gather.height == 0:
         values[...] = np.nan
         return result
-    row0, _, height, _ = box
+    row0, height, index = gather.row0, gather.height, gather.index
     values[:, :row0] = np.nan
     values[:, row0 + height:] = np.nan
     rows = slice(row0, row0 + height)
-    # Flat index into a band's (lines * samples + 1) plane for every pixel of the covered rows; the
-    # extra last element is NaN and stands for "not covered".
-    plane_size = lines * samples
-    # int32 indices when they fit: half the index bytes streamed per band (np.take 2.5x faster).
-    line = lookup.line[rows]
-    index = line.astype(np.int32 if plane_size < 2**31 - 1 else np.intp)
-    index *= samples
-    index += lookup.sample[rows]
-    index[line < 0] = plane_size
-    index = index.reshape(-1)
+    plane_size = gather.sentinel
 
     # One band at a time, its plane computed in blocks of lines that stay in the core's cache (4
-    # operations per value), then gathered while the plane is still in cache.
+    # operations per value), then gathered while the plane is still in cache. The plane's extra last
+    # element is NaN and stands for "not covered".
     plane = np.empty(plane_size + 1, np.float32)
     plane[plane_size] = np.nan
     work = plane[:plane_size].reshape(lines, samples)
@@ -103,11 +104,11 @@ def gather_lookup(lookup: Lookup, dn: np.ndarray, radiometry) -> RenderResult:
             np.subtract(w, dark[b], out=w)
             np.multiply(w, gain[b], out=w)
             np.divide(w, resp[l0:l1, None], out=w)
-        out = values[b, rows].reshape(-1)                 # whole rows: contiguous, a view
-        np.take(plane, index, out=out, mode="clip")       # "clip": unbuffered (all indices valid)
+        into = values[b, rows].reshape(-1)                # whole rows: contiguous, a view
+        np.take(plane, index, out=into, mode="clip")      # "clip": unbuffered (all indices valid)
     if saturation is not None:  # as render_lookup: any band's DN at or above the threshold
-        sat_src = dn.max(axis=0) >= float(saturation)
-        if sat_src.any():
-            r, c = np.nonzero(covered)
-            result.saturated[r, c] = sat_src[lookup.line[r, c], lookup.sample[r, c]]
+        flagged = np.zeros(plane_size + 1, bool)          # the last element: not covered, never flagged
+        np.greater_equal(dn.max(axis=0), float(saturation), out=flagged[:plane_size].reshape(lines, samples))
+        if flagged.any():
+            np.take(flagged, index, out=result.saturated[rows].reshape(-1), mode="clip")
     return result
