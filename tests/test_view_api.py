@@ -520,11 +520,11 @@ def test_overview_values_are_means_over_the_pixel_footprint(client, demo):
     # a block mean: of the f x f block of lines x samples centred on the (line, sample), cut at the edges
     flight = FlightRegistry(demo[0]).flight(cid)
     lines, samples = flight.cubes[1].lines, flight.cubes[1].samples
-    full = flight.plane(1, 2, "radiance")
+    full = flight.planes.plane(1, 2, "radiance")
     assert np.isnan(full[-1]) and full.size == lines * samples + 1
     full = full[:-1].reshape(lines, samples)
     h = f // 2
-    got = flight.block_means(1, 2, "radiance", f, np.array([40, 0, lines - 1, -1]), np.array([30, 0, samples - 1, 5]))
+    got = flight.planes.block_means(1, 2, "radiance", f, np.array([40, 0, lines - 1, -1]), np.array([30, 0, samples - 1, 5]))
     assert np.allclose(got[:3], [full[40 - h:40 - h + f, 30 - h:30 - h + f].mean(), full[:f - h, :f - h].mean(),
                                  full[lines - 1 - h:, samples - 1 - h:].mean()], rtol=1e-5)
     assert np.isnan(got[3])   # not covered
@@ -567,6 +567,6 @@ def test_band_planes_are_the_renderers_values(demo, mode):
     source = flight.source(None)
     for band in (0, 4):
         want = gather_lookup(every, source.read_bands(2, [band]), source.radiometry(2, [band], mode)).values[0]
-        got = flight.plane(2, band, mode)
+        got = flight.planes.plane(2, band, mode)
         assert np.isnan(got[-1])
         assert np.array_equal(got[:-1].view(np.uint32), want.reshape(-1).view(np.uint32))

@@ -11,11 +11,11 @@ flight directories named on the command line). :class:`Flight` holds one flight'
   then a vertical offset of the DEM (m, 0 = the DEM as it is);
 - lookups (pass 1 of the renderer: which line and sample each tile pixel sees) per cube and tile
   grid, shared by every band choice;
-- band planes: a band of a cube in a mode, calibrated once for every (line, sample) by the float32
-  operations of :func:`archive.render.gather.gather_lookup` (the CPU pass 2 of ``archive render`` on
-  software GL, bit for bit llvmpipe's band pass) and kept, with its box-filtered levels for overview zooms (each
-  value the mean of the 2^k x 2^k block of lines x samples around it); a tile is then a gather
-  through its lookup (no GL band pass per tile);
+- band planes (:class:`archive.view.planes.BandPlanes`, ``Flight.planes``): a band of a cube in a
+  mode, calibrated once for every (line, sample) as ``archive render`` does and kept, with its
+  box-filtered levels for overview zooms (each value the mean of the 2^k x 2^k block of lines x
+  samples around it), made on worker threads; a tile is then a gather through its lookup (no GL
+  band pass per tile), the planes of the cubes around it made meanwhile;
 - whole-flight 2/98 % statistics per (band, mode, cubes) from every 4th line and sample of those
   planes: computed once, whatever the ground height or sync offset.
 
@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor
 import dataclasses
 from pathlib import Path
@@ -39,6 +39,7 @@ from archive.grid import Grid
 from archive.params import NavigationParams
 from archive.view.cache import ByteLRU
 from archive.view.geometry import Geometry, PosesKept, bounds_intersect, plane_index
+from archive.view.planes import BandPlanes
 from archive.view.query import ViewQuery
 from archive.view.tiles import MERCATOR_EPSG, bbox_grid, encode_png, transparent_png
 
@@ -52,6 +53,8 @@ GEOMETRIES_KEPT = 6
 STATS_STEP = 4
 #: Widest block averaged for an overview pixel (2^k x 2^k lines x samples).
 MAX_MIP = 8
+#: Overview planes are made ahead for the cubes within this many tile widths of a requested tile.
+AHEAD_TILES = 2
 #: Rows of a cube's mesh kept in its outline (footprint drawn by the page).
 OUTLINE_ROWS = 64
 
@@ -62,7 +65,8 @@ class Flight:
     cid: the id it is served under; opener(params) -> a flight source with these navigation
     parameters; fov: field of view (deg) for the meshes, None: the one the source records;
     bands_cache / lookup_cache: shared byte-bounded caches of cube bands and lookups; workers:
-    threads that make several band planes at once (:meth:`prepare`; None: one after the other).
+    threads that make several band planes at once (:meth:`BandPlanes.prepare`; None: one after
+    the other).
     """
 
     def __init__(self, cid: str, opener: Callable, fov: float | None, bands_cache: ByteLRU,
@@ -71,10 +75,8 @@ class Flight:
         self.opener = opener
         self.bands_cache = bands_cache
         self.lookup_cache = lookup_cache
-        self.workers = workers
         self._sources: OrderedDict = OrderedDict()
         self._geometries: OrderedDict = OrderedDict()
-        self._radiometry: OrderedDict = OrderedDict()
         self._ranges: OrderedDict = OrderedDict()
         self._posed: OrderedDict = OrderedDict()
         first = self.source(None)
@@ -84,6 +86,7 @@ class Flight:
         self.cubes = first.cubes
         self.wavelengths = first.wavelengths
         self.has_calibration = first.has_calibration
+        self.planes = BandPlanes(cid, lambda: self.source(None), self.cubes, bands_cache, workers)
 
     # ---- sources and geometry ------------------------------------------------------------
     @staticmethod
@@ -190,114 +193,10 @@ class Flight:
 
     def mode(self, query: ViewQuery) -> str:
         mode = query.mode or ("radiance" if self.has_calibration else "raw")
-        self.radiometry(0, (0,), mode)  # InputError now when the mode is impossible
+        self.planes.radiometry(0, (0,), mode)  # InputError now when the mode is impossible
         return mode
 
     # ---- pixels ------------------------------------------------------------------------
-    def radiometry(self, cube: int, bands: Sequence[int], mode: str):
-        key = (cube, tuple(bands), mode)
-        found = self._radiometry.get(key)
-        if found is None:
-            found = self._keep(self._radiometry, key, self.source(None).radiometry(cube, list(bands), mode), 256)
-        return found
-
-    def plane(self, cube: int, band: int, mode: str) -> np.ndarray:
-        """(lines * samples + 1,) float32 values of one band of one cube in ``mode`` for every (line,
-        sample), row-major, the last element NaN (what an uncovered pixel shows): the values
-        ``archive render`` gives those pixels (:meth:`_calibrate`). Cached (the bands cache)."""
-        def make():
-            info = self.cubes[cube]
-            out = np.empty(info.lines * info.samples + 1, np.float32)
-            out[:-1] = self._calibrate(cube, band, mode).reshape(-1)
-            out[-1] = np.nan
-            return out, out.nbytes
-        return self.bands_cache.get_or_make((self.id, cube, band, mode), make)
-
-    def filtered(self, cube: int, band: int, mode: str, size: int) -> np.ndarray:
-        """(lines * samples + 1,) float32 like :meth:`plane`, each value the mean of the finite values
-        of the size x size block of lines x samples centred on its (line, sample) (from index - size
-        // 2, cut at the cube's edges), NaN where none is; ``size`` 1: the plane itself. The
-        flight's pixels box-filtered for overview zooms; a tile then gathers from it as from the
-        plane. Cached per size (the bands cache): one plane's worth of memory per level shown."""
-        if size == 1:
-            return self.plane(cube, band, mode)
-
-        def make():
-            from scipy.ndimage import uniform_filter
-
-            info = self.cubes[cube]
-            plane = self.plane(cube, band, mode)[:-1].reshape(info.lines, info.samples)
-            finite = np.isfinite(plane)
-            # uniform_filter's window for even sizes starts at index - size // 2, as wanted; zeros
-            # beyond the edges, so the sums are divided by the number of values inside instead
-            sums = uniform_filter(np.where(finite, plane, np.float32(0)), size=size, mode="constant", cval=0.0,
-                                  output=np.float32)
-            if finite.all():
-                def inside(n):
-                    i = np.arange(n)
-                    return (np.minimum(i - size // 2 + size, n) - np.maximum(i - size // 2, 0)).astype(np.float32)
-                count = np.outer(inside(info.lines), inside(info.samples)) / np.float32(size * size)
-            else:
-                count = uniform_filter(finite.astype(np.float32), size=size, mode="constant", cval=0.0)
-            out = np.empty(info.lines * info.samples + 1, np.float32)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                np.divide(sums.reshape(-1), count.reshape(-1), out=out[:-1])
-            out[:-1][count.reshape(-1) < 0.5 / (size * size)] = np.nan
-            out[-1] = np.nan
-            return out, out.nbytes
-        return self.bands_cache.get_or_make((self.id, cube, band, mode, "filtered", int(size)), make)
-
-    def prepare(self, cubes: Iterable[int], bands: Sequence[int], mode: str, size: int = 1) -> None:
-        """Make the :meth:`filtered` planes of these cubes and bands that are not cached yet, on the
-        worker threads when there are several (reading, checking, calibrating and filtering a plane
-        release the GIL: a new band of 8 cubes in about half the time on 2 cores)."""
-        missing = [(int(c), int(b)) for c in cubes for b in bands
-                   if (self.id, int(c), int(b), mode, "filtered", int(size)) not in self.bands_cache
-                   and (size > 1 or (self.id, int(c), int(b), mode) not in self.bands_cache)]
-        if len(missing) < 2 or self.workers is None:
-            return
-        self.source(None)
-        for c in {c for c, _ in missing}:
-            self.band_radiometry(c, 0, mode)   # shared per cube and mode: made here, not by two threads
-        list(self.workers.map(lambda cb: self.filtered(cb[0], cb[1], mode, size), missing))
-
-    def block_means(self, cube: int, band: int, mode: str, size: int, line: np.ndarray,
-                    sample: np.ndarray) -> np.ndarray:
-        """float32 (shape of ``line``): at each (line, sample), the mean of the finite values of the
-        band in the size x size block of lines x samples centred there (:meth:`filtered`); NaN where
-        ``line`` < 0 (not covered) or no value is finite."""
-        info = self.cubes[cube]
-        line, sample = np.asarray(line), np.asarray(sample)
-        index = np.where(line >= 0, line * info.samples + sample, info.lines * info.samples)
-        return self.filtered(cube, band, mode, size).take(index.astype(np.int64))
-
-    def _calibrate(self, cube: int, band: int, mode: str) -> np.ndarray:
-        """(lines, samples) float32: every pixel of one band of one cube in ``mode``, by the float32
-        operations of :func:`archive.render.gather.gather_lookup` in its order (``((DN - dark) *
-        gain) / response``, DN exact in float32), so the very values ``archive render`` writes; but
-        once per (line, sample) and without its per-pixel lookup, coverage and saturation work."""
-        from archive.render.renderer import dn_texture_format, radiometry_arrays
-
-        info = self.cubes[cube]
-        dn = self.source(None).read_bands(cube, [band])
-        dark, gain, resp, _ = radiometry_arrays(self.band_radiometry(cube, band, mode), 1, info.lines, info.samples)
-        plane = np.empty((info.lines, info.samples), np.float32)
-        plane[...] = dn_texture_format(dn)[0][0]
-        np.subtract(plane, dark[0], out=plane)
-        np.multiply(plane, gain[0], out=plane)
-        np.divide(plane, resp[:, None], out=plane)
-        return plane
-
-    def band_radiometry(self, cube: int, band: int, mode: str):
-        """The radiometric terms of one band of ``cube`` (None: raw DN), cut from those of every band
-        (read once per cube and mode: a new band reads no calibration)."""
-        from archive.sources.base import Radiometry
-
-        every = self.radiometry(cube, tuple(range(self.cubes[cube].bands)), mode)
-        if every is None:
-            return None
-        return Radiometry(every.dark[band:band + 1], every.gain[band:band + 1], every.response, every.saturation)
-
     def lookup(self, geometry: Geometry, cube: int, grid: Grid):
         """Pass 1 of the renderer for ``cube`` on ``grid`` (cached); None when nothing is covered."""
         from archive.render.renderer import rasterize_lookup
@@ -346,8 +245,8 @@ class Flight:
         """:meth:`render` and, for the 'nadir' rule, the view zenith (deg) of each pixel's winner
         ((height, width) float32, NaN where none; None for 'last'): what the browser compares
         between flights. Each pixel shows the value of the (line, sample) its lookup sees, from the
-        band's plane (:meth:`plane`; ``level`` > 1: the mean of the level x level block of the
-        flight's pixels centred there, :meth:`filtered`)."""
+        band's plane (:meth:`BandPlanes.plane`; ``level`` > 1: the mean of the level x level block of
+        the flight's pixels centred there, :meth:`BandPlanes.filtered`)."""
         from archive.graph.mosaic import make_rule, nadir_values, nadir_winners, rule_key
 
         rule = make_rule(overlap, len(bands), grid.height, grid.width)
@@ -365,13 +264,20 @@ class Flight:
             lookup = self.lookup(geometry, c, grid)
             if lookup is not None:
                 seen.append((c, lookup))
-        self.prepare([c for c, _ in seen], bands, mode, level)
+        near = ()
+        if level > 1 and grid.epsg == MERCATOR_EPSG:
+            # the tiles around this one need the same level of their cubes: made meanwhile
+            pad = AHEAD_TILES * grid.width * grid.gsd
+            around = (box[0] - pad, box[1] - pad, box[2] + pad, box[3] + pad)
+            near = [c for c in cubes if np.isfinite(geometry.bounds[c]).all()
+                    and bounds_intersect(geometry.bounds[c], around)]
+        self.planes.prepare([c for c, _ in seen], bands, mode, level, ahead=near)
         for c, lookup in seen:
             check()
             values = np.empty((len(bands), grid.height, grid.width), np.float32)
             index = plane_index(lookup)
             for i, b in enumerate(bands):
-                np.take(self.filtered(c, b, mode, level), index, out=values[i].reshape(-1), mode="clip")
+                np.take(self.planes.filtered(c, b, mode, level), index, out=values[i].reshape(-1), mode="clip")
             key = self.view_zenith(geometry, c, lookup) if keyed else None
             if key is not None:
                 keys.append((key, *whole))
@@ -392,7 +298,7 @@ class Flight:
         its value is the mean over the block of 2^k x 2^k of the flight's pixels (lines x samples)
         centred on the one it sees, 2^k (up to MAX_MIP) the power of two nearest the ratio of the
         pixel sizes: anti-aliased as by a mipmapped texture (the band box-filtered once per cube,
-        band and level, :meth:`filtered`), at the cost of a full-resolution tile."""
+        band and level, :meth:`BandPlanes.filtered`), at the cost of a full-resolution tile."""
         geometry, cubes, bands, mode, drawn = self._drawing(grid, query)
         if not drawn:
             return None
@@ -446,7 +352,7 @@ class Flight:
         their values) never do."""
         lows, highs, count = [], [], 0
         new = [int(b) for b in bands if (int(b), mode, cubes.start, cubes.stop, tuple(percentiles)) not in self._ranges]
-        self.prepare(cubes, new, mode)
+        self.planes.prepare(cubes, new, mode)
         for b in bands:
             key = (int(b), mode, cubes.start, cubes.stop, tuple(percentiles))
             found = self._ranges.get(key)
@@ -454,7 +360,7 @@ class Flight:
                 parts = []
                 for c in cubes:
                     info = self.cubes[c]
-                    plane = self.plane(c, int(b), mode)[:-1].reshape(info.lines, info.samples)
+                    plane = self.planes.plane(c, int(b), mode)[:-1].reshape(info.lines, info.samples)
                     part = plane[::STATS_STEP, ::STATS_STEP].reshape(-1)
                     parts.append(part[np.isfinite(part)])
                 v = np.concatenate(parts) if parts else np.empty(0, np.float32)

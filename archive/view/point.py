@@ -54,7 +54,7 @@ def point_spectrum(flight, lon: float, lat: float, gsd: float, query: ViewQuery)
         for b0 in range(0, nbands, POINT_BAND_GROUP):
             group = list(range(b0, min(b0 + POINT_BAND_GROUP, nbands)))
             dn = source.read_bands(c, group)[:, line:line + 1, sample:sample + 1]
-            rad = slice_radiometry(flight.radiometry(c, group, mode), slice(line, line + 1),
+            rad = slice_radiometry(flight.planes.radiometry(c, group, mode), slice(line, line + 1),
                                     slice(sample, sample + 1))
             result = render_lookup(one, dn, rad)
             v[b0:b0 + len(group)] = result.values[:, 0, 0]

@@ -1,0 +1,173 @@
+"""A viewed flight's band planes: every (line, sample) of a band of a cube in a mode, calibrated
+once and kept, and the same box-filtered for overview zooms; made on worker threads.
+
+A plane holds the float32 values ``archive render`` gives those pixels: the operations of
+:func:`archive.render.gather.gather_lookup` (the CPU pass 2 of ``archive render`` on software GL,
+bit for bit llvmpipe's band pass) in their order, once per (line, sample) instead of per output
+pixel. A tile is then a gather through its lookup (:class:`archive.view.flights.Flight`). No
+OpenGL here: planes are made on any thread.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Executor, Future
+
+import numpy as np
+
+from archive.view.cache import ByteLRU
+
+__all__ = ["BandPlanes", "RADIOMETRY_KEPT"]
+
+#: (cube, bands, mode) radiometric terms kept per flight.
+RADIOMETRY_KEPT = 256
+
+
+class BandPlanes:
+    """The band planes of one flight (served as ``cid``): ``source()`` gives its source (sync offset
+    as ingested: the values do not depend on it), ``cubes`` its cubes' info; planes live in the
+    shared byte-bounded ``cache``; ``workers`` make several at once (:meth:`prepare`; None: one
+    after the other, on the caller's thread)."""
+
+    def __init__(self, cid: str, source: Callable[[], object], cubes: Sequence, cache: ByteLRU,
+                 workers: Executor | None = None):
+        self.id = cid
+        self.source = source
+        self.cubes = cubes
+        self.cache = cache
+        self.workers = workers
+        self._radiometry: OrderedDict = OrderedDict()
+        self._lock = threading.Lock()
+        self._making: dict[tuple, Future] = {}   # (cube, band, mode, size) -> a plane being made
+
+    def radiometry(self, cube: int, bands: Sequence[int], mode: str):
+        """The source's radiometric terms of ``bands`` of ``cube`` in ``mode`` (None: raw DN), kept."""
+        key = (cube, tuple(bands), mode)
+        found = self._radiometry.get(key)
+        if found is None:
+            found = self._radiometry[key] = self.source().radiometry(cube, list(bands), mode)
+            while len(self._radiometry) > RADIOMETRY_KEPT:
+                self._radiometry.popitem(last=False)
+        return found
+
+    def plane(self, cube: int, band: int, mode: str) -> np.ndarray:
+        """(lines * samples + 1,) float32 values of one band of one cube in ``mode`` for every (line,
+        sample), row-major, the last element NaN (what an uncovered pixel shows): the values
+        ``archive render`` gives those pixels (:meth:`_calibrate`). Cached (the bands cache)."""
+        def make():
+            info = self.cubes[cube]
+            out = np.empty(info.lines * info.samples + 1, np.float32)
+            out[:-1] = self._calibrate(cube, band, mode).reshape(-1)
+            out[-1] = np.nan
+            return out, out.nbytes
+        return self.cache.get_or_make((self.id, cube, band, mode), make)
+
+    def filtered(self, cube: int, band: int, mode: str, size: int) -> np.ndarray:
+        """(lines * samples + 1,) float32 like :meth:`plane`, each value the mean of the finite values
+        of the size x size block of lines x samples centred on its (line, sample) (from index - size
+        // 2, cut at the cube's edges), NaN where none is; ``size`` 1: the plane itself. The
+        flight's pixels box-filtered for overview zooms; a tile then gathers from it as from the
+        plane. Cached per size (the bands cache): one plane's worth of memory per level shown."""
+        if size == 1:
+            return self.plane(cube, band, mode)
+
+        def make():
+            from scipy.ndimage import uniform_filter
+
+            info = self.cubes[cube]
+            plane = self.plane(cube, band, mode)[:-1].reshape(info.lines, info.samples)
+            finite = np.isfinite(plane)
+            # uniform_filter's window for even sizes starts at index - size // 2, as wanted; zeros
+            # beyond the edges, so the sums are divided by the number of values inside instead
+            sums = uniform_filter(np.where(finite, plane, np.float32(0)), size=size, mode="constant", cval=0.0,
+                                  output=np.float32)
+            if finite.all():
+                def inside(n):
+                    i = np.arange(n)
+                    return (np.minimum(i - size // 2 + size, n) - np.maximum(i - size // 2, 0)).astype(np.float32)
+                count = np.outer(inside(info.lines), inside(info.samples)) / np.float32(size * size)
+            else:
+                count = uniform_filter(finite.astype(np.float32), size=size, mode="constant", cval=0.0)
+            out = np.empty(info.lines * info.samples + 1, np.float32)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                np.divide(sums.reshape(-1), count.reshape(-1), out=out[:-1])
+            out[:-1][count.reshape(-1) < 0.5 / (size * size)] = np.nan
+            out[-1] = np.nan
+            return out, out.nbytes
+        return self.cache.get_or_make((self.id, cube, band, mode, "filtered", int(size)), make)
+
+    def prepare(self, cubes: Iterable[int], bands: Sequence[int], mode: str, size: int = 1,
+                ahead: Iterable[int] = ()) -> None:
+        """Make the :meth:`filtered` planes of these cubes and bands that are not cached yet, on the
+        worker threads when there are several (reading, checking, calibrating and filtering a plane
+        release the GIL: a new band of 8 cubes in about half the time on 2 cores), and wait for
+        them. ``ahead``: more cubes whose planes are made too, after those, without waiting (what
+        the next requests will need). A plane already being made is waited for, not made again."""
+        def missing(among):
+            return [(int(c), int(b)) for c in among for b in bands
+                    if (self.id, int(c), int(b), mode, "filtered", int(size)) not in self.cache
+                    and (size > 1 or (self.id, int(c), int(b), mode) not in self.cache)]
+        now, later = missing(cubes), missing(ahead)
+        if self.workers is None or len(now) + len(later) < 2:
+            return
+        self.source()
+        for c in {c for c, _ in now + later}:
+            self.band_radiometry(c, 0, mode)   # shared per cube and mode: made here, not by two threads
+        waits = [self._making_on_workers((c, b, mode, int(size))) for c, b in now]
+        for c, b in later:
+            self._making_on_workers((c, b, mode, int(size)))
+        for future in waits:
+            future.result()
+
+    def _making_on_workers(self, key: tuple):
+        """The future of :meth:`filtered` ``(*key)`` on the workers (one per key at a time)."""
+        with self._lock:
+            future = self._making.get(key)
+            if future is None:
+                future = self.workers.submit(self.filtered, *key)
+                self._making[key] = future
+                future.add_done_callback(lambda _, k=key: self._forget(k))
+            return future
+
+    def _forget(self, key: tuple) -> None:
+        with self._lock:
+            self._making.pop(key, None)
+
+    def block_means(self, cube: int, band: int, mode: str, size: int, line: np.ndarray,
+                    sample: np.ndarray) -> np.ndarray:
+        """float32 (shape of ``line``): at each (line, sample), the mean of the finite values of the
+        band in the size x size block of lines x samples centred there (:meth:`filtered`); NaN where
+        ``line`` < 0 (not covered) or no value is finite."""
+        info = self.cubes[cube]
+        line, sample = np.asarray(line), np.asarray(sample)
+        index = np.where(line >= 0, line * info.samples + sample, info.lines * info.samples)
+        return self.filtered(cube, band, mode, size).take(index.astype(np.int64))
+
+    def _calibrate(self, cube: int, band: int, mode: str) -> np.ndarray:
+        """(lines, samples) float32: every pixel of one band of one cube in ``mode``, by the float32
+        operations of :func:`archive.render.gather.gather_lookup` in its order (``((DN - dark) *
+        gain) / response``, DN exact in float32), so the very values ``archive render`` writes; but
+        once per (line, sample) and without its per-pixel lookup, coverage and saturation work."""
+        from archive.render.renderer import dn_texture_format, radiometry_arrays
+
+        info = self.cubes[cube]
+        dn = self.source().read_bands(cube, [band])
+        dark, gain, resp, _ = radiometry_arrays(self.band_radiometry(cube, band, mode), 1, info.lines, info.samples)
+        plane = np.empty((info.lines, info.samples), np.float32)
+        plane[...] = dn_texture_format(dn)[0][0]
+        np.subtract(plane, dark[0], out=plane)
+        np.multiply(plane, gain[0], out=plane)
+        np.divide(plane, resp[:, None], out=plane)
+        return plane
+
+    def band_radiometry(self, cube: int, band: int, mode: str):
+        """The radiometric terms of one band of ``cube`` (None: raw DN), cut from those of every band
+        (read once per cube and mode: a new band reads no calibration)."""
+        from archive.sources.base import Radiometry
+
+        every = self.radiometry(cube, tuple(range(self.cubes[cube].bands)), mode)
+        if every is None:
+            return None
+        return Radiometry(every.dark[band:band + 1], every.gain[band:band + 1], every.response, every.saturation)
