@@ -755,8 +755,9 @@ $("cube-first").addEventListener("change", cubesInput);
 $("cube-last").addEventListener("change", cubesInput);
 
 // sliders: a coarse preview (64 x 64 tiles of the open flight) while dragging, one at a time, at
-// the latest value; the full resolution on release
-let previewNext = null;
+// the latest value; the full resolution on release. A preview starts at the next animation frame:
+// a click on the slider's track (input and change at once) asks for no preview nobody would see
+let previewNext = null, previewFrame = null;
 function startPreview(value) {
   previewNext = null;
   preview = value;
@@ -764,9 +765,13 @@ function startPreview(value) {
 }
 for (const [id, name] of [["ground", "ground"], ["sync", "sync"]]) {
   $(id).addEventListener("input", () => {
-    const value = { [name]: Number($(id).value) };
-    showOutputsValue(name, value[name]);
-    if (!preview || viewer.settled) startPreview(value); else previewNext = value;
+    previewNext = { [name]: Number($(id).value) };
+    showOutputsValue(name, previewNext[name]);
+    if ((preview && !viewer.settled) || previewFrame !== null) return;   // the settled preview starts the next
+    previewFrame = requestAnimationFrame(() => {
+      previewFrame = null;
+      if (previewNext !== null) startPreview(previewNext);
+    });
   });
   $(id).addEventListener("change", () => {
     preview = null; previewNext = null;
