@@ -38,8 +38,8 @@ from archive.grid import boxes_intersect
 from archive.outputs.base import CHUNK
 from archive.graph.nodes import BANDS_PER_PASS, GL_RESOURCES, Node, Ref, RenderNodes
 from archive.graph.plan import GROUP, RenderPlan, band_groups
-from archive.graph.tasks import (assemble_write_task, blank_write_task, gate_task, overview_task, write_layers_task,
-                                 write_saturated_task)
+from archive.graph.tasks import (VALUES_POOL, assemble_write_task, blank_write_task, gate_task, overview_task,
+                                 write_layers_task, write_saturated_task)
 
 __all__ = ["HELD_VALUES_BYTES", "RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "live_renders", "render_order", "task_group_size",
            "with_task_groups"]
@@ -140,17 +140,21 @@ def render_order(plan: RenderPlan, tile: tuple[int, int] = (CHUNK, CHUNK)) -> tu
 
 
 def task_group_size(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> int:
-    """Bands per render task for ``plan``: as many bands, in multiples of GROUP (4: one RGBA texel
-    fetch), as fit the bytes of values one render may hold for the largest cube window (at most
-    MAX_GROUP), but never fewer than GROUP; a render may hold ``budget`` bytes, and all renders held at once
-    (:func:`live_renders` + RENDERS_AHEAD) HELD_VALUES_BYTES, scaled down with ``budget`` (small
+    """Bands per render task for ``plan``: as many as fit the bytes of values one render may hold
+    for the largest cube window (whole 8-band GL passes from 16 bands on; at most MAX_GROUP, never
+    fewer than GROUP = 4); a render may hold ``budget`` bytes, and all renders held at once
+    (:func:`live_renders` + RENDERS_AHEAD + the free buffers of the values pool,
+    :class:`~archive.graph.tasks.ValuesPool`) HELD_VALUES_BYTES, scaled down with ``budget`` (small
     workers get a tenth of their memory as ``budget``, :func:`archive.cluster.task_budget`: the
-    renders they hold at once shrink in proportion)."""
+    renders they hold at once shrink in proportion). Any size, not multiples of 4 only, so that the
+    renders held stay near HELD_VALUES_BYTES (flat) as the flight grows longer."""
     biggest = max((job.window.width * job.window.height for job in plan.jobs), default=1)
-    held = live_renders(plan) + RENDERS_AHEAD
+    held = live_renders(plan) + RENDERS_AHEAD + VALUES_POOL.keep
     held_bytes = HELD_VALUES_BYTES * min(1.0, budget / TASK_VALUES_BYTES)
     fit = int(min(budget, held_bytes // held)) // (4 * max(biggest, 1))
-    return min(MAX_GROUP, max(GROUP, fit // GROUP * GROUP))
+    if fit >= 2 * BANDS_PER_PASS:   # whole GL passes where that loses little
+        fit = fit // BANDS_PER_PASS * BANDS_PER_PASS
+    return min(MAX_GROUP, max(GROUP, fit))
 
 
 def with_task_groups(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> RenderPlan:
