@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import threading
 import warnings
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
@@ -62,9 +63,7 @@ _FIX_COVER = "give a DEM covering the whole flight and its swath"
 # PROJ set-up and vertical datums
 # ---------------------------------------------------------------------------------------------
 @lru_cache(maxsize=1)
-def use_system_grids() -> tuple[str, ...]:
-    """Append Debian's PROJ data directory (proj-data's geoid grids) to pyproj's search path, once.
-    Returns pyproj's data directories."""
+def _append_system_grids() -> tuple[str, ...]:
     import pyproj.datadir
 
     current = pyproj.datadir.get_data_dir().split(os.pathsep)
@@ -72,6 +71,24 @@ def use_system_grids() -> tuple[str, ...]:
         if os.path.isdir(d) and d not in current:
             pyproj.datadir.append_data_dir(d)
     return tuple(pyproj.datadir.get_data_dir().split(os.pathsep))
+
+
+_PROJ_THREAD = threading.local()
+
+
+def use_system_grids() -> tuple[str, ...]:
+    """Append Debian's PROJ data directory (proj-data's geoid grids) to pyproj's search path, once
+    per process, and make sure the calling thread's PROJ context searches it: pyproj keeps one
+    context per thread, and a context made before the append keeps the old path (a worker thread
+    that transformed coordinates before opening a geoid DEM in a mesh task did not find the grid).
+    Returns pyproj's data directories."""
+    import pyproj.datadir
+
+    dirs = _append_system_grids()
+    if not getattr(_PROJ_THREAD, "ready", False):
+        pyproj.datadir.set_data_dir(os.pathsep.join(dirs))   # the same path, applied to this thread's context
+        _PROJ_THREAD.ready = True
+    return dirs
 
 
 def _declared(crs) -> tuple[object, str | None, object]:

@@ -6,7 +6,8 @@ out:
 
 1. open (:func:`open_inputs`): open the sources (:func:`archive.sources.open_source`), select the
    bands, settle the radiometric mode and the ground height (:mod:`archive.sources.select`);
-2. plan (:func:`plan_output`): cube meshes, output grid and cube windows (metadata only, no GL);
+2. plan (:func:`plan_output`): cube meshes, output grid and cube windows (metadata only, no GL;
+   the graph's tasks build the meshes again on the workers: the plan keeps only the windows);
 3. build (:func:`build_output`): the output's sink under a temporary name
    (:mod:`archive.outputs`) and the render graph that writes it (:mod:`archive.graph.build`);
 4. run (:func:`archive.cluster.execute`): on a local cluster or ``scheduler`` (:mod:`archive.cluster`);
@@ -214,7 +215,7 @@ def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget:
     ``budget`` bytes of values per task; see :func:`archive.graph.build.with_task_groups`).
     InputError when the output or a task would be absurdly large."""
     from archive.graph.build import TASK_VALUES_BYTES, with_task_groups
-    from archive.graph.plan import band_groups, cube_meshes, plan_render
+    from archive.graph.plan import MeshParams, band_groups, cube_meshes, plan_render
 
     idx = list(range(len(inputs.sources))) if members is None else list(members)
     p = inputs.params
@@ -226,6 +227,11 @@ def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget:
     else:   # terrain meshes, built by open_inputs
         meshes = [list(inputs.meshes[i]) for i in idx]
     plan = plan_render(sources, meshes, bands, p.gsd, crs=inputs.crs)
+    # the graph builds the meshes again in tasks on the workers (DESIGN 9: shipped from here, a
+    # terrain flight's meshes made graphs of MBs); the plan keeps their windows only
+    plan = plan.without_meshes(MeshParams(p.navigation.fov_deg, math.nan if inputs.dem is not None else ground,
+                                          inputs.max_view_angle, plan.grid.epsg, inputs.dem,
+                                          p.gsd if inputs.dem is not None else None))
     if band_group is None:
         plan = with_task_groups(plan, TASK_VALUES_BYTES if budget is None else budget)
     else:

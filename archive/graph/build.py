@@ -219,6 +219,8 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
     tile_size = getattr(sink, "tile_size", (CHUNK, CHUNK))
     order = render_order(plan, tile_size)
     position = {j: s for s, j in enumerate(order)}
+    for j, node in enumerate(nodes.meshes()):   # meshes built on the workers, ahead of their lookups
+        task(node, priority(0, 0, position[j]))
     tiles = []
     for row0, col0, tile_grid in plan.grid.tiles(tile_size):
         tile = (row0, col0, tile_grid.height, tile_grid.width)

@@ -115,6 +115,7 @@ def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: st
 
     nodes = RenderNodes(plan, sources, mode=mode, mesh_spec=mesh_spec, layers=layers)
     source_nodes = {key: DataNode(key, value) for key, value in nodes.data().items()}
+    meshes = {node.key: _task(node) for node in nodes.meshes()}   # built on the workers
     lookups: dict = {}
     zeniths: dict = {}
     zenith_key: dict[int, str] = {}
@@ -165,13 +166,15 @@ def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: st
         saturated[skey] = (Task(skey, tile_saturation, tile[2], tile[3], *map(TaskRef, group_keys)) if group_keys
                            else Task(skey, zero_tile, tile[2], tile[3]))
 
-    names = {kind: f"{kind}-{name}" for kind in ("sources", "lookups", "zeniths", "renders", "assembles")}
+    names = {kind: f"{kind}-{name}" for kind in ("sources", "meshes", "lookups", "zeniths", "renders", "assembles")}
     graph_layers = {names["sources"]: MaterializedLayer(source_nodes),
+                    names["meshes"]: MaterializedLayer(meshes),
                     names["lookups"]: MaterializedLayer(lookups, annotations={"resources": dict(GL_RESOURCES)}),
                     names["zeniths"]: MaterializedLayer(zeniths),
                     names["renders"]: MaterializedLayer(renders, annotations={"resources": dict(GL_RESOURCES)}),
                     names["assembles"]: MaterializedLayer(assembles)}
-    deps = {names["sources"]: set(), names["lookups"]: {names["sources"]},   # meshes are data nodes
+    deps = {names["sources"]: set(), names["meshes"]: {names["sources"]},
+            names["lookups"]: {names["sources"], names["meshes"]},   # meshes: data nodes or tasks
             names["zeniths"]: {names["sources"], names["lookups"]},
             names["renders"]: {names["sources"], names["lookups"]},
             names["assembles"]: {names["renders"], names["zeniths"]}}

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 from dask.base import tokenize
 
-from archive.graph.plan import RenderPlan
+from archive.graph.plan import RenderPlan, mesh_task
 from archive.graph.tasks import layers_task, lookup_task, pick_task, render_task
 
 __all__ = ["BANDS_PER_PASS", "GL_RESOURCES", "Node", "Ref", "RenderNodes"]
@@ -68,19 +68,31 @@ class RenderNodes:
         # parameters), never its pixels
         self.tokens = [tokenize(s) for s in self.sources]
 
-    # ---- data: the sources and the meshes (values put into the graph as they are) ------------
+    # ---- data: the sources (values put into the graph as they are) and the meshes ------------
     def source_key(self, i: int) -> str:
         return f"source-{self.tokens[i]}"
 
     def data(self) -> dict[str, object]:
-        """key -> value of every source and every cube mesh of the plan."""
+        """key -> value of every source of the plan, and of every cube mesh when the plan holds them
+        (no :attr:`~archive.graph.plan.RenderPlan.mesh_params`; else :meth:`meshes` builds them)."""
         out: dict[str, object] = {self.source_key(i): s for i, s in enumerate(self.sources)}
-        out.update({self.mesh_key(j): job.mesh for j, job in enumerate(self.plan.jobs)})
+        if self.plan.mesh_params is None:
+            out.update({self.mesh_key(j): job.mesh for j, job in enumerate(self.plan.jobs)})
         return out
 
     def mesh_key(self, j: int) -> str:
         job = self.plan.jobs[j]
-        return f"mesh-{tokenize(self.tokens[job.source], job.cube, self.mesh_spec)}"
+        return f"mesh-{tokenize(self.tokens[job.source], job.cube, self.mesh_spec, self.plan.mesh_params)}"
+
+    def meshes(self) -> list[Node]:
+        """One task per cube job building its mesh on a worker (:func:`~archive.graph.plan.mesh_task`,
+        any thread: CPU only) from the source and the plan's small ``mesh_params`` (a few hundred
+        bytes in the graph instead of the mesh); none when the plan holds its meshes."""
+        params = self.plan.mesh_params
+        if params is None:
+            return []
+        return [Node(self.mesh_key(j), mesh_task, (Ref(self.source_key(job.source)), job.cube, params))
+                for j, job in enumerate(self.plan.jobs)]
 
     # ---- tasks ---------------------------------------------------------------------------------
     def lookup(self, j: int, *, count: bool = False, group: int | None = None, after: str | None = None) -> Node:

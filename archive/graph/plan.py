@@ -6,6 +6,8 @@ mesh's bounding box (``grid.crop(mesh bounds)``, whole pixels): its render task 
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -17,7 +19,8 @@ from archive.grid import Grid
 from archive.navigation import (DEFAULT_MAX_VIEW_ANGLE, frame_interval, joined, projected_epsg, to_lonlat,
                                 utm_epsg_for)
 
-__all__ = ["CubeJob", "RenderPlan", "band_groups", "cube_meshes", "job_epsg", "plan_render", "strip_links"]
+__all__ = ["CubeJob", "MeshParams", "RenderPlan", "band_groups", "cube_mesh", "cube_meshes", "job_epsg", "mesh_task",
+           "plan_render", "strip_links"]
 
 #: Bands drawn per render task (one RGBA texel fetch).
 GROUP = 4
@@ -27,7 +30,8 @@ GROUP = 4
 class CubeJob:
     """One cube to render: ``source`` index, ``cube`` index, its mesh and window on the output grid.
 
-    box: (row0, col0, height, width) of the window in output pixels.
+    box: (row0, col0, height, width) of the window in output pixels. mesh: None in a plan whose
+    meshes tasks build (:attr:`RenderPlan.mesh_params`).
     """
 
     source: int
@@ -43,12 +47,23 @@ class RenderPlan:
 
     grid: output grid. jobs: cubes touching it. bands: per source, the source band index of each
     output band (all the same length). groups: (start, stop) output band ranges, one task each.
+    mesh_params: how tasks build the cube meshes on the workers (:func:`mesh_task`; the jobs then
+    hold no mesh: :meth:`without_meshes`), or None: the jobs' meshes go into the graph as values.
     """
 
     grid: Grid
     jobs: tuple[CubeJob, ...]
     bands: tuple[tuple[int, ...], ...]
     groups: tuple[tuple[int, int], ...]
+    mesh_params: MeshParams | None = None
+
+    def without_meshes(self, params: MeshParams) -> RenderPlan:
+        """This plan with its meshes left to tasks built from ``params`` (its ``epsg`` must be the
+        grid's): the client keeps the windows, not the meshes."""
+        if int(params.epsg) != self.grid.epsg:
+            raise ValueError(f"meshes in EPSG:{params.epsg} for a grid in EPSG:{self.grid.epsg}")
+        jobs = tuple(dataclasses.replace(job, mesh=None) for job in self.jobs)
+        return dataclasses.replace(self, jobs=jobs, mesh_params=params)
 
     @property
     def nbands(self) -> int:
@@ -60,47 +75,104 @@ def band_groups(nbands: int, size: int = GROUP) -> tuple[tuple[int, int], ...]:
     return tuple((b, min(b + size, nbands)) for b in range(0, nbands, size))
 
 
+def _continues(source, poses: Sequence, i: int) -> bool:
+    """Cube i+1 continues cube i's strip (``poses[k]``: cube k's poses)."""
+    gap = float(poses[i + 1].time[0]) - float(poses[i].time[-1])
+    interval = frame_interval(source.cubes[i].framerate, poses[i].time)
+    return bool(joined(gap, interval))
+
+
 def strip_links(source, poses: Sequence) -> list[bool]:
     """links[i]: cube i+1 continues cube i's strip (:func:`archive.navigation.joined`: it starts
     within MAX_JOIN_FRAMES frame intervals of cube i's last line)."""
-    links = []
-    for i in range(len(poses) - 1):
-        gap = float(poses[i + 1].time[0]) - float(poses[i].time[-1])
-        interval = frame_interval(source.cubes[i].framerate, poses[i].time)
-        links.append(bool(joined(gap, interval)))
-    return links
+    return [_continues(source, poses, i) for i in range(len(poses) - 1)]
+
+
+class _PosesOf:
+    """``poses[k]``: cube k's poses of ``source``, read once (from ``known`` when given)."""
+
+    def __init__(self, source, known: Sequence | None = None):
+        self.source, self.known = source, {} if known is None else dict(enumerate(known))
+
+    def __getitem__(self, k: int):
+        if k not in self.known:
+            self.known[k] = self.source.poses(k)
+        return self.known[k]
+
+
+def cube_mesh(source, cube: int, fov_deg: float, ground_height: float,
+              max_view_angle: float | None = DEFAULT_MAX_VIEW_ANGLE, *, terrain=None, gsd: float | None = None,
+              poses: Sequence | None = None):
+    """Ground mesh of cube ``cube`` of ``source``, joined to its strip neighbours (closing/opening
+    rows, each at its own line's mid-exposure: the neighbours' poses are read too); lines beyond
+    ``max_view_angle`` degrees off nadir or without navigation are left out (see
+    :func:`archive.render.mesh.build_mesh`). The mesh is in the source's local frame (its UTM zone).
+
+    terrain: an opened :class:`archive.dem.Dem` instead of the flat ``ground_height`` (m; then
+    ``gsd``, the output pixel in metres, sets the across-track segmentation); poses: every cube's
+    poses, when the caller has them (:func:`cube_meshes`)."""
+    from archive.render.mesh import build_mesh
+
+    poses = _PosesOf(source, poses)
+    n = len(source.cubes)
+    extra = {} if terrain is None else {"terrain": terrain, "gsd": gsd}
+    if terrain is not None:
+        ground_height = math.nan
+    closing = poses[cube + 1] if cube + 1 < n and _continues(source, poses, cube) else None
+    opening = poses[cube - 1] if cube > 0 and _continues(source, poses, cube - 1) else None
+    cubes = source.cubes
+    return build_mesh(
+        poses[cube], fov_deg, ground_height, cubes[cube].shutter_ms or 0.0, cubes[cube].framerate or 0.0,
+        closing=closing, opening=opening,
+        closing_shutter_ms=cubes[cube + 1].shutter_ms or 0.0 if closing is not None else None,
+        opening_shutter_ms=cubes[cube - 1].shutter_ms or 0.0 if opening is not None else None,
+        max_view_angle=max_view_angle, **extra)
 
 
 def cube_meshes(source, fov_deg: float, ground_height: float,
                 max_view_angle: float | None = DEFAULT_MAX_VIEW_ANGLE, *, terrain=None,
                 gsd: float | None = None) -> list:
-    """Ground mesh of every cube of ``source``, joined to its strip neighbours (closing/opening
-    rows, each at its own line's mid-exposure); lines beyond ``max_view_angle`` degrees off nadir
-    or without navigation are left out (see :func:`archive.render.mesh.build_mesh`).
+    """:func:`cube_mesh` of every cube of ``source`` (in cube order).
 
     terrain: an opened :class:`archive.dem.Dem` instead of the flat ``ground_height`` (then
     ``gsd``, the output pixel in metres, sets the across-track segmentation; one error names all the
     ground the DEM lacks under the flight)."""
-    from archive.render.mesh import build_mesh
-
     poses = [source.poses(i) for i in range(len(source.cubes))]
-    extra = {}
     if terrain is not None:
         terrain.check_flight(poses, fov_deg)
-        ground_height = math.nan
-        extra = {"terrain": terrain, "gsd": gsd}
-    links = strip_links(source, poses)
-    meshes = []
-    for i, info in enumerate(source.cubes):
-        closing = poses[i + 1] if i < len(links) and links[i] else None
-        opening = poses[i - 1] if i > 0 and links[i - 1] else None
-        meshes.append(build_mesh(
-            poses[i], fov_deg, ground_height, info.shutter_ms or 0.0, info.framerate or 0.0,
-            closing=closing, opening=opening,
-            closing_shutter_ms=source.cubes[i + 1].shutter_ms or 0.0 if closing is not None else None,
-            opening_shutter_ms=source.cubes[i - 1].shutter_ms or 0.0 if opening is not None else None,
-            max_view_angle=max_view_angle, **extra))
-    return meshes
+    return [cube_mesh(source, i, fov_deg, ground_height, max_view_angle, terrain=terrain, gsd=gsd, poses=poses)
+            for i in range(len(source.cubes))]
+
+
+@dataclass(frozen=True)
+class MeshParams:
+    """How the cube meshes of a plan are built, by one task per cube on the workers
+    (:func:`mesh_task`; the client keeps only what the plan needs of them): field of view (deg),
+    flat ground height (m; NaN with a DEM), view-angle limit (deg off nadir, None: none), the
+    output grid's EPSG code (meshes of another CRS are transformed into it), and with a DEM its
+    :class:`archive.dem.DemSpec` and the output GSD (m: the terrain segmentation follows it)."""
+
+    fov_deg: float
+    ground_height: float
+    max_view_angle: float | None
+    epsg: int
+    dem: object = None
+    gsd: float | None = None
+
+
+@functools.lru_cache(maxsize=8)
+def _opened_dem(spec):
+    """A worker's opened DEM of ``spec`` (metadata only: heights are read per mesh), once per process."""
+    return spec.open()
+
+
+def mesh_task(source, cube: int, params: MeshParams):
+    """Task body: the ground mesh of cube ``cube`` of ``source`` (:func:`cube_mesh`) in the output
+    grid's CRS ``params.epsg``: the mesh :func:`plan_render` planned the cube's window with."""
+    terrain = None if params.dem is None else _opened_dem(params.dem)
+    mesh = cube_mesh(source, cube, params.fov_deg, params.ground_height, params.max_view_angle, terrain=terrain,
+                     gsd=params.gsd)
+    return mesh if mesh.epsg == int(params.epsg) else mesh.to_epsg(int(params.epsg))
 
 
 def job_epsg(meshes: Sequence[Sequence], crs: int | str | None = None) -> int:
