@@ -44,11 +44,11 @@ def open_source(path_or_id: str | os.PathLike, params: NavigationParams,
 
 def collection_fov(archive: str | os.PathLike, ids) -> float:
     """The field of view (deg) the collections ``ids`` of ``archive`` were ingested with (they must
-    agree, else InputError asking for --fov); reads their records (attributes only)."""
-    from archive.collection import read_info
+    agree, else InputError asking for --fov); reads their root attributes only."""
+    from archive.collection import read_attrs
 
     root = open_root(archive)
-    fovs = {read_info(root.require_collection(str(i)), navigation=False).fov_deg for i in ids}
+    fovs = {float(read_attrs(root.require_collection(str(i)))["fov_deg"]) for i in ids}
     if len(fovs) != 1:
         raise InputError("--fov", f"the collections were ingested with different fields of view {sorted(fovs)}",
                          "pass --fov DEG")
