@@ -39,7 +39,7 @@ class BandPlanes:
         self.cache = cache
         self.workers = workers
         self._radiometry: OrderedDict = OrderedDict()
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()   # a future done already runs its callback (_forget) at once, here
         self._making: dict[tuple, Future] = {}   # (cube, band, mode, size) -> a plane being made
 
     def radiometry(self, cube: int, bands: Sequence[int], mode: str):
