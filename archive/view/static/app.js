@@ -146,7 +146,7 @@ function buildSpec() {
     const f = viewer.byId.get(id);
     const coarse = preview && id === viewer.open;
     return { id, params: flightParams(id, coarse ? preview : null), bands: nm.map((w) => nearestBand(f, w)),
-             up: coarse ? PREVIEW_UP : 0, box: flightBox(id) };
+             up: coarse ? PREVIEW_UP : 0, box: flightBox(id, coarse) };
   });
   const ranges = stretchRanges(nm);
   const nadir = $("overlap").value === "nadir";
@@ -154,13 +154,23 @@ function buildSpec() {
   return { flights, nm, ranges, nadir, data, id: data + JSON.stringify(ranges) + nadir, grey: nm.length === 1 };
 }
 
-// a flight's box (lon/lat), padded: the footprint moves with the ground height and sync offset
-function flightBox(id) {
+// a flight's box (lon/lat), padded: by half its size while its footprint may have moved (a new
+// ground height, sync offset or cube range whose outline has not arrived, a slider preview), else
+// by a tenth (the outline samples the meshes' edges): tiles outside it are not asked for
+function flightBox(id, moving) {
   const f = viewer.byId.get(id);
-  const g = (viewer.outlines[id] && viewer.outlines[id].geometry) || f.geometry;
-  const b = geometryBox(g);
-  const dx = (b[2] - b[0]) * 0.5 + 1e-4, dy = (b[3] - b[1]) * 0.5 + 1e-4;
+  const o = viewer.outlines[id];
+  const known = !moving && (o ? o.params === outlineParams(id) : !viewer.params[id]);
+  const b = geometryBox((o && o.geometry) || f.geometry);
+  const pad = known ? 0.1 : 0.5;
+  const dx = (b[2] - b[0]) * pad + 1e-4, dy = (b[3] - b[1]) * pad + 1e-4;
   return [b[0] - dx, b[1] - dy, b[2] + dx, b[3] + dy];
+}
+// the parameters an outline depends on (not the mode or overlap rule)
+function outlineParams(id) {
+  const q = new URLSearchParams(flightParams(id, null));
+  q.delete("mode"); q.delete("overlap");
+  return q.toString();
 }
 viewer.outlines = {};
 
@@ -728,11 +738,10 @@ function closeFlight() {
 }
 
 async function loadOutline(id) {
-  const q = new URLSearchParams(flightParams(id, null));
-  q.delete("mode"); q.delete("overlap");
+  const q = outlineParams(id);
   try {
     const geometry = await getJSON(`${idPath(id)}/outline?${q}`);
-    if (geometry.coordinates.length) viewer.outlines[id] = { geometry, params: q.toString() };
+    if (geometry.coordinates.length) viewer.outlines[id] = { geometry, params: q };
     drawFootprints();
     refresh();
   } catch (e) { /* the tiles say what is wrong */ }
@@ -740,9 +749,11 @@ async function loadOutline(id) {
 
 // an error message stays until the view it refused is replaced (settle) or Reset: clearing it on
 // input would move the controls under the pointer
+// the outline is asked first: its meshes are the ones the tiles need, and once it has arrived the
+// tiles beyond the new footprint are no longer asked for
 function flightChanged() {
-  refresh();
   if (viewer.open) loadOutline(viewer.open);
+  refresh();
 }
 function cubesInput() {
   const p = viewer.params[viewer.open];
