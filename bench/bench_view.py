@@ -243,6 +243,9 @@ def browser_bench(archive: Path, cid: str, reps: int, cache_mb: int, width: int 
                 out["preview_fps"] = (page.evaluate("viewer.previews") - before) / drag_s
                 out["preview_cpu_s"] = cpu_seconds(server.proc.pid) - c
                 out["requests"] = page.evaluate("viewer.requests")
+                conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=60)
+                out["render"] = json.loads(get(conn, "/api/status")[1])["render"]
+                conn.close()
             finally:
                 browser.close()
     finally:
@@ -282,9 +285,14 @@ def browser_main(args, archive: Path, cid: str) -> str:
         "",
         f"Ground slider dragged (input events every 50 ms for 3 s): {out['preview_fps']:.1f} coarse previews drawn per "
         f"second (the open flight at a quarter of the resolution; server CPU {out['preview_cpu_s']:.2f} s over the 3 s). "
-        f"Band-value requests in all: {out['requests']}.",
+        f"Band-value requests in all: {out['requests']}; the server's render jobs: {out['render']['done']} drawn, "
+        f"{out['render']['skipped'] + out['render']['stopped']} dropped (their request abandoned), "
+        f"{out['render'].get('overtaken', 0)} drawn after a newer view's (latest view first).",
         "",
     ]
+    if args.json:
+        record = {"load_before": load_before, "load_after": load_after, "machine": m, **out}
+        args.json.write_text(json.dumps(record, indent=1, default=str))
     return "\n".join(lines)
 
 
