@@ -186,7 +186,7 @@ def run_clients(port: int, plans: list[list[str]]) -> tuple[list[float], int]:
 
 
 # ---- browser level (issue 22) ---------------------------------------------------------------
-ACTIONS = ("open", "pan", "zoom", "band", "mode", "ground", "stretch")
+ACTIONS = ("open", "pan", "zoom", "band", "mode", "ground", "sync", "cubes", "stretch")
 #: JavaScript of each measured change (argument: the repetition); each returns nothing and the page
 #: reports when every tile in view shows the change (window.viewer.settledAt).
 _ACTION_JS = {
@@ -195,6 +195,8 @@ _ACTION_JS = {
     "band": "(i) => { const s = document.getElementById('band-r'); s.selectedIndex = (s.selectedIndex + 7 + i) % s.options.length; s.dispatchEvent(new Event('change')); }",
     "mode": "(i) => { const s = document.getElementById('mode'); s.selectedIndex = (s.selectedIndex + 1) % s.options.length; viewer.clearCache(); s.dispatchEvent(new Event('change')); }",
     "ground": "(i) => { const g = document.getElementById('ground'); g.value = String(Number(g.min) + 0.5 * ((i * 7) % 60 + 10)); g.dispatchEvent(new Event('input')); g.dispatchEvent(new Event('change')); }",
+    "sync": "(i) => { const g = document.getElementById('sync'); g.value = String(Number(g.min) + 0.005 * ((i * 7) % 90 + 5)); g.dispatchEvent(new Event('input')); g.dispatchEvent(new Event('change')); }",
+    "cubes": "(i) => { const a = document.getElementById('cube-first'), b = document.getElementById('cube-last'); a.value = String(1 + i % 3); b.value = String(Number(b.max) - (i % 4)); b.dispatchEvent(new Event('change')); }",
     "stretch": "(i) => { const s = document.getElementById('stretch'); s.value = i % 2 ? 'flight' : 'view'; s.dispatchEvent(new Event('change')); }",
 }
 
@@ -273,8 +275,8 @@ def browser_main(args, archive: Path, cid: str) -> str:
         "Time from the change to a full screen: every tile in view drawn with it (the page's `viewer.settledAt`). "
         "open: a fresh page loading `#flights=ID&open=ID` (the first one cold, then the server's caches are warm); "
         "pan: 45 % of the width; zoom: +-1 level; band: R to another of the bands (new values); mode: the next "
-        "mode with the page's value cache emptied; ground: a new height each time (new meshes); stretch: flight <-> "
-        "view percentiles (no request).",
+        "mode with the page's value cache emptied; ground: a new height each time (new meshes); sync: a new offset each time (new poses and "
+        "meshes); cubes: another cube range (new statistics); stretch: flight <-> view percentiles (no request).",
         f"Machine: {m['cpu']}, {m['cores']} cores; GL: {m['gl']}; load average before {load_before[0]:.2f} "
         f"{load_before[1]:.2f} {load_before[2]:.2f}, after {load_after[0]:.2f} {load_after[1]:.2f} {load_after[2]:.2f} "
         "(the VM is shared with other engineers' jobs).",
