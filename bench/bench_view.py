@@ -256,6 +256,59 @@ def browser_bench(archive: Path, cid: str, reps: int, cache_mb: int, width: int 
     return out
 
 
+def server_steps(archive: Path, cid: str) -> list[tuple[str, float, float]]:
+    """What each change costs the server, in this process (no HTTP, no browser): the render
+    thread's calls for the tiles that cover the flight at the deepest zoom where it fits a 1400 x
+    900 window (19 for the paper flight), with the server's default caches, one change after the
+    other. [(step, wall s, CPU s of the process, worker threads included)]."""
+    from archive.view.query import parse_query
+    from archive.view.registry import FlightRegistry
+    from archive.view.tiles import TILE, tile_grid, zoom_gsd
+
+    registry = FlightRegistry(archive)
+    flight = registry.flight(cid)
+    info = flight.describe()
+    west, south, east, north = info["bounds_3857"]
+    gsd = float(registry.feature(cid)["properties"]["gsd"])
+    fit = max(z for z in range(10, 26) if (east - west) / (TILE * zoom_gsd(z)) <= 1400 / TILE
+              and (north - south) / (TILE * zoom_gsd(z)) <= 900 / TILE)
+
+    def tiles(z):
+        side = TILE * zoom_gsd(z)
+        xs = range(int((west + HALF_WORLD) // side), int((east + HALF_WORLD) // side) + 1)
+        ys = range(int((HALF_WORLD - north) // side), int((HALF_WORLD - south) // side) + 1)
+        return [(z, x, y) for x in xs for y in ys]
+
+    def draw(z, **params):
+        query = parse_query({"mode": "radiance", "overlap": "last", **{k: str(v) for k, v in params.items()}})
+        for t in tiles(z):
+            flight.band_values(tile_grid(*t), query, gsd)
+
+    bands = info["default_bands"]
+    rgb = ",".join(map(str, bands))
+    new = (bands[0] + 7) % info["bands"]
+    ground = info["ground_height"]
+    steps = [
+        ("whole-flight 2/98 % at open (3 bands)", lambda: flight.flight_percentiles(bands, "radiance", range(len(info["cubes"])), (2, 98))),
+        (f"the {len(tiles(fit))} tiles at open (zoom {fit})", lambda: draw(fit, bands=rgb)),
+        ("2/98 % of a new band", lambda: flight.flight_percentiles([new], "radiance", range(len(info["cubes"])), (2, 98))),
+        ("the tiles of a new band", lambda: draw(fit, bands=new)),
+        ("the tiles after a ground change (the first after a band change)", lambda: draw(fit, bands=rgb, ground_height=ground + 3)),
+        ("the tiles after another ground change", lambda: draw(fit, bands=rgb, ground_height=ground + 3.5)),
+        ("a slider preview (the tiles two zooms up, new meshes)", lambda: draw(fit - 2, bands=rgb, ground_height=ground + 4)),
+        ("a mode change (statistics and tiles of 3 new bands)", lambda: (
+            flight.flight_percentiles(bands, "relative", range(len(info["cubes"])), (2, 98)),
+            draw(fit, bands=rgb, mode="relative"))),
+    ]
+    out = []
+    for name, step in steps:
+        c, t = time.process_time(), time.perf_counter()
+        step()
+        out.append((name, time.perf_counter() - t, time.process_time() - c))
+    getattr(registry, "close", lambda: None)()   # (older checkouts have no close)
+    return out
+
+
 def browser_main(args, archive: Path, cid: str) -> str:
     load_before = os.getloadavg()
     out = browser_bench(archive, cid, args.reps, args.cache_mb)
@@ -313,7 +366,20 @@ def main(argv=None) -> int:
     ap.add_argument("--results", type=Path, help="append the Markdown section to this file")
     ap.add_argument("--browser", action="store_true", help="measure the page in Chromium instead (issue 22)")
     ap.add_argument("--reps", type=int, default=12, help="--browser: repetitions of each change")
+    ap.add_argument("--server-steps", action="store_true",
+                    help="what each change costs the server, in this process (issue 22; PYTHONPATH=<another "
+                         "checkout> measures that code)")
     args = ap.parse_args(argv)
+    if args.server_steps:
+        archive, cid, _ = make_archive(args.workdir, args)
+        load = os.getloadavg()
+        rows = server_steps(archive, cid)
+        print(f"load average before {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, after "
+              "{:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
+        print("| step | wall s | CPU s |\n|---|---|---|")
+        for name, wall, cpu_s in rows:
+            print(f"| {name} | {wall:.3f} | {cpu_s:.3f} |")
+        return 0
     if args.browser:
         archive, cid, _ = make_archive(args.workdir, args)
         text = browser_main(args, archive, cid)
