@@ -471,12 +471,15 @@ function ensureRanges(spec) {
     .finally(() => statsPending.delete(key));
 }
 
-// 2 %/98 % of the values the view shows (loaded planes of the tiles in view, subsampled)
+// 2 %/98 % of the values the view shows (loaded planes of the tiles in view, subsampled to at most
+// VIEW_SAMPLES pixels: a stretch change stays a few milliseconds whatever the window's size)
+const VIEW_SAMPLES = 40000;
 function viewRanges(spec) {
   const b = map.getBounds();
   const view = [b.getWest(), b.getSouth(), b.getEast(), b.getNorth()];
   const k = spec.nm.length;
-  const samples = Array.from({ length: k }, () => []);
+  const sources = [];
+  let total = 0;
   for (const tile of liveTiles()) {
     const tb = tileBounds(tile.coords.z, tile.coords.x, tile.coords.y);
     if (!boxesMeet(tb, view)) continue;
@@ -484,17 +487,29 @@ function viewRanges(spec) {
       const e = cache.get(entryKey(f, tile.coords));
       if (!e || e.empty || !f.bands.every((band) => e.planes.has(band))) continue;
       const planes = f.bands.map((band) => e.planes.get(band));
-      const step = e.side >= 128 ? 3 : 1;
-      for (let s = 0; s < planes[0].length; s += step) {
-        if (planes.some((p) => p[s] !== p[s])) continue;
-        for (let c = 0; c < k; c++) samples[c].push(planes[c][s]);
-      }
+      sources.push(planes);
+      total += planes[0].length;
     }
   }
-  if (!samples[0].length) return null;
+  if (!total) return null;
+  const step = Math.max(1, Math.ceil(total / VIEW_SAMPLES));
+  const samples = Array.from({ length: k }, () => new Float32Array(Math.ceil(total / step) + sources.length));
+  let n = 0, offset = 0;
+  for (const planes of sources) {
+    const len = planes[0].length;
+    for (let s = (step - (offset % step)) % step; s < len; s += step) {
+      let finite = true;
+      for (let c = 0; c < k; c++) { const v = planes[c][s]; if (v !== v) { finite = false; break; } }
+      if (!finite) continue;
+      for (let c = 0; c < k; c++) samples[c][n] = planes[c][s];
+      n += 1;
+    }
+    offset += len;
+  }
+  if (!n) return null;
   return samples.map((v) => {
-    const sorted = Float32Array.from(v).sort();
-    const at = (q) => sorted[Math.min(sorted.length - 1, Math.max(0, Math.round((q / 100) * (sorted.length - 1))))];
+    const sorted = v.subarray(0, n).sort();
+    const at = (q) => sorted[Math.min(n - 1, Math.max(0, Math.round((q / 100) * (n - 1))))];
     return [at(2), at(98)];
   });
 }
