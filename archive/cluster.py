@@ -269,7 +269,7 @@ def execute(client, graph, quiet: bool, shared: bool) -> None:
     from tqdm import tqdm
 
     futures = client.compute(list(graph.writes))
-    done = as_completed(futures)
+    done = as_completed(futures, loop=client.loop)   # not the default client's loop (archive.batch)
     del futures  # only as_completed holds them: results are released as soon as they are counted
     try:
         with tqdm(total=len(graph), desc="render", unit="task", disable=quiet, file=sys.stderr) as bar:
