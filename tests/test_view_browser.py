@@ -323,6 +323,38 @@ def test_never_blank_during_band_and_ground_changes(server, browser, archive_of_
     page.close()
 
 
+def test_superseded_requests_are_aborted_and_the_latest_view_goes_first(server, browser, archive_of_flights):
+    """Two band changes in a row: every band-value request carries its view's generation
+    (X-Generation, which orders the server's queue), the second change's are newer than the
+    first's, the first change's requests are aborted, and the page settles on the second band."""
+    _, ids = archive_of_flights
+    page = opened(browser, server, ids[1])
+    asked: list[tuple[str, str | None]] = []
+    dropped: list[str] = []
+    page.page.on("request", lambda r: asked.append((r.url, r.headers.get("x-generation")))
+                 if "/values/" in r.url else None)
+    page.page.on("requestfailed", lambda r: dropped.append(r.url) if "/values/" in r.url else None)
+    first, second = page.page.evaluate("""() => {
+        window.viewer.settled = false;
+        const s = document.getElementById('band-r'), n = s.options.length, picked = [];
+        for (const k of [n - 2, n - 1]) {   // not among the true colour bands shown at open (400-1000 nm)
+            s.selectedIndex = k; picked.push(k); s.dispatchEvent(new Event('change'));
+        }
+        return picked; }""")
+    page.settled()
+
+    def band_of(url: str) -> int:
+        return int(re.search(r"[?&]bands=(\d+)", url).group(1))
+    gens = {b: [int(g) for u, g in asked if band_of(u) == b] for b in (first, second)}
+    assert len(gens[second]) >= 1 and all(g is not None for _, g in asked)
+    assert not gens[first] or max(gens[first]) < min(gens[second])
+    # the first change's requests were abandoned (in the page, before or after reaching the server)
+    assert all(u in dropped for u, _ in asked if band_of(u) == first)
+    assert not [u for u in dropped if band_of(u) == second]
+    assert f",[{second}," in page.page.evaluate("window.viewer.specId")   # the picture settled on the second band
+    page.close()
+
+
 def test_stretch_needs_no_request_and_hash_drives_the_view(server, browser, archive_of_flights):
     _, ids = archive_of_flights
     cid = ids[0]

@@ -317,7 +317,7 @@ function pump() {
   if (!spec.ranges) { ensureRanges(spec); }
   const live = liveTiles();
   let complete = true;
-  const wanted = new Set();
+  const wanted = new Map();   // entry key -> the bands the current view needs of it
   for (const tile of live) {
     if (tile.shown === spec.id) continue;
     const tb = tileBounds(tile.coords.z, tile.coords.x, tile.coords.y);
@@ -325,7 +325,8 @@ function pump() {
     for (const f of spec.flights) {
       if (!boxesMeet(f.box, tb)) continue;
       const ek = entryKey(f, tile.coords);
-      wanted.add(ek);
+      if (!wanted.has(ek)) wanted.set(ek, new Set());
+      for (const b of f.bands) wanted.get(ek).add(b);
       if (!entryReady(cache.get(ek), f, spec.nadir)) {
         ready = false;
         if (failedSpec !== spec.id) request(tile, f, spec);
@@ -334,8 +335,11 @@ function pump() {
     if (ready && spec.ranges && tile.shown === null) draw(tile, spec);   // nothing to keep: show it now
     if (!ready) complete = false;
   }
-  // requests for a picture nobody waits for any more (an older ground height, a tile gone)
-  for (const [k, r] of inflight) if (!wanted.has(r.entry)) { r.controller.abort(); inflight.delete(k); }
+  // requests for a picture nobody waits for any more (an older ground height or band, a tile gone)
+  for (const [k, r] of inflight) {
+    const w = wanted.get(r.entry);
+    if (!w || !r.bands.some((b) => w.has(b))) { r.controller.abort(); inflight.delete(k); }
+  }
   busy();
   if (complete && spec.ranges) {
     for (const tile of live) if (tile.shown !== spec.id) draw(tile, spec);
