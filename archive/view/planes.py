@@ -59,7 +59,7 @@ class BandPlanes:
         def make():
             info = self.cubes[cube]
             out = np.empty(info.lines * info.samples + 1, np.float32)
-            out[:-1] = self._calibrate(cube, band, mode).reshape(-1)
+            self._calibrate(cube, band, mode, out[:-1].reshape(info.lines, info.samples))
             out[-1] = np.nan
             return out, out.nbytes
         return self.cache.get_or_make((self.id, cube, band, mode), make)
@@ -78,23 +78,30 @@ class BandPlanes:
 
             info = self.cubes[cube]
             plane = self.plane(cube, band, mode)[:-1].reshape(info.lines, info.samples)
-            finite = np.isfinite(plane)
+            out = np.empty(info.lines * info.samples + 1, np.float32)
+            out[-1] = np.nan
+            mean = out[:-1].reshape(info.lines, info.samples)
             # uniform_filter's window for even sizes starts at index - size // 2, as wanted; zeros
-            # beyond the edges, so the sums are divided by the number of values inside instead
+            # beyond the edges, so a mean there is rescaled by the share of the block inside
+            if np.isfinite(np.add.reduce(plane, axis=None, dtype=np.float64)):   # every value finite (one pass)
+                uniform_filter(plane, size=size, mode="constant", cval=0.0, output=mean)
+                h = size // 2
+                for axis, n in ((0, info.lines), (1, info.samples)):
+                    edge = np.r_[0:min(h, n), max(h, n - (size - h - 1)):n]
+                    i = np.arange(n)[edge]
+                    share = ((np.minimum(i - h + size, n) - np.maximum(i - h, 0)) / size).astype(np.float32)
+                    if axis == 0:
+                        mean[edge] /= share[:, None]
+                    else:
+                        mean[:, edge] /= share[None, :]
+                return out, out.nbytes
+            finite = np.isfinite(plane)
             sums = uniform_filter(np.where(finite, plane, np.float32(0)), size=size, mode="constant", cval=0.0,
                                   output=np.float32)
-            if finite.all():
-                def inside(n):
-                    i = np.arange(n)
-                    return (np.minimum(i - size // 2 + size, n) - np.maximum(i - size // 2, 0)).astype(np.float32)
-                count = np.outer(inside(info.lines), inside(info.samples)) / np.float32(size * size)
-            else:
-                count = uniform_filter(finite.astype(np.float32), size=size, mode="constant", cval=0.0)
-            out = np.empty(info.lines * info.samples + 1, np.float32)
+            count = uniform_filter(finite.astype(np.float32), size=size, mode="constant", cval=0.0)
             with np.errstate(invalid="ignore", divide="ignore"):
-                np.divide(sums.reshape(-1), count.reshape(-1), out=out[:-1])
-            out[:-1][count.reshape(-1) < 0.5 / (size * size)] = np.nan
-            out[-1] = np.nan
+                np.divide(sums, count, out=mean)
+            mean[count < 0.5 / (size * size)] = np.nan
             return out, out.nbytes
         return self.cache.get_or_make((self.id, cube, band, mode, "filtered", int(size)), make)
 
@@ -145,8 +152,8 @@ class BandPlanes:
         index = np.where(line >= 0, line * info.samples + sample, info.lines * info.samples)
         return self.filtered(cube, band, mode, size).take(index.astype(np.int64))
 
-    def _calibrate(self, cube: int, band: int, mode: str) -> np.ndarray:
-        """(lines, samples) float32: every pixel of one band of one cube in ``mode``, by the float32
+    def _calibrate(self, cube: int, band: int, mode: str, plane: np.ndarray | None = None) -> np.ndarray:
+        """(lines, samples) float32 (into ``plane`` when given): every pixel of one band of one cube in ``mode``, by the float32
         operations of :func:`archive.render.gather.gather_lookup` in its order (``((DN - dark) *
         gain) / response``, DN exact in float32), so the very values ``archive render`` writes; but
         once per (line, sample) and without its per-pixel lookup, coverage and saturation work."""
@@ -155,7 +162,8 @@ class BandPlanes:
         info = self.cubes[cube]
         dn = self.source().read_bands(cube, [band])
         dark, gain, resp, _ = radiometry_arrays(self.band_radiometry(cube, band, mode), 1, info.lines, info.samples)
-        plane = np.empty((info.lines, info.samples), np.float32)
+        if plane is None:
+            plane = np.empty((info.lines, info.samples), np.float32)
         plane[...] = dn_texture_format(dn)[0][0]
         np.subtract(plane, dark[0], out=plane)
         np.multiply(plane, gain[0], out=plane)
