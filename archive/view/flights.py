@@ -79,6 +79,7 @@ class Flight:
         self._geometries: OrderedDict = OrderedDict()
         self._ranges: OrderedDict = OrderedDict()
         self._posed: OrderedDict = OrderedDict()
+        self._level = 1   # the overview level of the latest tile drawn
         first = self.source(None)
         self.fov = float(fov if fov is not None else (first.fov_deg or math.nan))
         if not (0 < self.fov < 180):
@@ -307,6 +308,7 @@ class Flight:
         level = 1
         if flight_gsd:
             level = int(min(MAX_MIP, 2 ** max(0, round(math.log2(gsd / flight_gsd)))))
+        self._level = level
         coarse = Grid(grid.epsg, gsd, grid.x0, grid.y0, side, side)
         values, key = self.render_keyed(coarse, bands, mode, cubes, geometry, check, query.overlap, level)
         if not np.isfinite(values).any():
@@ -353,6 +355,8 @@ class Flight:
         lows, highs, count = [], [], 0
         new = [int(b) for b in bands if (int(b), mode, cubes.start, cubes.stop, tuple(percentiles)) not in self._ranges]
         self.planes.prepare(cubes, new, mode)
+        if new and self._level > 1:   # the tiles that follow (a band or mode change) need these: started now
+            self.planes.prepare((), new, mode, self._level, ahead=cubes)
         for b in bands:
             key = (int(b), mode, cubes.start, cubes.stop, tuple(percentiles))
             found = self._ranges.get(key)
