@@ -25,7 +25,7 @@ from archive.errors import InputError
 from archive.render.renderer import (GatherIndex, Lookup, RenderResult, checked_cube, dn_texture_format, gather_index,
                                      radiometry_arrays)
 
-__all__ = ["CPU_RENDERERS", "GatherIndex", "MAX_ULP", "gather_index", "gather_lookup", "is_cpu_renderer", "use_cpu_gather"]
+__all__ = ["CPU_RENDERERS", "GatherIndex", "MAX_ULP", "calibrate_plane", "gather_index", "gather_lookup", "is_cpu_renderer", "use_cpu_gather"]
 
 #: GL renderer names (substrings, lower case) of software rasterisers, where the CPU gather wins.
 CPU_RENDERERS = ("llvmpipe", "softpipe", "swrast", "lavapipe")
@@ -54,6 +54,28 @@ def use_cpu_gather(renderer: str | None, setting: str | None = None) -> bool:
     if setting != "auto":
         return setting == "cpu"
     return is_cpu_renderer(renderer)
+
+
+def calibrate_plane(dn: np.ndarray, dark: np.ndarray, gain: np.ndarray, response: np.ndarray,
+                    out: np.ndarray) -> np.ndarray:
+    """One band of a cube calibrated for every (line, sample): ``((DN - dark) * gain) / response``,
+    each operation rounded to float32 in that order (the band pass's values, module docstring).
+
+    dn (lines, samples) as uploaded (:func:`~archive.render.renderer.dn_texture_format`: uint16 or
+    exact float32); dark, gain (samples,) float32; response (lines,) float32 (from
+    :func:`~archive.render.renderer.radiometry_arrays`); out (lines, samples) float32, written in
+    blocks of lines that stay in a core's cache, and returned. Used by :func:`gather_lookup` and by
+    the viewer's band planes (the same values by construction)."""
+    lines, samples = out.shape
+    step = max(1, _BLOCK_VALUES // max(samples, 1))
+    for l0 in range(0, lines, step):
+        l1 = min(l0 + step, lines)
+        w = out[l0:l1]
+        w[...] = dn[l0:l1]                                # exact: integers below 2^24 / float32
+        np.subtract(w, dark, out=w)
+        np.multiply(w, gain, out=w)
+        np.divide(w, response[l0:l1, None], out=w)
+    return out
 
 
 def gather_lookup(lookup: Lookup | GatherIndex, dn: np.ndarray, radiometry,
@@ -95,15 +117,8 @@ def gather_lookup(lookup: Lookup | GatherIndex, dn: np.ndarray, radiometry,
     plane = np.empty(plane_size + 1, np.float32)
     plane[plane_size] = np.nan
     work = plane[:plane_size].reshape(lines, samples)
-    step = max(1, _BLOCK_VALUES // samples)
     for b in range(nb):
-        for l0 in range(0, lines, step):
-            l1 = min(l0 + step, lines)
-            w = work[l0:l1]
-            w[...] = dn_up[b, l0:l1]                      # exact: integers below 2^24 / float32
-            np.subtract(w, dark[b], out=w)
-            np.multiply(w, gain[b], out=w)
-            np.divide(w, resp[l0:l1, None], out=w)
+        calibrate_plane(dn_up[b], dark[b], gain[b], resp, work)
         into = values[b, rows].reshape(-1)                # whole rows: contiguous, a view
         np.take(plane, index, out=into, mode="clip")      # "clip": unbuffered (all indices valid)
     if saturation is not None:  # as render_lookup: any band's DN at or above the threshold
