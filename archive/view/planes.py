@@ -1,10 +1,10 @@
 """A viewed flight's band planes: every (line, sample) of a band of a cube in a mode, calibrated
 once and kept, and the same box-filtered for overview zooms; made on worker threads.
 
-A plane holds the float32 values ``archive render`` gives those pixels: the operations of
-:func:`archive.render.gather.gather_lookup` (the CPU pass 2 of ``archive render`` on software GL,
-bit for bit llvmpipe's band pass) in their order, once per (line, sample) instead of per output
-pixel. A tile is then a gather through its lookup (:class:`archive.view.flights.Flight`). No
+A plane holds the float32 values ``archive render`` gives those pixels:
+:func:`archive.render.gather.calibrate_plane`, the calibration of the CPU pass 2 of ``archive
+render`` on software GL (bit for bit llvmpipe's band pass), once per (line, sample) instead of per
+output pixel. A tile is then a gather through its lookup (:class:`archive.view.flights.Flight`). No
 OpenGL here: planes are made on any thread.
 """
 
@@ -153,10 +153,11 @@ class BandPlanes:
         return self.filtered(cube, band, mode, size).take(index.astype(np.int64))
 
     def _calibrate(self, cube: int, band: int, mode: str, plane: np.ndarray | None = None) -> np.ndarray:
-        """(lines, samples) float32 (into ``plane`` when given): every pixel of one band of one cube in ``mode``, by the float32
-        operations of :func:`archive.render.gather.gather_lookup` in its order (``((DN - dark) *
-        gain) / response``, DN exact in float32), so the very values ``archive render`` writes; but
-        once per (line, sample) and without its per-pixel lookup, coverage and saturation work."""
+        """(lines, samples) float32 (into ``plane`` when given): every pixel of one band of one cube
+        in ``mode``, by :func:`archive.render.gather.calibrate_plane` (what ``archive render``'s CPU
+        band pass computes, ``((DN - dark) * gain) / response`` in float32), so the very values
+        ``archive render`` writes; once per (line, sample), without its lookup and saturation work."""
+        from archive.render.gather import calibrate_plane
         from archive.render.renderer import dn_texture_format, radiometry_arrays
 
         info = self.cubes[cube]
@@ -164,11 +165,7 @@ class BandPlanes:
         dark, gain, resp, _ = radiometry_arrays(self.band_radiometry(cube, band, mode), 1, info.lines, info.samples)
         if plane is None:
             plane = np.empty((info.lines, info.samples), np.float32)
-        plane[...] = dn_texture_format(dn)[0][0]
-        np.subtract(plane, dark[0], out=plane)
-        np.multiply(plane, gain[0], out=plane)
-        np.divide(plane, resp[:, None], out=plane)
-        return plane
+        return calibrate_plane(dn_texture_format(dn)[0][0], dark[0], gain[0], resp, plane)
 
     def band_radiometry(self, cube: int, band: int, mode: str):
         """The radiometric terms of one band of ``cube`` (None: raw DN), cut from those of every band
