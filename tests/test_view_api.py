@@ -482,6 +482,33 @@ def test_band_values_are_what_the_png_tiles_stretch(client, demo):
     assert client.get(f"/api/collections/{cid}/values/{Z}/{x + 40}/{y}", params={"bands": "0"}).status_code == 204
 
 
+def test_values_window_holds_every_value_of_the_tile(client, demo):
+    """window=1 (what the page asks): only the rows and columns of the tile that hold values, with
+    their place (X-Window: column, row, width, height); everything outside it is NaN in the whole
+    tile, the window's values are the whole tile's; the same window for a later band of the tile."""
+    _, cid, item = demo
+    z = Z - 4   # the flight covers part of a tile
+    url = f"/api/collections/{cid}/values/{z}/{{}}/{{}}"
+    x, y = max(_tiles_over(item["bbox"], z), key=lambda t: np.isfinite(_values(client.get(
+        url.format(*t), params={"bands": "2"}), 1)).sum())
+    whole = _values(client.get(url.format(x, y), params={"bands": "2,4", "overlap": "nadir"}), 3)
+    r = client.get(url.format(x, y), params={"bands": "2,4", "overlap": "nadir", "window": "1"})
+    assert r.status_code == 200
+    c0, r0, w, h = map(int, r.headers["X-Window"].split(","))
+    assert 0 < w * h < 256 * 256
+    part = np.frombuffer(r.content, "<f4").reshape(3, h, w)
+    assert np.array_equal(part, whole[:, r0:r0 + h, c0:c0 + w], equal_nan=True)
+    outside = whole.copy()
+    outside[:, r0:r0 + h, c0:c0 + w] = np.nan
+    assert np.isnan(outside).all()
+    finite = np.isfinite(part).any(axis=0)
+    assert finite[0].any() and finite[-1].any() and finite[:, 0].any() and finite[:, -1].any()   # the smallest
+    later = client.get(url.format(x, y), params={"bands": "5", "window": "1"})
+    assert later.headers["X-Window"] == r.headers["X-Window"] and len(later.content) == w * h * 4
+    # without window=1: the whole tile, as before
+    assert "X-Window" not in client.get(url.format(x, y), params={"bands": "2"}).headers
+
+
 def test_overview_values_are_means_over_the_pixel_footprint(client, demo):
     """At a zoom whose pixels span several of the flight's, a band-value pixel is a mean over its
     footprint (the f x f block of the flight's pixels, lines x samples, around the one it sees), not

@@ -11,9 +11,11 @@ trace):
 - ``GET /api/collections/{id}/tiles/{z}/{x}/{y}.png?wavelengths=R,G,B|band=I&mode=&stretch=&cubes=A-B
   &ground_height=&sync_offset=`` a 256 x 256 EPSG:3857 tile drawn by the inverse renderer;
 - ``GET /api/collections/{id}/values/{z}/{x}/{y}?bands=I,J,K&mode=&cubes=&ground_height=&sync_offset=
-  &overlap=last|nadir&scale=1|2|4|8|16`` band values of a tile (float32 planes, little-endian; then
-  the view-zenith plane with ``overlap=nadir``), stretched and composed by the page; 204 where no
-  line covers the tile; ``scale`` > 1: a coarse (side 256 / scale) preview;
+  &overlap=last|nadir&scale=1|2|4|8|16&window=0|1`` band values of a tile (float32 planes,
+  little-endian; then the view-zenith plane with ``overlap=nadir``), stretched and composed by the
+  page; 204 where no line covers the tile; ``scale`` > 1: a coarse (side 256 / scale) preview;
+  ``window=1``: only the rows and columns of the tile that hold a value (header ``X-Window: column,row,
+  width,height``; a flight a few pixels wide at an overview zoom sends kilobytes, not 0.8 MB);
 - ``GET /api/collections/{id}/outline?ground_height=&sync_offset=&cubes=`` GeoJSON MultiPolygon of
   the cubes' ground meshes (the footprint as drawn now);
 - ``GET /api/collections/{id}/point?lon=&lat=&gsd=&mode=...`` the full spectrum of the output pixel
@@ -160,6 +162,18 @@ def view_generation(header: str | None, now: float | None = None) -> float:
     return (time.time() if now is None else now) * 1000.0
 
 
+def values_window(planes) -> tuple[int, int, int, int]:
+    """(column, row, width, height) of the smallest window of (k, n, n) planes holding every finite
+    value (at least one pixel)."""
+    import numpy as np
+
+    finite = np.isfinite(planes).any(axis=0)
+    rows, cols = np.flatnonzero(finite.any(axis=1)), np.flatnonzero(finite.any(axis=0))
+    if not rows.size:
+        return 0, 0, 1, 1
+    return int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)
+
+
 def registry_gsd(registry: FlightRegistry, cid: str) -> float:
     """The nominal pixel size of a flight (its catalog entry), m."""
     gsd = registry.feature(cid)["properties"].get("gsd")
@@ -287,8 +301,21 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
                    "X-Side": str(TILE // scale), "X-Key": "view_zenith" if keyed else ""}
         if empty:
             return Response(status_code=204, headers=headers)
-        body = encode_values(np.stack([found[b] for b in query.bands]), found["key"] if keyed else None)
-        return Response(body, media_type="application/octet-stream", headers=headers)
+        planes = np.stack([found[b] for b in query.bands])
+        key = found["key"] if keyed else None
+        if request.query_params.get("window") == "1":
+            # one window per tile and parameters, whichever bands ask: the page keeps the planes
+            # of a tile together (a window differing from the one it has drops those, after an eviction)
+            window_key = (cid, z, x, y, "window", common, scale)
+            window = viewer.tiles.get(window_key)
+            if window is None:
+                window = values_window(planes)
+                viewer.tiles.put(window_key, window, 64)
+            c0, r0, w, h = window
+            planes = planes[:, r0:r0 + h, c0:c0 + w]
+            key = None if key is None else key[r0:r0 + h, c0:c0 + w]
+            headers["X-Window"] = ",".join(map(str, window))
+        return Response(encode_values(planes, key), media_type="application/octet-stream", headers=headers)
 
     async def outline(request):
         cid = cid_of(request)

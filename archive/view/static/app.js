@@ -15,7 +15,7 @@ const PREVIEW_UP = 2;               // slider previews: the 256 px tiles 2 zooms
 const viewer = (window.viewer = {
   map: null, features: [], byId: new Map(), order: [], hidden: new Set(), open: null, info: null,
   params: {}, pins: [], lastPoint: null, csv: null, ready: false, settled: false, draws: 0, loads: 0,
-  requests: 0, tileErrors: 0, pending: 0, specId: null, errors: {}, settledAt: 0, previews: 0,
+  requests: 0, tileErrors: 0, pending: 0, specId: null, errors: {}, settledAt: 0, previews: 0, booted: false,
 });
 
 let scheduled = false;      // a pump() is due at the next animation frame
@@ -189,7 +189,7 @@ function entryKey(f, coords) { const c = entryCoords(f, coords); return `${f.id}
 function entryOf(key) {
   let e = cache.get(key);
   if (e) { cache.delete(key); cache.set(key, e); return e; }   // most recently used last
-  e = { planes: new Map(), key: null, empty: false, side: TILE, bytes: 0 };
+  e = { planes: new Map(), key: null, empty: false, side: TILE, win: null, bytes: 0 };
   cache.set(key, e);
   return e;
 }
@@ -218,7 +218,7 @@ function request(tile, f, spec) {
   const controller = new AbortController();
   inflight.set(rk, { controller, entry: ek, bands, nadir: spec.nadir, tile });
   const { z, x, y } = entryCoords(f, tile.coords);
-  const url = `${idPath(f.id)}/values/${z}/${x}/${y}?bands=${bands.join(",")}&${f.params}`;
+  const url = `${idPath(f.id)}/values/${z}/${x}/${y}?bands=${bands.join(",")}&${f.params}&window=1`;
   viewer.requests += 1;
   busy();
   fetch(url, { signal: controller.signal, headers: generationHeaders() }).then(async (response) => {
@@ -230,10 +230,14 @@ function request(tile, f, spec) {
     }
     const buffer = await response.arrayBuffer();
     const side = Number(response.headers.get("X-Side")) || TILE;
-    const n = side * side;
+    // only the window of the tile that holds values (column, row, width, height of the side x side tile)
+    const win = (response.headers.get("X-Window") || `0,0,${side},${side}`).split(",").map(Number);
+    if (e.win && (e.win.join() !== win.join() || e.side !== side)) { e.planes.clear(); e.key = null; }
+    const n = win[2] * win[3];
     bands.forEach((b, i) => e.planes.set(b, new Float32Array(buffer, i * n * 4, n)));
     if (response.headers.get("X-Key")) e.key = new Float32Array(buffer, bands.length * n * 4, n);
     e.side = side;
+    e.win = win;
     e.bytes += buffer.byteLength;
     cacheBytes += buffer.byteLength;
     viewer.loads += 1;
@@ -383,16 +387,20 @@ function draw(tile, spec) {
     if (!boxesMeet(f.box, tb)) continue;
     const e = cache.get(entryKey(f, tile.coords));
     if (!e || e.empty) continue;
-    // an ancestor's values (previews): this tile's part of it, each value over 2^shift pixels
+    // an ancestor's values (previews): this tile's part of it, each value over 2^shift pixels; the
+    // planes hold the window [c0, c0 + w) x [r0, r0 + h) of the n x n values
     const up = entryCoords(f, tile.coords).up, n = e.side, shift = Math.log2(TILE / n) + up, mask = (1 << up) - 1;
     const ox = (tile.coords.x & mask) * (n >> up), oy = (tile.coords.y & mask) * (n >> up);
+    const [c0w, r0w, w, h] = e.win || [0, 0, n, n];
+    const i0 = Math.max(0, (r0w - oy) << shift), i1 = Math.min(TILE, (r0w + h - oy) << shift);
+    const j0 = Math.max(0, (c0w - ox) << shift), j1 = Math.min(TILE, (c0w + w - ox) << shift);
     const c0 = e.planes.get(f.bands[0]), c1 = e.planes.get(f.bands[k > 1 ? 1 : 0]), c2 = e.planes.get(f.bands[k > 1 ? 2 : 0]);
     const key = e.key;
     const l0 = lo[0], l1 = lo[k > 1 ? 1 : 0], l2 = lo[k > 1 ? 2 : 0];
     const s0 = sc[0], s1 = sc[k > 1 ? 1 : 0], s2 = sc[k > 1 ? 2 : 0];
-    for (let i = 0; i < TILE; i++) {
-      const row = (oy + (i >> shift)) * n + ox;
-      for (let j = 0; j < TILE; j++) {
+    for (let i = i0; i < i1; i++) {
+      const row = (oy + (i >> shift) - r0w) * w + ox - c0w;
+      for (let j = j0; j < j1; j++) {
         const s = row + (j >> shift);
         const v0 = c0[s], v1 = c1[s], v2 = c2[s];
         if (v0 !== v0 || v1 !== v1 || v2 !== v2) continue;    // NaN: no line covers it
@@ -520,6 +528,9 @@ function viewRanges(spec) {
 
 // ---- changes ---------------------------------------------------------------------------------
 function refresh() {
+  // before the first view is set (the hash's, else the fit of every footprint) nothing is asked for:
+  // the world view's tiles would be thrown away at once
+  if (!viewer.booted) return;
   const spec = buildSpec();
   if (spec.ranges) lastRanges = spec.ranges;   // else new statistics are coming: draw when they arrive
   if (!current || spec.id !== current.id) { failedSpec = null; newGeneration(); }
@@ -945,6 +956,6 @@ if (window.matchMedia("(max-width: 720px)").matches) {
   if (location.hash.length > 1) await applyHash(true);
   if (!s.has("map") && footprints && viewer.features.length) map.fitBounds(footprints.getBounds(), { padding: [20, 20] });
   showDisplay();
-  booted = true;
+  booted = viewer.booted = true;
   refresh();
 })();
