@@ -19,8 +19,10 @@ from archive.view.flights import Flight
 
 __all__ = ["BAND_WORKERS", "FLIGHTS_KEPT", "IDS_TTL_S", "FlightRegistry", "UnknownFlight"]
 
-#: Flights kept open.
-FLIGHTS_KEPT = 16
+#: Flights kept open: more than an archive's screen of flights (20 at the zoom that fits them all),
+#: or every change of that screen reopens some (~0.04 s each: source and meshes). A flight's meshes
+#: are ~0.3 KB a line.
+FLIGHTS_KEPT = 32
 #: Threads making band planes (:meth:`Flight.prepare`): the VM's cores.
 BAND_WORKERS = 2
 #: Seconds the list of catalog ids is trusted before the index is asked again.
