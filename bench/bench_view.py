@@ -6,6 +6,12 @@ newly opened flight, and the server's memory.
                                [--json FILE] [--results bench/RESULTS.md]
 
     python bench/bench_view.py --browser [--reps 12] [--cubes 8 --bands 60 --samples 900 --lines 1000]
+    python bench/bench_view.py --browser --flights 20 [--cold 3] [--reps 12] [--cubes 4 --bands 24 --samples 200 --lines 600]
+
+``--browser --flights 20`` opens an archive of 20 flights of --cubes x --lines x --samples x --bands
+(tiling the map, a few overlapping; in /tmp/archive-bench-view-flights unless --workdir) with every
+flight drawn, at the zoom that fits them all: time to a full screen from page load on a new server
+(--cold times) and on a warm one (--reps), and after a zoom out (bench_view_archive.py; issue 22).
 
 ``--browser`` measures the page instead (issue 22): Debian's Chromium through Playwright opens the
 flight and times, --reps times each, the way to a full screen after open, pan, zoom, band, mode,
@@ -55,6 +61,7 @@ import bench_render as br  # noqa: E402  (machine)
 ROOT = Path(__file__).resolve().parents[1]
 FOV = 47.5
 HALF_WORLD = math.pi * 6378137.0
+DEFAULT_WORKDIR = Path("/tmp/archive-bench-view")
 
 
 def machine() -> dict:
@@ -361,7 +368,7 @@ def main(argv=None) -> int:
     ap.add_argument("--bands", type=int, default=8)
     ap.add_argument("--samples", type=int, default=128)
     ap.add_argument("--lines", type=int, default=250)
-    ap.add_argument("--workdir", type=Path, default=Path("/tmp/archive-bench-view"))
+    ap.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR)
     ap.add_argument("--json", type=Path)
     ap.add_argument("--results", type=Path, help="append the Markdown section to this file")
     ap.add_argument("--browser", action="store_true", help="measure the page in Chromium instead (issue 22)")
@@ -369,6 +376,10 @@ def main(argv=None) -> int:
     ap.add_argument("--server-steps", action="store_true",
                     help="what each change costs the server, in this process (issue 22; PYTHONPATH=<another "
                          "checkout> measures that code)")
+    ap.add_argument("--flights", type=int, default=0,
+                    help="--browser: an archive of this many flights (each --cubes x --lines x --samples x --bands) "
+                         "opened at the zoom that fits them all, instead of one flight's changes")
+    ap.add_argument("--cold", type=int, default=3, help="--browser --flights: page loads on a new server each")
     args = ap.parse_args(argv)
     if args.server_steps:
         archive, cid, _ = make_archive(args.workdir, args)
@@ -381,8 +392,13 @@ def main(argv=None) -> int:
             print(f"| {name} | {wall:.3f} | {cpu_s:.3f} |")
         return 0
     if args.browser:
-        archive, cid, _ = make_archive(args.workdir, args)
-        text = browser_main(args, archive, cid)
+        if args.flights:
+            from bench_view_archive import archive_main
+
+            text = archive_main(args)
+        else:
+            archive, cid, _ = make_archive(args.workdir, args)
+            text = browser_main(args, archive, cid)
         print(text)
         if args.results:
             with open(args.results, "a") as f:

@@ -1,0 +1,165 @@
+"""The archive part of ``bench/bench_view.py --browser --flights N`` (issue 22): an archive of N
+simulated flights that tile the map (a few overlapping), opened in Debian's Chromium through
+Playwright with no hash, so every flight is drawn at the zoom that fits them all; the time from page
+load to a full screen on a new server and a warm one, and after a zoom out. Run through
+bench_view.py (its options); kept apart to keep that module under 600 lines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import http.client
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from bench_view import _ACTION_JS, DEFAULT_WORKDIR, FOV, Server, cpu_seconds, get, machine, percentile
+
+__all__ = ["archive_bench", "archive_main", "make_flights_archive"]
+
+#: The archive bench's layout: flights on a grid this many degrees apart (lon, lat; ~100 x 90 m at
+#: 35 N, each flight ~75 x 65 m at the simulator's 40 m altitude: they tile the map, 20 over ~0.5 x
+#: 0.35 km), every ARCHIVE_PAIR-th one moved onto its western neighbour so that a few overlap.
+ARCHIVE_STEP = (0.0011, 0.0008)
+ARCHIVE_PAIR = 6
+
+
+def make_flights_archive(workdir: Path, args: argparse.Namespace) -> tuple[Path, list[str]]:
+    """An archive of ``args.flights`` simulated flights (``archive simulate`` --cubes/--bands/
+    --samples/--lines, seeds 0..N-1, a day apart) on a 5-column grid ARCHIVE_STEP degrees apart near
+    the simulator's site, every ARCHIVE_PAIR-th overlapping its western neighbour, ingested at --fov
+    47.5; reused while its marker file exists (the raw flights are deleted). (archive, ids)."""
+    archive = workdir / "archive"
+    marker = workdir / f".bench-view-flights-{ARCHIVE_STEP[0]}-{ARCHIVE_STEP[1]}-{args.flights}-{args.cubes}-{args.bands}-{args.samples}-{args.lines}"
+    if not marker.exists():
+        import shutil
+        from datetime import datetime, timedelta, timezone
+
+        from archive.ingest.command import ingest
+        from archive.simulator.command import simulate_flight
+
+        shutil.rmtree(workdir, ignore_errors=True)
+        workdir.mkdir(parents=True)
+        t0 = datetime(2024, 6, 1, 15, tzinfo=timezone.utc)
+        for i in range(args.flights):
+            col, row = i % 5, i // 5
+            lon = -89.94 + ARCHIVE_STEP[0] * (col - (0.85 if i % ARCHIVE_PAIR == ARCHIVE_PAIR - 1 else 0))
+            raw = workdir / f"flight{i:02d}"
+            simulate_flight(raw, cubes=args.cubes, bands=args.bands, samples=args.samples, lines=args.lines, seed=i,
+                            lat=35.12 + ARCHIVE_STEP[1] * row, lon=lon,
+                            start=(t0 + timedelta(days=i)).strftime("%Y-%m-%dT%H:%M:%SZ"))
+            ingest([raw], archive, FOV, progress=False)
+            shutil.rmtree(raw)
+        marker.touch()
+    items = [json.loads(p.read_text()) for p in (archive / "catalog" / "items").glob("*.json")]
+    return archive, sorted(item["id"] for item in items)
+
+
+def archive_bench(archive: Path, reps: int, cold: int, cache_mb: int, width: int = 1400, height: int = 900) -> dict:
+    """Time from page load (navigation start) to a full screen (``viewer.settledAt``) of the page
+    opened with no hash (every flight drawn at the zoom that fits them all), then to one after a
+    zoom out: ``cold`` times on a new server each, then ``reps`` new pages on one warm server (its
+    first page not counted) and ``reps`` zooms out and in there. Seconds, the server's CPU-seconds,
+    and the last page's band-value requests (empty ones, flights with values)."""
+    from playwright.sync_api import sync_playwright
+
+    out: dict = {k: [] for k in ("cold", "warm", "zoom_cold", "zoom")}
+    cpu: dict = {k: [] for k in out}
+
+    def timed(key, server, fn):
+        c = cpu_seconds(server.proc.pid)
+        out[key].append(fn())
+        cpu[key].append(cpu_seconds(server.proc.pid) - c)
+
+    def load(browser, server, key):
+        page = browser.new_page(viewport={"width": width, "height": height})
+        answers = []
+        page.on("response", lambda r: answers.append((r.url.split("/")[-5], r.status)) if "/values/" in r.url else None)
+
+        def go():
+            page.goto(f"http://127.0.0.1:{server.port}/")
+            page.wait_for_function("() => viewer.settled && viewer.draws > 0 && viewer.booted", timeout=180_000)
+            return page.evaluate("viewer.settledAt") / 1000.0
+        timed(key, server, go)
+        out.update(zoom_level=page.evaluate("viewer.map.getZoom()"), requests=len(answers),
+                   empty=sum(s == 204 for _, s in answers), with_values=len({i for i, s in answers if s == 200}))
+        return page
+
+    def zoom(page, server, key, k):
+        def go():
+            page.evaluate("() => { viewer.settled = false; }")
+            t0 = page.evaluate(f"(k) => {{ const t = performance.now(); ({_ACTION_JS['zoom']})(k); return t; }}", k)
+            page.wait_for_function("() => viewer.settled", timeout=120_000)
+            return (page.evaluate("viewer.settledAt") - t0) / 1000.0
+        timed(key, server, go)
+
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path="/usr/bin/chromium",
+                                     args=["--headless", "--no-sandbox", "--disable-gpu"])
+        try:
+            for i in range(cold + 1):
+                server = Server(archive, cache_mb)
+                try:
+                    page = load(browser, server, "cold" if i < cold else "warm")
+                    if i < cold:
+                        zoom(page, server, "zoom_cold", 1)   # odd: out
+                        page.close()
+                        continue
+                    out["warm"].clear(), cpu["warm"].clear()
+                    for _ in range(reps):
+                        page.close()
+                        page = load(browser, server, "warm")
+                    for k in range(reps):
+                        zoom(page, server, "zoom", k + 1)
+                    conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=60)
+                    out["render"] = json.loads(get(conn, "/api/status")[1])["render"]
+                    conn.close()
+                finally:
+                    server.stop()
+        finally:
+            browser.close()
+    out["cpu"] = cpu
+    return out
+
+
+def archive_main(args: argparse.Namespace) -> str:
+    """The archive measurement (``--browser --flights N``) as a Markdown section."""
+    workdir = args.workdir if args.workdir != DEFAULT_WORKDIR else Path("/tmp/archive-bench-view-flights")
+    archive, ids = make_flights_archive(workdir, args)
+    load_before = os.getloadavg()
+    out = archive_bench(archive, args.reps, args.cold, args.cache_mb)
+    load_after = os.getloadavg()
+    m = machine()
+    rows = [f"| {label} | {percentile(out[k], 50):.0f} | {percentile(out[k], 95):.0f} | {percentile(out[k], 100):.0f} | "
+            f"{len(out[k])} | {np.median(out['cpu'][k]):.2f} |" for k, label in (
+                ("cold", "open, new server (from navigation start)"), ("warm", "open, warm server (new page, from navigation start)"),
+                ("zoom_cold", "zoom out after the new server's open (from the change)"),
+                ("zoom", "zoom out / in, warm (from the change)"))]
+    lines = [
+        f"## Viewer in the browser, an archive of {len(ids)} flights (issue 22): each {args.cubes} cubes x "
+        f"{args.lines} lines x {args.samples} samples x {args.bands} bands",
+        "",
+        f"Command: `.venv/bin/python bench/bench_view.py {' '.join(sys.argv[1:])}` (Debian's Chromium, headless, "
+        "through Playwright; 1400 x 900 window; `archive view` in a subprocess). The page opened with no hash: every "
+        f"flight drawn, at the zoom that fits them all (zoom {out['zoom_level']}); time to a full screen "
+        "(`viewer.settledAt`: every tile in view drawn).",
+        f"Machine: {m['cpu']}, {m['cores']} cores; GL: {m['gl']}; load average before {load_before[0]:.2f} "
+        f"{load_before[1]:.2f} {load_before[2]:.2f}, after {load_after[0]:.2f} {load_after[1]:.2f} {load_after[2]:.2f} "
+        "(the VM is shared with other engineers' jobs).",
+        "",
+        "| measure | p50 ms | p95 ms | max ms | n | server CPU s (median) |",
+        "|---|---|---|---|---|---|",
+        *rows,
+        "",
+        f"A page load: {out['requests']} band-value requests ({out['empty']} empty), values from {out['with_values']} "
+        f"of the {len(ids)} flights; the warm server's render jobs: {out['render']['done']} drawn, "
+        f"{out['render']['skipped'] + out['render']['stopped']} dropped.",
+        "",
+    ]
+    if args.json:
+        args.json.write_text(json.dumps({"load_before": load_before, "load_after": load_after, "machine": m, **out},
+                                        indent=1, default=str))
+    return "\n".join(lines)
