@@ -81,7 +81,9 @@ def archive_bench(archive: Path, reps: int, cold: int, cache_mb: int, width: int
 
         def go():
             page.goto(f"http://127.0.0.1:{server.port}/")
-            page.wait_for_function("() => viewer.settled && viewer.draws > 0 && viewer.booted", timeout=180_000)
+            # viewer.booted: the first view is set (older pages: the fit's zoom reached)
+            page.wait_for_function("() => viewer.settled && viewer.draws > 0 && (viewer.booted === undefined ? "
+                                   "viewer.map.getZoom() > 5 : viewer.booted)", timeout=180_000)
             return page.evaluate("viewer.settledAt") / 1000.0
         timed(key, server, go)
         out.update(zoom_level=page.evaluate("viewer.map.getZoom()"), requests=len(answers),
