@@ -17,8 +17,12 @@ Memory: priorities make one band group finish (render, then assemble and write, 
 before the next starts, and a render waits (through a small ``gate-`` task) until the writers
 completed by the render RENDERS_AHEAD before it have run, so the renders held at a time are those
 between a tile's first and last touching cube plus RENDERS_AHEAD, whatever the flight length and
-however much faster renders are than writes. :func:`with_task_groups` sizes the groups so that one
-render holds at most ``TASK_VALUES_BYTES``.
+however much faster renders are than writes. Within a group the cubes are rendered in
+:func:`render_order` (swept along the passes when that holds fewer renders than capture order: a
+tile is then complete once every pass crossing it has been drawn there, so the renders held do not
+grow with the passes' length); writers still mosaic in capture order. :func:`with_task_groups`
+sizes the groups so that one render holds at most ``TASK_VALUES_BYTES`` and all renders held at
+once ``HELD_VALUES_BYTES``.
 
 Keys are ``<kind>-<dask.base.tokenize(inputs)>``, so the same inputs give the same graph.
 """
