@@ -513,12 +513,21 @@ def read_poses(store: str | os.PathLike) -> StoredPoses:
                        _band_values(group, "fwhm"))
 
 
-def read_calibration(store: str | os.PathLike, cube: int, bands: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
-    """Stored dark and gain of ``bands`` of ``cube``: each (len(bands), samples) float32."""
-    group = zarr.open_group(store, mode="r")
-    dark = group["dark"][cube]
-    gain = group["gain"][int(group["gain_index"][cube])]
-    return dark[list(bands)], gain[list(bands)]
+class StoredCalibration:
+    """The calibration arrays of a collection (``dark`` [cube, band, sample], ``gain`` [set, band,
+    sample], ``gain_index`` [cube]), opened once: each :meth:`read` then reads only the two rows it
+    needs (opening the group costs more than reading a row: a reader of many cubes keeps one)."""
+
+    def __init__(self, store: str | os.PathLike):
+        group = zarr.open_group(store, mode="r")
+        self.dark, self.gain = group["dark"], group["gain"]
+        self.gain_index = np.asarray(group["gain_index"][...])
+
+    def read(self, cube: int, bands: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+        """Stored dark and gain of ``bands`` of ``cube``: each (len(bands), samples) float32."""
+        dark = self.dark[cube]
+        gain = self.gain[int(self.gain_index[cube])]
+        return dark[list(bands)], gain[list(bands)]
 
 
 def open_dn(store: str | os.PathLike):
@@ -579,5 +588,5 @@ class CheckedDn:
 
 __all__ = ["COMPLETE", "CheckedDn", "CollectionInfo", "CorruptChunkError", "StoredPoses", "read_poses", "record_navigation", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS", "StorePlan", "StoredCube",
            "chunk_tasks", "finish_store", "frame_from_attrs", "frame_to_attrs", "is_complete", "open_dn",
-           "open_partial", "publish", "read_attrs", "read_calibration", "read_info", "verify_store",
+           "open_partial", "publish", "read_attrs", "read_info", "verify_store", "StoredCalibration",
            "write_chunk"]

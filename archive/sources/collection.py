@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from archive.collection import CheckedDn, read_calibration, read_info
+from archive.collection import CheckedDn, StoredCalibration, read_info
 from archive.formats.envi import EnviHeader
 from archive.params import NavigationParams
 from archive.sources.base import CubeInfo, Radiometry, band_list, check_mode, radiometry_for
@@ -56,6 +56,7 @@ class CollectionSource(NavigatedSource):
         self._calibration = info.calibration
         self.has_calibration = self._calibration is not None
         self._dn = None
+        self._stored_calibration = None   # opened on first use, per process (not pickled)
 
     def __repr__(self) -> str:
         return f"CollectionSource({str(self.store)!r}, cubes={len(self.cubes)})"
@@ -63,6 +64,7 @@ class CollectionSource(NavigatedSource):
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
         state["_dn"] = None
+        state["_stored_calibration"] = None
         return state
 
     def __dask_tokenize__(self):
@@ -103,7 +105,9 @@ class CollectionSource(NavigatedSource):
         cal = self._calibration
 
         def calibration():
-            dark, gain = read_calibration(self.store, cube, idx)
+            if self._stored_calibration is None:
+                self._stored_calibration = StoredCalibration(self.store)
+            dark, gain = self._stored_calibration.read(cube, idx)
             return dark, gain, float(cal["shutter_cal"]), float(cal["gain_cal"])
 
         white = white_reference if white_reference is not None else self.white_reference
