@@ -171,8 +171,7 @@ def stage_table(R: dict) -> list[str]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    br.add_flight_arguments(ap, bands=300, workdir="/tmp/archive-bench-outputs")
-    ap.set_defaults(cubes=8)
+    br.add_flight_arguments(ap, bands=300, workdir="/tmp/archive-bench-outputs", cubes=8)
     ap.add_argument("--scaling", default="8x4,16x4,32x4",
                     help="memory-vs-length flights, CUBESxPASSES ('' to skip; the paper's flight: 40x5)")
     ap.add_argument("--scaling-bands", type=int, default=32)
