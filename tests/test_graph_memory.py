@@ -113,3 +113,28 @@ def test_values_pool_reuses_a_buffer_only_once_no_view_of_it_is_left():
         pool.take(shape)                               # released at once
     gc.collect()
     assert len(pool.free) == 2                         # at most ``keep`` wait free
+
+
+def _pool_keeps(shape: tuple[int, ...]) -> int:
+    """In a worker's task: how many free buffers a fresh pool keeps after one render's values die."""
+    pool = ValuesPool(keep=2)
+    values = pool.take(shape)
+    values[...] = 0.0
+    del values
+    gc.collect()
+    return len(pool.free)
+
+
+def test_values_pool_keeps_no_more_than_its_share_of_a_workers_memory():
+    """A worker with a small memory limit keeps no free buffer (a paused worker cannot release it:
+    a 500 MB test worker stayed paused for good); a larger one keeps it."""
+    from distributed import Client, LocalCluster
+
+    shape = (2, 1000, 1000)   # 8 MB of float32
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, memory_limit="100MB",
+                      dashboard_address=None) as small, Client(small) as client:
+        assert client.submit(_pool_keeps, shape, pure=False).result() == 0      # cap 5 MB
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, memory_limit="1GB",
+                      dashboard_address=None) as large, Client(large) as client:
+        assert client.submit(_pool_keeps, shape, pure=False).result() == 1      # cap 50 MB
+    assert _pool_keeps(shape) == 1                                              # no worker: no cap

@@ -15,6 +15,8 @@ one output tile of one band group each.
 
 from __future__ import annotations
 
+import math
+import sys
 import threading
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -74,18 +76,35 @@ class ValuesPool:
     gather ~40 % more on the paper flight. :meth:`take` gives an array backed by a free buffer of
     about the right size (at most ``slack`` times larger) or a new one; when every array (and view)
     of it is gone (the graph released the render), its buffer comes back here. At most ``keep``
-    buffers wait free (a bounded addition to the renders held)."""
+    buffers wait free (a bounded addition to the renders held), and in a Dask worker with a memory
+    limit at most ``share`` of that limit: a small worker keeps none (free buffers are memory the
+    worker cannot give back; a 500 MB worker paused above its 80 % and, with nothing left to run
+    that would release memory, never resumed)."""
 
-    def __init__(self, keep: int = 2, slack: float = 1.5):
-        self.keep, self.slack = keep, slack
+    def __init__(self, keep: int = 2, slack: float = 1.5, share: float = 0.05):
+        self.keep, self.slack, self.share = keep, slack, share
         self.free: list[np.ndarray] = []
+        self.cap = math.inf   # bytes the free buffers may take (set from the worker's memory limit)
         self.lock = threading.Lock()
+
+    def _worker_cap(self) -> float:
+        """``share`` of the memory limit of the Dask worker running this task, inf outside one or
+        without a limit (distributed is not imported here: only looked up if loaded)."""
+        distributed = sys.modules.get("distributed")
+        if distributed is None:
+            return math.inf
+        try:
+            limit = distributed.get_worker().memory_manager.memory_limit
+        except (ValueError, AttributeError):   # not in a worker's task
+            return math.inf
+        return self.share * limit if limit else math.inf
 
     def take(self, shape: tuple[int, ...]) -> np.ndarray:
         """An uninitialised C-contiguous float32 array of ``shape`` (values of one render)."""
         import weakref
 
         n = int(np.prod(shape))
+        self.cap = self._worker_cap()
         with self.lock:
             fits = [k for k, raw in enumerate(self.free) if n <= raw.size <= self.slack * n]
             raw = self.free.pop(min(fits, key=lambda k: self.free[k].size)) if fits else None
@@ -101,7 +120,7 @@ class ValuesPool:
     def _give_back(self, raw: np.ndarray) -> None:
         with self.lock:
             self.free.append(raw)
-            while len(self.free) > self.keep:
+            while self.free and (len(self.free) > self.keep or sum(r.nbytes for r in self.free) > self.cap):
                 self.free.pop(0)
 
 
