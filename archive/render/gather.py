@@ -22,8 +22,8 @@ from __future__ import annotations
 import numpy as np
 
 from archive.errors import InputError
-from archive.render.renderer import (GatherIndex, Lookup, RenderResult, checked_cube, dn_texture_format, gather_index,
-                                     radiometry_arrays)
+from archive.render.renderer import (GatherIndex, Lookup, RenderResult, checked_cube, dn_texture_format, flag_saturated,
+                                     gather_index, radiometry_arrays)
 
 __all__ = ["CPU_RENDERERS", "GatherIndex", "MAX_ULP", "calibrate_plane", "gather_index", "gather_lookup", "is_cpu_renderer", "use_cpu_gather"]
 
@@ -122,8 +122,5 @@ def gather_lookup(lookup: Lookup | GatherIndex, dn: np.ndarray, radiometry,
         into = values[b, rows].reshape(-1)                # whole rows: contiguous, a view
         np.take(plane, index, out=into, mode="clip")      # "clip": unbuffered (all indices valid)
     if saturation is not None:  # as render_lookup: any band's DN at or above the threshold
-        flagged = np.zeros(plane_size + 1, bool)          # the last element: not covered, never flagged
-        np.greater_equal(dn.max(axis=0), float(saturation), out=flagged[:plane_size].reshape(lines, samples))
-        if flagged.any():
-            np.take(flagged, index, out=result.saturated[rows].reshape(-1), mode="clip")
+        flag_saturated(dn, saturation, gather, result.saturated)
     return result

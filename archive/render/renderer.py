@@ -130,6 +130,18 @@ def gather_index(lookup: Lookup) -> GatherIndex:
     return GatherIndex(lookup.grid, int(lookup.lines), int(lookup.samples), int(row0), int(height), index.reshape(-1))
 
 
+def flag_saturated(dn: np.ndarray, saturation: float, lookup: Lookup | GatherIndex, saturated: np.ndarray) -> None:
+    """Set ``saturated`` (the lookup grid's (height, width) bool, C order) where any band of ``dn``
+    (bands, lines, samples) is at or above ``saturation`` at the pixel's (line, sample): one
+    ``np.take`` through the flat gather index (built from ``lookup`` only when some DN saturates)."""
+    lines, samples = lookup.lines, lookup.samples
+    flagged = np.zeros(lines * samples + 1, bool)     # the last element: not covered, never flagged
+    np.greater_equal(dn.max(axis=0), float(saturation), out=flagged[:-1].reshape(lines, samples))
+    if flagged.any():
+        at = lookup if isinstance(lookup, GatherIndex) else gather_index(lookup)
+        np.take(flagged, at.index, out=saturated[at.row0:at.row0 + at.height].reshape(-1), mode="clip")
+
+
 def dn_texture_format(dn: np.ndarray) -> tuple[np.ndarray, str, tuple[str, ...]]:
     """DN as uploaded: (array, moderngl dtype, shader defines). Integer DN in 0..65535 go up as
     uint16, other integers (negative DN of signed cubes) as exact float32."""
@@ -501,11 +513,7 @@ def render_lookup(
     finally:
         keep.release()
     if saturation is not None:  # any band's DN at or above the threshold at the pixel's (line, sample)
-        flagged = np.zeros(lines * samples + 1, bool)     # the last element: not covered, never flagged
-        np.greater_equal(dn.max(axis=0), float(saturation), out=flagged[:-1].reshape(lines, samples))
-        if flagged.any():   # through the flat (line, sample) index, as the CPU gather does
-            at = gather_index(lookup)
-            np.take(flagged, at.index, out=result.saturated[at.row0:at.row0 + at.height].reshape(-1), mode="clip")
+        flag_saturated(dn, saturation, lookup, result.saturated)
     return result
 
 
