@@ -103,7 +103,9 @@ def live_renders(plan: RenderPlan, tile: tuple[int, int] = (CHUNK, CHUNK), order
     touching = _touching(plan, tile)
     if touching is None:
         return max(1, len(plan.jobs))
-    return _live(touching, len(plan.jobs), render_order(plan, tile) if order is None else order)
+    if order is None:
+        return _fewest(plan, touching)[1]
+    return _live(touching, len(plan.jobs), order)
 
 
 def _live(touching: list[list[int]], njobs: int, order: Sequence[int]) -> int:
@@ -127,10 +129,15 @@ def render_order(plan: RenderPlan, tile: tuple[int, int] = (CHUNK, CHUNK)) -> tu
     that come back over their tiles (a whole pass: memory grows with the flight's length); swept
     along the passes, a tile is complete once the sweep has crossed it in every pass, whatever the
     length. The writers still mosaic in capture order: the order changes no value."""
-    capture = tuple(range(len(plan.jobs)))
     touching = _touching(plan, tile)
     if touching is None:
-        return capture
+        return tuple(range(len(plan.jobs)))
+    return _fewest(plan, touching)[0]
+
+
+def _fewest(plan: RenderPlan, touching: list[list[int]]) -> tuple[tuple[int, ...], int]:
+    """(order, renders alive) of :func:`render_order`, from the tiles' touching jobs (:func:`_touching`)."""
+    capture = tuple(range(len(plan.jobs)))
     centres = np.array([(job.box[0] + job.box[2] / 2, job.box[1] + job.box[3] / 2) for job in plan.jobs])
     best, fewest = capture, _live(touching, len(capture), capture)
     for degrees in range(0, 180, SWEEP_STEP):
@@ -140,7 +147,7 @@ def render_order(plan: RenderPlan, tile: tuple[int, int] = (CHUNK, CHUNK)) -> tu
         live = _live(touching, len(capture), order)
         if live < fewest:
             best, fewest = order, live
-    return best
+    return best, fewest
 
 
 def task_group_size(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> int:
