@@ -134,6 +134,15 @@ def get(conn: http.client.HTTPConnection, path: str) -> tuple[int, bytes, float]
     return response.status, body, time.perf_counter() - t
 
 
+def render_counts(port: int) -> dict:
+    """The server's render-thread counters (``/api/status``'s ``render``: drawn, dropped, overtaken...)."""
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=60)
+    try:
+        return json.loads(get(conn, "/api/status")[1])["render"]
+    finally:
+        conn.close()
+
+
 def tiles_over(bbox, z: int, pad: int = 0) -> list[tuple[int, int, int]]:
     x0 = HALF_WORLD * math.radians(bbox[0]) / math.pi
     x1 = HALF_WORLD * math.radians(bbox[2]) / math.pi
@@ -252,9 +261,7 @@ def browser_bench(archive: Path, cid: str, reps: int, cache_mb: int, width: int 
                 out["preview_fps"] = (page.evaluate("viewer.previews") - before) / drag_s
                 out["preview_cpu_s"] = cpu_seconds(server.proc.pid) - c
                 out["requests"] = page.evaluate("viewer.requests")
-                conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=60)
-                out["render"] = json.loads(get(conn, "/api/status")[1])["render"]
-                conn.close()
+                out["render"] = render_counts(server.port)
             finally:
                 browser.close()
     finally:

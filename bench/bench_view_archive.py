@@ -8,7 +8,6 @@ bench_view.py (its options); kept apart to keep that module under 600 lines.
 from __future__ import annotations
 
 import argparse
-import http.client
 import json
 import os
 import sys
@@ -16,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench_view import _ACTION_JS, DEFAULT_WORKDIR, FOV, Server, cpu_seconds, get, machine, percentile
+from bench_view import _ACTION_JS, DEFAULT_WORKDIR, FOV, Server, cpu_seconds, machine, percentile, render_counts
 
 __all__ = ["archive_bench", "archive_main", "make_flights_archive"]
 
@@ -116,9 +115,7 @@ def archive_bench(archive: Path, reps: int, cold: int, cache_mb: int, width: int
                         page = load(browser, server, "warm")
                     for k in range(reps):
                         zoom(page, server, "zoom", k + 1)
-                    conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=60)
-                    out["render"] = json.loads(get(conn, "/api/status")[1])["render"]
-                    conn.close()
+                    out["render"] = render_counts(server.port)
                 finally:
                     server.stop()
         finally:
