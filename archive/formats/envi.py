@@ -1,4 +1,4 @@
-"""ENVI header parsing and memory-mapped cube access (Resonon and Spectronon flavours).
+"""ENVI header parsing and cube access (Resonon and Spectronon flavours; pixels read with ``os.preadv``).
 
 Headers are parsed robustly: values in braces may span many lines and contain commas, brackets,
 quotes and backslashes (Spectronon's ``history``); a brace block ends at the last ``}`` of the line
@@ -21,6 +21,7 @@ import numpy as np
 
 from archive.errors import FormatError, InputError, MissingInputError
 from archive.files import atomic_path
+from archive.formats.pread import read_bands as read_raw_bands
 
 __all__ = [
     "DTYPES",
@@ -370,8 +371,10 @@ def array_from_bytes(header: EnviHeader, raw: bytes, where: str | os.PathLike = 
 
 
 class EnviCube:
-    """A memory-mapped ENVI cube. Only the header is read at construction; pixel reads map the
-    file on demand (the object holds no open file and pickles cheaply).
+    """An ENVI cube on disk. Only the header is read at construction; pixel reads open the file,
+    read the requested bands with ``os.preadv`` (:mod:`archive.formats.pread`: no memory map, so no
+    file pages count in the process's RSS) and close it: the object holds no open file and pickles
+    cheaply.
     """
 
     def __init__(self, path: str | os.PathLike):
@@ -398,11 +401,9 @@ class EnviCube:
         """``(bands, lines, samples)``."""
         return self.header.shape
 
-    def _map(self) -> np.ndarray:
+    def _read(self, idx: Sequence[int]) -> np.ndarray:
         h = self.header
-        mm = np.memmap(self.path, dtype=h.dtype, mode="r", offset=h.header_offset,
-                       shape=_file_shape(h))
-        return _to_cube_order(mm, h.interleave)
+        return read_raw_bands(self.path, h.dtype, h.interleave, h.shape, h.header_offset, idx)
 
     def _check_band(self, b: int) -> int:
         if isinstance(b, bool) or not isinstance(b, int | np.integer):
@@ -413,21 +414,15 @@ class EnviCube:
 
     def band(self, b: int) -> np.ndarray:
         """Band ``b`` (0-based) as ``(lines, samples)``, native byte order; reads only that band."""
-        return _native(self._map()[self._check_band(b)])
+        return self._read([self._check_band(b)])[0]
 
     def bands(self, idx: Sequence[int]) -> np.ndarray:
-        """Bands ``idx`` as ``(len(idx), lines, samples)``, native byte order."""
-        idx = [self._check_band(b) for b in idx]
-        out = np.empty((len(idx), self.header.lines, self.header.samples),
-                       dtype=self.header.dtype.newbyteorder("="))
-        cube = self._map()
-        for k, b in enumerate(idx):
-            out[k] = cube[b]
-        return out
+        """Bands ``idx`` as ``(len(idx), lines, samples)``, native byte order; reads only those bands."""
+        return self._read([self._check_band(b) for b in idx])
 
     def read(self) -> np.ndarray:
         """The whole cube as ``(bands, lines, samples)``, native byte order."""
-        return _native(self._map())
+        return self._read(range(self.header.bands))
 
 
 # ----------------------------------------------------------------------------------------------
