@@ -146,7 +146,8 @@ def sidelap() -> dict:
 
 STAGES = ("GL lookup", "GL band passes", "CPU band gather", "lookup unpack", "lookup decode", "read DN", "radiometry terms",
           "mosaic (last)", "mosaic (nadir)", "NaN checks", "compression (Zarr Blosc)", "compression (COG)",
-          "overviews (2x2 mean)", "writes (pwrite)", "writes (Zarr chunk files)", "writes (COG spool)")
+          "overviews (2x2 mean)", "writes (pwrite)", "writes (Zarr chunk files)", "writes (COG spool)",
+          "COG layout in the graph")
 
 
 def stage_table(R: dict) -> list[str]:
@@ -232,7 +233,7 @@ def main(argv=None) -> int:
              f"tree RSS {br.fmt_gb(r['peak_tree_rss'])}, {r['out_mb']:.0f} MB")
         if fmt == "tif":
             R["cog_reads"] = cog_window_reads(out)
-            from archive.outputs.tiff import check_cog
+            from archive.outputs.cog_check import check_cog
 
             R["cog_errors"] = check_cog(out)
             _say(f"COG window reads {R['cog_reads']}; layout errors {R['cog_errors']}")

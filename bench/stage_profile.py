@@ -116,6 +116,7 @@ def install_stage_timers() -> list:
         ("archive.outputs.cog", None, "all_nan", "NaN checks", False),
         ("archive.outputs.tiff", None, "encode_tile", "compression (COG)", False),
         ("archive.outputs.tiff", None, "write_spool", "writes (COG spool)", False),
+        ("archive.outputs.tiff", None, "write_level_part", "COG layout in the graph", False),
         ("archive.outputs.tiff", None, "downsample2", "overviews (2x2 mean)", False),
         ("archive.outputs.zarr", None, "write_atomic", "writes (Zarr chunk files)", False),
         ("os", None, "pwrite", "writes (pwrite)", False),

@@ -18,6 +18,7 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,8 @@ import rasterio
 import xarray as xr
 
 from archive.cli import main
-from archive.outputs.tiff import check_cog, downsample2, file_layout, level_shapes
+from archive.outputs.cog_check import check_cog, file_layout
+from archive.outputs.tiff import downsample2, level_shapes
 from archive.grid import Grid
 from archive.outputs.base import CHUNK, OutputMeta
 from archive.outputs.cog import CogSink
@@ -132,6 +134,85 @@ def test_cog_bands_are_contiguous_and_a_few_bands_read_a_few_bytes(rendered):
     counts = main["counts"].reshape(nb, -1)
     k = np.flatnonzero(counts[0] > counts[0].min())[0]  # a tile with data
     assert counts[:1, k].sum() < counts[:, k].sum() / (nb - 1)
+
+
+def test_cog_laid_out_band_group_by_group_is_one_file_with_or_without_insert_range(flight, scheduler, rendered,
+                                                                                 tmp_path, monkeypatch):
+    """The graph lays the full resolution out in the COG's own file band group by band group
+    (layout tasks), the header and overviews are put in front of it at the end without moving it
+    (FALLOC_FL_INSERT_RANGE) or, where the file system cannot (tmpfs, NFS), by copying it: the
+    same bytes either way, a valid COG, the Zarr render's values."""
+    import archive.graph.build as build
+    import archive.outputs.tiff as tiff
+
+    _, values = rendered
+    monkeypatch.setattr(build, "TASK_VALUES_BYTES", 1)   # the smallest band groups: 4 + 2 bands
+    inserted, copied = tmp_path / "inserted.tif", tmp_path / "copied.tif"
+    calls = []
+    real = tiff._insert_front
+    monkeypatch.setattr(tiff, "_insert_front", lambda path, n: calls.append(n) or real(path, n))
+    assert main(_args(flight, inserted, "--scheduler", scheduler)) == 0
+    assert len(calls) == 1 and calls[0] % tiff.DATA_ALIGN == 0
+    monkeypatch.setattr(tiff, "_insert_front", lambda path, n: False)
+    assert main(_args(flight, copied, "--scheduler", scheduler)) == 0
+    assert inserted.read_bytes() == copied.read_bytes()
+    assert check_cog(inserted) == []
+    first = file_layout(inserted)["images"][0]["offsets"]
+    assert (first.min() - 4) % tiff.DATA_ALIGN == 0   # level 0 starts where the room was made
+    with rasterio.open(inserted) as ds:
+        np.testing.assert_array_equal(_bits(ds.read()), _bits(values))
+    assert not [p.name for p in tmp_path.iterdir() if p.suffix not in (".tif", ".json")]   # no spools left
+
+
+def test_cog_layout_task_is_idempotent_and_names_a_missing_spool(tmp_path):
+    rng = np.random.default_rng(0)
+    sink = CogSink.create(tmp_path / "c", 3, 1500, 1100)
+    values = rng.random((3, 1500, 1100), np.float32)
+    for r in range(0, 1500, CHUNK):
+        for c in range(0, 1100, CHUNK):
+            tile = (r, c, min(CHUNK, 1500 - r), min(CHUNK, 1100 - c))
+            with sink.open_tile(0, tile, 2) as writer:
+                buffer = writer.buffer()
+                for b in range(2):
+                    buffer[...] = np.nan
+                    buffer[:tile[2], :tile[3]] = values[b, r:r + tile[2], c:c + tile[3]]
+                    writer.write(b, buffer)
+                writer.close()
+    end = sink.lay_out(0, 2, 0)
+    assert end == os.path.getsize(sink.data_path) > 0
+    assert not [n for n in os.listdir(sink.spool) if n.startswith("L0-")]   # its spools are gone
+    assert sink.lay_out(0, 2, 0) == end    # run again (a retried task): what it recorded
+    with pytest.raises(ValueError, match=r"L0-0-0-2\.tiles: missing: a writer task of bands 2\.\. did not complete"):
+        sink.lay_out(2, 1, end)
+
+
+@pytest.mark.parametrize("shape", [(1024, 1024), (2, 513, 1023), (3, 3)])
+def test_overview_downsampling_is_the_mean_of_the_finite_pixels(shape):
+    rng = np.random.default_rng(4)
+    block = (rng.random(shape) * 300).astype(np.float32)
+    holes = block.copy()
+    holes[rng.random(shape) < 0.2] = np.nan
+    holes.flat[::101] = np.inf
+    holes[..., :2, :2] = np.nan   # one window with nothing finite
+    down = downsample2(holes)
+    h, w = shape[-2:]
+    padded = np.full((*shape[:-2], h + h % 2, w + w % 2), np.nan)
+    padded[..., :h, :w] = np.where(np.isfinite(holes), holes, np.nan)
+    windows = padded.reshape(*shape[:-2], (h + h % 2) // 2, 2, (w + w % 2) // 2, 2)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        expected = np.nanmean(windows, axis=(-3, -1))
+    assert down.dtype == np.float32 and down.shape == expected.shape
+    assert np.array_equal(np.isnan(down), np.isnan(expected)) and np.isnan(down).any()
+    np.testing.assert_allclose(down, expected, rtol=1e-6)
+    # a tile whose pixels are all finite takes a shorter way: the same bits as where one NaN elsewhere
+    # sends it the NaN-aware way
+    full, one = downsample2(block), block.copy()
+    one.flat[0] = np.nan
+    partial = downsample2(one)
+    assert np.array_equal(full.view(np.uint32).flat[1:], partial.view(np.uint32).flat[1:])
+    if h % 2 == 0 and w % 2 == 0:
+        np.testing.assert_allclose(full, block.astype(np.float64).reshape(windows.shape).mean(axis=(-3, -1)), rtol=1e-6)
 
 
 def test_blank_tiles_are_nan(rendered):

@@ -270,7 +270,7 @@ def test_cog_and_envi_siblings_hold_the_zarr_layers(flight, rendered, tmp_path):
         for b, name in enumerate(NAMES, start=1):
             assert np.array_equal(src.read(b), zarr_ds[name].values, equal_nan=True), name
     assert "band names = {cube, line, sample, time" in (tmp_path / "m_provenance.hdr").read_text()
-    from archive.outputs.tiff import check_cog
+    from archive.outputs.cog_check import check_cog
 
     assert check_cog(sibling) == []
 

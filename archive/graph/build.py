@@ -42,8 +42,8 @@ from archive.grid import boxes_intersect
 from archive.outputs.base import CHUNK
 from archive.graph.nodes import BANDS_PER_PASS, GL_RESOURCES, Node, Ref, RenderNodes
 from archive.graph.plan import GROUP, RenderPlan, band_groups
-from archive.graph.tasks import (VALUES_POOL, assemble_write_task, blank_write_task, gate_task, overview_task,
-                                 write_layers_task, write_saturated_task)
+from archive.graph.tasks import (VALUES_POOL, assemble_write_task, blank_write_task, gate_task, layout_task,
+                                 overview_task, write_layers_task, write_saturated_task)
 
 __all__ = ["HELD_VALUES_BYTES", "RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "live_renders", "render_order", "task_group_size",
            "with_task_groups"]
@@ -343,6 +343,8 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
             layer_firsts[tile[0] // CHUNK, tile[1] // CHUNK, 0] = layer_writers[t]
         writes += layer_writers.values()
         writes += _overview_tasks(layers_sink, [(0, len(layers.names))], layer_firsts, priority)
+        writes += _layout_tasks(layers_sink, [(0, len(layers.names))],
+                                {(t, 0): w for t, w in layer_writers.items()}, priority)
     saturation: list[Delayed] = []
     for t, mask in masks.items():
         tile = tiles[t][0]
@@ -350,7 +352,24 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
         with dask.annotate(priority=priority(ngroups, 1)):
             saturation.append(delayed(write_saturated_task)(sink, tile, mask, dask_key_name=skey))
     writes += _overview_tasks(sink, plan.groups, firsts, priority)
+    writes += _layout_tasks(sink, plan.groups, writers, priority)
     return RenderGraph(tuple(writes + saturation), len(renders), assemblies)
+
+
+def _layout_tasks(sink, groups, writers: dict, priority) -> list[Delayed]:
+    """For a sink that lays its output out as the render goes (COG: the full resolution in file
+    order), one task per band group once the group's writers ran, each after the one before it."""
+    if not hasattr(sink, "lay_out"):
+        return []
+    tasks: list[Delayed] = []
+    start: Delayed | int = 0
+    for g, (b0, b1) in enumerate(groups):
+        written = [w for (t, wg), w in writers.items() if wg == g]
+        key = f"layout-{tokenize(sink, b0, b1, getattr(start, 'key', start), [w.key for w in written])}"
+        with dask.annotate(priority=priority(g, 2)):
+            start = delayed(layout_task)(sink, b0, b1 - b0, start, *written, dask_key_name=key)
+        tasks.append(start)
+    return tasks
 
 
 def _overview_tasks(sink, groups, firsts: dict, priority) -> list[Delayed]:

@@ -29,7 +29,7 @@ from archive.grid import Grid
 
 Box = tuple[int, int, int, int]
 
-__all__ = ["Box", "assemble_layers", "assemble_task", "assemble_write_task", "blank_write_task", "cpu_band_pass", "gate_task", "gl_call",
+__all__ = ["Box", "assemble_layers", "assemble_task", "assemble_write_task", "blank_write_task", "cpu_band_pass", "gate_task", "gl_call", "layout_task",
            "layers_task", "lookup_task", "PackedLookup", "ValuesPool", "VALUES_POOL", "unpacked", "overview_task", "pick_task", "render_task", "write_layers_task",
            "write_saturated_task", "write_values_task"]
 
@@ -460,6 +460,13 @@ def overview_task(sink, level: int, row: int, col: int, band0: int, nbands: int,
     :meth:`~archive.outputs.cog.CogSink.children` order; None: all NaN or absent), compressed into the
     sink's spool. Returns its own quarter of the next level (or None)."""
     return sink.overview(level, row, col, band0, nbands, children)
+
+
+def layout_task(sink, band0: int, nbands: int, start: int, *written) -> int:
+    """Lay out the full resolution of bands band0.. of a COG (its writer tasks, ``written``, all ran)
+    from byte ``start`` of its data file on (:meth:`~archive.outputs.cog.CogSink.lay_out`); returns
+    where the next band group starts."""
+    return sink.lay_out(band0, nbands, start)
 
 
 def write_saturated_task(store, tile: Box, *masks: np.ndarray) -> int:

@@ -2,8 +2,10 @@
 
 :class:`CogSink`: each writer task compresses its tiles (512 px, one band per tile) and the first
 overview level computed from them into a spool file; overview tasks compute each further level from
-the one below (:meth:`CogSink.overview`); :func:`assemble_cog` then lays the compressed tiles out as
-a COG without decoding them (:mod:`archive.outputs.tiff`). :class:`CogWriter` is the format's entry
+the one below (:meth:`CogSink.overview`); a layout task per band group copies the group's
+full-resolution tiles into the COG's data file in their final order (:meth:`CogSink.lay_out`), and
+:func:`assemble_cog` puts the header and the overviews in front of them at the end, without decoding
+any tile (:mod:`archive.outputs.tiff`). :class:`CogWriter` is the format's entry
 of the registry (:mod:`archive.outputs.registry`); provenance layers go to a sibling
 ``<stem>_provenance.tif`` with nearest-neighbour overviews.
 """
@@ -46,7 +48,37 @@ class CogSink(Sink):
     def create(cls, spool: str | os.PathLike, nbands: int, height: int, width: int,
                nearest: bool = False) -> CogSink:
         os.mkdir(spool)
-        return cls(os.fspath(spool), nbands, height, width, nearest)
+        sink = cls(os.fspath(spool), nbands, height, width, nearest)
+        open(sink.data_path, "wb").close()
+        return sink
+
+    @property
+    def data_path(self) -> str:
+        """The file the full resolution is laid out in, band group after band group
+        (:meth:`lay_out`), and that becomes the COG (:func:`assemble_cog`)."""
+        return os.path.join(self.spool, "L0.data")
+
+    def lay_out(self, band0: int, nbands: int, start: int) -> int:
+        """Copy the full-resolution tiles of bands band0.. (a band group whose writer tasks all ran)
+        from their spool files into :attr:`data_path` from byte ``start`` on, in COG order, record
+        where (an index file) and delete those spool files; returns the byte after them (where the
+        next group starts). Run again (a task retried) it returns what the index recorded."""
+        from archive.outputs.tiff import read_part_index, write_level_part, write_part_index
+
+        index = os.path.join(self.spool, f"P0-{band0}.index")
+        if os.path.exists(index):
+            return read_part_index(index).end
+        rows, cols = (-(-n // CHUNK) for n in (self.height, self.width))
+        spools = {(0, r, c, band0): self.spool_path(0, r, c, band0) for r in range(rows) for c in range(cols)}
+        for path in spools.values():
+            if not os.path.exists(path):
+                raise ValueError(f"{path}: missing: a writer task of bands {band0}.. did not complete")
+        part = write_level_part(self.data_path, spools, height=self.height, width=self.width, band0=band0,
+                                nbands=nbands, area_tiles=CHUNK // 512, start=start)
+        write_part_index(index, part)
+        for path in spools.values():
+            os.remove(path)
+        return part.end
 
     def downsample(self, block: np.ndarray) -> np.ndarray:
         """One overview step of ``block`` (..., h, w) -> (..., ceil(h/2), ceil(w/2)) float32: the
@@ -212,25 +244,36 @@ def _micrometres(nm: float) -> str:
     return f"{nm / 1000.0:.7f}".rstrip("0").rstrip(".")
 
 
-def _spools(sink: CogSink) -> dict[tuple[int, int, int, int], str]:
-    """The spool files of a COG sink by (level, tile row, tile col, first band)."""
-    spools = {}
+def _spools(sink: CogSink) -> tuple[dict[tuple[int, int, int, int], str], list]:
+    """The spool files of a COG sink by (level, tile row, tile col, first band), and the parts of
+    the full resolution already laid out (:meth:`CogSink.lay_out`)."""
+    from archive.outputs.tiff import read_part_index
+
+    spools, parts = {}, []
     for name in os.listdir(sink.spool):
         if name.endswith(".tiles") and name.startswith("L"):
             level, r, c, band0 = (int(v) for v in name[1:-len(".tiles")].split("-"))
             spools[level, r, c, band0] = os.path.join(sink.spool, name)
-    return spools
+        elif name.startswith("P0-") and name.endswith(".index"):
+            parts.append(read_part_index(os.path.join(sink.spool, name)))
+    return spools, parts
 
 
-def assemble_cog(sink: CogSink, path: str | os.PathLike, grid: Grid, nbands: int, metadata: str) -> int:
-    """Lay the spooled tiles of ``sink`` out as a COG at ``path`` (no decoding), with the
-    ``GDAL_METADATA`` ``metadata``; returns its size. RenderError when a tile is missing."""
+def assemble_cog(sink: CogSink, path: str | os.PathLike, grid: Grid, nbands: int, metadata: str,
+                 insert: bool = True) -> int:
+    """Lay the tiles of ``sink`` out as a COG at ``path`` (no decoding), with the ``GDAL_METADATA``
+    ``metadata``; returns its size. The full resolution comes from the sink's data file where the
+    graph laid it out (:meth:`CogSink.lay_out`; ``insert``: put the rest in front of it without
+    copying it, where the file system can), else from the spool files. RenderError when a tile is
+    missing."""
     from archive.outputs.tiff import assemble
 
+    spools, parts = _spools(sink)
     try:
-        return assemble(path, _spools(sink), height=grid.height, width=grid.width, nbands=nbands, epsg=grid.epsg,
+        return assemble(path, spools, height=grid.height, width=grid.width, nbands=nbands, epsg=grid.epsg,
                         transform=grid.transform, metadata=metadata,
-                        area_tiles=[CHUNK // 512] + [1] * sink.overview_levels)
+                        area_tiles=[CHUNK // 512] + [1] * sink.overview_levels,
+                        level0=(sink.data_path, parts) if parts else None, insert=insert)
     except ValueError as exc:
         raise RenderError(f"{path}: {exc}") from exc
 

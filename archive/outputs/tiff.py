@@ -3,8 +3,13 @@
 The writer tasks of the render graph compress their own tiles (:func:`encode_tile`: floating-point
 predictor + Zstandard, 512 x 512 float32, one band per tile) and compute the overviews from them
 (:func:`downsample2`, each level from the one below), and put the compressed tiles in *spool* files
-(:func:`write_spool`: one per task). :func:`assemble` then lays them out as GDAL's COG driver does and
-copies their bytes into place with ``copy_file_range`` (in the kernel, without reading them back):
+(:func:`write_spool`: one per task). Once a band group's writers ran, :func:`write_level_part`
+copies that group's full-resolution tiles into the COG's data file in their final order
+(``copy_file_range``: in the kernel, from the page cache, while the render goes on; the spool files
+are deleted before they reach the disk). :func:`assemble` then lays the rest out as GDAL's COG
+driver does and puts it in front of the full resolution: by ``fallocate(FALLOC_FL_INSERT_RANGE)``
+where the file system allows (ext4, XFS: no byte of the full resolution is copied again), else by
+copying. Without laid-out parts it copies every level from the spool files. The file:
 
 - the TIFF (or BigTIFF, beyond 4 GiB) header, then GDAL's "ghost" structural metadata
   (``LAYOUT=IFDS_BEFORE_DATA``, ``BLOCK_ORDER=ROW_MAJOR``, ``BLOCK_LEADER=SIZE_AS_UINT4``,
@@ -12,7 +17,8 @@ copies their bytes into place with ``copy_file_range`` (in the kernel, without r
   ``LAYOUT=COG``;
 - the IFDs of the full-resolution image and of each overview (largest first), each followed by its
   long tag values;
-- the tile data, smallest overview first and full resolution last; within a level band after band
+- the tile data, smallest overview first and full resolution last (from a multiple of
+  :data:`DATA_ALIGN` bytes on when laid out ahead; zeros before it); within a level band after band
   (``PlanarConfiguration`` = separate, GDAL's ``INTERLEAVE=BAND``: each band's tiles contiguous, so
   reading a few bands reads only their bytes), tiles row-major; each tile preceded by its size
   (uint32) and followed by a repeat of its last 4 bytes.
@@ -24,20 +30,19 @@ follow GDAL's ``OVERVIEWS=AUTO`` (halve until the level fits in one tile), of si
 
 from __future__ import annotations
 
-import mmap
 import os
 import struct
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from itertools import pairwise
 from xml.sax.saxutils import escape
 
 import numpy as np
 
 from archive.files import write_atomic
 
-__all__ = ["COMPRESSION", "GHOST", "PREDICTOR", "TILE", "ZSTD_LEVEL", "Spool", "assemble", "decode_tile",
+__all__ = ["COMPRESSION", "DATA_ALIGN", "GHOST", "PREDICTOR", "TILE", "TYPES", "ZSTD_LEVEL", "LevelPart", "Spool",
+           "assemble", "read_part_index", "write_level_part", "write_part_index", "decode_tile",
            "downsample2", "encode_tile", "frame", "level_shapes", "read_spool", "write_spool"]
 
 #: COG tile edge, pixels (GDAL's default block size).
@@ -109,6 +114,14 @@ def downsample2(block: np.ndarray) -> np.ndarray:
         padded = np.full((*lead, h + h % 2, w + w % 2), np.nan, np.float32)
         padded[..., :h, :w] = block
         block = padded
+    # Where every pixel is finite (most tiles) the sums alone: a sum is finite exactly when its four
+    # pixels are (an overflow to inf takes the NaN-aware way below), and x * 0.25 is x / 4, bit for bit.
+    with np.errstate(over="ignore", invalid="ignore"):
+        total = block[..., 0::2, :] + block[..., 1::2, :]
+        total = total[..., 0::2] + total[..., 1::2]
+    if np.isfinite(total).all():
+        total *= np.float32(0.25)
+        return total
     finite = np.isfinite(block)
     zeroed = np.where(finite, block, np.float32(0))
     total = zeroed[..., 0::2, :] + zeroed[..., 1::2, :]
@@ -171,7 +184,7 @@ def read_spool(path: str | os.PathLike) -> Spool:
 # TIFF structure
 # ---------------------------------------------------------------------------------------------
 _SHORT, _LONG, _DOUBLE, _ASCII, _LONG8 = 3, 4, 12, 2, 16
-_TYPE = {_SHORT: ("H", 2), _LONG: ("I", 4), _DOUBLE: ("d", 8), _ASCII: ("s", 1), _LONG8: ("Q", 8)}
+TYPES = {_SHORT: ("H", 2), _LONG: ("I", 4), _DOUBLE: ("d", 8), _ASCII: ("s", 1), _LONG8: ("Q", 8)}
 
 
 def _entry(tag: int, kind: int, values) -> tuple[int, int, bytes, int]:
@@ -179,7 +192,7 @@ def _entry(tag: int, kind: int, values) -> tuple[int, int, bytes, int]:
     if kind == _ASCII:
         data = values.encode("ascii", "replace") + b"\0"
         return tag, kind, data, len(data)
-    arr = np.asarray(values, dtype=f"<{_TYPE[kind][0]}").ravel()
+    arr = np.asarray(values, dtype=f"<{TYPES[kind][0]}").ravel()
     return tag, kind, arr.tobytes(), arr.size
 
 
@@ -250,9 +263,113 @@ def _levels(height: int, width: int) -> list[_Level]:
     return [_Level(h, w, -(-h // TILE), -(-w // TILE)) for h, w in level_shapes(height, width)]
 
 
+@dataclass(frozen=True)
+class LevelPart:
+    """Bands ``band0 .. band0 + len(offsets)`` of the full resolution, already laid out (band after
+    band, tiles row-major, framed) in a data file by :func:`write_level_part`: tile (r, c) of band
+    ``band0 + k`` at ``offsets[k, r, c]`` (bytes from the data file's start), ``counts[k, r, c]``
+    bytes long; the part fills ``start .. end`` of the data file."""
+
+    band0: int
+    start: int
+    end: int
+    offsets: np.ndarray
+    counts: np.ndarray
+
+
+def _by_area(spools: dict[tuple[int, int, int, int], str]) -> dict[tuple[int, int, int], list[tuple[int, Spool]]]:
+    """Spool indexes by (level, area row, area col), each a list of (first band, spool)."""
+    by_area: dict[tuple[int, int, int], list[tuple[int, Spool]]] = {}
+    for (level, r, c, band0), path in spools.items():
+        by_area.setdefault((level, r, c), []).append((band0, read_spool(path)))
+    for parts in by_area.values():
+        parts.sort(key=lambda p: p[0])
+    return by_area
+
+
+def _level_runs(by_area, li: int, lv: _Level, span: int, bands: Sequence[int], position: int):
+    """The data of ``bands`` of level ``li`` in file order (band after band, tiles row-major) from
+    byte ``position`` on: (runs [(spool path, start in spool, framed length)], offsets and counts
+    (len(bands), rows, cols) of each tile's data, the position after the last tile)."""
+    runs: list[tuple[str, int, int]] = []
+    off = np.zeros((len(bands), lv.rows, lv.cols), np.int64)
+    cnt = np.zeros((len(bands), lv.rows, lv.cols), np.int64)
+    for k, b in enumerate(bands):
+        for ty in range(lv.rows):
+            R, i = divmod(ty, span)
+            for C in range(-(-lv.cols // span)):
+                sp, row = _find(by_area.get((li, R, C), []), b, li, R, C)
+                n = min(span, lv.cols - C * span)
+                sizes = sp.sizes[row, i * n:i * n + n]
+                start = int(sp.starts[row, i * n])
+                length = int((sizes + 8).sum())
+                if runs and runs[-1][0] == sp.path and runs[-1][1] + runs[-1][2] == start:
+                    runs[-1] = (sp.path, runs[-1][1], runs[-1][2] + length)
+                else:
+                    runs.append((sp.path, start, length))
+                framed = np.concatenate([[0], np.cumsum(sizes + 8)[:-1]])
+                off[k, ty, C * span:C * span + n] = position + framed + 4
+                cnt[k, ty, C * span:C * span + n] = sizes
+                position += length
+    return runs, off, cnt, position
+
+
+def _place(runs: Sequence[tuple[str, int, int]], at: int) -> tuple[list[tuple[str, int, int, int]], int]:
+    """Runs with their destination offsets, laid end to end from ``at``; and the end."""
+    targets = []
+    for path, start, length in runs:
+        targets.append((path, start, length, at))
+        at += length
+    return targets, at
+
+
+def write_level_part(data: str | os.PathLike, spools: dict[tuple[int, int, int, int], str], *, height: int,
+                     width: int, band0: int, nbands: int, area_tiles: int, start: int, threads: int = 1) -> LevelPart:
+    """Copy the full-resolution tiles of bands band0.. from their spool files (level 0, keyed as for
+    :func:`assemble`) into the existing file ``data`` from byte ``start`` on, band after band, tiles
+    row-major, framed as in the COG (in the kernel: ``copy_file_range``); returns where they went.
+
+    Run once per band group while the render goes on, so that most of a COG's bytes are written once,
+    in their final order, while the spool files are still in the page cache (:func:`assemble` then
+    puts the header and the overviews in front without copying them again where it can)."""
+    lv = _levels(height, width)[0]
+    runs, off, cnt, end = _level_runs(_by_area(spools), 0, lv, area_tiles, range(band0, band0 + nbands), start)
+    targets, _ = _place(runs, start)
+    fd = os.open(data, os.O_WRONLY)
+    try:
+        _copy_runs(fd, targets, threads)
+    finally:
+        os.close(fd)
+    return LevelPart(band0, start, end, off, cnt)
+
+
+_PART_MAGIC = b"APRT"
+
+
+def write_part_index(path: str | os.PathLike, part: LevelPart) -> None:
+    """Save ``part``'s index (atomically: the part is complete once its index exists)."""
+    nb, rows, cols = part.offsets.shape
+    write_atomic(path, [_PART_MAGIC, struct.pack("<6q", part.band0, nb, rows, cols, part.start, part.end),
+                        part.offsets.astype("<i8").tobytes(), part.counts.astype("<i8").tobytes()])
+
+
+def read_part_index(path: str | os.PathLike) -> LevelPart:
+    with open(path, "rb") as f:
+        raw = f.read()
+    if raw[:4] != _PART_MAGIC or len(raw) < 52:
+        raise ValueError(f"{path}: not a COG part index")
+    band0, nb, rows, cols, start, end = struct.unpack_from("<6q", raw, 4)
+    n = nb * rows * cols
+    if len(raw) != 52 + 16 * n:
+        raise ValueError(f"{path}: truncated COG part index")
+    arrays = np.frombuffer(raw, "<i8", 2 * n, 52).astype(np.int64).reshape(2, nb, rows, cols)
+    return LevelPart(band0, start, end, arrays[0], arrays[1])
+
+
 def assemble(dest: str | os.PathLike, spools: dict[tuple[int, int, int, int], str], *, height: int, width: int,
              nbands: int, epsg: int, transform, metadata: str, area_tiles: Sequence[int],
-             threads: int = 4) -> int:
+             threads: int = 4, level0: tuple[str, Sequence[LevelPart]] | None = None,
+             insert: bool = True) -> int:
     """Write the COG at ``dest`` from spool files; returns its size in bytes.
 
     spools: (level, area row, area col, first band) -> spool path; an area of level L spans
@@ -260,51 +377,30 @@ def assemble(dest: str | os.PathLike, spools: dict[tuple[int, int, int, int], st
     bands). Every tile of every band of every level must be in some spool (ValueError otherwise).
     transform: the affine (gsd, 0, x0, 0, -gsd, y0) of the full resolution; metadata: GDAL_METADATA
     XML (:func:`gdal_metadata`).
+
+    level0: (data file, its parts) when the full resolution was laid out already
+    (:func:`write_level_part`; level 0's spools are then not used): the header, the IFDs and the
+    overviews go in front of it, their end padded to a multiple of ``DATA_ALIGN`` bytes; with
+    ``insert``, by making room at the data file's start (``fallocate`` ``FALLOC_FL_INSERT_RANGE``:
+    ext4, XFS; no data moves) and renaming it to ``dest``; where the file system cannot, by copying
+    it behind them into ``dest`` (the same bytes).
     """
     levels = _levels(height, width)
-    index = {key: read_spool(path) for key, path in spools.items()}
-    by_area: dict[tuple[int, int, int], list[tuple[int, Spool]]] = {}
-    for (level, r, c, band0), sp in index.items():
-        by_area.setdefault((level, r, c), []).append((band0, sp))
+    by_area = _by_area({k: v for k, v in spools.items() if level0 is None or k[0] > 0})
 
-    # Data runs in file order: (spool path, start in spool, framed length, tile sizes, first tile index)
+    # Data in file order: smallest overview first, full resolution last (offsets relative to the data start)
     runs: list[tuple[str, int, int]] = []
-    offsets: list[np.ndarray] = []
-    counts: list[np.ndarray] = []
-    position = 0  # relative to the start of the data; fixed up below
-    for li in range(len(levels) - 1, -1, -1):
-        lv, span = levels[li], area_tiles[li]
-        off = np.zeros((nbands, lv.rows, lv.cols), np.int64)
-        cnt = np.zeros((nbands, lv.rows, lv.cols), np.int64)
-        bands_of: dict[tuple[int, int], list[tuple[int, Spool]]] = {}
-        for R in range(-(-lv.rows // span)):
-            for C in range(-(-lv.cols // span)):
-                parts = sorted(by_area.get((li, R, C), []), key=lambda p: p[0])
-                bands_of[R, C] = parts
-        for b in range(nbands):
-            for ty in range(lv.rows):
-                R, i = divmod(ty, span)
-                C = 0
-                while C * span < lv.cols:
-                    sp, k = _find(bands_of[R, C], b, li, R, C)
-                    acols = min(span, lv.cols - C * span)
-                    first = (k, i * acols)
-                    n = acols
-                    sizes = sp.sizes[first[0], first[1]:first[1] + n]
-                    start = int(sp.starts[first[0], first[1]])
-                    length = int((sizes + 8).sum())
-                    if runs and runs[-1][0] == sp.path and runs[-1][1] + runs[-1][2] == start:
-                        runs[-1] = (sp.path, runs[-1][1], runs[-1][2] + length)
-                    else:
-                        runs.append((sp.path, start, length))
-                    framed = np.concatenate([[0], np.cumsum(sizes + 8)[:-1]])
-                    off[b, ty, C * span:C * span + n] = position + framed + 4
-                    cnt[b, ty, C * span:C * span + n] = sizes
-                    position += length
-                    C += 1
-        offsets.insert(0, off)
-        counts.insert(0, cnt)
-    data_bytes = position
+    offsets: list[np.ndarray] = [np.empty(0)] * len(levels)
+    counts: list[np.ndarray] = [np.empty(0)] * len(levels)
+    position = 0
+    for li in range(len(levels) - 1, -1 if level0 is None else 0, -1):
+        level_runs, offsets[li], counts[li], position = _level_runs(by_area, li, levels[li], area_tiles[li],
+                                                                    range(nbands), position)
+        runs += level_runs
+    front = position   # bytes of tile data before the data file's (level0) or all of it
+    if level0 is not None:
+        data0, parts = level0
+        offsets[0], counts[0], data0_size = _parts_index(parts, nbands, levels[0])
 
     ghost = GHOST.encode("ascii")
     ghost = f"GDAL_STRUCTURAL_METADATA_SIZE={len(ghost):06d} bytes\n".encode("ascii") + ghost
@@ -332,8 +428,14 @@ def assemble(dest: str | os.PathLike, spools: dict[tuple[int, int, int, int], st
         sizes = [_ifd_size(entries(li, bigtiff, offsets[li], counts[li]), bigtiff) for li in range(len(levels))]
         data_start = first_ifd + sum(sizes)
         data_start += data_start % 2
-        if bigtiff or data_start + data_bytes < 2**32 - 1:
+        total = data_start + front
+        if level0 is not None:   # the data file from a block boundary on
+            data0_at = -(-total // DATA_ALIGN) * DATA_ALIGN
+            total = data0_at + data0_size
+        if bigtiff or total < 2**32 - 1:
             break
+    if level0 is not None:
+        offsets[0] = offsets[0] + (data0_at - data_start)   # every offset gets data_start below
 
     head = bytearray()
     head += (b"II" + struct.pack("<HHHQ", 43, 8, 0, first_ifd)) if bigtiff else (b"II" + struct.pack("<HI", 42, first_ifd))
@@ -346,19 +448,71 @@ def assemble(dest: str | os.PathLike, spools: dict[tuple[int, int, int, int], st
         where += sizes[li]
     head += b"\0" * (data_start - len(head))
 
-    total = data_start + data_bytes
+    targets, _ = _place(runs, data_start)
+    if level0 is not None and insert and _insert_front(data0, data0_at):
+        fd = os.open(data0, os.O_WRONLY)
+        try:
+            os.pwrite(fd, bytes(head), 0)
+            _copy_runs(fd, targets, threads)
+        finally:
+            os.close(fd)
+        os.replace(data0, dest)
+        return total
     fd = os.open(dest, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
     try:
         os.pwrite(fd, bytes(head), 0)
-        targets, pos = [], data_start
-        for path, start, length in runs:
-            targets.append((path, start, length, pos))
-            pos += length
+        if level0 is not None:
+            targets.append((os.fspath(data0), 0, data0_size, data0_at))
         _copy_runs(fd, targets, threads)
         os.ftruncate(fd, total)
     finally:
         os.close(fd)
     return total
+
+
+#: The full resolution's data starts at a multiple of this many bytes when laid out ahead
+#: (:func:`write_level_part`): ``FALLOC_FL_INSERT_RANGE`` works in whole file-system blocks.
+DATA_ALIGN = 65536
+_FALLOC_FL_INSERT_RANGE = 0x20
+
+
+def _insert_front(path: str | os.PathLike, length: int) -> bool:
+    """Make ``length`` bytes of room (a hole) at the start of the file ``path``, moving its data
+    up without copying it (Linux ``fallocate(FALLOC_FL_INSERT_RANGE)``); False where the file
+    system, the kernel or the C library cannot (the caller then copies)."""
+    import ctypes
+
+    if os.path.getsize(path) == 0:
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        fallocate = libc.fallocate
+    except (OSError, AttributeError):
+        return False
+    fallocate.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.c_int64, ctypes.c_int64]
+    fallocate.restype = ctypes.c_int
+    fd = os.open(path, os.O_RDWR)
+    try:
+        return fallocate(fd, _FALLOC_FL_INSERT_RANGE, 0, length) == 0
+    finally:
+        os.close(fd)
+
+
+def _parts_index(parts: Sequence[LevelPart], nbands: int, lv: _Level) -> tuple[np.ndarray, np.ndarray, int]:
+    """Offsets and counts (nbands, rows, cols) of the full resolution from the parts of its data
+    file, and the file's data size; ValueError unless the parts hold every band once, end to end."""
+    offsets = np.zeros((nbands, lv.rows, lv.cols), np.int64)
+    counts = np.zeros_like(offsets)
+    end, band = 0, 0
+    for part in sorted(parts, key=lambda p: p.band0):
+        if part.band0 != band or part.start != end or part.offsets.shape[1:] != (lv.rows, lv.cols):
+            raise ValueError(f"no laid-out full-resolution tiles of band {band}: a band group's layout did not complete")
+        nb = part.offsets.shape[0]
+        offsets[band:band + nb], counts[band:band + nb] = part.offsets, part.counts
+        band, end = band + nb, part.end
+    if band != nbands:
+        raise ValueError(f"no laid-out full-resolution tiles of band {band}: a band group's layout did not complete")
+    return offsets, counts, end
 
 
 def _find(parts: list[tuple[int, Spool]], band: int, level: int, r: int, c: int) -> tuple[Spool, int]:
@@ -385,7 +539,11 @@ def _copy_runs(fd: int, runs: list[tuple[str, int, int, int]], threads: int) -> 
         finally:
             os.close(src)
 
-    with ThreadPoolExecutor(max(1, threads)) as pool:
+    if threads <= 1 or len(by_source) <= 1:
+        for path in by_source:
+            copy(path)
+        return
+    with ThreadPoolExecutor(threads) as pool:
         for _ in pool.map(copy, list(by_source)):
             pass
 
@@ -402,102 +560,3 @@ def _copy(src: int, dst: int, start: int, length: int, dest: int) -> None:
                 raise OSError(f"tile spool ended early at byte {start}")
             n = os.pwrite(dst, data, dest)
         start, dest, length = start + n, dest + n, length - n
-
-
-def file_layout(path: str | os.PathLike) -> dict:
-    """What a COG check needs, read from the file's own structure (memory-mapped: ``data``): ``bigtiff``, ``ghost`` (the
-    structural metadata text), ``ifds`` (offsets, in chain order) and per IFD ``width``,
-    ``height``, ``subfile``, ``offsets`` and ``counts`` (tile offsets / byte counts, in TIFF order),
-    ``planar``, ``compression``, ``predictor``."""
-    with open(path, "rb") as f:
-        data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
-    if data[:2] != b"II":
-        raise ValueError(f"{path}: not a little-endian TIFF")
-    version = struct.unpack_from("<H", data, 2)[0]
-    bigtiff = version == 43
-    first = struct.unpack_from("<Q", data, 8)[0] if bigtiff else struct.unpack_from("<I", data, 4)[0]
-    ghost = ""
-    start = 16 if bigtiff else 8
-    if data[start:start + 30] == b"GDAL_STRUCTURAL_METADATA_SIZE=":
-        size = int(data[start + 30:start + 36])
-        line = data.find(b"\n", start) + 1
-        ghost = data[line:line + size].decode("latin1")
-    ifds, out = [], []
-    offset = first
-    sizes = {t: s for t, (_, s) in _TYPE.items()}
-    codes = {t: c for t, (c, _) in _TYPE.items()}
-    while offset:
-        ifds.append(offset)
-        if bigtiff:
-            n = struct.unpack_from("<Q", data, offset)[0]
-            pos, entry, inline = offset + 8, 20, 8
-        else:
-            n = struct.unpack_from("<H", data, offset)[0]
-            pos, entry, inline = offset + 2, 12, 4
-        tags = {}
-        for k in range(n):
-            p = pos + k * entry
-            tag, kind = struct.unpack_from("<HH", data, p)
-            count = struct.unpack_from("<Q" if bigtiff else "<I", data, p + 4)[0]
-            nbytes = sizes.get(kind, 1) * count
-            vp = p + (12 if bigtiff else 8)
-            if nbytes > inline:
-                vp = struct.unpack_from("<Q" if bigtiff else "<I", data, vp)[0]
-            if kind in codes and kind != _ASCII:
-                tags[tag] = np.frombuffer(data, f"<{codes[kind]}", count, vp)
-            else:
-                tags[tag] = data[vp:vp + nbytes]
-        offset = struct.unpack_from("<Q" if bigtiff else "<I", data, pos + n * entry)[0]
-        out.append({"width": int(tags[256][0]), "height": int(tags[257][0]),
-                    "subfile": int(tags.get(254, [0])[0]), "offsets": np.asarray(tags.get(324, []), np.int64),
-                    "counts": np.asarray(tags.get(325, []), np.int64), "planar": int(tags.get(284, [1])[0]),
-                    "compression": int(tags[259][0]), "predictor": int(tags.get(317, [1])[0]),
-                    "samples": int(tags.get(277, [1])[0]), "tile": (int(tags[323][0]), int(tags[322][0]))})
-    return {"bigtiff": bigtiff, "ghost": ghost, "ifds": ifds, "images": out, "size": len(data), "data": data}
-
-
-def check_cog(path: str | os.PathLike) -> list[str]:
-    """Errors of the COG layout of ``path`` (empty when valid): the checks of GDAL's
-    ``validate_cloud_optimized_geotiff.py`` with ``--full-check``, done on every band: ghost
-    metadata right after the header, the main IFD right after it, IFDs before any tile data and in
-    order of decreasing size, tile data from the smallest overview to the full resolution, tiles
-    row-major (band after band), each tile's size leader and repeated trailer."""
-    layout = file_layout(path)
-    errors: list[str] = []
-    raw = layout["data"]
-    ghost = layout["ghost"]
-    if "LAYOUT=IFDS_BEFORE_DATA" not in ghost:
-        errors.append("no GDAL structural metadata with LAYOUT=IFDS_BEFORE_DATA after the header")
-    start = 16 if layout["bigtiff"] else 8
-    expected = start + len(f"GDAL_STRUCTURAL_METADATA_SIZE={0:06d} bytes\n") + len(ghost)
-    expected += expected % 2
-    if layout["ifds"][0] != expected:
-        errors.append(f"main IFD at {layout['ifds'][0]}, expected {expected}")
-    images = layout["images"]
-    if any(b < a for a, b in pairwise(layout["ifds"])):
-        errors.append("IFDs are not in increasing offset order")
-    for a, b in pairwise(images):
-        if b["width"] > a["width"] or b["height"] > a["height"] or b["subfile"] != 1:
-            errors.append("overviews are not reduced-resolution images of decreasing size")
-    first_data = min(int(im["offsets"].min()) for im in images)
-    if first_data < max(layout["ifds"]):
-        errors.append("tile data before the last IFD")
-    firsts = [int(im["offsets"][0]) for im in images]
-    if any(firsts[i] < firsts[i + 1] for i in range(len(firsts) - 1)):
-        errors.append("tile data not ordered from the smallest overview to the full resolution")
-    lasts = [int((im["offsets"] + im["counts"]).max()) for im in images]
-    if any(lasts[i + 1] > firsts[i] for i in range(len(images) - 1)):
-        errors.append("levels' tile data overlap")
-    for li, im in enumerate(images):
-        offs, cnts = im["offsets"], im["counts"]
-        if "BLOCK_ORDER=ROW_MAJOR" in ghost and np.any(np.diff(offs) < 0):
-            errors.append(f"image {li}: tiles not in row-major (band after band) order")
-        for o, n in zip(offs.tolist(), cnts.tolist()):
-            if struct.unpack_from("<I", raw, o - 4)[0] != n:
-                errors.append(f"image {li}: tile at {o}: wrong size leader")
-                break
-            if n >= 4 and raw[o + n - 4:o + n] != raw[o + n:o + n + 4]:
-                errors.append(f"image {li}: tile at {o}: wrong trailer")
-                break
-    return errors
-
