@@ -114,16 +114,14 @@ def downsample2(block: np.ndarray) -> np.ndarray:
         padded = np.full((*lead, h + h % 2, w + w % 2), np.nan, np.float32)
         padded[..., :h, :w] = block
         block = padded
-    # Where every pixel is finite (most tiles) the sums alone: a sum is finite exactly when its four
-    # pixels are (an overflow to inf takes the NaN-aware way below), and x * 0.25 is x / 4, bit for bit.
-    with np.errstate(over="ignore", invalid="ignore"):
+    finite = np.isfinite(block)
+    if finite.all():   # most tiles: the sums alone (x * 0.25 is x / 4, bit for bit)
         total = block[..., 0::2, :] + block[..., 1::2, :]
         total = total[..., 0::2] + total[..., 1::2]
-    if np.isfinite(total).all():
         total *= np.float32(0.25)
         return total
-    finite = np.isfinite(block)
-    zeroed = np.where(finite, block, np.float32(0))
+    zeroed = block.copy()
+    np.copyto(zeroed, np.float32(0), where=~finite)
     total = zeroed[..., 0::2, :] + zeroed[..., 1::2, :]
     total = total[..., 0::2] + total[..., 1::2]
     flags = finite.view(np.uint8)
