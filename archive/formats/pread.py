@@ -13,11 +13,12 @@ call per line, or the lines read whole, where the map touches only their pages).
 Read pattern per interleave (file order ``bsq (band, line, sample)``, ``bil (line, band, sample)``,
 ``bip (line, sample, band)``): for BIL the requested bands, sorted, are merged into *segments*
 (contiguous band ranges; two runs merge when the bands between them are at most :data:`GAP_BYTES`
-per line). BSQ reads each band in one call straight into the output (swapped in place); BIL reads
-each segment line by line (one call per line: the segment is contiguous inside each line record)
-into a staging block of at most :data:`STAGE_BYTES`, then copies the bands out; BIP reads blocks of whole lines (a band is one
-value per pixel record: nothing smaller is contiguous). The staging arrays have the file's byte
-order, so the copy out converts to native order. No file stays open.
+per line). BSQ reads each band in one call straight into the output (swapped in place); BIL
+reads each segment line by line (one call per line: the segment is contiguous inside each line
+record) into a staging block of at most :data:`STAGE_BYTES`, then copies the bands out; BIP reads
+blocks of whole lines (a band is one value per pixel record: nothing smaller is contiguous). The
+staging arrays have the file's byte order, so the copy out converts to native order. No file
+stays open.
 """
 
 from __future__ import annotations

@@ -148,7 +148,7 @@ class RawFlightSource(NavigatedSource):
         return self._raw[self._check(cube)].files
 
     def read_bands(self, cube: int, bands: Sequence[int]) -> np.ndarray:
-        """(len(bands), lines, samples) DN of ``cube``, native dtype (memory-mapped read)."""
+        """(len(bands), lines, samples) DN of ``cube``, native dtype (read with ``os.preadv``: no memory map)."""
         c = self._raw[self._check(cube)]
         return EnviCube(c.files.data).bands(band_list(bands, c.header.bands, str(c.files.data)))
 
