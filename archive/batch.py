@@ -160,6 +160,8 @@ class _Report:
 
     def __init__(self, directory: Path, flights: list[Flight]):
         self.path, self.flights = directory / REPORT, flights
+        for tmp in directory.glob(f"{REPORT}.*.partial"):   # a killed run's report being rewritten
+            remove_path(tmp)
 
     def write(self, complete: bool = False) -> None:
         counts = {s: sum(f.status == s for f in self.flights) for s in ("done", "skipped", "failed", "pending")}

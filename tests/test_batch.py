@@ -253,6 +253,7 @@ def test_resume_redoes_incomplete_outputs_and_refuses_another_recipe(flights, tm
     (out / f"{ids[1]}.tif.json").unlink()
     (out / f".{ids[2]}.tif.partial-999999999").mkdir()
     (out / f"{ids[2]}.tif.json.0123abcd.partial").write_text("{")
+    (out / "report.json.0123abcd.partial").write_text("{")   # killed while the report was rewritten
     stamp = (out / f"{ids[0]}.tif").stat().st_mtime_ns
     code, stdout, stderr = render_batch(archive, out)   # without --resume: refused, nothing touched
     assert code == 2 and "output exists already" in stderr and "--resume" in stderr
