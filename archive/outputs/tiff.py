@@ -312,13 +312,13 @@ def _level_runs(by_area, li: int, lv: _Level, span: int, bands: Sequence[int], p
     return runs, off, cnt, position
 
 
-def _place(runs: Sequence[tuple[str, int, int]], at: int) -> tuple[list[tuple[str, int, int, int]], int]:
-    """Runs with their destination offsets, laid end to end from ``at``; and the end."""
+def _place(runs: Sequence[tuple[str, int, int]], at: int) -> list[tuple[str, int, int, int]]:
+    """Runs with their destination offsets, laid end to end from ``at``."""
     targets = []
     for path, start, length in runs:
         targets.append((path, start, length, at))
         at += length
-    return targets, at
+    return targets
 
 
 def write_level_part(data: str | os.PathLike, spools: dict[tuple[int, int, int, int], str], *, height: int,
@@ -332,7 +332,7 @@ def write_level_part(data: str | os.PathLike, spools: dict[tuple[int, int, int, 
     puts the header and the overviews in front without copying them again where it can)."""
     lv = _levels(height, width)[0]
     runs, off, cnt, end = _level_runs(_by_area(spools), 0, lv, area_tiles, range(band0, band0 + nbands), start)
-    targets, _ = _place(runs, start)
+    targets = _place(runs, start)
     fd = os.open(data, os.O_WRONLY)
     try:
         _copy_runs(fd, targets, threads)
@@ -446,7 +446,7 @@ def assemble(dest: str | os.PathLike, spools: dict[tuple[int, int, int, int], st
         where += sizes[li]
     head += b"\0" * (data_start - len(head))
 
-    targets, _ = _place(runs, data_start)
+    targets = _place(runs, data_start)
     if level0 is not None and insert and _insert_front(data0, data0_at):
         fd = os.open(data0, os.O_WRONLY)
         try:
