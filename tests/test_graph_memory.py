@@ -9,7 +9,8 @@ import pickle
 
 import numpy as np
 
-from archive.graph.build import HELD_VALUES_BYTES, RENDERS_AHEAD, live_renders, render_order, task_group_size
+from archive.graph.build import (HELD_VALUES_BYTES, RENDERS_AHEAD, live_renders, render_order, renders_held,
+                                 task_group_size)
 from archive.graph.plan import CubeJob, RenderPlan, band_groups
 from archive.graph.tasks import VALUES_POOL, PackedLookup, ValuesPool, unpacked
 from archive.grid import Grid
@@ -49,8 +50,11 @@ def test_live_renders_follow_the_passes_and_groups_shrink_to_fit():
     sizes = [task_group_size(lawn_mower(n)) for n in (2, 4, 8, 16)]
     assert sizes == sorted(sizes, reverse=True) and sizes[-1] >= 4
     for n, size in zip((2, 4, 8, 16), sizes):   # all renders held at once fit the budget (or 4 bands)
-        held = (live_renders(lawn_mower(n)) + RENDERS_AHEAD + VALUES_POOL.keep) * size * TILE * TILE * 4
-        assert held <= HELD_VALUES_BYTES or size == 4
+        held = renders_held(lawn_mower(n))
+        assert held == min(live_renders(lawn_mower(n)) + RENDERS_AHEAD, 2 * n) + VALUES_POOL.keep
+        assert held * size * TILE * TILE * 4 <= HELD_VALUES_BYTES or size == 4
+    # a flight of fewer cubes than live + ahead holds at most its cubes: bigger groups, the same bytes
+    assert renders_held(lawn_mower(2)) == 4 + VALUES_POOL.keep < live_renders(lawn_mower(2)) + RENDERS_AHEAD + VALUES_POOL.keep
     # bigger cube windows: as many bands as fit, not a multiple of 4 (what is held stays near the
     # budget, flat, as the flights get longer and more renders are alive at once)
     big = lawn_mower(4, passes=1)
@@ -59,7 +63,8 @@ def test_live_renders_follow_the_passes_and_groups_shrink_to_fit():
     jobs = tuple(CubeJob(0, c, None, (0, c * side, side, side), grid.window(0, c * side, side, side)) for c in range(4))
     big = RenderPlan(grid, jobs, big.bands, big.groups)
     per_band = side * side * 4
-    held = live_renders(big) + RENDERS_AHEAD + VALUES_POOL.keep
+    held = renders_held(big)
+    assert held == live_renders(big) + RENDERS_AHEAD + VALUES_POOL.keep == 4 + VALUES_POOL.keep
     assert task_group_size(big) == HELD_VALUES_BYTES // held // per_band == 6
 
 

@@ -359,12 +359,22 @@ def test_graph_is_deterministic_and_annotated(flight, tmp_path):
     assert len(graph.writes) == graph.assemblies + tiles - sum(
         1 for r, c, g in plan.grid.tiles(1024)
         if not any(job.window.intersect(g) for job in plan.jobs)) and graph.assemblies <= 2 * tiles
-    hlg = graph.writes[0].__dask_graph__()
-    annotated = {k for layer in hlg.layers.values()
-                 if (layer.annotations or {}).get("resources") == {"GPU": 1} for k in layer}
-    renders = {k for k in dict(hlg) if str(k).startswith("render-")}
-    assert renders and renders <= annotated
-    assert not {k for k in annotated if str(k).startswith(("assemble-", "write-"))}
+    # what the scheduler is sent: per key annotations of the writes' graph
+    from dask.base import collections_to_expr
+
+    expr = collections_to_expr(list(graph.writes)).optimize()
+    annotations = expr.__dask_annotations__()
+    annotated = {k for k, v in annotations["resources"].items() if v == {"GPU": 1}}
+    keys = set(dict(expr.__dask_graph__()))
+    renders = {k for k in keys if str(k).startswith("render-")}
+    lookups = {k for k in keys if str(k).startswith("lookup-")}
+    assert renders and lookups and annotated == renders | lookups
+    priority = annotations["priority"]
+    tasks = {k for k in keys if str(k).startswith(("lookup-", "render-", "write-", "gate-", "saturated-"))}
+    assert tasks and all(isinstance(priority[k], int) for k in tasks)
+    # a band group's renders run before the next group's (they hold the group's values)
+    assert len({priority[k] for k in renders}) == len(renders)
+    assert all(len(d.__dask_graph__().layers) == 1 for d in graph.writes)   # one shared graph, not one per task
 
 
 def test_mosaic_rules_last_and_mean_with_saturation():

@@ -33,10 +33,11 @@ import bisect
 import dataclasses
 from collections.abc import Sequence
 
-import dask
 import numpy as np
 from dask.base import tokenize
-from dask.delayed import Delayed, delayed
+from dask.delayed import Delayed
+from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
+from dask.task_spec import DataNode, GraphNode, List, Task, TaskRef
 
 from archive.grid import boxes_intersect
 from archive.outputs.base import CHUNK
@@ -45,8 +46,8 @@ from archive.graph.plan import GROUP, RenderPlan, band_groups
 from archive.graph.tasks import (VALUES_POOL, assemble_write_task, blank_write_task, gate_task, layout_task,
                                  overview_task, write_layers_task, write_saturated_task)
 
-__all__ = ["HELD_VALUES_BYTES", "RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "live_renders", "render_order", "task_group_size",
-           "with_task_groups"]
+__all__ = ["HELD_VALUES_BYTES", "RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "live_renders", "render_order",
+           "renders_held", "task_group_size", "with_task_groups"]
 
 #: Directions (degrees apart) along which :func:`render_order` tries sweeping the cubes.
 SWEEP_STEP = 15
@@ -150,17 +151,27 @@ def _fewest(plan: RenderPlan, touching: list[list[int]]) -> tuple[tuple[int, ...
     return best, fewest
 
 
+def renders_held(plan: RenderPlan) -> int:
+    """Renders (each of one band group, its cube window's values) the graph holds at once for
+    ``plan``, as :func:`task_group_size` counts them: :func:`live_renders` + RENDERS_AHEAD, but no
+    more than the plan's cubes (a band group renders each cube once; measured on the 8-cube, 4-pass
+    flight: 8.2 renders' bytes at most, against 10 counted without that bound), plus the free
+    buffers of the values pool (:class:`~archive.graph.tasks.ValuesPool`). Without the bound short
+    flights got smaller band groups than long ones and held less: memory grew with the flight
+    (issue 20)."""
+    return min(live_renders(plan) + RENDERS_AHEAD, len(plan.jobs)) + VALUES_POOL.keep
+
+
 def task_group_size(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> int:
     """Bands per render task for ``plan``: as many as fit the bytes of values one render may hold
     for the largest cube window (whole 8-band GL passes from 16 bands on; at most MAX_GROUP, never
     fewer than GROUP = 4); a render may hold ``budget`` bytes, and all renders held at once
-    (:func:`live_renders` + RENDERS_AHEAD + the free buffers of the values pool,
-    :class:`~archive.graph.tasks.ValuesPool`) HELD_VALUES_BYTES, scaled down with ``budget`` (small
-    workers get a tenth of their memory as ``budget``, :func:`archive.cluster.task_budget`: the
-    renders they hold at once shrink in proportion). Any size, not multiples of 4 only, so that the
-    renders held stay near HELD_VALUES_BYTES (flat) as the flight grows longer."""
+    (:func:`renders_held`) HELD_VALUES_BYTES, scaled down with ``budget`` (small workers get a
+    tenth of their memory as ``budget``, :func:`archive.cluster.task_budget`: the renders they hold
+    at once shrink in proportion). Any size, not multiples of 4 only, so that the renders held stay
+    near HELD_VALUES_BYTES (flat) whatever the flight's length."""
     biggest = max((job.window.width * job.window.height for job in plan.jobs), default=1)
-    held = live_renders(plan) + RENDERS_AHEAD + VALUES_POOL.keep
+    held = renders_held(plan)
     held_bytes = HELD_VALUES_BYTES * min(1.0, budget / TASK_VALUES_BYTES)
     fit = int(min(budget, held_bytes // held)) // (4 * max(biggest, 1))
     if fit >= 2 * BANDS_PER_PASS:   # whole GL passes where that loses little
@@ -176,8 +187,8 @@ def with_task_groups(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> Rende
 @dataclasses.dataclass(frozen=True)
 class RenderGraph:
     """The built graph: ``writes`` are the tasks the command waits for (values writers, blank-tile
-    writers, overview tasks, saturation writers); ``assemblies`` counts the values writers (one per
-    touched tile and band group, each assembling its tile)."""
+    writers, overview tasks, saturation writers), all sharing one graph; ``assemblies`` counts the
+    values writers (one per touched tile and band group, each assembling its tile)."""
 
     writes: tuple[Delayed, ...]
     renders: int
@@ -185,6 +196,68 @@ class RenderGraph:
 
     def __len__(self) -> int:
         return len(self.writes)
+
+
+class _GLResources:
+    """The ``resources`` annotation of a key: GL_RESOURCES for the GL tasks, None (none) for the others."""
+
+    def __init__(self, keys: set[str]):
+        self.keys = keys
+
+    def __call__(self, key) -> dict | None:
+        return dict(GL_RESOURCES) if key in self.keys else None
+
+
+class _TaskGraph:
+    """The render graph as one low-level task dict, its tasks' priorities and its GL keys.
+
+    One ``dask.delayed`` call per task would give every task its own HighLevelGraph naming all the
+    layers below it: the command's memory would grow with the square of the tasks (measured: 398 MB
+    at 2,241 tasks, 40 cubes of 32 bands; DESIGN.md section 8). Here the tasks go into one dict and
+    the writes share one graph of one layer, annotated per key (priority; GPU resources of the GL
+    tasks) as ``dask.annotate`` would."""
+
+    def __init__(self) -> None:
+        self.tasks: dict[str, GraphNode] = {}
+        self.priority: dict[str, int] = {}
+        self.gl: set[str] = set()
+
+    def data(self, key: str, value: object) -> str:
+        self.tasks[key] = DataNode(key, value)
+        return key
+
+    def add(self, key: str, func, *args, priority: int, gl: bool = False, **kwargs) -> str:
+        """Task ``key`` calling ``func(*args, **kwargs)``, where a :class:`Ref` (also in a list) is
+        another task's result; returns ``key``."""
+        self.tasks[key] = Task(key, func, *map(_spec, args), **{k: _spec(v) for k, v in kwargs.items()})
+        self.priority[key] = priority
+        if gl:
+            self.gl.add(key)
+        return key
+
+    def node(self, node: Node, priority: int) -> str:
+        return self.add(node.key, node.func, *node.args, priority=priority, gl=node.gl, **node.kwargs)
+
+    def delayed(self, keys: Sequence[str]) -> tuple[Delayed, ...]:
+        """``keys`` as Delayed objects sharing this graph."""
+        name = f"render-graph-{tokenize(sorted(self.tasks))}"
+        layer = MaterializedLayer(self.tasks, annotations={"priority": self.priority.get,
+                                                           "resources": _GLResources(self.gl)})
+        graph = HighLevelGraph({name: layer}, {name: set()})
+        return tuple(Delayed(key, graph, layer=name) for key in keys)
+
+
+def _spec(arg):
+    """``arg`` as a task argument: a :class:`Ref` as a reference to its task, a list of them as a list."""
+    if isinstance(arg, Ref):
+        return TaskRef(arg.key)
+    if isinstance(arg, list) and any(isinstance(a, Ref) for a in arg):
+        return List(*map(_spec, arg))
+    return arg
+
+
+def _ref(key: str | None) -> Ref | None:
+    return None if key is None else Ref(key)
 
 
 def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
@@ -207,7 +280,9 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
     if key_layer is not None and key_layer not in layers.names:
         raise ValueError(f"the '{overlap}' rule needs the {key_layer} layer")
     nodes = RenderNodes(plan, sources, mode=mode, mesh_spec=mesh_spec, layers=layers)
-    made: dict[str, Delayed] = {key: delayed(value, name=key, traverse=False) for key, value in nodes.data().items()}
+    graph = _TaskGraph()
+    for key, value in nodes.data().items():
+        graph.data(key, value)
 
     # Priorities (higher runs first) finish one band group before starting the next, and write a
     # tile as soon as its renders exist, its overviews as soon as their tiles are written.
@@ -217,13 +292,6 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
         """Group first, then stage (renders 0 < writers 1 < overviews 2), then render order."""
         return (3 * (ngroups - g) + stage) * (njobs + 1) + (njobs - j)
 
-    def task(node: Node, priority: int) -> Delayed:
-        """The Delayed of ``node`` (its references resolved to the Delayed made before)."""
-        args = [made[a.key] if isinstance(a, Ref) else a for a in node.args]
-        with dask.annotate(**({"resources": dict(GL_RESOURCES)} if node.gl else {}), priority=priority):
-            made[node.key] = delayed(node.func, pure=True)(*args, dask_key_name=node.key, **node.kwargs)
-        return made[node.key]
-
     # The order the cubes are rendered in (fewest renders held; the writers still mosaic in capture
     # order), the tiles to write, and for each render the tiles it completes (their last touching
     # cube in that order).
@@ -231,7 +299,7 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
     order = render_order(plan, tile_size)
     position = {j: s for s, j in enumerate(order)}
     for j, node in enumerate(nodes.meshes()):   # meshes built on the workers, ahead of their lookups
-        task(node, priority(0, 0, position[j]))
+        graph.node(node, priority(0, 0, position[j]))
     tiles = []
     for row0, col0, tile_grid in plan.grid.tiles(tile_size):
         tile = (row0, col0, tile_grid.height, tile_grid.width)
@@ -248,36 +316,36 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
     # makes its own, so that held lookups do not grow with the flight either.
     shared = len(plan.groups) == 1 or 8 * sum(job.window.width * job.window.height
                                               for job in plan.jobs) // LOOKUP_PACKING <= LOOKUP_BYTES
-    lookups: dict[tuple[int, int], Delayed] = {}
+    lookups: dict[tuple[int, int], str] = {}
     count = layers_sink is not None and "overlap_count" in layers.names
 
-    def lookup(j: int, g: int, gate: Delayed | None) -> Delayed:
+    def lookup(j: int, g: int, gate: str | None) -> str:
         if shared and (j, 0) in lookups:
             return lookups[j, 0]
         node = nodes.lookup(j, count=count and (shared or g == 0),   # layers come from group 0's lookups
-                            group=None if shared else g, after=None if gate is None else gate.key)
-        lookups[j, 0 if shared else g] = task(node, priority(g, 0, position[j]))
+                            group=None if shared else g, after=gate)
+        lookups[j, 0 if shared else g] = graph.node(node, priority(g, 0, position[j]))
         return lookups[j, 0 if shared else g]
 
     # Provenance layers (and the overlap rule's key): per cube from group 0's lookup, on any thread.
-    cube_layers: dict[int, Delayed] = {}
-    keys: dict[int, Delayed] = {}
-    layer_writers: dict[int, Delayed] = {}   # tile number -> provenance writer
+    cube_layers: dict[int, str] = {}
+    keys: dict[int, str] = {}
+    layer_writers: dict[int, str] = {}   # tile number -> provenance writer
 
-    def layers_of(j: int, lk: Delayed) -> Delayed:
+    def layers_of(j: int, lk: str) -> str:
         if j not in cube_layers:
-            cube_layers[j] = task(nodes.cube_layers(j, lk.key), priority(0, 0, position[j]))
+            cube_layers[j] = graph.node(nodes.cube_layers(j, lk), priority(0, 0, position[j]))
             if key_layer is not None:
-                keys[j] = task(nodes.rule_key(cube_layers[j].key, key_layer), priority(0, 0, position[j]))
+                keys[j] = graph.node(nodes.rule_key(cube_layers[j], key_layer), priority(0, 0, position[j]))
         return cube_layers[j]
 
     # Renders in (group, render order) order. Backpressure: render number s (and its lookup) waits for
     # the writers that render s - RENDERS_AHEAD completed (a token of them), so renders never run
     # further ahead of the writers than that, however long the flight and however fast the GPU.
-    renders: dict[tuple[int, int], Delayed] = {}
-    writers: dict[tuple[int, int], Delayed] = {}  # (tile number, group) -> values writer
-    gates: list[Delayed | None] = []
-    masks: dict[int, Delayed] = {}  # tile number -> saturation so far (Zarr: a chain per tile)
+    renders: dict[tuple[int, int], str] = {}
+    writers: dict[tuple[int, int], str] = {}  # (tile number, group) -> values writer
+    gates: list[str | None] = []
+    masks: dict[int, str] = {}  # tile number -> saturation so far (Zarr: a chain per tile)
     assemblies = 0
     for g, (b0, b1) in enumerate(plan.groups):
         for s, j in enumerate(order):
@@ -288,8 +356,7 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
             lk = lookup(j, g, gate)
             if layers is not None and g == 0:
                 layers_of(j, lk)
-            renders[j, g] = task(nodes.render(j, g, lk.key, after=None if gate is None else gate.key),
-                                 priority(g, 0, s))
+            renders[j, g] = graph.node(nodes.render(j, g, lk, after=gate), priority(g, 0, s))
             done = []
             for t in completes.get(s, []):
                 tile, touching = tiles[t]
@@ -297,99 +364,89 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
                 parts = [renders[i, g] for i in touching]
                 mask = masks.get(t) if sink.saturation else None
                 tile_keys = [keys[i] for i in touching] if key_layer is not None else None
-                akey = tokenize(overlap, tile, b1 - b0, boxes, [p.key for p in parts],
-                                None if tile_keys is None else [k.key for k in tile_keys])
-                wkey = f"write-{tokenize(sink, b0, tile, akey, None if mask is None else mask.key)}"
-                with dask.annotate(priority=priority(g, 1, s)):
-                    writers[t, g] = delayed(assemble_write_task)(sink, overlap, b0, tile, b1 - b0, boxes, mask,
-                                                                 *parts, keys=tile_keys, dask_key_name=wkey)
+                akey = tokenize(overlap, tile, b1 - b0, boxes, parts, tile_keys)
+                wkey = f"write-{tokenize(sink, b0, tile, akey, mask)}"
+                writers[t, g] = graph.add(wkey, assemble_write_task, sink, overlap, b0, tile, b1 - b0, boxes,
+                                          _ref(mask), *map(Ref, parts), priority=priority(g, 1, s),
+                                          keys=None if tile_keys is None else list(map(Ref, tile_keys)))
                 assemblies += 1
                 if layers_sink is not None and g == 0:
                     stacks = [cube_layers[i] for i in touching]
-                    lwkey = f"write-layers-{tokenize(layers_sink, tile, overlap, boxes, [x.key for x in stacks])}"
-                    with dask.annotate(priority=priority(g, 1, s)):
-                        layer_writers[t] = delayed(write_layers_task)(layers_sink, overlap, tile, layers.names,
-                                                                      boxes, *stacks, dask_key_name=lwkey)
+                    lwkey = f"write-layers-{tokenize(layers_sink, tile, overlap, boxes, stacks)}"
+                    layer_writers[t] = graph.add(lwkey, write_layers_task, layers_sink, overlap, tile, layers.names,
+                                                 boxes, *map(Ref, stacks), priority=priority(g, 1, s))
                     done.append(layer_writers[t])
                 if sink.saturation:
                     masks[t] = writers[t, g]
                 done.append(writers[t, g])
             gate = None
             if done:
-                gkey = f"gate-{tokenize([d.key for d in done])}"
-                with dask.annotate(priority=priority(g, 1, s)):
-                    gate = made[gkey] = delayed(gate_task)(*done, dask_key_name=gkey)
+                gate = graph.add(f"gate-{tokenize(done)}", gate_task, *map(Ref, done), priority=priority(g, 1, s))
             gates.append(gate)
 
-    writes: list[Delayed] = [writers[t, g] for t in range(len(tiles)) for g in range(len(plan.groups))
-                             if (t, g) in writers]
-    firsts: dict[tuple[int, int, int], Delayed] = {}  # (tile row, tile col, group) -> writer (COG)
+    writes: list[str] = [writers[t, g] for t in range(len(tiles)) for g in range(len(plan.groups))
+                         if (t, g) in writers]
+    firsts: dict[tuple[int, int, int], str] = {}  # (tile row, tile col, group) -> writer (COG)
     for t, (tile, touching) in enumerate(tiles):
         for g, (b0, b1) in enumerate(plan.groups):
             if not touching:
                 key = f"blank-{tokenize(sink, b0, b1, tile)}"
-                with dask.annotate(priority=priority(g, 1)):
-                    writers[t, g] = delayed(blank_write_task)(sink, b0, tile, b1 - b0, dask_key_name=key)
+                writers[t, g] = graph.add(key, blank_write_task, sink, b0, tile, b1 - b0, priority=priority(g, 1))
                 writes.append(writers[t, g])
             firsts[tile[0] // CHUNK, tile[1] // CHUNK, g] = writers[t, g]
     if layers_sink is not None:   # provenance: blank tiles, then overviews, as for the values
-        layer_firsts: dict[tuple[int, int, int], Delayed] = {}
+        layer_firsts: dict[tuple[int, int, int], str] = {}
         for t, (tile, touching) in enumerate(tiles):
             if not touching:
                 key = f"blank-layers-{tokenize(layers_sink, tile)}"
-                with dask.annotate(priority=priority(0, 1)):
-                    layer_writers[t] = delayed(blank_write_task)(layers_sink, 0, tile, len(layers.names),
-                                                                 dask_key_name=key)
+                layer_writers[t] = graph.add(key, blank_write_task, layers_sink, 0, tile, len(layers.names),
+                                             priority=priority(0, 1))
             layer_firsts[tile[0] // CHUNK, tile[1] // CHUNK, 0] = layer_writers[t]
         writes += layer_writers.values()
-        writes += _overview_tasks(layers_sink, [(0, len(layers.names))], layer_firsts, priority)
-        writes += _layout_tasks(layers_sink, [(0, len(layers.names))],
+        writes += _overview_tasks(graph, layers_sink, [(0, len(layers.names))], layer_firsts, priority)
+        writes += _layout_tasks(graph, layers_sink, [(0, len(layers.names))],
                                 {(t, 0): w for t, w in layer_writers.items()}, priority)
-    saturation: list[Delayed] = []
+    saturation: list[str] = []
     for t, mask in masks.items():
         tile = tiles[t][0]
-        skey = f"saturated-{tokenize(sink, tile, mask.key)}"
-        with dask.annotate(priority=priority(ngroups, 1)):
-            saturation.append(delayed(write_saturated_task)(sink, tile, mask, dask_key_name=skey))
-    writes += _overview_tasks(sink, plan.groups, firsts, priority)
-    writes += _layout_tasks(sink, plan.groups, writers, priority)
-    return RenderGraph(tuple(writes + saturation), len(renders), assemblies)
+        skey = f"saturated-{tokenize(sink, tile, mask)}"
+        saturation.append(graph.add(skey, write_saturated_task, sink, tile, Ref(mask), priority=priority(ngroups, 1)))
+    writes += _overview_tasks(graph, sink, plan.groups, firsts, priority)
+    writes += _layout_tasks(graph, sink, plan.groups, writers, priority)
+    return RenderGraph(graph.delayed(writes + saturation), len(renders), assemblies)
 
 
-def _layout_tasks(sink, groups, writers: dict, priority) -> list[Delayed]:
+def _layout_tasks(graph: _TaskGraph, sink, groups, writers: dict, priority) -> list[str]:
     """For a sink that lays its output out as the render goes (COG: the full resolution in file
     order), one task per band group once the group's writers ran, each after the one before it."""
     if not hasattr(sink, "lay_out"):
         return []
-    tasks: list[Delayed] = []
-    start: Delayed | int = 0
+    tasks: list[str] = []
+    start: str | int = 0
     for g, (b0, b1) in enumerate(groups):
         written = [w for (t, wg), w in writers.items() if wg == g]
-        key = f"layout-{tokenize(sink, b0, b1, getattr(start, 'key', start), [w.key for w in written])}"
-        with dask.annotate(priority=priority(g, 2)):
-            start = delayed(layout_task)(sink, b0, b1 - b0, start, *written, dask_key_name=key)
+        key = f"layout-{tokenize(sink, b0, b1, start, written)}"
+        start = graph.add(key, layout_task, sink, b0, b1 - b0, Ref(start) if isinstance(start, str) else start,
+                          *map(Ref, written), priority=priority(g, 2))
         tasks.append(start)
     return tasks
 
 
-def _overview_tasks(sink, groups, firsts: dict, priority) -> list[Delayed]:
+def _overview_tasks(graph: _TaskGraph, sink, groups, firsts: dict, priority) -> list[str]:
     """Overview levels 2.. of a COG sink, per band group: tile (r, c) of level L from the tasks that
     returned tiles (2r.., 2c..) of level L - 1 (level 1: the writers, keyed by output tile)."""
-    tasks: list[Delayed] = []
+    tasks: list[str] = []
     below = firsts
     for level in range(2, sink.overview_levels + 1):
         rows, cols = sink.tiles(level)
-        current: dict[tuple[int, int, int], Delayed] = {}
+        current: dict[tuple[int, int, int], str] = {}
         for g, (b0, b1) in enumerate(groups):
             for r in range(rows):
                 for c in range(cols):
                     kids = [None if k is None else below.get((*k, g)) for k in sink.children(level, r, c)]
-                    key = f"overview-{tokenize(sink, level, r, c, b0, [None if k is None else k.key for k in kids])}"
-                    with dask.annotate(priority=priority(g, 2)):
-                        current[r, c, g] = delayed(overview_task)(sink, level, r, c, b0, b1 - b0, *kids,
-                                                                  dask_key_name=key)
+                    key = f"overview-{tokenize(sink, level, r, c, b0, kids)}"
+                    current[r, c, g] = graph.add(key, overview_task, sink, level, r, c, b0, b1 - b0,
+                                                 *map(_ref, kids), priority=priority(g, 2))
         tasks += current.values()
         below = current
     return tasks
-
-
