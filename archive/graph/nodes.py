@@ -1,7 +1,7 @@
 """The nodes of a render and their keys, written once (builds graphs, never computes them).
 
 Both graphs of the package build their sources, meshes, lookups, renders, per-cube provenance
-layers and overlap-rule keys here: the write graph (:mod:`archive.graph.build`, Dask ``Delayed``)
+layers and overlap-rule keys here: the write graph (:mod:`archive.graph.build`, one task dict)
 and the lazy arrays (:mod:`archive.graph.lazy`, a ``HighLevelGraph`` of task specs). So the same
 request gives the same lookup and render keys in both by construction.
 

@@ -117,6 +117,9 @@ def gather_lookup(lookup: Lookup | GatherIndex, dn: np.ndarray, radiometry,
     plane = np.empty(plane_size + 1, np.float32)
     plane[plane_size] = np.nan
     work = plane[:plane_size].reshape(lines, samples)
+    # np.take converts other index types to intp on every call: once here instead (numpy 2.4, a
+    # paper cube's window: 2.35 -> 1.67 ms per band; 0.33 ms for the conversion)
+    index = index.astype(np.intp, copy=False) if nb > 1 else index
     for b in range(nb):
         calibrate_plane(dn_up[b], dark[b], gain[b], resp, work)
         into = values[b, rows].reshape(-1)                # whole rows: contiguous, a view

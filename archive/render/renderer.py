@@ -121,7 +121,7 @@ def gather_index(lookup: Lookup) -> GatherIndex:
     box = lookup.box()
     row0, height = (0, 0) if box is None else (box[0], box[2])
     plane_size = lookup.lines * lookup.samples
-    # int32 indices when they fit: half the index bytes streamed per band (np.take 2.5x faster).
+    # int32 indices when they fit: half the bytes to pack and hold (the gather takes them as intp).
     line = lookup.line[row0:row0 + height]
     index = line.astype(np.int32 if plane_size < 2**31 - 1 else np.intp)
     index *= lookup.samples
