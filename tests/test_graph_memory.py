@@ -9,8 +9,8 @@ import pickle
 
 import numpy as np
 
-from archive.graph.build import (HELD_VALUES_BYTES, RENDERS_AHEAD, live_renders, render_order, renders_held,
-                                 task_group_size)
+from archive.graph.build import (HELD_VALUES_BYTES, LOOKUP_BYTES, RENDERS_AHEAD, live_renders, render_order,
+                                 renders_held, shared_lookup_bytes, task_group_size)
 from archive.graph.plan import CubeJob, RenderPlan, band_groups
 from archive.graph.tasks import VALUES_POOL, PackedLookup, ValuesPool, unpacked
 from archive.grid import Grid
@@ -52,7 +52,10 @@ def test_live_renders_follow_the_passes_and_groups_shrink_to_fit():
     for n, size in zip((2, 4, 8, 16), sizes):   # all renders held at once fit the budget (or 4 bands)
         held = renders_held(lawn_mower(n))
         assert held == min(live_renders(lawn_mower(n)) + RENDERS_AHEAD, 2 * n) + VALUES_POOL.keep
-        assert held * size * TILE * TILE * 4 <= HELD_VALUES_BYTES or size == 4
+        # the lookups the groups share are held all run: they count in the same budget
+        lookups = shared_lookup_bytes(lawn_mower(n))
+        assert lookups == 2 * n * TILE * TILE * 8 // 8
+        assert held * size * TILE * TILE * 4 + lookups <= HELD_VALUES_BYTES or size == 4
     # a flight of fewer cubes than live + ahead holds at most its cubes: bigger groups, the same bytes
     assert renders_held(lawn_mower(2)) == 4 + VALUES_POOL.keep < live_renders(lawn_mower(2)) + RENDERS_AHEAD + VALUES_POOL.keep
     # bigger cube windows: as many bands as fit, not a multiple of 4 (what is held stays near the
@@ -65,7 +68,10 @@ def test_live_renders_follow_the_passes_and_groups_shrink_to_fit():
     per_band = side * side * 4
     held = renders_held(big)
     assert held == live_renders(big) + RENDERS_AHEAD + VALUES_POOL.keep == 4 + VALUES_POOL.keep
-    assert task_group_size(big) == HELD_VALUES_BYTES // held // per_band == 6
+    assert task_group_size(big) == (HELD_VALUES_BYTES - shared_lookup_bytes(big)) // held // per_band == 6
+    # lookups too big to share are made per group (held like renders): not taken off the budget
+    many = lawn_mower(LOOKUP_BYTES // (TILE * TILE) + 2, passes=1)
+    assert shared_lookup_bytes(many) == 0
 
 
 def test_packed_lookup_gives_the_lookup_back():
@@ -143,3 +149,47 @@ def test_values_pool_keeps_no_more_than_its_share_of_a_workers_memory():
                       dashboard_address=None) as large, Client(large) as client:
         assert client.submit(_pool_keeps, shape, pure=False).result() == 1      # cap 50 MB
     assert _pool_keeps(shape) == 1                                              # no worker: no cap
+
+
+_GIVEN_BACK = """
+import gc, pickle
+from archive.graph.tasks import ValuesPool
+
+
+def mapping(address):
+    with open("/proc/self/maps") as maps:
+        for line in maps:
+            start, end = (int(x, 16) for x in line.split()[0].split("-"))
+            if start <= address < end:
+                return start, end
+
+
+pool = ValuesPool(keep=0)
+values = pool.take((3, 1024, 1024))    # 12 MiB: under the workers' 32 MiB mmap threshold
+values[...] = 2.0
+address, before = values.ctypes.data, mapping(values.ctypes.data)
+assert before is not None and before[1] - before[0] >= values.nbytes, before   # a mapping of its own
+assert float(values.sum()) == 2.0 * values.size
+assert pickle.loads(pickle.dumps(values[1:])).shape == (2, 1024, 1024)
+del values
+gc.collect()
+assert pool.free == [] and mapping(address) != before, "not unmapped"   # (the range may be reused)
+assert pool.take((4, 4)).size == 16    # small ones come from numpy as before
+print("ok")
+"""
+
+
+def test_values_pool_gives_large_buffers_back_to_the_system():
+    """Buffers of a render's size are memory maps of their own: once the pool drops one, its pages
+    are unmapped, whatever glibc's mmap threshold (our workers': 32 MiB; glibc's heaps keep freed
+    memory: a worker holding renders under the threshold grew 0.1 GB on the 40-cube flight). Run
+    in a process started with the workers' threshold."""
+    import os
+    import subprocess
+    import sys
+
+    from archive.cluster import MALLOC_MMAP_THRESHOLD
+
+    env = {**os.environ, "MALLOC_MMAP_THRESHOLD_": str(MALLOC_MMAP_THRESHOLD)}
+    done = subprocess.run([sys.executable, "-c", _GIVEN_BACK], env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]

@@ -47,7 +47,7 @@ from archive.graph.tasks import (VALUES_POOL, assemble_write_task, blank_write_t
                                  overview_task, write_layers_task, write_saturated_task)
 
 __all__ = ["HELD_VALUES_BYTES", "RenderGraph", "TASK_VALUES_BYTES", "build_render_graph", "live_renders", "render_order",
-           "renders_held", "task_group_size", "with_task_groups"]
+           "renders_held", "shared_lookup_bytes", "task_group_size", "with_task_groups"]
 
 #: Directions (degrees apart) along which :func:`render_order` tries sweeping the cubes.
 SWEEP_STEP = 15
@@ -69,8 +69,9 @@ LOOKUP_BYTES = 256 * 1024**2
 LOOKUP_PACKING = 8
 #: Rendered values all renders of a band group held at once may take, bytes: the renders the
 #: writers still wait for (:func:`live_renders`, which grows with the passes' length: a tile holds
-#: the renders of every pass that crosses it) plus RENDERS_AHEAD. Band groups shrink as passes get
-#: longer, so that memory stays flat (issue 20).
+#: the renders of every pass that crosses it) plus RENDERS_AHEAD, and the lookups the band groups
+#: share (held all run: they grow with the cubes). Band groups shrink as passes get longer and
+#: cubes more numerous, so that memory stays flat (issue 20).
 HELD_VALUES_BYTES = 640 * 1024**2
 
 
@@ -162,17 +163,33 @@ def renders_held(plan: RenderPlan) -> int:
     return min(live_renders(plan) + RENDERS_AHEAD, len(plan.jobs)) + VALUES_POOL.keep
 
 
+def shared_lookup_bytes(plan: RenderPlan) -> int:
+    """Bytes the cubes' lookups take when the band groups share them (8 B per window pixel, packed
+    LOOKUP_PACKING-fold: an upper bound), or 0 when they would exceed LOOKUP_BYTES (each group then
+    makes its own, held like its renders). Shared lookups are held from the first group to the
+    last: memory that grows with the number of cubes."""
+    held = _lookup_bytes(plan)
+    return held if held <= LOOKUP_BYTES else 0
+
+
+def _lookup_bytes(plan: RenderPlan) -> int:
+    """Bytes of all the plan's lookups, packed (an upper bound: 8 B per window pixel / LOOKUP_PACKING)."""
+    return 8 * sum(job.window.width * job.window.height for job in plan.jobs) // LOOKUP_PACKING
+
+
 def task_group_size(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> int:
     """Bands per render task for ``plan``: as many as fit the bytes of values one render may hold
     for the largest cube window (whole 8-band GL passes from 16 bands on; at most MAX_GROUP, never
     fewer than GROUP = 4); a render may hold ``budget`` bytes, and all renders held at once
-    (:func:`renders_held`) HELD_VALUES_BYTES, scaled down with ``budget`` (small workers get a
-    tenth of their memory as ``budget``, :func:`archive.cluster.task_budget`: the renders they hold
-    at once shrink in proportion). Any size, not multiples of 4 only, so that the renders held stay
-    near HELD_VALUES_BYTES (flat) whatever the flight's length."""
+    (:func:`renders_held`) HELD_VALUES_BYTES less the shared lookups (:func:`shared_lookup_bytes`,
+    held all run; at most half of it), scaled down with ``budget`` (small workers get a tenth of
+    their memory as ``budget``, :func:`archive.cluster.task_budget`: the renders they hold at once
+    shrink in proportion). Any size, not multiples of 4 only, so that the renders and lookups held
+    stay near HELD_VALUES_BYTES (flat) whatever the flight's length."""
     biggest = max((job.window.width * job.window.height for job in plan.jobs), default=1)
     held = renders_held(plan)
     held_bytes = HELD_VALUES_BYTES * min(1.0, budget / TASK_VALUES_BYTES)
+    held_bytes = max(held_bytes - shared_lookup_bytes(plan), held_bytes / 2)
     fit = int(min(budget, held_bytes // held)) // (4 * max(biggest, 1))
     if fit >= 2 * BANDS_PER_PASS:   # whole GL passes where that loses little
         fit = fit // BANDS_PER_PASS * BANDS_PER_PASS
@@ -314,8 +331,7 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
     # One lookup (GL pass 1) per cube, shared by its band groups while all of them fit
     # LOOKUP_BYTES (8 B per window pixel, packed); beyond that (long flights and several groups) each group
     # makes its own, so that held lookups do not grow with the flight either.
-    shared = len(plan.groups) == 1 or 8 * sum(job.window.width * job.window.height
-                                              for job in plan.jobs) // LOOKUP_PACKING <= LOOKUP_BYTES
+    shared = len(plan.groups) == 1 or _lookup_bytes(plan) <= LOOKUP_BYTES
     lookups: dict[tuple[int, int], str] = {}
     count = layers_sink is not None and "overlap_count" in layers.names
 
