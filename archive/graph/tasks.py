@@ -72,7 +72,7 @@ class ValuesPool:
 
     A render's values (bands x window px x 4 B: ~50 MB for 8 bands of a paper cube) live until the
     writers of every tile they touch have run; a fresh array of that size is fresh pages (memory
-    mapped above glibc's mmap threshold) that the kernel zeroes and faults in, which cost the CPU
+    mapped on its own, :func:`_new_buffer`) that the kernel zeroes and faults in, which cost the CPU
     gather ~40 % more on the paper flight. :meth:`take` gives an array backed by a free buffer of
     about the right size (at most ``slack`` times larger) or a new one; when every array (and view)
     of it is gone (the graph released the render), its buffer comes back here. At most ``keep``
