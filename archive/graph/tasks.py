@@ -139,8 +139,12 @@ def _new_buffer(n: int) -> np.ndarray:
     import mmap
 
     mapping = mmap.mmap(-1, n * 4, flags=mmap.MAP_PRIVATE)
-    if hasattr(mmap, "MADV_HUGEPAGE"):   # as numpy does for its large arrays: first touch of a 62 MB
-        mapping.madvise(mmap.MADV_HUGEPAGE)   # buffer 28 -> 6 ms (transparent huge pages: madvise)
+    # as numpy does for its large arrays: first touch of a 62 MB buffer 28 -> 6 ms (transparent huge
+    # pages 'madvise'); a kernel without them refuses the advice, and the buffer is used as it is
+    try:
+        mapping.madvise(mmap.MADV_HUGEPAGE)
+    except (AttributeError, OSError):
+        pass
     return np.frombuffer(mapping, np.float32, count=n)
 
 
