@@ -37,11 +37,11 @@ import numpy as np
 from dask.base import tokenize
 from dask.delayed import Delayed
 from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
-from dask.task_spec import DataNode, GraphNode, List, Task, TaskRef
+from dask.task_spec import DataNode, GraphNode, Task
 
 from archive.grid import boxes_intersect
 from archive.outputs.base import CHUNK
-from archive.graph.nodes import BANDS_PER_PASS, GL_RESOURCES, Node, Ref, RenderNodes
+from archive.graph.nodes import BANDS_PER_PASS, GL_RESOURCES, Node, Ref, RenderNodes, task_arg
 from archive.graph.plan import GROUP, RenderPlan, band_groups
 from archive.graph.tasks import (VALUES_POOL, assemble_write_task, blank_write_task, gate_task, layout_task,
                                  overview_task, write_layers_task, write_saturated_task)
@@ -215,16 +215,6 @@ class RenderGraph:
         return len(self.writes)
 
 
-class _GLResources:
-    """The ``resources`` annotation of a key: GL_RESOURCES for the GL tasks, None (none) for the others."""
-
-    def __init__(self, keys: set[str]):
-        self.keys = keys
-
-    def __call__(self, key) -> dict | None:
-        return dict(GL_RESOURCES) if key in self.keys else None
-
-
 class _TaskGraph:
     """The render graph as one low-level task dict, its tasks' priorities and its GL keys.
 
@@ -237,7 +227,7 @@ class _TaskGraph:
     def __init__(self) -> None:
         self.tasks: dict[str, GraphNode] = {}
         self.priority: dict[str, int] = {}
-        self.gl: set[str] = set()
+        self.resources: dict[str, dict] = {}   # the GL tasks' GL_RESOURCES
 
     def data(self, key: str, value: object) -> str:
         self.tasks[key] = DataNode(key, value)
@@ -246,10 +236,10 @@ class _TaskGraph:
     def add(self, key: str, func, *args, priority: int, gl: bool = False, **kwargs) -> str:
         """Task ``key`` calling ``func(*args, **kwargs)``, where a :class:`Ref` (also in a list) is
         another task's result; returns ``key``."""
-        self.tasks[key] = Task(key, func, *map(_spec, args), **{k: _spec(v) for k, v in kwargs.items()})
+        self.tasks[key] = Task(key, func, *map(task_arg, args), **{k: task_arg(v) for k, v in kwargs.items()})
         self.priority[key] = priority
         if gl:
-            self.gl.add(key)
+            self.resources[key] = dict(GL_RESOURCES)
         return key
 
     def node(self, node: Node, priority: int) -> str:
@@ -259,18 +249,9 @@ class _TaskGraph:
         """``keys`` as Delayed objects sharing this graph."""
         name = f"render-graph-{tokenize(sorted(self.tasks))}"
         layer = MaterializedLayer(self.tasks, annotations={"priority": self.priority.get,
-                                                           "resources": _GLResources(self.gl)})
+                                                           "resources": self.resources.get})
         graph = HighLevelGraph({name: layer}, {name: set()})
         return tuple(Delayed(key, graph, layer=name) for key in keys)
-
-
-def _spec(arg):
-    """``arg`` as a task argument: a :class:`Ref` as a reference to its task, a list of them as a list."""
-    if isinstance(arg, Ref):
-        return TaskRef(arg.key)
-    if isinstance(arg, list) and any(isinstance(a, Ref) for a in arg):
-        return List(*map(_spec, arg))
-    return arg
 
 
 def _ref(key: str | None) -> Ref | None:

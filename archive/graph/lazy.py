@@ -27,7 +27,7 @@ from collections.abc import Sequence
 import numpy as np
 from dask.task_spec import DataNode, Task, TaskRef
 
-from archive.graph.nodes import GL_RESOURCES, Node, Ref, RenderNodes
+from archive.graph.nodes import GL_RESOURCES, Node, RenderNodes, task_arg
 from archive.graph.plan import RenderPlan
 from archive.graph.tasks import assemble_task
 from archive.grid import boxes_intersect
@@ -83,8 +83,7 @@ def _sizes(total: int, size: int) -> tuple[int, ...]:
 def _task(node: Node) -> Task:
     """The task spec of ``node`` (a :class:`GLTask` for the GL nodes)."""
     kind = GLTask if node.gl else Task
-    return kind(node.key, node.func, *[TaskRef(a.key) if isinstance(a, Ref) else a for a in node.args],
-                **node.kwargs)
+    return kind(node.key, node.func, *map(task_arg, node.args), **node.kwargs)
 
 
 def assemble_keyed(rule: str, tile, nbands: int, boxes, *renders_and_keys):

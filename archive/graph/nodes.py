@@ -22,7 +22,7 @@ from dask.base import tokenize
 from archive.graph.plan import RenderPlan, mesh_task
 from archive.graph.tasks import layers_task, lookup_task, pick_task, render_task
 
-__all__ = ["BANDS_PER_PASS", "GL_RESOURCES", "Node", "Ref", "RenderNodes"]
+__all__ = ["BANDS_PER_PASS", "GL_RESOURCES", "Node", "Ref", "RenderNodes", "task_arg"]
 
 #: Bands per GL pass in render tasks (8 = the renderer's most per pass).
 BANDS_PER_PASS = 8
@@ -35,6 +35,18 @@ class Ref:
     """The result of the node ``key``, as an argument of another node."""
 
     key: str
+
+
+def task_arg(arg):
+    """``arg`` as a task-spec argument: a :class:`Ref` as a reference to its node's result, a list
+    holding Refs as a list of task-spec arguments, anything else as it is."""
+    from dask.task_spec import List, TaskRef
+
+    if isinstance(arg, Ref):
+        return TaskRef(arg.key)
+    if isinstance(arg, list) and any(isinstance(a, Ref) for a in arg):
+        return List(*map(task_arg, arg))
+    return arg
 
 
 @dataclass(frozen=True)
