@@ -372,7 +372,7 @@ def test_graph_is_deterministic_and_annotated(flight, tmp_path):
     priority = annotations["priority"]
     tasks = {k for k in keys if str(k).startswith(("lookup-", "render-", "write-", "gate-", "saturated-"))}
     assert tasks and all(isinstance(priority[k], int) for k in tasks)
-    # a band group's renders run before the next group's (they hold the group's values)
+    # every render has a priority of its own (band group first, then render order)
     assert len({priority[k] for k in renders}) == len(renders)
     assert all(len(d.__dask_graph__().layers) == 1 for d in graph.writes)   # one shared graph, not one per task
 
