@@ -17,8 +17,13 @@ from __future__ import annotations
 import argparse
 import gc
 import resource
+import sys
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import bench_render as br  # noqa: E402
 
 
 def measure(flight: Path, group: int | None, suffix: str, gsd: float, work: Path) -> str:
@@ -31,7 +36,7 @@ def measure(flight: Path, group: int | None, suffix: str, gsd: float, work: Path
     from archive.simulator.command import GROUND_HEIGHT
 
     proc = psutil.Process()
-    request = plan([flight], gsd=gsd, fov=47.5, ground_height=GROUND_HEIGHT, band_group=group)
+    request = plan([flight], gsd=gsd, fov=br.FOV, ground_height=GROUND_HEIGHT, band_group=group)
     gc.collect()
     rss0 = proc.memory_info().rss
     target = Output(work / f"bench-graph.{suffix}", overwrite=True)
