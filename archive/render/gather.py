@@ -4,8 +4,9 @@ On a CPU renderer (Mesa llvmpipe) a full-screen GL band pass is a gather through
 lookup that pass 1 (:func:`archive.render.renderer.rasterize_lookup`, still drawn by GL) gives, run
 through a software rasteriser: :func:`gather_lookup` does the same gather with numpy, several times
 cheaper in CPU-seconds (bench/RESULTS.md, issue 20), in whichever thread calls it (no GL context, so
-the worker's other threads keep drawing and writing). On a real GPU the GL band passes stay
-(:func:`use_cpu_gather` decides from the GL renderer string, ``ARCHIVE_BAND_PASS`` overrides).
+the worker's other threads keep drawing and writing). On a real GPU the gather runs in GL: the
+fragment band passes or a compute shader (:mod:`archive.render.compute`, the same operations);
+:func:`band_pass_choice` decides from the GL renderer string, ``ARCHIVE_BAND_PASS`` overrides.
 
 Values: the same float32 operations in the same order as ``bands.frag.glsl``,
 ``value = ((DN - dark) * gain) / response`` with DN converted exactly to float32, each operation
@@ -19,13 +20,16 @@ same pixels.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from archive.errors import InputError
 from archive.render.renderer import (GatherIndex, Lookup, RenderResult, checked_cube, dn_texture_format, flag_saturated,
                                      gather_index, radiometry_arrays)
 
-__all__ = ["CPU_RENDERERS", "GatherIndex", "MAX_ULP", "calibrate_plane", "gather_index", "gather_lookup", "is_cpu_renderer", "use_cpu_gather"]
+__all__ = ["BAND_PASS_SETTINGS", "BandPass", "CPU_RENDERERS", "GatherIndex", "MAX_ULP", "band_pass_choice", "band_pass_method",
+           "calibrate_plane", "gather_index", "gather_lookup", "is_cpu_renderer", "use_cpu_gather"]
 
 #: GL renderer names (substrings, lower case) of software rasterisers, where the CPU gather wins.
 CPU_RENDERERS = ("llvmpipe", "softpipe", "swrast", "lavapipe")
@@ -41,19 +45,66 @@ def is_cpu_renderer(renderer: str | None) -> bool:
     return any(cpu in name for cpu in CPU_RENDERERS)
 
 
-def use_cpu_gather(renderer: str | None, setting: str | None = None) -> bool:
-    """Whether render tasks gather bands on the CPU (:func:`gather_lookup`) instead of drawing GL
-    band passes: ``setting`` 'cpu' or 'gl' forces it; 'auto' (default; or the environment variable
-    ``ARCHIVE_BAND_PASS`` = auto | cpu | gl, for benchmarks) takes the CPU gather on software GL
-    ``renderer`` strings (llvmpipe...) and the GL band passes on GPUs."""
+class BandPass(NamedTuple):
+    """How render tasks compute pass 2 (the per-band gather through a cube's lookup).
+
+    method: 'cpu' (:func:`gather_lookup`, numpy in the task's thread), 'gl' (the fragment band
+    passes, :func:`archive.render.renderer.render_lookup`) or 'compute' (the GL compute-shader
+    gather, :func:`archive.render.compute.compute_lookup`). reason: why, one line (the setting, the
+    renderer, why compute was not taken), for logs, ``archive doctor`` and the output's metadata.
+    """
+
+    method: str
+    reason: str
+
+
+#: Values of ``ARCHIVE_BAND_PASS``: 'auto' picks per renderer, the others force one method.
+BAND_PASS_SETTINGS = ("auto", "cpu", "gl", "compute")
+
+
+def band_pass_choice(renderer: str | None, setting: str | None = None, *,
+                     compute_unsupported: str | None = None) -> BandPass:
+    """The band pass for a GL ``renderer`` string: ``setting`` (default: the environment variable
+    ``ARCHIVE_BAND_PASS``, else 'auto') 'cpu', 'gl' or 'compute' forces one; 'auto' takes the CPU
+    gather on software renderers (llvmpipe...: measured several times cheaper there, issue 20) and
+    the compute-shader gather on GPUs, or the GL fragment passes where compute shaders are missing.
+    Auto's choice on GPUs is provisional: compute because datacenter GPUs (H100/H200) run compute
+    on the whole chip and graphics on few units, until bench/gpu.sh measures the three methods.
+
+    compute_unsupported: why the context cannot run compute shaders
+    (:func:`archive.render.compute.compute_unsupported`), None when it can. With 'compute' forced
+    on such a context: RenderError, one line naming ARCHIVE_BAND_PASS. Unknown settings: InputError.
+    """
     import os
 
-    setting = setting or os.environ.get("ARCHIVE_BAND_PASS") or "auto"
-    if setting not in ("auto", "cpu", "gl"):
-        raise InputError("ARCHIVE_BAND_PASS", f"expected auto, cpu or gl, got {setting!r}")
+    from archive.errors import RenderError
+
+    setting = (setting or os.environ.get("ARCHIVE_BAND_PASS") or "auto").strip().lower()
+    if setting not in BAND_PASS_SETTINGS:
+        raise InputError("ARCHIVE_BAND_PASS", f"expected auto, cpu, gl or compute, got {setting!r}")
+    if setting == "compute" and compute_unsupported:
+        raise RenderError(f"ARCHIVE_BAND_PASS=compute, but {compute_unsupported}; "
+                          "set ARCHIVE_BAND_PASS=auto, cpu or gl")
     if setting != "auto":
-        return setting == "cpu"
-    return is_cpu_renderer(renderer)
+        return BandPass(setting, f"ARCHIVE_BAND_PASS={setting}")
+    if is_cpu_renderer(renderer):
+        return BandPass("cpu", f"auto: software GL renderer {renderer!r}, the numpy gather is cheaper")
+    if compute_unsupported:
+        return BandPass("gl", f"auto: GPU renderer {renderer!r}, GL fragment passes ({compute_unsupported})")
+    return BandPass("compute", f"auto: GPU renderer {renderer!r}, compute-shader gather (provisional until "
+                               "bench/gpu.sh measures it)")
+
+
+def band_pass_method(renderer: str | None, setting: str | None = None, *,
+                     compute_unsupported: str | None = None) -> str:
+    """The method name ('cpu', 'gl' or 'compute') of :func:`band_pass_choice`."""
+    return band_pass_choice(renderer, setting, compute_unsupported=compute_unsupported).method
+
+
+def use_cpu_gather(renderer: str | None, setting: str | None = None) -> bool:
+    """Whether render tasks gather bands on the CPU (:func:`gather_lookup`): :func:`band_pass_method`
+    is 'cpu' (kept for callers that only tell the CPU from GL; 'compute' counts as GL)."""
+    return band_pass_method(renderer, setting) == "cpu"
 
 
 def calibrate_plane(dn: np.ndarray, dark: np.ndarray, gain: np.ndarray, response: np.ndarray,
