@@ -58,7 +58,7 @@ from zarr.codecs import BloscCodec
 
 from archive.codecs import numcodecs_blosc
 from archive.errors import FormatError, InputError, MissingInputError
-from archive.files import replace_path, write_atomic
+from archive.files import FileLock, replace_path, write_atomic
 from archive.formats.envi import EnviCube, EnviHeader, header_from_metadata
 from archive.formats.lcf import LcfData
 from archive.navigation import LocalFrame
@@ -297,8 +297,19 @@ def record_navigation(store: str | os.PathLike, navigation_params: dict, arrays:
     give ('time', 'position', 'attitude': same shapes as stored), optionally a new flat
     ``ground_height`` (m) and a ``note`` kept as the 'navigation_calibration' attribute. The
     completion marker is taken off first and put back last (an interrupted update leaves an
-    incomplete store, never a silently inconsistent one); the arrays' checksums follow them."""
+    incomplete store, never a silently inconsistent one); the arrays' checksums follow them. Holds
+    the collection's lock (:func:`store_lock`; waits for an ingest of it to finish)."""
     store = Path(store)
+    lock = store_lock(store, f"navigation update of {store.name.removesuffix('.zarr')}")
+    lock.acquire(wait=float("inf"))
+    try:
+        _record_navigation(store, navigation_params, arrays, ground_height, note)
+    finally:
+        lock.release()
+
+
+def _record_navigation(store: Path, navigation_params: dict, arrays: dict[str, np.ndarray],
+                       ground_height: float | None, note: dict | None) -> None:
     group = zarr.open_group(store, mode="r+")
     attrs = dict(group.attrs)
     if attrs.get(COMPLETE) is not True:
@@ -324,6 +335,17 @@ def record_navigation(store: str | os.PathLike, navigation_params: dict, arrays:
         attrs["navigation_calibration"] = note
     group.attrs.put(attrs)
     group.attrs.put({**attrs, COMPLETE: True})
+
+
+def store_lock(store: str | os.PathLike, purpose: str) -> FileLock:
+    """The exclusive lock of the collection ``store`` (``<id>.zarr.lock`` beside it, not yet taken):
+    whoever writes the store (an ingest, its partial store included; ``calibrate --apply``) holds it,
+    so that two writers of one id, in two processes or on two hosts, never share a partial store.
+    ``purpose`` says what the holder does (shown to whoever waits)."""
+    store = Path(store)
+    cid = store.name.removesuffix(".zarr")
+    return FileLock(store.with_name(store.name + ".lock"), purpose, what=f"collection {cid}",
+                    fix="wait for it to finish")
 
 
 def publish(partial: Path, final: Path) -> None:
@@ -588,5 +610,5 @@ class CheckedDn:
 
 __all__ = ["COMPLETE", "CheckedDn", "CollectionInfo", "CorruptChunkError", "StoredPoses", "read_poses", "record_navigation", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS", "StorePlan", "StoredCube",
            "chunk_tasks", "finish_store", "frame_from_attrs", "frame_to_attrs", "is_complete", "open_dn",
-           "open_partial", "publish", "read_attrs", "read_info", "verify_store", "StoredCalibration",
+           "open_partial", "publish", "read_attrs", "read_info", "store_lock", "verify_store", "StoredCalibration",
            "write_chunk"]

@@ -6,15 +6,24 @@ graph of per-(cube, band) chunk tasks and per-file checksum tasks, records check
 writes the completion marker, renames the store to ``<id>.zarr`` and catalogs it. A rerun after a
 kill resumes the partial store (chunks already written with the right values are kept); a rerun
 after success is a no-op.
+
+One ingest per collection id at a time, across processes and hosts: each flight is written holding
+its collection's lock (:func:`archive.collection.store_lock`, ``<id>.zarr.lock``); a second ingest of
+the same flight says once that it waits, then finds the flight ingested. A full disk is one line
+(the partial store stays, and the rerun resumes it).
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import math
 import os
 import re
 import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +34,7 @@ from archive.catalog.root import ArchiveRoot, check_collection_id, create_archiv
 from archive.errors import InputError
 from archive.collection import (FORMAT, FORMAT_VERSION, NAV_COLUMNS, StorePlan, chunk_tasks, finish_store,
                                 frame_to_attrs, hash_file_task, is_complete, open_partial, publish, read_attrs,
-                                sha256_file, verify_store, write_chunk)
+                                sha256_file, store_lock, verify_store, write_chunk)
 from archive.formats.icp import response as exposure_response
 from archive.formats.lcf import gps_seconds_to_datetime
 from archive.params import NavigationParams
@@ -326,42 +335,101 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
     """Ingest raw flight ``directories`` into the archive (created when absent). Every flight is
     checked before anything is written; see the module docstring. ``dem`` / ``dem_datum``: the
     catalog footprint follows that terrain (:func:`prepare_flight`)."""
-    from archive.catalog.describe import catalog_collection
-
     plans = [prepare_flight(d, fov_deg, calibration, ground_height, sync_offset, boresight, lever_arm,
                             dem, dem_datum)
              for d in directories]
-    root = create_archive(archive_path)
+    root = _create_archive(archive_path)
     results = []
     for plan in plans:
-        final = root.store(plan.cid)
-        if final.exists() and not overwrite:
-            if not is_complete(final):
-                raise InputError(final, "exists but has no completion marker", "pass --overwrite to re-ingest")
-            attrs = read_attrs(final)
-            recorded = attrs.get("navigation_params") or {}
-            wanted = plan.attrs["navigation_params"]
-            if any(recorded.get(k, 0.0 if k == "sync_offset" else [0.0] * 3) != v for k, v in wanted.items()):
-                raise InputError(final, f"was ingested with other navigation parameters ({recorded or 'none'}, "
-                                 f"now {wanted})", "pass --overwrite to re-ingest with the new ones")
-            old_dem = _dem_of(attrs.get("terrain"))
-            if old_dem != _dem_of(plan.attrs.get("terrain")):
-                new_dem = _dem_of(plan.attrs.get("terrain"))
-                raise InputError(final, f"was ingested with {'the DEM ' + old_dem[0] if old_dem else 'no DEM'}, "
-                                 f"now {'the DEM ' + new_dem[0] if new_dem else 'none'}",
-                                 "pass --overwrite to re-ingest (the catalog footprint follows the DEM)")
-            if not _same_sources(attrs, plan):
-                raise InputError(final, f"holds a different flight than {directories[plans.index(plan)]} under the "
-                                 f"same id {plan.cid} (same sensor, same start second)",
-                                 "pass --overwrite to replace it")
-            if not _cataloged(root, plan.cid):
+        # One writer per collection id, across processes and hosts (DESIGN 5): a second ingest of
+        # the same flight waits here, then finds it ingested.
+        lock = store_lock(root.store(plan.cid), f"ingest of {plan.cid}")
+        lock.acquire(wait=math.inf, notify=lambda line: print(f"archive ingest: {line}", file=sys.stderr))
+        try:
+            results.append(_ingest_one(root, plan, directories[plans.index(plan)], overwrite, workers, progress))
+        finally:
+            lock.release()
+    return results
+
+
+def _create_archive(archive_path: str | os.PathLike) -> ArchiveRoot:
+    """:func:`create_archive`, tolerating another process creating the same new archive right now
+    (its folders exist for a moment before its ``archive.json``)."""
+    deadline = time.monotonic() + 10.0
+    while True:
+        try:
+            return create_archive(archive_path)
+        except InputError:
+            path = Path(archive_path)
+            made = ("collections", "catalog", "archive.json")   # what create_archive makes, marker last
+            being_made = path.is_dir() and all(p.name in made or p.name.endswith(".partial") for p in path.iterdir())
+            if not being_made or time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+
+
+def _ingest_one(root: ArchiveRoot, plan: StorePlan, directory: str, overwrite: bool, workers: int | None,
+                progress: bool) -> IngestResult:
+    """Ingest one prepared flight (its collection's lock held)."""
+    from archive.catalog.describe import catalog_collection
+
+    final = root.store(plan.cid)
+    if final.exists() and not overwrite:
+        if not is_complete(final):
+            raise InputError(final, "exists but has no completion marker", "pass --overwrite to re-ingest")
+        attrs = read_attrs(final)
+        recorded = attrs.get("navigation_params") or {}
+        wanted = plan.attrs["navigation_params"]
+        if any(recorded.get(k, 0.0 if k == "sync_offset" else [0.0] * 3) != v for k, v in wanted.items()):
+            raise InputError(final, f"was ingested with other navigation parameters ({recorded or 'none'}, "
+                             f"now {wanted})", "pass --overwrite to re-ingest with the new ones")
+        old_dem = _dem_of(attrs.get("terrain"))
+        if old_dem != _dem_of(plan.attrs.get("terrain")):
+            new_dem = _dem_of(plan.attrs.get("terrain"))
+            raise InputError(final, f"was ingested with {'the DEM ' + old_dem[0] if old_dem else 'no DEM'}, "
+                             f"now {'the DEM ' + new_dem[0] if new_dem else 'none'}",
+                             "pass --overwrite to re-ingest (the catalog footprint follows the DEM)")
+        if not _same_sources(attrs, plan):
+            raise InputError(final, f"holds a different flight than {directory} under the "
+                             f"same id {plan.cid} (same sensor, same start second)",
+                             "pass --overwrite to replace it")
+        if not _cataloged(root, plan.cid):
+            with _disk_full_is_an_error(root, plan.cid):
                 catalog_collection(root, plan.cid)  # an earlier run may have died before cataloging
-            results.append(IngestResult(plan.cid, final, "already ingested"))
-            continue
+        return IngestResult(plan.cid, final, "already ingested")
+    with _disk_full_is_an_error(root, plan.cid):
         resumed = write_flight(plan, root, workers, progress)
         catalog_collection(root, plan.cid)
-        results.append(IngestResult(plan.cid, final, "resumed" if resumed else "ingested"))
-    return results
+    return IngestResult(plan.cid, final, "resumed" if resumed else "ingested")
+
+
+def _disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` (or what it wraps) says the disk or the quota is full."""
+    import sqlite3
+
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        if isinstance(exc, sqlite3.OperationalError) and "full" in str(exc).lower():
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+@contextmanager
+def _disk_full_is_an_error(root: ArchiveRoot, cid: str) -> Iterator[None]:
+    """A full disk (or quota) while writing the store, its checksums or the catalog (SQLite) becomes
+    one line naming the archive; what was written stays as the partial store, which the rerun resumes."""
+    try:
+        yield
+    except Exception as exc:
+        if not _disk_full(exc):
+            raise
+        raise InputError(root.path, f"the disk is full while ingesting {cid} ({type(exc).__name__}: "
+                         f"{' '.join(str(exc).split())})",
+                         "free some space, then run the same ingest again: it resumes where it stopped") from None
 
 
 def run(args: argparse.Namespace) -> int:

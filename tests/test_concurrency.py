@@ -1,0 +1,130 @@
+"""Exclusive jobs across processes and hosts (issue 30, findings 2 and 6): concurrent ingests of one
+flight, the lock files behind them, two batches into one --out DIR, temporaries of other hosts.
+
+Real CLI processes on real files; "another host" is a lock file or temporary that names another
+host, as a process on a shared file system would leave it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from archive.cli import main
+from archive.files import FileLock, LockHeldError, host_name
+
+FOV = "47.5"
+SHAPE = dict(cubes=2, bands=4, samples=64, lines=100, cubes_per_pass=2)
+
+
+@pytest.fixture(scope="module")
+def raw(tmp_path_factory) -> Path:
+    from archive.simulator.command import simulate_flight
+
+    d = tmp_path_factory.mktemp("raw") / "flight"
+    simulate_flight(d, seed=0, **SHAPE)
+    return d
+
+
+def archive_cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "archive", *args]
+
+
+def test_ten_concurrent_ingests_of_one_flight(raw, tmp_path):
+    """Ten `archive ingest` of the same flight into one new archive at once: one ingests it, the
+    others wait (saying so in one line) and find it ingested; one intact collection, cataloged once,
+    nothing left beside it. (Before the lock, they shared one partial store: 3 of 10 runs left a
+    collection without dn/time/navigation under its final name.)"""
+    arc = tmp_path / "arc"
+    procs = [subprocess.Popen(archive_cmd("ingest", str(raw), "--archive", str(arc), "--fov", FOV, "--quiet",
+                                          "--workers", "1"),
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(10)]
+    results = [(p.wait(timeout=600), p.stdout.read(), p.stderr.read()) for p in procs]
+    for code, _, err in results:
+        assert code == 0, err
+        assert all(line.startswith("archive ingest: waiting: collection ") and " is locked, ingest of " in line
+                   for line in err.splitlines()), err
+    statuses = sorted(out.split(": ", 1)[1].split(" (")[0] for _, out, _ in results)
+    assert statuses == ["already ingested"] * 9 + ["ingested"], statuses
+    cid = results[0][1].split(":")[0]
+    assert main(["verify", "--archive", str(arc)]) == 0
+    assert sorted(p.name for p in (arc / "collections").iterdir()) == [f"{cid}.zarr"]   # no lock, no partial
+    from archive.catalog.index import search
+
+    assert [row.id for row in search(arc / "catalog" / "index.sqlite")] == [cid]
+    # and the collection renders
+    assert main(["render", cid, "--archive", str(arc), "--gsd", "0.2", "--out", str(tmp_path / "o.tif"),
+                 "--quiet"]) == 0
+
+
+def _lock_file(path: Path, host: str, pid: int, age: float = 0.0) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"host": host, "pid": pid, "process_start": None, "since": "2026-01-01T00:00:00+00:00",
+                                "purpose": "ingest of X"}))
+    if age:
+        t = time.time() - age
+        os.utime(path, (t, t))
+
+
+def test_lock_judges_dead_owners_by_host(tmp_path):
+    """A lock whose owner is a dead PID of THIS host is taken over; one of another host is respected
+    while its lease runs (whatever its PID means here), and taken over once it has run out."""
+    path = tmp_path / "x.lock"
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    _lock_file(path, host_name(), dead.pid)
+    lock = FileLock(path, "test")
+    lock.acquire()
+    assert json.loads(path.read_text())["pid"] == os.getpid()
+    lock.release()
+    assert not path.exists()
+
+    # another host's live lock: its PID means nothing here (dead here, or ours)
+    for pid in (dead.pid, os.getpid()):
+        _lock_file(path, "some-other-node", pid)
+        with pytest.raises(LockHeldError, match=rf"ingest of X by PID {pid} on some-other-node since "):
+            FileLock(path, "test", lease=60).acquire(wait=0.3)
+        assert json.loads(path.read_text())["host"] == "some-other-node"
+    _lock_file(path, "some-other-node", 1, age=120)   # no heartbeat for 120 s > the lease
+    lock = FileLock(path, "test", lease=60)
+    lock.acquire()
+    assert json.loads(path.read_text())["host"] == host_name()
+    lock.release()
+
+
+def test_lock_heartbeat_keeps_the_lease(tmp_path):
+    """A held lock's file is touched every heartbeat, so that another host never sees it expire."""
+    path = tmp_path / "x.lock"
+    lock = FileLock(path, "test", lease=1.0, heartbeat=0.1)
+    lock.acquire()
+    try:
+        os.utime(path, (time.time() - 100, time.time() - 100))
+        deadline = time.monotonic() + 10
+        while time.time() - path.stat().st_mtime > 50 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert time.time() - path.stat().st_mtime < 50
+    finally:
+        lock.release()
+
+
+def test_a_waiting_ingest_takes_over_from_a_killed_one(raw, tmp_path):
+    """An ingest killed while holding the lock (its lock file and partial store left behind, its PID
+    dead on this host): the next ingest takes the lock over and resumes."""
+    arc = tmp_path / "arc"
+    first = subprocess.run(archive_cmd("ingest", str(raw), "--archive", str(arc), "--fov", FOV, "--quiet"),
+                           capture_output=True, text=True)
+    assert first.returncode == 0, first.stderr
+    cid = first.stdout.split(":")[0]
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    _lock_file(arc / "collections" / f"{cid}.zarr.lock", host_name(), dead.pid)
+    again = subprocess.run(archive_cmd("ingest", str(raw), "--archive", str(arc), "--fov", FOV, "--quiet",
+                                       "--overwrite"), capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert "waiting" not in again.stderr and not (arc / "collections" / f"{cid}.zarr.lock").exists()
