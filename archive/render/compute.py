@@ -89,9 +89,13 @@ def _missing(ctx) -> str | None:
     return None
 
 
-def compute_unsupported() -> str | None:
-    """Why this thread's GL context cannot run the compute gather (no GL 4.3, old moderngl, a shader
-    the driver does not compile), or None when it can: compiles the program (then cached)."""
+def compute_unsupported(ctx=None) -> str | None:
+    """Why a GL context cannot run the compute gather (no GL 4.3, a moderngl without compute
+    shaders, a shader the driver does not compile), or None when it can. ctx: a moderngl context
+    (only its version is checked), default this thread's, whose programs are also compiled (then
+    cached)."""
+    if ctx is not None and ctx is not get_context():
+        return _missing(ctx)
     try:
         gather_program()
         gather_program(("DN_FLOAT",))
