@@ -27,6 +27,7 @@ HANDLERS = {
     "catalog": "archive.catalog.command:run",
     "view": "archive.view.server:run",
     "calibrate": "archive.calibrate.command:run",
+    "doctor": "archive.doctor:run",
 }
 
 
@@ -376,6 +377,18 @@ def _add_calibrate(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
+def _add_doctor(sub) -> None:
+    p = _command(sub, "doctor", "say whether this machine can render, and why not", (
+        "Check the installation (package versions, the shaders, catalog schema and viewer page), the EGL "
+        "devices and the GL renderer, vendor and version each one gives, which device a worker would open "
+        "and why (ARCHIVE_GL_DEVICE, CUDA_VISIBLE_DEVICES, Slurm's GPU binding), whether band passes run in "
+        "GL or on the CPU, and the optional parts (PROJ's geoid grid, chromium for the viewer tests, Slurm). "
+        "Exit 1, with the fix, when rendering is impossible."))
+    p.add_argument("--workers", type=_positive_int, default=1, metavar="N",
+                   help="also say how N local worker processes would spread over the GPUs (default 1)")
+    p.add_argument("--json", action="store_true", help="print the checks as JSON")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="archive",
@@ -394,6 +407,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_catalog(sub)
     _add_view(sub)
     _add_calibrate(sub)
+    _add_doctor(sub)
     return parser
 
 

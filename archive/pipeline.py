@@ -287,9 +287,24 @@ class _Job:
     sink: object
     graph: object
     options: RenderOptions
+    renderers: list | None = None   # what the workers' GL contexts opened (worker_renderers)
 
 
-def product_item(planned: OutputPlan, output: Output, options: RenderOptions) -> dict:
+def worker_renderers(client) -> list[dict]:
+    """The GL renderers the workers of ``client`` opened (one dict per worker and context: worker,
+    EGL device, why that device, renderer and vendor strings), for the output's Item; [] when none
+    is known. Makes no GL context (:func:`archive.render.context.opened_renderers`)."""
+    from archive.render.context import opened_renderers
+
+    try:
+        found = client.run(opened_renderers)
+    except Exception:   # a worker gone since: the metadata is a record, not a condition of the output
+        return []
+    return [{"worker": str(worker), **o} for worker, opened in sorted(found.items()) for o in opened]
+
+
+def product_item(planned: OutputPlan, output: Output, options: RenderOptions,
+                 renderers: list | None = None) -> dict:
     """The STAC Item of a written output (:func:`archive.catalog.product.product_item`): grid, bands,
     processing attributes, time span of its lines, and the recipe (the command that renders it
     again)."""
@@ -300,11 +315,17 @@ def product_item(planned: OutputPlan, output: Output, options: RenderOptions) ->
     first = min(float(planned.sources[j.source].line_times(j.cube)[0]) for j in plan.jobs)
     last = max(float(planned.sources[j.source].line_times(j.cube)[-1]) for j in plan.jobs)
     command = render_command(options, output.path, quicklook=output.quicklook, provenance=output.provenance)
-    return item(output.path, fmt=output.format, grid=plan.grid, band_indices=plan.bands[0],
+    doc = item(output.path, fmt=output.format, grid=plan.grid, band_indices=plan.bands[0],
                 wavelengths=planned.wavelengths, fwhm=planned.fwhm, variable=planned.variable,
                 attrs=planned.attrs, start=gps_seconds_to_datetime(first), end=gps_seconds_to_datetime(last),
                 sources=list(options.sources), command=command, request=options,
                 provenance=(output.provenance_path or output.path) if output.provenance else None)
+    if renderers:
+        # which GL renderer drew it (a GPU, or llvmpipe with the CPU band gather): a record of the
+        # run, kept out of archive:recipe.request so that a resume on other hardware is the same recipe
+        doc["properties"]["archive:renderers"] = renderers
+        doc["properties"]["archive:recipe"]["renderers"] = sorted({str(r.get("renderer")) for r in renderers})
+    return doc
 
 
 def publish(job: _Job) -> None:
@@ -313,7 +334,7 @@ def publish(job: _Job) -> None:
     from archive.catalog.stac import write_item
 
     job.output.finalize(job.sink)
-    write_item(job.output.item_path, product_item(job.planned, job.output, job.options))
+    write_item(job.output.item_path, product_item(job.planned, job.output, job.options, job.renderers))
 
 
 def _say(quiet: bool):
@@ -356,7 +377,9 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
         if len(graph):
             execute(client, graph, quiet, shared=cluster is None)
         graph_seconds = time.perf_counter() - t
+        renderers = worker_renderers(client)
         for job in jobs:
+            job.renderers = renderers
             publish(job)
     finally:
         if client is not None:

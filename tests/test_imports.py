@@ -263,7 +263,8 @@ LAYERS = [
     ("writers", ("archive.outputs",)),
     ("graph", ("archive.graph",)),
     ("commands", ("archive.options", "archive.cluster", "archive.pipeline", "archive.api", "archive.render_command",
-                  "archive.ingest", "archive.simulator", "archive.view", "archive.calibrate", "archive.batch")),
+                  "archive.ingest", "archive.simulator", "archive.view", "archive.calibrate", "archive.batch",
+                  "archive.doctor")),
     ("entry", ("archive.cli", "archive.__main__")),
 ]
 #: Edges the layers allow that DESIGN 1 still forbids: (importer prefix, forbidden target prefixes, exempt

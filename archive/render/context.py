@@ -4,16 +4,26 @@ A moderngl context is tied to the thread that created it and cannot be pickled o
 so :func:`get_context` creates a headless EGL context lazily, on first use in each thread, and
 caches it in a ``threading.local``. Nothing is created at import and nothing global is set.
 Compiled shader programs are cached per context too (:func:`get_program`).
+
+The EGL device a context opens is chosen by :func:`archive.render.device.choose_device`
+(``ARCHIVE_GL_DEVICE``, else the GPU the process was bound to, else the first hardware device); a
+process that was given a GPU and gets a software renderer stops with a RenderError. What each
+context opened is recorded in :data:`OPENED` (read by the command from its workers with
+:func:`opened_renderers`, for the output's metadata).
 """
 
 from __future__ import annotations
 
+import os
 import threading
 from importlib.resources import files
 
 from archive.errors import RenderError
+from archive.render.device import check_renderer, choose_device, egl_devices
 
 _local = threading.local()
+#: What the contexts of this process opened: one dict per context (device, reason, renderer, vendor).
+OPENED: list[dict[str, object]] = []
 
 _INSTALL_HINT = (
     "headless OpenGL needs EGL and Mesa: on Debian/Ubuntu `apt-get install libegl1 libgl1 "
@@ -33,11 +43,23 @@ def get_context():
         import moderngl
     except ImportError as exc:  # pragma: no cover - moderngl is a dependency
         raise RenderError(f"cannot import moderngl ({exc}); pip install moderngl") from exc
+    choice = choose_device(egl_devices(), os.environ)
+    device = {} if choice.index is None else {"device_index": choice.index}
     try:
-        ctx = moderngl.create_context(standalone=True, backend="egl", require=330)
+        ctx = moderngl.create_context(standalone=True, backend="egl", require=330, **device)
     except Exception as exc:
-        raise RenderError(f"cannot create a headless OpenGL (EGL) context: {exc}; {_INSTALL_HINT}") from exc
+        raise RenderError(f"cannot create a headless OpenGL (EGL) context on {choice.reason}: {exc}; "
+                          f"{_INSTALL_HINT}") from exc
+    renderer = ctx.info.get("GL_RENDERER")
+    try:
+        check_renderer(choice, renderer)
+    except RenderError:
+        ctx.release()
+        raise
+    OPENED.append({"device": choice.index, "reason": choice.reason, "renderer": renderer,
+                   "vendor": ctx.info.get("GL_VENDOR"), "version": ctx.info.get("GL_VERSION")})
     _local.ctx = ctx
+    _local.choice = choice
     _local.programs = {}
     return ctx
 
@@ -57,11 +79,21 @@ def park_framebuffer() -> None:
     fbo.use()
 
 
+def opened_renderers() -> list[dict[str, object]]:
+    """What this process's contexts opened so far (:data:`OPENED`; no context is made): a function
+    the command runs on each worker (``client.run``) to record the renderers in the output's Item."""
+    return [dict(o) for o in OPENED]
+
+
 def gl_info() -> dict[str, object]:
-    """Facts about this thread's context: renderer, vendor, GL version, size limits (pixels)."""
+    """Facts about this thread's context: renderer, vendor, GL version, size limits (pixels), the
+    EGL device it opened and why."""
     ctx = get_context()
     info = ctx.info
+    choice = _local.choice
     return {
+        "device": choice.index,
+        "device_reason": choice.reason,
         "renderer": info.get("GL_RENDERER"),
         "vendor": info.get("GL_VENDOR"),
         "version": info.get("GL_VERSION"),
