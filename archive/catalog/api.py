@@ -22,6 +22,7 @@ Errors are ``{"code", "description"}`` with a 4xx status.
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import sqlite3
@@ -29,7 +30,8 @@ import threading
 from typing import Any
 from urllib.parse import urlencode
 
-from archive.catalog.cql import QUERYABLES, parse, parse_bbox_values, queryables_schema, split_antimeridian, to_sql
+from archive.catalog.cql import (MAX_NESTING, QUERYABLES, check_json_text, check_tree, parse, parse_bbox_values,
+                                 queryables_schema, split_antimeridian, to_sql)
 from archive.catalog.index import connect, ensure_index, geometry_wkb, read_item_file, spatial_clause, time_clause
 from archive.catalog.root import ArchiveRoot
 from archive.catalog.stac import STAC_VERSION, ZARR_EXTENSION, ZARR_MEDIA_TYPE, store_asset_fields
@@ -60,6 +62,9 @@ CONFORMANCE = [
 ]
 DEFAULT_LIMIT = 10
 MAX_LIMIT = 10_000
+#: Largest POST body read (bytes) and largest paging offset a token may carry.
+MAX_BODY_BYTES = 1 << 20
+MAX_OFFSET = 10 ** 9
 QUERYABLES_REL = "http://www.opengis.net/def/rel/ogc/1.0/queryables"
 SCHEMA_JSON = "application/schema+json"
 OPENAPI_TYPE = "application/vnd.oai.openapi+json;version=3.0"
@@ -267,10 +272,12 @@ class StacApi:
             where.append("(" + " OR ".join(parts) + ")")
         if intersects not in (None, ""):
             if isinstance(intersects, str):
+                check_json_text(intersects, "intersects")
                 try:
                     intersects = json.loads(intersects)
-                except ValueError:
+                except (ValueError, RecursionError):
                     raise InputError("intersects", "not a GeoJSON geometry (not JSON)") from None
+            check_tree(intersects, "intersects")
             if not isinstance(intersects, dict) or intersects.get("type") not in (
                     "Point", "MultiPoint", "LineString", "MultiLineString", "Polygon", "MultiPolygon",
                     "GeometryCollection"):
@@ -278,7 +285,10 @@ class StacApi:
             import shapely
 
             wkb = geometry_wkb(intersects)
-            clause, more = spatial_clause(shapely.from_wkb(wkb).bounds, wkb)
+            bounds = shapely.from_wkb(wkb).bounds
+            if not all(-1e3 <= v <= 1e3 for v in bounds):
+                raise InputError("intersects", f"coordinates {bounds} are not longitudes and latitudes in degrees")
+            clause, more = spatial_clause(bounds, wkb)
             where.append(clause)
             args += more
         when = params.get("datetime")
@@ -305,18 +315,12 @@ class StacApi:
             clause, more = to_sql(parse(filt, lang))
             where.append(clause)
             args += more
-        limit = params.get("limit", DEFAULT_LIMIT)
-        try:
-            limit = int(limit if limit not in (None, "") else DEFAULT_LIMIT)
-        except (TypeError, ValueError):
-            raise InputError("limit", f"expected an integer, got {limit!r}") from None
-        if limit < 1:
-            raise InputError("limit", f"{limit} is not a positive number of Items")
-        limit = min(limit, MAX_LIMIT)
+        limit = parse_limit(params.get("limit"))
         token = params.get("token")
         offset = 0
         if token not in (None, ""):
-            if not isinstance(token, str) or not token.startswith("o") or not token[1:].isdigit():
+            if not isinstance(token, str) or not re.fullmatch(r"o[0-9]{1,10}", token) \
+                    or int(token[1:]) > MAX_OFFSET:
                 raise InputError("token", f"{str(token)[:40]!r} is not a token of this API", "follow the next link")
             offset = int(token[1:])
         return " AND ".join(where) or "1", args, _order(params.get("sortby")), limit, offset
@@ -395,6 +399,29 @@ def parse_rfc3339_interval(text: Any) -> tuple[float | None, float | None]:
     return a, b
 
 
+def parse_limit(value: Any) -> int:
+    """The ``limit`` of a search (a query string or a JSON number): a positive integer, clamped to
+    MAX_LIMIT; InputError for anything else (a fraction, a boolean, 1e999, a 400-digit number)."""
+    if value is None or value == "":
+        return DEFAULT_LIMIT
+    if isinstance(value, str):
+        text = value.strip()
+        if not re.fullmatch(r"[+-]?[0-9]{1,18}", text):
+            raise InputError("limit", f"expected a positive integer, got {value[:40]!r}")
+        number = int(text)
+    elif isinstance(value, bool) or not isinstance(value, int | float):
+        raise InputError("limit", f"expected a positive integer, got {str(value)[:40]!r}")
+    elif isinstance(value, float):
+        if not math.isfinite(value) or value != int(value):
+            raise InputError("limit", f"expected a positive integer, got {value!r}")
+        number = int(value)
+    else:
+        number = value
+    if number < 1:
+        raise InputError("limit", f"{number} is not a positive number of Items")
+    return min(number, MAX_LIMIT)
+
+
 def _list(value: Any, name: str) -> list[str] | None:
     if value is None or value == "":
         return None
@@ -437,6 +464,26 @@ def _order(sortby: Any) -> str:
 
 
 # ---- HTTP (Starlette) --------------------------------------------------------------------------
+def parse_body(raw: bytes) -> dict:
+    """The JSON object of a POST body, bounded before it is parsed (size, nesting, count of
+    values: :func:`archive.catalog.cql.check_json_text`); InputError naming ``body`` otherwise."""
+    if len(raw) > MAX_BODY_BYTES:
+        raise InputError("body", f"{len(raw)} bytes is too large (at most {MAX_BODY_BYTES})")
+    try:
+        text = raw.decode("utf-8") if raw.strip() else "{}"
+    except UnicodeDecodeError:
+        raise InputError("body", "not UTF-8 text", "send a JSON object") from None
+    check_json_text(text, "body", max_chars=MAX_BODY_BYTES)
+    try:
+        body = json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise InputError("body", f"not JSON: {str(exc)[:200]}", "send a JSON object") from None
+    if not isinstance(body, dict):
+        raise InputError("body", "expected a JSON object")
+    check_tree(body, "body", MAX_NESTING)
+    return body
+
+
 def stac_routes(archive: ArchiveRoot | None, prefix: str = "/stac") -> list:
     """Starlette routes of the STAC API of ``archive`` under ``prefix`` (None: every route
     answers 404, the viewer serves raw directories only)."""
@@ -459,22 +506,33 @@ def stac_routes(archive: ArchiveRoot | None, prefix: str = "/stac") -> list:
                     raise MissingInputError("archive", "STAC API", "start archive view with --archive ARCHIVE")
                 body = None
                 if request.method == "POST":
-                    try:
-                        body = json.loads(await request.body() or b"{}")
-                    except ValueError:
-                        raise InputError("body", "not JSON") from None
-                    if not isinstance(body, dict):
-                        raise InputError("body", "expected a JSON object")
+                    body = parse_body(await _read_body(request))
                 doc = await run_in_threadpool(fn, api, request, base, body)
             except MissingInputError as exc:
                 return answer(404, {"code": "NotFound", "description": str(exc)})
             except ArchiveError as exc:
                 return answer(400, {"code": "InvalidParameterValue", "description": str(exc)})
+            except (RecursionError, OverflowError) as exc:  # a last line of defence: inputs are bounded first
+                return answer(400, {"code": "InvalidParameterValue",
+                                    "description": f"the request is too deeply nested or a number is out of range "
+                                                   f"({type(exc).__name__})"})
             return answer(200, doc, media_type)
         return endpoint
 
     def query(request) -> dict:
         return dict(request.query_params)
+
+    async def _read_body(request) -> bytes:
+        size = request.headers.get("content-length")
+        if size is not None and size.isdigit() and int(size) > MAX_BODY_BYTES:
+            raise InputError("body", f"{size} bytes is too large (at most {MAX_BODY_BYTES})")
+        chunks, total = [], 0
+        async for chunk in request.stream():
+            total += len(chunk)
+            if total > MAX_BODY_BYTES:
+                raise InputError("body", f"more than {MAX_BODY_BYTES} bytes (too large)")
+            chunks.append(chunk)
+        return b"".join(chunks)
 
     def search(api, request, base, body):
         if body is not None:

@@ -23,6 +23,8 @@ functions, array operators, property-property temporal tests) are an InputError 
 from __future__ import annotations
 
 import math
+import re
+import threading
 from datetime import UTC, date, datetime, time, timedelta
 from typing import Any
 
@@ -54,38 +56,166 @@ _TEMPORAL_OPS: dict[str, str] = {
     "t_startedby": "s = a AND b < e", "t_starts": "s = a AND e < b",
 }
 MAX_FILTER_CHARS = 100_000
+#: Deepest nesting of parentheses/brackets (cql2-text) or of objects/arrays (JSON) parsed at all.
+MAX_NESTING = 64
+#: Most prefix and arithmetic operators (NOT, +, -, *, /, %, ^, DIV) in a cql2-text filter outside
+#: geometry literals: each may add a level to the parse tree (a chain of 5,000 ``NOT`` overflows the
+#: stack of the ``cql2`` parser, a native library: the process dies, no exception).
+MAX_OPERATORS = 200
+#: Most JSON values (objects, arrays, scalars) in a cql2-json filter or a request body.
+MAX_JSON_VALUES = 200_000
+#: Deepest expression tree translated to SQL (levels of and/or/not/operators).
+MAX_TREE_DEPTH = 96
+#: Stack of the thread that runs the cql2 parser: far more than the bounded inputs need (a last
+#: line of defence: a native stack overflow cannot be caught).
+PARSER_STACK_BYTES = 256 << 20
+
+_GEOMETRY_WORDS = {"POINT", "LINESTRING", "POLYGON", "MULTIPOINT", "MULTILINESTRING", "MULTIPOLYGON",
+                   "GEOMETRYCOLLECTION", "BBOX", "ENVELOPE"}
+_TEXT_TOKEN = re.compile(r"'(?:[^']|'')*'?|\"(?:[^\"]|\"\")*\"?|[A-Za-z_][A-Za-z0-9_:.]*|\d[\d.]*(?:[eE][+-]?\d+)?"
+                         r"|<>|<=|>=|\S")
+_JSON_STRUCT = re.compile(r'"(?:[^"\\]|\\.)*"|[\[\]{}]|[^\s"\[\]{},:]+')
+
+
+def check_text(text: str, name: str = "filter") -> None:
+    """Bound a cql2-text filter before any parser sees it: its length (MAX_FILTER_CHARS), the
+    nesting of its parentheses (MAX_NESTING) and its count of prefix/arithmetic operators outside
+    geometry literals (MAX_OPERATORS). InputError naming ``name`` otherwise."""
+    if len(text) > MAX_FILTER_CHARS:
+        raise InputError(name, f"{len(text)} characters is too long (at most {MAX_FILTER_CHARS})",
+                         "give a shorter filter; a large geometry goes in 'intersects'")
+    depth = operators = 0
+    geometry_depth = None  # the depth at which the geometry literal being read opened
+    pending_geometry = False
+    for match in _TEXT_TOKEN.finditer(text):
+        token = match.group(0)
+        if token in ("(", "["):
+            depth += 1
+            if depth > MAX_NESTING:
+                raise InputError(name, f"nested more than {MAX_NESTING} levels deep",
+                                 "simplify the filter (fewer nested parentheses)")
+            if pending_geometry and geometry_depth is None:
+                geometry_depth = depth
+            pending_geometry = False
+            continue
+        if token in (")", "]"):
+            if geometry_depth is not None and depth == geometry_depth:
+                geometry_depth = None
+            depth = max(depth - 1, 0)
+            continue
+        pending_geometry = token.upper() in _GEOMETRY_WORDS
+        if geometry_depth is None and (token.upper() in ("NOT", "DIV") or token in "+-*/%^"):
+            operators += 1
+            if operators > MAX_OPERATORS:
+                raise InputError(name, f"more than {MAX_OPERATORS} NOT or arithmetic operators",
+                                 "simplify the filter")
+
+
+def check_json_text(text: str | bytes, name: str, max_chars: int = MAX_FILTER_CHARS) -> None:
+    """Bound a JSON document before it is parsed: its size (``max_chars``), the nesting of its
+    objects and arrays (MAX_NESTING) and its number of values (MAX_JSON_VALUES)."""
+    if isinstance(text, bytes | bytearray):
+        text = bytes(text).decode("utf-8", errors="replace")
+    if len(text) > max_chars:
+        raise InputError(name, f"{len(text)} characters is too long (at most {max_chars})")
+    depth = values = 0
+    for match in _JSON_STRUCT.finditer(text):
+        token = match.group(0)
+        if token in ("[", "{"):
+            depth += 1
+            if depth > MAX_NESTING:
+                raise InputError(name, f"JSON nested more than {MAX_NESTING} levels deep", "simplify it")
+        elif token in ("]", "}"):
+            depth = max(depth - 1, 0)
+        values += 1
+        if values > MAX_JSON_VALUES:
+            raise InputError(name, f"more than {MAX_JSON_VALUES} JSON values", "give a smaller document")
+
+
+def check_tree(node: Any, name: str = "filter", max_depth: int = MAX_NESTING) -> None:
+    """Bound a parsed JSON value (dicts, lists, scalars) without recursion: depth at most
+    ``max_depth``, at most MAX_JSON_VALUES values, numbers finite and integers within 64 bits.
+    InputError naming ``name`` and the key path of the offending value otherwise."""
+    stack: list[tuple[Any, int, str]] = [(node, 1, "")]
+    values = 0
+    while stack:
+        value, depth, path = stack.pop()
+        values += 1
+        if values > MAX_JSON_VALUES:
+            raise InputError(name, f"more than {MAX_JSON_VALUES} JSON values", "give a smaller document")
+        where = f"{path.lstrip('.')}: " if path else ""
+        if isinstance(value, dict | list):
+            if depth > max_depth:
+                raise InputError(name, f"nested more than {max_depth} levels deep", "simplify it")
+            items = value.items() if isinstance(value, dict) else enumerate(value)
+            stack.extend((c, depth + 1, f"{path}.{str(k)[:40]}" if depth < 4 else path) for k, c in items)
+        elif isinstance(value, float) and not math.isfinite(value):
+            raise InputError(name, f"{where}{value} is not a finite number")
+        elif isinstance(value, int) and not isinstance(value, bool) and abs(value) > 2 ** 63 - 1:
+            raise InputError(name, f"{where}the integer {str(value)[:20]}... is out of range (at most 2**63 - 1)")
+
+
+def _parse_guarded(filter_value: Any) -> dict:
+    """cql2's parse (text or JSON) of a bounded input, in a thread with a large stack."""
+    import cql2
+
+    result: dict[str, Any] = {}
+
+    def work() -> None:
+        try:
+            result["tree"] = cql2.Expr(filter_value).to_json()
+        except BaseException as exc:  # cql2 raises ValueError/ParseError/plain Exception, or RecursionError
+            result["error"] = exc
+
+    with _STACK_LOCK:
+        previous = threading.stack_size(PARSER_STACK_BYTES)
+        try:
+            worker = threading.Thread(target=work, name="archive-cql2", daemon=True)
+            worker.start()
+        finally:
+            threading.stack_size(previous)
+    worker.join()
+    if "error" in result:
+        exc = result["error"]
+        first = " ".join(str(exc).split())[:300] or type(exc).__name__
+        raise InputError("filter", f"not a CQL2 expression: {first}",
+                         "see https://docs.ogc.org/is/21-065r2/21-065r2.html, e.g. "
+                         "\"hsi:wavelength_min <= 650 AND hsi:wavelength_max >= 650\"")
+    return result["tree"]
+
+
+_STACK_LOCK = threading.Lock()
 
 
 def parse(filter_value: Any, lang: str | None = None) -> dict:
     """The cql2-json tree of a filter given as cql2-text (a string) or cql2-json (a dict, or a
-    JSON string with ``lang='cql2-json'``); InputError naming ``filter`` when it does not parse."""
-    import cql2
-
+    JSON string with ``lang='cql2-json'``); InputError naming ``filter`` when it does not parse.
+    The input is bounded first (:func:`check_text`, :func:`check_json_text`, :func:`check_tree`),
+    so that nothing oversized or deeply nested reaches the parser."""
     if lang not in (None, "cql2-text", "cql2-json"):
-        raise InputError("filter-lang", f"{lang!r} is not supported", "use cql2-text or cql2-json")
+        raise InputError("filter-lang", f"{str(lang)[:40]!r} is not supported", "use cql2-text or cql2-json")
     if isinstance(filter_value, str):
-        if len(filter_value) > MAX_FILTER_CHARS:
-            raise InputError("filter", f"{len(filter_value)} characters is too long (at most {MAX_FILTER_CHARS})")
         if lang == "cql2-json" or (lang is None and filter_value.lstrip().startswith("{")):
             import json
 
+            check_json_text(filter_value, "filter")
             try:
                 filter_value = json.loads(filter_value)
-            except ValueError as exc:
-                raise InputError("filter", f"not JSON: {exc}", "give cql2-json, or filter-lang=cql2-text") from None
-        elif lang is None or lang == "cql2-text":
-            pass
+            except (ValueError, RecursionError) as exc:
+                raise InputError("filter", f"not JSON: {str(exc)[:200]}",
+                                 "give cql2-json, or filter-lang=cql2-text") from None
+            if not isinstance(filter_value, dict):
+                raise InputError("filter", "cql2-json must be a JSON object")
+        else:
+            check_text(filter_value)
     elif not isinstance(filter_value, dict):
         raise InputError("filter", f"expected cql2-text (a string) or cql2-json (an object), got "
                                    f"{type(filter_value).__name__}")
-    try:
-        expr = cql2.Expr(filter_value)
-        return expr.to_json()
-    except Exception as exc:  # cql2 raises ValueError/ParseError/plain Exception with the parser's text
-        first = " ".join(str(exc).split())[:300]
-        raise InputError("filter", f"not a CQL2 expression: {first}",
-                         "see https://docs.ogc.org/is/21-065r2/21-065r2.html, e.g. "
-                         "\"hsi:wavelength_min <= 650 AND hsi:wavelength_max >= 650\"") from None
+    if isinstance(filter_value, dict):
+        check_tree(filter_value)
+    tree = _parse_guarded(filter_value)
+    check_tree(tree, max_depth=MAX_TREE_DEPTH * 2 + 8)  # {op, args: [...]}: two JSON levels a level
+    return tree
 
 
 class Translator:
