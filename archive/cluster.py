@@ -96,11 +96,27 @@ def start_cluster(scheduler, workers: int | None, say, threads: int | None = Non
 
     environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ", None) or {})
     environ.setdefault("MALLOC_MMAP_THRESHOLD_", str(MALLOC_MMAP_THRESHOLD))
+    # Workers spread over the node's GPUs (archive.render.device.spread_environments): each worker's
+    # own CUDA_VISIBLE_DEVICES entry or EGL device; nothing to spread on one GPU or none.
+    from archive.render.device import egl_devices, spread_environments
+
+    spread = spread_environments(egl_devices(), workers)
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=threads or max(2, cores), processes=True,
+        cluster = LocalCluster(n_workers=0 if any(spread) else workers,
+                               threads_per_worker=threads or max(2, cores), processes=True,
                                resources={"GPU": GL_SLOTS}, env={"LP_NUM_THREADS": str(cores)},
                                dashboard_address=":0", silence_logs=logging.CRITICAL)  # errors come back here
-    return Client(cluster), cluster
+        if any(spread):
+            for i, extra in enumerate(spread):
+                ((name, spec),) = cluster.new_worker_spec().items()
+                options = dict(spec["options"])
+                options["env"] = {**(options.get("env") or {}), **extra}
+                cluster.worker_spec[name] = {**spec, "options": options}
+            cluster.scale(workers)
+    client = Client(cluster)
+    if any(spread):
+        client.wait_for_workers(workers, timeout=120)
+    return client, cluster
 
 
 @dataclass(frozen=True)
@@ -166,7 +182,9 @@ def start_slurm(spec: SlurmJobs, say):
     if "--resources" not in worker_args:
         worker_args += ["--resources", f"GPU={GL_SLOTS}"]
     # The configuration's own prologue comes last, so that a site's settings win.
+    # A job given a GPU must render on it (archive.render.device: a software renderer is then an error).
     prologue = [f"export LP_NUM_THREADS={int(cores)}", f"export MALLOC_MMAP_THRESHOLD_={MALLOC_MMAP_THRESHOLD}",
+                *(["export ARCHIVE_REQUIRE_GPU=1"] if spec.gpus else []),
                 *(config.get("job-script-prologue") or [])]
     # A free dashboard port unless the configuration names one (a login node is shared; the link is printed).
     scheduler_options = {"dashboard_address": ":0", **(config.get("scheduler-options") or {})}
