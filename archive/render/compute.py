@@ -23,8 +23,8 @@ the CPU copies the previous one out).
 
 Buffers are bounded by the context's ``GL_MAX_SHADER_STORAGE_BLOCK_SIZE`` (128 MiB on llvmpipe; 16
 MiB is the GL minimum): groups shrink to fit, and a grid whose one band does not fit goes band by band
-in chunks of rows. The compiled program is cached per thread (:func:`gather_program`), on the thread's
-context from :func:`archive.render.context.get_context`.
+in chunks of rows. The compiled program and the buffers are kept per thread (:func:`gather_program`,
+:func:`release_buffers`), on the thread's context from :func:`archive.render.context.get_context`.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from archive.render.context import get_context, load_shader
 from archive.render.renderer import (GatherIndex, Lookup, RenderResult, checked_cube, dn_texture_format, flag_saturated,
                                      gather_index, radiometry_arrays)
 
-__all__ = ["COMPUTE_VERSION", "compute_lookup", "compute_unsupported", "gather_program"]
+__all__ = ["COMPUTE_VERSION", "compute_lookup", "compute_unsupported", "gather_program", "release_buffers"]
 
 #: GL version (code) that compute shaders and shader storage buffers need.
 COMPUTE_VERSION = 430
@@ -104,6 +104,42 @@ def compute_unsupported(ctx=None) -> str | None:
     return None
 
 
+class _BufferPool:
+    """This thread's storage buffers, reused from call to call (a render task's band groups and the
+    next cube's: no allocation of hundreds of MB per call), grown when a call needs more; the
+    buffers of a call are its ``get`` calls in order. Held until :func:`release_buffers`."""
+
+    def __init__(self, ctx):
+        self.ctx, self.buffers = ctx, {}
+
+    def get(self, key: str, nbytes: int):
+        nbytes = max(4, (int(nbytes) + 3) // 4 * 4)
+        buf = self.buffers.get(key)
+        if buf is None or buf.size < nbytes:
+            if buf is not None:
+                buf.release()
+            buf = self.buffers[key] = self.ctx.buffer(reserve=nbytes)
+        return buf
+
+    def release(self) -> None:
+        while self.buffers:
+            self.buffers.popitem()[1].release()
+
+
+def _buffer_pool(ctx) -> _BufferPool:
+    pool = getattr(_local, "pool", None)
+    if pool is None or pool.ctx is not ctx:
+        pool = _local.pool = _BufferPool(ctx)
+    return pool
+
+
+def release_buffers() -> None:
+    """Release this thread's compute-gather buffers (the next call allocates them again)."""
+    pool = getattr(_local, "pool", None)
+    if pool is not None:
+        pool.release()
+
+
 def _block_limit(ctx) -> int:
     """Largest shader storage block the context allows, bytes (below 2^31: int indices)."""
     limit = ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE") or (1 << 24)
@@ -166,28 +202,27 @@ def compute_lookup(lookup: Lookup | GatherIndex, dn: np.ndarray, radiometry, ban
     chunks = [(r0, min(r0 + rows, height)) for r0 in range(0, height, rows)]
     pieces = [(b0, min(b0 + group, nb), r0, r1) for b0 in range(0, nb, group) for r0, r1 in chunks]
 
-    objs = []
+    pool = _buffer_pool(ctx)
 
-    def buffer(nbytes):
-        buf = ctx.buffer(reserve=max(4, (int(nbytes) + 3) // 4 * 4))
-        objs.append(buf)
+    def bind(binding: int, name: str, nbytes: int, data: np.ndarray | None = None):
+        """Pool buffer ``name`` (at least ``nbytes``), ``data`` written at its start, bound to
+        ``binding`` over ``nbytes`` only (a pooled buffer may be larger than the storage-block limit)."""
+        buf = pool.get(name, nbytes)
+        if data is not None and data.size:
+            buf.write(data)
+        buf.bind_to_storage_buffer(binding, size=max(4, (int(nbytes) + 3) // 4 * 4))
         return buf
 
     try:
         covered = gather.index.size
         per_chunk = len(chunks) > 1       # the index of each chunk's rows goes up with its pieces
-        index_bufs = [buffer(gather.index.nbytes if not per_chunk else rows * row_bytes) for _ in range(2 if per_chunk else 1)]
         if not per_chunk:
-            index_bufs[0].write(gather.index)
-        resp_buf = buffer(resp.nbytes)
-        resp_buf.write(np.ascontiguousarray(resp))
-        dn_bufs = [buffer(group * plane_bytes) for _ in range(2)]
-        cal_bufs = [(buffer(group * samples * 4), buffer(group * samples * 4)) for _ in range(2)]
-        out_bufs = [buffer(group * rows * row_bytes) for _ in range(2)]
+            bind(0, "index", gather.index.nbytes, gather.index)
+        bind(4, "resp", resp.nbytes, np.ascontiguousarray(resp))
         program["u_samples"].value = samples
         program["u_plane"].value = plane
         program["u_nan"].value = float("nan")
-        resp_buf.bind_to_storage_buffer(4)
+        out_bytes = group * rows * row_bytes
 
         def read(piece, buf):
             b0, b1, r0, r1 = piece
@@ -201,44 +236,37 @@ def compute_lookup(lookup: Lookup | GatherIndex, dn: np.ndarray, radiometry, ban
             if r0 == 0:                   # a new group of bands: its DN and calibration up
                 group_no += 1
                 slot = group_no % 2
-                dn_bufs[slot].write(dn_up[b0:b1])
-                cal_bufs[slot][0].write(np.ascontiguousarray(dark[b0:b1]))
-                cal_bufs[slot][1].write(np.ascontiguousarray(gain[b0:b1]))
-                dn_bufs[slot].bind_to_storage_buffer(1)
-                cal_bufs[slot][0].bind_to_storage_buffer(2)
-                cal_bufs[slot][1].bind_to_storage_buffer(3)
+                bind(1, f"dn{slot}", group * plane_bytes, dn_up[b0:b1])
+                bind(2, f"dark{slot}", group * samples * 4, np.ascontiguousarray(dark[b0:b1]))
+                bind(3, f"gain{slot}", group * samples * 4, np.ascontiguousarray(gain[b0:b1]))
                 program["u_bands"].value = b1 - b0
             # index entries of rows r0..r1 of the grid: the covered rows start at gather.row0
             first = (r0 - gather.row0) * width
             if per_chunk:
                 lo, hi = max(first, 0), min(first + (r1 - r0) * width, covered)
-                buf = index_bufs[k % 2]
-                if hi > lo:
-                    buf.write(gather.index[lo:hi])
-                buf.bind_to_storage_buffer(0)
+                bind(0, f"index{k % 2}", rows * row_bytes, gather.index[lo:hi] if hi > lo else None)
                 program["u_first"].value = first - lo
                 program["u_covered"].value = max(hi - lo, 0)
             else:
-                index_bufs[0].bind_to_storage_buffer(0)
                 program["u_first"].value = first
                 program["u_covered"].value = covered
             pixels = (r1 - r0) * width
             program["u_pixels"].value = pixels
-            out_bufs[k % 2].bind_to_storage_buffer(5)
+            out = bind(5, f"out{k % 2}", out_bytes)
             groups = -(-pixels // _LOCAL)
             gx = min(groups, _MAX_GROUPS)
             program.run(gx, -(-groups // gx))
             ctx.memory_barrier()
             if pending is not None:       # the previous piece, while this one computes
                 read(*pending)
-            pending = (piece, out_bufs[k % 2])
+            pending = (piece, out)
         read(*pending)
         error = ctx.error
         if error != "GL_NO_ERROR":
             raise RenderError(f"OpenGL reported {error} while gathering {nb} bands of {where} in a compute shader")
-    finally:
-        while objs:
-            objs.pop().release()
+    except BaseException:
+        pool.release()    # a failed call leaves no buffer behind (nor one in an unknown state)
+        raise
     if saturation is not None:  # as the other paths: any band's DN at or above the threshold
         flag_saturated(dn, saturation, gather, result.saturated)
     return result
