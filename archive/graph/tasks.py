@@ -29,7 +29,7 @@ from archive.grid import Grid
 
 Box = tuple[int, int, int, int]
 
-__all__ = ["Box", "assemble_layers", "assemble_task", "assemble_write_task", "blank_write_task", "cpu_band_pass", "gate_task", "gl_call", "layout_task",
+__all__ = ["Box", "assemble_layers", "assemble_task", "assemble_write_task", "blank_write_task", "band_pass", "band_pass_choice", "cpu_band_pass", "gate_task", "gl_call", "layout_task",
            "layers_task", "lookup_task", "PackedLookup", "ValuesPool", "VALUES_POOL", "unpacked", "overview_task", "pick_task", "render_task", "write_layers_task",
            "write_saturated_task", "write_values_task"]
 
@@ -48,23 +48,50 @@ def gl_call(fn, *args, **kwargs):
     return executor.submit(fn, *args, **kwargs).result()
 
 
-_BAND_PASS: dict[str, bool] = {}
+_BAND_PASS: dict[str, object] = {}
+
+
+def _band_pass_facts() -> tuple[str, str | None]:
+    """(GL renderer string, why compute shaders cannot run or None): on the GL thread."""
+    from archive.render.compute import compute_unsupported
+    from archive.render.context import gl_info
+
+    return str(gl_info().get("renderer")), compute_unsupported()
+
+
+def band_pass_choice():
+    """How this process's render tasks compute the per-band gather: an
+    :class:`archive.render.gather.BandPass` (method 'cpu', 'gl' or 'compute', and the reason), from
+    :func:`archive.render.gather.band_pass_choice` on its GL thread's renderer and the setting
+    ``ARCHIVE_BAND_PASS``; decided once per process and setting. Its ``method`` is what a render's
+    metadata records (:func:`band_pass`)."""
+    import os
+
+    from archive.render.gather import band_pass_choice as choose
+
+    setting = os.environ.get("ARCHIVE_BAND_PASS") or "auto"
+    with _GL_LOCK:
+        known = _BAND_PASS.get(setting)
+    if known is None:
+        if setting.strip().lower() in ("cpu", "gl"):   # no GL context needed to know it
+            known = choose(None, setting)
+        else:
+            renderer, unsupported = gl_call(_band_pass_facts)
+            known = choose(renderer, setting, compute_unsupported=unsupported)
+        with _GL_LOCK:
+            _BAND_PASS[setting] = known
+    return known
+
+
+def band_pass() -> str:
+    """The band-pass method of this process's render tasks: 'cpu', 'gl' or 'compute' (:func:`band_pass_choice`)."""
+    return band_pass_choice().method
 
 
 def cpu_band_pass() -> bool:
-    """Whether this process's render tasks gather their bands on the CPU
-    (:func:`archive.render.gather.use_cpu_gather`: on a software GL renderer such as llvmpipe)
-    rather than drawing GL band passes; decided once per process from its GL thread's renderer."""
-    with _GL_LOCK:
-        known = _BAND_PASS.get("cpu")
-    if known is None:
-        from archive.render.context import gl_info
-        from archive.render.gather import use_cpu_gather
-
-        known = use_cpu_gather(str(gl_call(gl_info).get("renderer")))
-        with _GL_LOCK:
-            _BAND_PASS["cpu"] = known
-    return known
+    """Whether this process's render tasks gather their bands on the CPU (:func:`band_pass` is 'cpu':
+    on a software GL renderer such as llvmpipe) rather than in GL (fragment passes or compute)."""
+    return band_pass() == "cpu"
 
 
 class ValuesPool:
@@ -255,9 +282,10 @@ def render_task(source, cube: int, bands: Sequence[int], lookup, mode: str,
     """Render ``bands`` of ``cube`` of ``source`` through the cube's ``lookup`` (from :func:`lookup_task`).
 
     Reads the bands and radiometry here, in the task's thread, then draws on the process's GL
-    thread (:func:`gl_call`), ``bands_per_pass`` (1..8) bands per full-screen pass; on a software
-    GL renderer (llvmpipe: :func:`cpu_band_pass`) it gathers the bands through the lookup with numpy
-    in its own thread instead (:func:`archive.render.gather.gather_lookup`, equal values). ``after``: results
+    thread (:func:`gl_call`) by the method :func:`band_pass` names: 'gl', ``bands_per_pass`` (1..8)
+    bands per full-screen pass; 'compute', a compute shader (:func:`archive.render.compute.compute_lookup`);
+    'cpu' (software GL such as llvmpipe) gathers the bands through the lookup with numpy in its own
+    thread instead (:func:`archive.render.gather.gather_lookup`). All give equal values (tested). ``after``: results
     of tasks the render waits for (the graph's backpressure, :func:`gate_task`), not used.
     Returns values (len(bands), window height, window width) float32 (NaN where not covered) and
     saturated (window height, window width) bool.
@@ -268,12 +296,18 @@ def render_task(source, cube: int, bands: Sequence[int], lookup, mode: str,
     try:
         dn = source.read_bands(cube, bands)
         radiometry = source.radiometry(cube, bands, mode)
-        if cpu_band_pass():   # software GL: the numpy gather, in this thread (same values, tested)
-            from archive.render.gather import gather_lookup
-
+        method = band_pass()
+        if method in ("cpu", "compute"):   # the gather through the flat index (same values, tested)
             gather = lookup.gather_index() if isinstance(lookup, PackedLookup) else lookup
             out = VALUES_POOL.take((len(bands), *gather.grid.shape))
-            result = gather_lookup(gather, dn, radiometry, out=out)
+            if method == "cpu":   # software GL: numpy, in this thread
+                from archive.render.gather import gather_lookup
+
+                result = gather_lookup(gather, dn, radiometry, out=out)
+            else:                 # GPU: a compute shader on the GL thread, read back into ``out``
+                from archive.render.compute import compute_lookup
+
+                result = gl_call(compute_lookup, gather, dn, radiometry, out=out)
         else:
             result = gl_call(render_lookup, unpacked(lookup), dn, radiometry,
                              bands_per_pass=min(bands_per_pass, len(bands)))
