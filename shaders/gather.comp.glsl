@@ -17,7 +17,8 @@ layout(std430, binding = 0) readonly buffer Index { int index[]; };  // covered 
 #ifdef DN_FLOAT
 layout(std430, binding = 1) readonly buffer Dn { float dn[]; };      // (bands, lines, samples)
 #else
-layout(std430, binding = 1) readonly buffer Dn { uint dn_words[]; }; // uint16 (bands, lines, samples), 2 per word, little-endian
+// uint16 (bands, lines, samples), 2 per word, little-endian (element 2k in the low half)
+layout(std430, binding = 1) readonly buffer Dn { uint dn_words[]; };
 #endif
 layout(std430, binding = 2) readonly buffer Dark { float dark[]; };  // (bands, samples)
 layout(std430, binding = 3) readonly buffer Gain { float gain[]; };  // (bands, samples)

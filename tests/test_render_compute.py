@@ -175,11 +175,14 @@ def test_render_task_runs_the_chosen_method(lookup, monkeypatch):
     monkeypatch.setattr(compute, "compute_lookup", lambda *a, **k: calls.append(1) or real(*a, **k))
     packed = tasks.PackedLookup(lookup)
     results = {}
+    monkeypatch.setattr(tasks, "_BAND_PASS", {})
     for method in ("cpu", "gl", "compute"):
         monkeypatch.setenv("ARCHIVE_BAND_PASS", method)
+        assert tasks.decided_band_pass() is None       # nothing decided yet for this setting
         assert tasks.band_pass() == method and tasks.band_pass_choice().reason == f"ARCHIVE_BAND_PASS={method}"
         assert tasks.cpu_band_pass() == (method == "cpu")
         results[method] = tasks.render_task(source, 0, range(2, NB), packed, "radiance")
+        assert tasks.decided_band_pass() == {"method": method, "reason": f"ARCHIVE_BAND_PASS={method}"}
     assert calls == [1]
     for method in ("gl", "compute"):
         values, saturated = results[method]

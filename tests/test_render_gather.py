@@ -88,6 +88,8 @@ def test_band_pass_choice(monkeypatch):
     assert not use_cpu_gather("llvmpipe")
     monkeypatch.setenv("ARCHIVE_BAND_PASS", "cpu")
     assert use_cpu_gather("NVIDIA H100")
+    monkeypatch.setenv("ARCHIVE_BAND_PASS", "compute")   # a GL method: not the CPU gather
+    assert not use_cpu_gather("llvmpipe")
     monkeypatch.setenv("ARCHIVE_BAND_PASS", "fast")
     with pytest.raises(InputError, match="ARCHIVE_BAND_PASS"):
         use_cpu_gather("llvmpipe")

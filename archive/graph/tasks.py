@@ -29,7 +29,8 @@ from archive.grid import Grid
 
 Box = tuple[int, int, int, int]
 
-__all__ = ["Box", "assemble_layers", "assemble_task", "assemble_write_task", "blank_write_task", "band_pass", "band_pass_choice", "cpu_band_pass", "gate_task", "gl_call", "layout_task",
+__all__ = ["Box", "assemble_layers", "assemble_task", "assemble_write_task", "blank_write_task", "band_pass", "band_pass_choice",
+           "cpu_band_pass", "decided_band_pass", "gate_task", "gl_call", "layout_task",
            "layers_task", "lookup_task", "PackedLookup", "ValuesPool", "VALUES_POOL", "unpacked", "overview_task", "pick_task", "render_task", "write_layers_task",
            "write_saturated_task", "write_values_task"]
 
@@ -81,6 +82,18 @@ def band_pass_choice():
         with _GL_LOCK:
             _BAND_PASS[setting] = known
     return known
+
+
+def decided_band_pass() -> dict | None:
+    """The band pass this process's render tasks took, as decided so far: {'method': 'cpu' | 'gl' |
+    'compute', 'reason': ...} for the current ``ARCHIVE_BAND_PASS``, or None when no render task
+    (nor :func:`band_pass`) has decided it here. Makes no GL context and decides nothing: for
+    ``client.run(decided_band_pass)`` after a render, to record in the output's metadata."""
+    import os
+
+    with _GL_LOCK:
+        known = _BAND_PASS.get(os.environ.get("ARCHIVE_BAND_PASS") or "auto")
+    return None if known is None else {"method": known.method, "reason": known.reason}
 
 
 def band_pass() -> str:

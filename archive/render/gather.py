@@ -28,8 +28,8 @@ from archive.errors import InputError
 from archive.render.renderer import (GatherIndex, Lookup, RenderResult, checked_cube, dn_texture_format, flag_saturated,
                                      gather_index, radiometry_arrays)
 
-__all__ = ["BAND_PASS_SETTINGS", "BandPass", "CPU_RENDERERS", "GatherIndex", "MAX_ULP", "band_pass_choice", "band_pass_method",
-           "calibrate_plane", "gather_index", "gather_lookup", "is_cpu_renderer", "use_cpu_gather"]
+__all__ = ["BAND_PASS_SETTINGS", "BandPass", "CPU_RENDERERS", "GatherIndex", "MAX_ULP", "band_pass_choice",
+           "band_pass_method", "calibrate_plane", "gather_index", "gather_lookup", "is_cpu_renderer", "use_cpu_gather"]
 
 #: GL renderer names (substrings, lower case) of software rasterisers, where the CPU gather wins.
 CPU_RENDERERS = ("llvmpipe", "softpipe", "swrast", "lavapipe")

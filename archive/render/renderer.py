@@ -14,6 +14,11 @@
    RGBA texel fetch, then applies ``value = (DN - dark) * gain / response``; each target is read
    back straight into the output. Saturated DN are flagged from the same lookup on the CPU.
 
+Pass 2 has two other implementations with the same values: the CPU gather
+(:func:`archive.render.gather.gather_lookup`, cheapest on llvmpipe) and a GL compute shader
+(:func:`archive.render.compute.compute_lookup`, for GPUs whose graphics units are few); render tasks
+take the one :func:`archive.render.gather.band_pass_choice` names (``ARCHIVE_BAND_PASS``).
+
 :func:`render_cube` = both. Rendering goes window by window (no side larger than the GL size
 limit); cubes with more lines than the texture limit are uploaded in line chunks.
 """
