@@ -1,42 +1,53 @@
 #!/usr/bin/env bash
-# Throughput on a GPU node (issue 20), one command:
+# Throughput on a GPU node (issues 20 and 29), one prepared command that fits a device lease:
 #
-#   bench/gpu.sh                      # on a machine with an NVIDIA GPU
+#   bench/gpu.sh                      # on a machine with an NVIDIA GPU (at most BUDGET_S, default 450 s)
 #   REQUIRE_GPU=0 CUBES=4 PASSES=2 BANDS=16 bench/gpu.sh     # dry run on a CPU machine (llvmpipe)
 #
-# 1. sets up what it needs: Debian's EGL/GL loader packages if missing (sudo when not root), a venv
-#    ($VENV, default .venv) with the package installed;
+# 1. sets up what it needs: EGL/GL loader packages (Debian's, or the .deb files of .gl/ unpacked, for a
+#    bare device machine: /work/.library/device/README.md), the package and its dependencies (a venv
+#    $VENV with `pip install -e .`, or, where no index can be reached, the wheels of .whl/ that
+#    bench/gpu_wheels.sh downloads, installed into /tmp/site), then `archive doctor` (the EGL devices,
+#    the renderer a worker gets and why);
 # 2. simulates the paper's flight, 40 cubes of 900 samples x 1000 lines x 300 bands over 5 lawn-mower
-#    passes (21 GB of BIL), into RAM ($SHM, default /dev/shm/archive-gpu; reused while complete);
-# 3. renders it at 4 cm, radiance, all bands, to ENVI and Zarr in $SHM with 1, 2 and 4 worker
-#    processes (`archive render ... --workers N`, through bench/stage_profile.py: the command's own
-#    code and cluster, plus its task stream and stage timers) and prints, per run, lines/s end to end
-#    (process start to exit, Python and cluster start-up included) and in the graph, and the split
-#    of CPU-seconds: GL (lookup and band passes: the GL thread's own CPU; the GPU's time is not CPU
-#    time) against everything else (reads, mosaic, compression, writes, the command's process).
-#    BAND_PASS=cpu also renders once with the CPU band gather instead of the GL band passes.
+#    passes (21 GB of BIL), into RAM ($SHM, default /dev/shm/archive-gpu; reused while complete), on
+#    all the machine's cores;
+# 3. renders it at 4 cm, radiance, all bands, to each of $FORMATS with $WORKERS worker processes
+#    (default: the node filled, one worker per 4 cores), once per band-pass method of $BAND_PASSES
+#    (cpu: numpy gather; gl: fragment passes; compute: GL compute shader), through
+#    bench/stage_profile.py (the command's own code and cluster, plus its task stream and stage
+#    timers); the runs go in that order and a run is skipped when the time spent plus the estimate
+#    for it (the last run of the same format, else the longest run so far) would pass BUDGET_S, so
+#    that the whole script fits one device call;
+# 4. prints, per run, lines/s end to end (process start to exit, Python and cluster start-up
+#    included) and in the graph, the split of CPU-seconds: GL (lookup, band passes or compute gather:
+#    the GL thread's own CPU; the GPU's time is not CPU time), CPU gather, everything else; the
+#    renderer string; what was skipped and why; and writes it all to $RESULTS.
 #
-# Never part of CI (.ci/run runs ./dev.sh test only). Targets (issue 20): >= 3,640 lines/s (the seed's
-# laptop), goal 7,300. Settings: CUBES PASSES BANDS SAMPLES LINES GSD WORKERS FORMATS SHM VENV
-# REQUIRE_GPU BAND_PASS KEEP (keep the simulated flight; default yes) RESULTS (a JSON file to write).
+# Never part of CI (.ci/run runs ./dev.sh test only). Targets (issue 29): >= 3,640 lines/s (the seed's
+# laptop), goal 7,300. Settings: CUBES PASSES BANDS SAMPLES LINES GSD WORKERS FORMATS BAND_PASSES SHM VENV
+# REQUIRE_GPU BUDGET_S KEEP (keep the simulated flight; default yes) RESULTS (a JSON file to write).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+T0=$(date +%s)
 CUBES=${CUBES:-40}
 PASSES=${PASSES:-5}
 BANDS=${BANDS:-300}
 SAMPLES=${SAMPLES:-900}
 LINES=${LINES:-1000}
 GSD=${GSD:-0.04}
-WORKERS=${WORKERS:-"1 2 4"}
-FORMATS=${FORMATS:-"hdr zarr"}
+CORES=$(nproc)
+WORKERS=${WORKERS:-$(( CORES / 4 > 0 ? CORES / 4 : 1 ))}
+FORMATS=${FORMATS:-"zarr hdr"}
+BAND_PASSES=${BAND_PASSES:-"compute cpu gl"}
 SHM=${SHM:-/dev/shm/archive-gpu}
 VENV=${VENV:-.venv}
 PY=${PYTHON:-python3}
 REQUIRE_GPU=${REQUIRE_GPU:-1}
-BAND_PASS=${BAND_PASS:-}
+BUDGET_S=${BUDGET_S:-450}
 RESULTS=${RESULTS:-$SHM/results.json}
 
-say() { echo "[gpu.sh $(date +%H:%M:%S) load $(cut -d' ' -f1-3 /proc/loadavg)] $*"; }
+say() { echo "[gpu.sh +$(( $(date +%s) - T0 ))s load $(cut -d' ' -f1-3 /proc/loadavg)] $*"; }
 
 # ---- 0. the GPU ---------------------------------------------------------------------------------
 if command -v nvidia-smi >/dev/null 2>&1; then
@@ -47,32 +58,40 @@ elif [ "$REQUIRE_GPU" = 1 ]; then
 fi
 
 # ---- 1. set-up -----------------------------------------------------------------------------------
-missing=""
-if command -v dpkg-query >/dev/null 2>&1; then
-    for p in libegl1 libgl1 libegl-mesa0 python3-venv; do
-        dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing="$missing $p"
-    done
+if ! ldconfig -p 2>/dev/null | grep -q 'libEGL.so.1'; then
+    if compgen -G ".gl/*.deb" >/dev/null; then
+        say "unpacking the EGL/GL loaders of .gl/"
+        for f in .gl/*.deb; do dpkg -x "$f" /; done
+        ldconfig
+    else
+        sudo=""
+        [ "$(id -u)" -eq 0 ] || sudo="sudo"
+        say "installing libegl1 libgl1 libegl-mesa0"
+        $sudo apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq libegl1 libgl1 libegl-mesa0 >/dev/null
+    fi
 fi
-if [ -n "$missing" ]; then
-    sudo=""
-    [ "$(id -u)" -eq 0 ] || sudo="sudo"
-    say "installing system packages:$missing"
-    $sudo apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq $missing >/dev/null
+nv_vendor=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+if [ -e "$nv_vendor" ] && [ ! -e /usr/share/glvnd/egl_vendor.d/10_nvidia.json ] && [ -z "${__EGL_VENDOR_LIBRARY_FILENAMES:-}" ]; then
+    export __EGL_VENDOR_LIBRARY_FILENAMES=$nv_vendor   # the driver's own folder (a container mount)
 fi
-if [ ! -x "$VENV/bin/python" ]; then
-    say "creating $VENV"
-    "$PY" -m venv "$VENV"
-    "$VENV/bin/python" -m pip install -q --upgrade pip
+if compgen -G ".whl/*.whl" >/dev/null && ! "$PY" -c "import distributed, moderngl, zarr" 2>/dev/null; then
+    say "installing the wheels of .whl/ into /tmp/site (no package index here)"
+    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
+    export PYTHONPATH="/tmp/site:$PWD${PYTHONPATH:+:$PYTHONPATH}"
+    PYBIN=$PY
+else
+    if [ ! -x "$VENV/bin/python" ]; then
+        say "creating $VENV"
+        "$PY" -m venv "$VENV"
+        "$VENV/bin/python" -m pip install -q --upgrade pip
+    fi
+    "$VENV/bin/python" -c "import archive, moderngl, distributed" 2>/dev/null || "$VENV/bin/python" -m pip install -q -e .
+    PYBIN=$VENV/bin/python
 fi
-"$VENV/bin/python" -c "import archive, moderngl, distributed" 2>/dev/null || "$VENV/bin/python" -m pip install -q -e .
-"$VENV/bin/python" - <<'EOF'
-from archive.render.context import gl_info
-from archive.render.gather import use_cpu_gather
-info = gl_info()
-print(f"GL: {info['renderer']} ({info['vendor']}, {info['version']}); band passes: "
-      f"{'CPU gather' if use_cpu_gather(str(info['renderer'])) else 'GL'}")
-EOF
+export PYTHONUNBUFFERED=1
+# what a worker here renders with, and why (exit 1: it cannot render; a dry run goes on on llvmpipe)
+"$PYBIN" -m archive doctor --workers "$WORKERS" || { [ "$REQUIRE_GPU" = 1 ] && exit 1; }
 
 # ---- 2. the flight, in RAM -------------------------------------------------------------------------
 mkdir -p "$SHM"
@@ -83,7 +102,7 @@ say "flight needs ~${need_gb} GB, ${free_gb} GB free in $SHM"
 if [ ! -e "$FLIGHT/.bench-complete" ]; then
     rm -rf "$FLIGHT"
     say "simulating $CUBES cubes over $PASSES passes into $FLIGHT"
-    "$VENV/bin/python" - "$FLIGHT" "$CUBES" "$PASSES" "$BANDS" "$SAMPLES" "$LINES" <<'EOF'
+    "$PYBIN" - "$FLIGHT" "$CUBES" "$PASSES" "$BANDS" "$SAMPLES" "$LINES" <<'EOF'
 import sys, time
 from archive.simulator.command import simulate_flight
 d, cubes, passes, bands, samples, lines = sys.argv[1], *map(int, sys.argv[2:])
@@ -97,40 +116,58 @@ cat "$FLIGHT"/*.bil > /dev/null   # in RAM anyway; touch every page once
 
 # ---- 3. renders --------------------------------------------------------------------------------------
 runs=()
+skipped=()
+declare -A last_wall=()
+longest=0
 render() {  # render FORMAT WORKERS BAND_PASS
     local fmt=$1 n=$2 pass=$3 out="$SHM/mosaic.$1" json="$SHM/profile_${1}_w${2}_${3}.json"
+    local spent=$(( $(date +%s) - T0 )) estimate=${last_wall[$1]:-$longest}
+    if [ $(( spent + estimate )) -gt "$BUDGET_S" ]; then
+        say "skip .$fmt with $pass band passes: ${spent} s spent + ~${estimate} s > BUDGET_S=$BUDGET_S"
+        skipped+=("$fmt/$pass: ${spent} s spent + ~${estimate} s estimated > ${BUDGET_S} s")
+        return 0
+    fi
     rm -rf "$out" "${out%.*}" "$out.json"
     say "render -> .$fmt, $n worker(s), band passes: $pass"
     local t0 t1
     t0=$(date +%s.%N)
-    ARCHIVE_BAND_PASS=$pass "$VENV/bin/python" bench/stage_profile.py "$json" --workers "$n" -- "$FLIGHT" \
-        --fov 47.5 --gsd "$GSD" --ground-height 80 --mode radiance --bands all --out "$out" --overwrite
-    t1=$(date +%s.%N)
-    echo "$t0 $t1" > "$json.wall"
+    if ARCHIVE_BAND_PASS=$pass "$PYBIN" bench/stage_profile.py "$json" --workers "$n" -- "$FLIGHT" \
+        --fov 47.5 --gsd "$GSD" --ground-height 80 --mode radiance --bands all --out "$out" --overwrite; then
+        t1=$(date +%s.%N)
+        echo "$t0 $t1" > "$json.wall"
+        [ -e "$out.json" ] && "$PYBIN" -c "import json,sys; p=json.load(open(sys.argv[1]))['properties']; \
+print('renderers:', p.get('archive:recipe', {}).get('renderers'))" "$out.json" || true
+        runs+=("$json")
+    else
+        t1=$(date +%s.%N)
+        skipped+=("$fmt/$pass: failed (see above)")
+    fi
+    local wall
+    wall=$("$PYBIN" -c "import sys; print(int(float(sys.argv[2]) - float(sys.argv[1])) + 1)" "$t0" "$t1")
+    last_wall[$fmt]=$wall
+    [ "$wall" -gt "$longest" ] && longest=$wall
     rm -rf "$out" "${out%.*}" "$out.json"
-    runs+=("$json")
 }
 for fmt in $FORMATS; do
-    for n in $WORKERS; do
-        render "$fmt" "$n" auto
+    for pass in $BAND_PASSES; do
+        render "$fmt" "$WORKERS" "$pass"
     done
 done
-if [ "$BAND_PASS" = cpu ]; then
-    for fmt in $FORMATS; do render "$fmt" "${WORKERS##* }" cpu; done
-fi
 
 # ---- 4. summary ----------------------------------------------------------------------------------------
-"$VENV/bin/python" - "$FLIGHT" "$RESULTS" "${runs[@]}" <<'EOF'
+printf '%s\n' "${skipped[@]}" > "$SHM/skipped.txt"
+"$PYBIN" - "$FLIGHT" "$RESULTS" "$SHM/skipped.txt" "${runs[@]}" <<'EOF'
 import json, os, sys
 from pathlib import Path
-flight, results, runs = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3:]
+flight, results, skipped, runs = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3]), sys.argv[4:]
+skipped = [s for s in skipped.read_text().splitlines() if s.strip()]
 lines = 0
 for hdr in sorted(flight.glob("*.bil.hdr")):
     for row in hdr.read_text().splitlines():
         if row.replace(" ", "").lower().startswith("lines="):
             lines += int(row.split("=")[1])
 cubes = len(list(flight.glob("*.bil")))
-gl_stages = ("GL lookup", "GL band passes")
+gl_stages = ("GL lookup", "GL band passes", "GL compute gather")
 out = []
 print()
 print(f"{cubes} cubes, {lines} lines ({flight}); load {os.getloadavg()}")
@@ -154,7 +191,9 @@ for path in runs:
     out.append(row)
     print(f"| .{fmt} | {workers} | {mode} | {wall:.1f} | {lines / wall:.0f} | {p['graph_s']:.1f} | "
           f"{lines / p['graph_s']:.0f} | {gl:.1f} | {gather:.1f} | {outside:.1f} | {outside / cubes:.2f} |")
-results.write_text(json.dumps({"cubes": cubes, "lines": lines, "runs": out}, indent=1))
+for s in skipped:
+    print(f"skipped: {s}")
+results.write_text(json.dumps({"cubes": cubes, "lines": lines, "runs": out, "skipped": skipped}, indent=1))
 print(f"\nper-stage CPU-s and task streams: {results}; target >= 3640 lines/s (goal 7300)")
 EOF
 if [ "${KEEP:-1}" != 1 ]; then rm -rf "$FLIGHT"; fi

@@ -19,7 +19,7 @@ under ``distributed.get_task_stream``, and writes OUT.json:
   summed task seconds from the task stream;
 - ``stages``: CPU-seconds (thread CPU time; for GL calls plus the llvmpipe threads' CPU while the
   call ran: one GL call at a time per process) and calls of the wrapped functions: GL lookup, GL
-  band passes, CPU band gather, DN reads, mosaic, NaN checks, compression, overview downsampling,
+  band passes, GL compute gather, CPU band gather, DN reads, mosaic, NaN checks, compression, overview downsampling,
   writes (``os.pwrite``, Zarr chunk files, COG spool files).
 
 The wrappers are installed only in this benchmark's workers (``Client.run``), never in the package.
@@ -106,6 +106,7 @@ def install_stage_timers() -> list:
         ("archive.render.renderer", None, "rasterize_lookup", "GL lookup", True),
         ("archive.render.renderer", None, "render_lookup", "GL band passes", True),
         ("archive.render.gather", None, "gather_lookup", "CPU band gather", False),
+        ("archive.render.compute", None, "compute_lookup", "GL compute gather", True),
         ("archive.sources.raw", "RawFlightSource", "read_bands", "read DN", False),
         ("archive.sources.collection", "CollectionSource", "read_bands", "read DN", False),
         ("archive.sources.raw", "RawFlightSource", "radiometry", "radiometry terms", False),
