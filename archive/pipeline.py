@@ -292,15 +292,23 @@ class _Job:
 
 def worker_renderers(client) -> list[dict]:
     """The GL renderers the workers of ``client`` opened (one dict per worker and context: worker,
-    EGL device, why that device, renderer and vendor strings), for the output's Item; [] when none
-    is known. Makes no GL context (:func:`archive.render.context.opened_renderers`)."""
-    from archive.render.context import opened_renderers
-
+    EGL device, why that device, renderer and vendor strings, and the band pass its render tasks
+    took: {method, reason} or None), for the output's Item; [] when none is known. Makes no GL
+    context (:func:`archive.render.context.opened_renderers`, :func:`archive.graph.tasks.decided_band_pass`)."""
     try:
-        found = client.run(opened_renderers)
+        found = client.run(_worker_gl_facts)
     except Exception:   # a worker gone since: the metadata is a record, not a condition of the output
         return []
-    return [{"worker": str(worker), **o} for worker, opened in sorted(found.items()) for o in opened]
+    return [{"worker": str(worker), **o, "band_pass": facts["band_pass"]}
+            for worker, facts in sorted(found.items()) for o in facts["opened"]]
+
+
+def _worker_gl_facts() -> dict:
+    """On a worker: the GL contexts it opened and the band pass its render tasks took (no GL)."""
+    from archive.graph.tasks import decided_band_pass
+    from archive.render.context import opened_renderers
+
+    return {"opened": opened_renderers(), "band_pass": decided_band_pass()}
 
 
 def product_item(planned: OutputPlan, output: Output, options: RenderOptions,

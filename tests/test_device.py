@@ -137,6 +137,7 @@ def test_the_renderer_and_device_are_recorded_in_the_item(flight, tmp_path):
     props = json.loads(Path(f"{out}.json").read_text())["properties"]
     (opened,) = props["archive:renderers"]          # one worker, one GL thread: one context
     assert opened["device"] == 0 and opened["reason"] == "ARCHIVE_GL_DEVICE=0"
+    assert opened["band_pass"]["method"] == "cpu"   # llvmpipe: the numpy gather
     assert "llvmpipe" in opened["renderer"] and props["archive:recipe"]["renderers"] == [opened["renderer"]]
     assert "renderers" not in props["archive:recipe"]["request"]   # a record of the run, not of the request
 
