@@ -210,3 +210,21 @@ def test_archive_render_compute_equals_cpu(tmp_path, monkeypatch):
         values[method] = xr.open_zarr(out)["radiance"].values
     assert np.isfinite(values["cpu"]).any() and np.isnan(values["cpu"]).any()
     assert np.array_equal(values["compute"].view(np.uint32), values["cpu"].view(np.uint32))
+
+
+def test_render_task_on_a_context_without_compute(lookup, monkeypatch):
+    """A GPU context without GL 4.3: auto falls back to the GL fragment passes and says why;
+    ARCHIVE_BAND_PASS=compute stops the render task with one line naming the setting and the cube."""
+    from archive.graph import tasks
+
+    dn = cube("uint16")
+    source = _Source(dn, radiometry(NB, LINES, SAMPLES))
+    monkeypatch.setattr(tasks, "_BAND_PASS", {})
+    monkeypatch.setattr(tasks, "_band_pass_facts", lambda: ("Old GPU", "the GL context is version 4.1"))
+    monkeypatch.setenv("ARCHIVE_BAND_PASS", "auto")
+    assert tasks.band_pass_choice() == ("gl", "auto: GPU renderer 'Old GPU', GL fragment passes "
+                                              "(the GL context is version 4.1)")
+    monkeypatch.setenv("ARCHIVE_BAND_PASS", "compute")
+    with pytest.raises(RenderError, match="cube-0: ARCHIVE_BAND_PASS=compute, but the GL context is version 4.1") as err:
+        tasks.render_task(source, 0, [0, 1], tasks.PackedLookup(lookup), "radiance")
+    assert "\n" not in str(err.value)
