@@ -27,14 +27,17 @@ import os
 import re
 import sqlite3
 import threading
+import time
+from pathlib import Path
 from typing import Any
 from urllib.parse import urlencode
 
 from archive.catalog.cql import (MAX_NESTING, QUERYABLES, check_json_text, check_tree, parse, parse_bbox_values,
                                  queryables_schema, split_antimeridian, to_sql)
-from archive.catalog.index import connect, ensure_index, geometry_wkb, read_item_file, spatial_clause, time_clause
+from archive.catalog.index import (connect_readonly, ensure_index, geometry_wkb, read_item_file, spatial_clause,
+                                   time_clause)
 from archive.catalog.root import ArchiveRoot
-from archive.catalog.stac import STAC_VERSION, ZARR_EXTENSION, ZARR_MEDIA_TYPE, store_asset_fields
+from archive.catalog.stac import STAC_VERSION, ZARR_EXTENSION, ZARR_MEDIA_TYPE, item_summary, store_asset_fields
 from archive.catalog.tree import COLLECTION_ID, GEOJSON_TYPE, JSON_TYPE, collection_dict
 from archive.errors import InputError, MissingInputError
 
@@ -65,6 +68,8 @@ MAX_LIMIT = 10_000
 #: Largest POST body read (bytes) and largest paging offset a token may carry.
 MAX_BODY_BYTES = 1 << 20
 MAX_OFFSET = 10 ** 9
+#: Seconds an index found to answer for the Items is trusted before it is checked again.
+INDEX_CHECK_S = 2.0
 QUERYABLES_REL = "http://www.opengis.net/def/rel/ogc/1.0/queryables"
 SCHEMA_JSON = "application/schema+json"
 OPENAPI_TYPE = "application/vnd.oai.openapi+json;version=3.0"
@@ -84,22 +89,31 @@ class StacApi:
     def __init__(self, root: ArchiveRoot):
         self.root = root
         self._local = threading.local()
+        self._lock = threading.Lock()
+        self._checked: tuple[float, Path, tuple] | None = None
 
     # ---- the index ---------------------------------------------------------------------------
+    def _index(self) -> tuple[Path, tuple]:
+        """(path, identity) of an index that answers for the Items now: checked (and rebuilt, in
+        the archive or in the user's cache folder: :func:`ensure_index`) at most every
+        INDEX_CHECK_S seconds."""
+        with self._lock:
+            now = time.monotonic()
+            if self._checked is None or now - self._checked[0] > INDEX_CHECK_S:
+                path = ensure_index(self.root)
+                st = os.stat(path)
+                self._checked = (now, path, (str(path), st.st_ino, st.st_dev))
+            return self._checked[1], self._checked[2]
+
     def _con(self) -> sqlite3.Connection:
-        """This thread's connection to the index (reopened when the file was replaced by a rebuild)."""
-        path = self.root.index_path
-        try:
-            stamp = os.stat(path).st_ino
-        except FileNotFoundError:
-            stamp = None
+        """This thread's read-only connection to the index (reopened when the file was replaced by a
+        rebuild, or another file answers)."""
+        path, stamp = self._index()
         held = getattr(self._local, "con", None)
         if held is None or held[0] != stamp:
             if held is not None:
                 held[1].close()
-            ensure_index(self.root)  # a missing or older index is rebuilt from the Items
-            con = connect(path)
-            self._local.con = held = (os.stat(path).st_ino, con)
+            self._local.con = held = (stamp, connect_readonly(path))
         return held[1]
 
     # ---- documents ---------------------------------------------------------------------------
@@ -229,7 +243,12 @@ class StacApi:
         except sqlite3.OperationalError as exc:  # e.g. an over-long expression
             raise InputError("filter", f"the query cannot be run: {exc}") from None
         more = len(rows) > limit
-        features = [self._render(base, *r) for r in rows[:limit]]
+        features, damaged = [], []
+        for r in rows[:limit]:
+            try:
+                features.append(self._render(base, *r))
+            except MissingInputError as exc:  # an Item damaged since the index was built: only it is missing
+                damaged.append({"id": r[0], "reason": str(exc)})
         url = url or f"{base}/search"
         links = [{"rel": "root", "href": base, "type": JSON_TYPE}]
         if method == "GET":
@@ -247,8 +266,11 @@ class StacApi:
                 query = [(k, v) for k, v in params.items() if k != "token"] + [("token", token)]
                 links.append({"rel": "next", "href": f"{url}?{urlencode(query)}", "type": GEOJSON_TYPE,
                               "method": "GET"})
-        return {"type": "FeatureCollection", "features": features, "links": links,
+        page = {"type": "FeatureCollection", "features": features, "links": links,
                 "numberReturned": len(features)}
+        if damaged:
+            page["archive:damaged"] = damaged
+        return page
 
     def _query(self, params: dict, method: str, collection: str | None):
         """(where SQL, parameters, order SQL, limit, offset) of a search request."""
@@ -330,8 +352,10 @@ class StacApi:
         path = (self.root.path / item_path).absolute()
         try:
             item = read_item_file(path)
+            item_summary(item, where=str(path))  # a flight Item (id, times, bands...), not any JSON object
         except Exception as exc:  # the index is older than the files: say which and how to fix
-            raise MissingInputError(path, f"Item file of {item_id} ({exc})", "run 'archive catalog rebuild'") from None
+            raise MissingInputError(path, f"Item file of {item_id} ({' '.join(str(exc).split())[:300]})",
+                                    "run 'archive catalog rebuild'") from None
         item_dir = path.parent
         coll = f"{base}/collections/{COLLECTION_ID}"
         keep = [ln for ln in item.get("links") or []

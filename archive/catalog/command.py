@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
-from archive.catalog.index import (IndexRow, ensure_index, parse_bbox, parse_datetime_range, read_item_file,
-                                   search)
+from archive.catalog.index import (IndexRow, damaged_flights, ensure_index, parse_bbox, parse_datetime_range,
+                                   read_item_file, search)
 from archive.catalog.root import ArchiveRoot, open_root
-from archive.catalog.stac import item_collection
+from archive.catalog.stac import item_collection, item_summary
+from archive.errors import ArchiveError, FormatError
 
 
 def _wavelengths(row: IndexRow) -> str:
@@ -30,10 +32,87 @@ def format_table(rows: list[IndexRow]) -> str:
 
 def _print(root: ArchiveRoot, rows: list[IndexRow], as_json: bool) -> None:
     if as_json:
-        items = [read_item_file(root.path / r.item_path) for r in rows]
+        items = []
+        for r in rows:
+            path = root.path / r.item_path
+            try:
+                item = read_item_file(path)
+                item_summary(item, where=str(path))  # a flight's Item, not any JSON object
+            except FormatError as exc:  # damaged since the index was built: costs only this flight
+                print(f"archive catalog: warning: damaged flight {r.id} left out: {exc} (run 'archive catalog "
+                      "rebuild')", file=sys.stderr)
+                continue
+            items.append(item)
         print(json.dumps(item_collection(items), indent=1))
     else:
         print(format_table(rows))
+
+
+def _warn_damaged(root: ArchiveRoot, index) -> None:
+    """One stderr line per flight the catalog cannot describe (not listed, not searchable)."""
+    for d in damaged_flights(root, index):
+        print(f"archive catalog: warning: damaged flight {d}", file=sys.stderr)
+
+
+def _recreate_items(root: ArchiveRoot, everything: bool) -> int:
+    """Write the Item of every collection store that has none, or a damaged one (``everything``:
+    of every store) from the store's own metadata; returns how many stores could not be described."""
+    from archive.catalog.describe import item_for_collection
+    from archive.catalog.index import row_from_item
+    from archive.catalog.register import carry_outputs
+    from archive.catalog.stac import write_item
+
+    failed = 0
+    for cid in root.collection_ids():
+        path = root.item_path(cid)
+        old, why = None, None
+        if not path.is_file():
+            why = "had no Item"
+        else:
+            try:
+                old = read_item_file(path)
+                row_from_item(old, path.relative_to(root.path).as_posix())
+            except (ArchiveError, KeyError, TypeError, ValueError) as exc:
+                old, why = None, f"had a damaged Item ({' '.join(str(exc).split())[:200]})"
+        if why is None and not everything:
+            continue
+        try:
+            write_item(path, carry_outputs(old, item_for_collection(root, cid)))
+        except ArchiveError as exc:
+            failed += 1
+            print(f"{cid}: cannot describe its collection: {exc}")
+            continue
+        if why is not None:
+            print(f"{cid}: {why}: Item recreated from collections/{cid}.zarr")
+    return failed
+
+
+def _rebuild(root: ArchiveRoot, everything: bool) -> int:
+    """``archive catalog rebuild``: Items recreated from their collections where missing or
+    damaged, then the index and the STAC tree rebuilt from the Items. A read-only archive is
+    refused in one line (its readers need no rebuild)."""
+    from archive.catalog.index import _unwritable, cache_index_path
+    from archive.catalog.tree import locked, write_catalog
+    from archive.errors import InputError
+
+    try:
+        with locked(root):
+            failed = _recreate_items(root, everything)
+            catalog = write_catalog(root, rescan=True)  # links the Items, rebuilds the index from them
+    except OSError as exc:
+        if not _unwritable(exc):
+            raise
+        raise InputError(root.path / "catalog", f"cannot be written ({exc.strerror or exc}): a read-only archive "
+                                                "is not rebuilt",
+                         f"nothing to do for reading it: searches, batch renders and 'archive view' keep an index "
+                         f"in {cache_index_path(root).parent}; rebuild where the archive is writable") from None
+    n = len(search(root.index_path))
+    print(f"{root.index_path}: {n} item{'s' if n != 1 else ''} indexed")
+    print(f"{catalog}: STAC catalog of {n} item{'s' if n != 1 else ''}")
+    damaged = damaged_flights(root, root.index_path)
+    for d in damaged:
+        print(f"DAMAGED {d}")
+    return 1 if failed or damaged else 0
 
 
 def _validate(args: argparse.Namespace) -> int:
@@ -60,7 +139,16 @@ def _validate(args: argparse.Namespace) -> int:
         print(f"{path}: {'INVALID' if errors else 'valid'}")
         for e in errors[:20]:
             print(f"  {e}")
-    print(f"{len(files) - bad} of {len(files)} valid")
+    checked = len(files)
+    if args.archive is not None:
+        from archive.catalog.health import catalog_problems
+
+        for where, problem in catalog_problems(root, items=False):
+            checked += 1
+            bad += 1
+            print(f"{where}: INVALID")
+            print(f"  {problem}")
+    print(f"{checked - bad} of {checked} valid")
     return 1 if bad else 0
 
 
@@ -80,23 +168,7 @@ def run(args: argparse.Namespace) -> int:
         return _validate(args)
     root = open_root(args.archive)
     if args.catalog_command == "rebuild":
-        from archive.catalog.tree import write_catalog
-
-        if getattr(args, "items", False):
-            from archive.catalog.describe import item_for_collection
-            from archive.catalog.stac import write_item
-
-            from archive.catalog.register import carry_outputs
-
-            for cid in root.collection_ids():
-                path = root.item_path(cid)
-                old = read_item_file(path) if path.is_file() else None
-                write_item(path, carry_outputs(old, item_for_collection(root, cid)))
-        catalog = write_catalog(root, rescan=True)  # links the Items, rebuilds the index from them
-        n = len(search(root.index_path))
-        print(f"{root.index_path}: {n} item{'s' if n != 1 else ''} indexed")
-        print(f"{catalog}: STAC catalog of {n} item{'s' if n != 1 else ''}")
-        return 0
+        return _rebuild(root, bool(getattr(args, "items", False)))
     if args.catalog_command == "add":
         from archive.catalog.register import register_output
 
@@ -107,7 +179,9 @@ def run(args: argparse.Namespace) -> int:
     index = ensure_index(root)
     if args.catalog_command == "list":
         _print(root, search(index), args.json)
+        _warn_damaged(root, index)
         return 0
     rows = search(index, bbox=bbox, start=start, end=end, wavelength=wavelength)
     _print(root, rows, args.json)
+    _warn_damaged(root, index)
     return 0

@@ -65,15 +65,22 @@ def catalog_collection(root: ArchiveRoot, cid: str) -> dict:
     from archive.catalog.index import read_item_file
     from archive.catalog.register import carry_outputs
 
+    from archive.catalog.tree import locked
+    from archive.errors import FormatError as _FormatError
+
     item = item_for_collection(root, cid)
-    previous = root.item_path(cid)
-    if previous.is_file():  # registered outputs (archive catalog add) stay linked
-        item = carry_outputs(read_item_file(previous), item)
-    path = write_item(root.item_path(cid), item)
-    rel = path.relative_to(root.path).as_posix()
-    if schema_version(root.index_path) == SCHEMA_VERSION:
-        add_rows(root.index_path, [row_from_item(item, rel)])
-    else:  # a lost or older index: rebuild it from every Item (this one included)
-        ensure_index(root)
-    write_catalog(root)
+    with locked(root):  # the Item, its index row and the tree change together
+        previous = root.item_path(cid)
+        if previous.is_file():  # registered outputs (archive catalog add) stay linked
+            try:
+                item = carry_outputs(read_item_file(previous), item)
+            except _FormatError:  # a damaged Item is replaced
+                pass
+        path = write_item(root.item_path(cid), item)
+        rel = path.relative_to(root.path).as_posix()
+        if schema_version(root.index_path) == SCHEMA_VERSION:
+            add_rows(root.index_path, [row_from_item(item, rel)])
+        else:  # a lost, damaged or older index: rebuild it from every Item (this one included)
+            ensure_index(root)
+        write_catalog(root)
     return item

@@ -1,8 +1,13 @@
 """SQLite index of an archive's STAC Items: bbox (R*Tree), footprint, time range and wavelength range.
 
 The index is a cache of ``<ARCHIVE>/catalog/items/*.json``: :func:`rebuild_index` recreates it from
-those files (and :func:`ensure_index` does when it is missing or of an older schema version). Every
-statement is parameterised. The schema is :data:`SCHEMA`, read from ``catalogs/schema.sql`` (shipped
+those files. :func:`ensure_index` checks it before every use (:func:`index_problem`: an SQLite header,
+this schema, an intact database, and the Items and collection stores it was built from are the ones
+on disk, row count included) and rebuilds it when not; an archive that cannot be written (a
+published archive, a read-only mount) gets its index in the user's cache folder instead
+(:func:`cache_index_path`). Readers open it read-only (:func:`connect_readonly`). Items that cannot
+be read, and collections without an Item, are recorded as damaged (:func:`damaged_flights`): each
+costs only its own flight. Every statement is parameterised. The schema is :data:`SCHEMA`, read from ``catalogs/schema.sql`` (shipped
 as the package ``archive.catalogs``).
 
 Spatial queries are exact: the R*Tree (float32 boxes rounded outward) picks candidates, the exact
@@ -137,7 +142,7 @@ def spatial_clause(bbox: Sequence[float], wkb: bytes | None = None, alias: str =
 
 
 def connect(path: str | os.PathLike) -> sqlite3.Connection:
-    """Open (creating if needed) an index database and make sure its schema exists."""
+    """Open (creating if needed) an index database for writing and make sure its schema exists."""
     con = sqlite3.connect(str(path), timeout=30.0)
     con.create_function("archive_intersects", 2, _intersects, deterministic=True)
     try:
@@ -147,11 +152,20 @@ def connect(path: str | os.PathLike) -> sqlite3.Connection:
         found = con.execute("SELECT value FROM meta WHERE key = ?", ("schema_version",)).fetchone()[0]
     except sqlite3.DatabaseError as exc:
         con.close()
-        raise FormatError(path, f"not a catalog index: {exc}", "run 'archive catalog rebuild'") from exc
+        raise FormatError(path, f"not a catalog index: {exc}",
+                          "it is a cache of the Items: delete it, the next search rebuilds it") from exc
     if found != SCHEMA_VERSION:
         con.close()
         raise FormatError(path, f"index schema version {found}, expected {SCHEMA_VERSION}",
-                          "run 'archive catalog rebuild'")
+                          "it is a cache of the Items: delete it, the next search rebuilds it")
+    return con
+
+
+def connect_readonly(path: str | os.PathLike) -> sqlite3.Connection:
+    """Open an existing index read-only (nothing is written: the archive may be a read-only mount)."""
+    con = sqlite3.connect(f"file:{Path(path).absolute()}?mode=ro", uri=True, timeout=30.0,
+                          check_same_thread=False)
+    con.create_function("archive_intersects", 2, _intersects, deterministic=True)
     return con
 
 
@@ -184,15 +198,37 @@ def _insert(con: sqlite3.Connection, row: IndexRow) -> None:
                 (cur.lastrowid, _f32_down(w), _f32_up(e), _f32_down(s), _f32_up(n)))
 
 
+def _meta_json(con: sqlite3.Connection, key: str):
+    found = con.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+    return None if found is None else json.loads(found[0])
+
+
+def _set_meta_json(con: sqlite3.Connection, key: str, value) -> None:
+    con.execute("INSERT INTO meta (key, value) VALUES (?, ?) ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+                (key, json.dumps(value)))
+
+
 def add_rows(path: str | os.PathLike, rows: Iterable[IndexRow]) -> int:
-    """Insert or replace rows (by id) in one transaction; returns how many."""
+    """Insert or replace rows (by id) in one transaction; returns how many. Each id also counts
+    as an Item and a collection store on disk (a flight is indexed once both exist) and is no
+    longer damaged."""
     count = 0
     longest = 0.0
     with closing(connect(path)) as con, con:
+        seen_items, seen_stores = _meta_json(con, "items"), _meta_json(con, "stores")
+        damaged = _meta_json(con, "damaged") or {}
         for row in rows:
             _insert(con, row)
             longest = max(longest, row.end_time - row.start_time)
             count += 1
+            damaged.pop(row.id, None)
+            for seen in (seen_items, seen_stores):
+                if seen is not None and row.id not in seen:
+                    seen.append(row.id)
+        for key, value in (("items", seen_items), ("stores", seen_stores)):
+            if value is not None:
+                _set_meta_json(con, key, sorted(value))
+        _set_meta_json(con, "damaged", damaged)
         # The longest flight bounds start_time from below in time queries (see search).
         con.execute("INSERT INTO meta (key, value) VALUES ('max_duration', ?) ON CONFLICT(key) DO UPDATE "
                     "SET value = max(CAST(value AS REAL), CAST(excluded.value AS REAL))", (repr(longest),))
@@ -220,20 +256,163 @@ def read_item_file(path: Path) -> dict:
     return item
 
 
-def rebuild_index(root: ArchiveRoot) -> int:
-    """Recreate ``catalog/index.sqlite`` from the Item files (written to a temporary file, then
-    renamed over the old index). Returns the number of Items indexed."""
-    root.index_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = root.index_path.with_name(root.index_path.name + ".tmp")
+@dataclass(frozen=True)
+class Damaged:
+    """A flight the catalog cannot describe: its id, why (one line), how to fix it, and the kind:
+    ``item`` (its Item cannot be read), ``no-item`` (a store without an Item), ``no-store`` (an
+    Item whose store is gone)."""
+
+    id: str
+    reason: str
+    fix: str = "run 'archive catalog rebuild' (it recreates a collection's Item from the collection)"
+    kind: str = "item"
+
+    def as_dict(self) -> dict:
+        return {"id": self.id, "reason": self.reason, "fix": self.fix}
+
+    def __str__(self) -> str:
+        return f"{self.id}: {self.reason} ({self.fix})"
+
+
+def item_names(root: ArchiveRoot) -> list[str]:
+    """Ids of the Item files ``catalog/items/<id>.json`` (sorted; temporaries left out)."""
+    try:
+        return sorted(e.name[:-5] for e in os.scandir(root.items)
+                      if e.name.endswith(".json") and not e.name.startswith("."))
+    except FileNotFoundError:
+        return []
+
+
+def store_names(root: ArchiveRoot) -> list[str]:
+    """Ids of the collection stores ``collections/<id>.zarr`` on disk (sorted; partial ones left out)."""
+    try:
+        return sorted(e.name[:-5] for e in os.scandir(root.collections)
+                      if e.name.endswith(".zarr") and not e.name.startswith(".") and e.is_dir())
+    except FileNotFoundError:
+        return []
+
+
+def scan_catalog(root: ArchiveRoot) -> tuple[list[IndexRow], list[Damaged], list[str], list[str]]:
+    """Read every Item of the archive: (index rows of the readable ones, damaged flights, Item ids,
+    store ids). Damaged: an Item that cannot be read or is not a valid flight Item, a completed
+    store without an Item, an Item whose store is gone (also indexed: its metadata is intact)."""
+    items, stores = item_names(root), store_names(root)
+    rows: list[IndexRow] = []
+    damaged: list[Damaged] = []
+    for cid in items:
+        path = root.items / f"{cid}.json"
+        rel = path.relative_to(root.path).as_posix()
+        try:
+            row = row_from_item(read_item_file(path), rel)
+        except (InputError, KeyError, TypeError, ValueError) as exc:
+            damaged.append(Damaged(cid, f"STAC Item {rel} is damaged: {_one_line(exc)}"))
+            continue
+        rows.append(row)
+        if cid not in stores:
+            damaged.append(Damaged(cid, f"collection store collections/{cid}.zarr is missing",
+                                   "re-ingest the flight, or delete its Item", "no-store"))
+    known = set(items)
+    for cid in stores:
+        if cid not in known:
+            damaged.append(Damaged(cid, f"collection collections/{cid}.zarr has no STAC Item (an ingest may be "
+                                        "under way)", kind="no-item"))
+    return rows, damaged, items, stores
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text if len(text) <= 300 else text[:297] + "..."
+
+
+def rebuild_index(root: ArchiveRoot, dest: str | os.PathLike | None = None) -> int:
+    """Recreate the index from the Item files (written to a temporary file, then renamed over
+    ``dest``, by default ``catalog/index.sqlite``). Unreadable Items cost only their flight: they
+    are recorded as damaged (:func:`damaged_flights`). Returns the number of Items indexed."""
+    dest = Path(dest) if dest is not None else root.index_path
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dest.with_name(f"{dest.name}.tmp-{os.getpid()}")
     tmp.unlink(missing_ok=True)
-    rows = []
-    if root.items.is_dir():
-        for path in sorted(root.items.glob("*.json")):
-            rel = path.relative_to(root.path).as_posix()
-            rows.append(row_from_item(read_item_file(path), rel))
-    add_rows(tmp, rows)
-    os.replace(tmp, root.index_path)
+    rows, damaged, items, stores = scan_catalog(root)
+    try:
+        add_rows(tmp, rows)
+        with closing(connect(tmp)) as con, con:
+            _set_meta_json(con, "items", items)
+            _set_meta_json(con, "stores", stores)
+            _set_meta_json(con, "damaged", {d.id: [d.reason, d.fix, d.kind] for d in damaged})
+        os.replace(tmp, dest)
+    finally:
+        tmp.unlink(missing_ok=True)
     return len(rows)
+
+
+_REQUIRED_COLUMNS = {"id", "start_time", "end_time", "start_iso", "end_iso", "bands", "min_wavelength",
+                     "max_wavelength", "west", "south", "east", "north", "sensor", "gsd", "item_path", "geometry"}
+_SQLITE_HEADER = b"SQLite format 3\x00"
+
+
+def index_problem(path: str | os.PathLike, root: ArchiveRoot) -> str | None:
+    """Why the index file ``path`` cannot answer for the archive ``root`` (None: it can). Checks,
+    reading only: the file exists and has an SQLite header, its schema version and columns, the
+    database's integrity (``PRAGMA quick_check``), and that it was built from the Item files and
+    collection stores now on disk, with one row per readable Item."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            header = f.read(100)
+    except FileNotFoundError:
+        return "missing"
+    except OSError as exc:
+        return f"unreadable ({exc.strerror or exc})"
+    if len(header) < 100 or not header.startswith(_SQLITE_HEADER):
+        return f"not an SQLite database ({path.stat().st_size} bytes)"
+    try:
+        with closing(connect_readonly(path)) as con:
+            version = con.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+            if version is None or version[0] != SCHEMA_VERSION:
+                return f"schema version {version[0] if version else None}, expected {SCHEMA_VERSION}"
+            columns = {r[1] for r in con.execute("PRAGMA table_info(items)")}
+            if not _REQUIRED_COLUMNS <= columns:
+                return f"wrong schema (items lacks {', '.join(sorted(_REQUIRED_COLUMNS - columns))})"
+            check = con.execute("PRAGMA quick_check(1)").fetchone()
+            if check is None or check[0] != "ok":
+                return f"damaged ({check[0] if check else 'no answer'})"
+            seen_items, seen_stores = _meta_json(con, "items"), _meta_json(con, "stores")
+            damaged = _meta_json(con, "damaged") or {}
+            count = con.execute("SELECT count(*) FROM items").fetchone()[0]
+            bbox_count = con.execute("SELECT count(*) FROM items_bbox").fetchone()[0]
+    except (sqlite3.DatabaseError, ValueError, TypeError) as exc:
+        return f"damaged ({_one_line(exc)})"
+    if seen_items is None or seen_stores is None:
+        return "built by an older version (no record of the Items it holds)"
+    if seen_items != item_names(root):
+        return "out of date: the Item files have changed since it was built"
+    if seen_stores != store_names(root):
+        return "out of date: the collection stores have changed since it was built"
+    unreadable = sum(1 for cid, entry in damaged.items() if entry[2:] == ["item"] and cid in seen_items)
+    if count != len(seen_items) - unreadable or bbox_count != count:
+        return f"{count} rows for {len(seen_items) - unreadable} readable Items"
+    return None
+
+
+def cache_index_path(root: ArchiveRoot) -> Path:
+    """Where the index of an archive that cannot be written lives: ``$XDG_CACHE_HOME`` (else
+    ``~/.cache``) ``/archive/catalog/<name>-<hash of the archive's absolute path>/index.sqlite``."""
+    import hashlib
+
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    where = str(Path(root.path).absolute())
+    digest = hashlib.sha256(where.encode("utf-8", "surrogateescape")).hexdigest()[:16]
+    name = "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(where).name)[:40] or "archive"
+    return Path(base) / "archive" / "catalog" / f"{name}-{digest}" / "index.sqlite"
+
+
+def _unwritable(exc: BaseException) -> bool:
+    import errno
+
+    if isinstance(exc, sqlite3.OperationalError):
+        text = str(exc).lower()
+        return "readonly" in text or "read-only" in text or "unable to open" in text
+    return isinstance(exc, OSError) and exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS)
 
 
 def schema_version(path: str | os.PathLike) -> str | None:
@@ -249,13 +428,46 @@ def schema_version(path: str | os.PathLike) -> str | None:
 
 
 def ensure_index(root: ArchiveRoot) -> Path:
-    """The index path, rebuilt from the Items first when it does not exist or has an older schema
-    version (the index is a cache of the Items; a damaged file is left for connect to report)."""
-    version = schema_version(root.index_path)
-    if version is None or (version != "unreadable" and version != SCHEMA_VERSION and version.isdigit()
-                           and int(version) < int(SCHEMA_VERSION)):
-        rebuild_index(root)
-    return root.index_path
+    """The path of an index that answers for the archive's Items now: the archive's own
+    ``catalog/index.sqlite`` when :func:`index_problem` finds nothing wrong with it, else that file
+    rebuilt from the Items (under the catalog lock), else, when the archive cannot be written, an
+    index in the user's cache folder (:func:`cache_index_path`), rebuilt there when needed.
+    Nothing is written to a read-only archive."""
+    own = root.index_path
+    problem = index_problem(own, root)
+    if problem is None:
+        return own
+    try:
+        from archive.catalog.tree import locked
+
+        with locked(root):
+            if index_problem(own, root) is not None:  # another process may have rebuilt it meanwhile
+                rebuild_index(root)
+        return own
+    except (OSError, sqlite3.OperationalError) as exc:
+        if not _unwritable(exc):
+            raise
+    cache = cache_index_path(root)
+    if index_problem(cache, root) is None:
+        return cache
+    try:
+        rebuild_index(root, cache)
+    except (OSError, sqlite3.OperationalError) as exc:
+        if not _unwritable(exc):
+            raise
+        raise InputError(own, f"the catalog index is {problem}, the archive cannot be written and neither can "
+                              f"the cache folder {cache.parent} ({_one_line(exc)})",
+                         "set XDG_CACHE_HOME to a writable folder") from None
+    return cache
+
+
+def damaged_flights(root: ArchiveRoot, index: str | os.PathLike | None = None) -> list[Damaged]:
+    """The flights the catalog cannot describe (recorded when the index was built; ``index``: a
+    path from :func:`ensure_index`, found when None), sorted by id."""
+    path = ensure_index(root) if index is None else Path(index)
+    with closing(connect_readonly(path)) as con:
+        found = _meta_json(con, "damaged") or {}
+    return [Damaged(cid, *entry) for cid, entry in sorted(found.items())]
 
 
 def search(path: str | os.PathLike, bbox: tuple[float, float, float, float] | None = None,
@@ -288,7 +500,7 @@ def search(path: str | os.PathLike, bbox: tuple[float, float, float, float] | No
     if where:
         sql += " WHERE " + " AND ".join(where)
     sql += " ORDER BY i.start_time, i.id"
-    with closing(connect(path)) as con:
+    with closing(connect_readonly(path)) as con:
         return [_row(r) for r in con.execute(sql, params)]
 
 
@@ -311,7 +523,7 @@ def _longest(source) -> float:
     """Longest flight duration in the index (a path or an open connection), s (recorded by
     add_rows; computed if absent)."""
     if not isinstance(source, sqlite3.Connection):
-        with closing(connect(source)) as con:
+        with closing(connect_readonly(source)) as con:
             return _longest(con)
     found = source.execute("SELECT value FROM meta WHERE key = 'max_duration'").fetchone()
     if found is None:

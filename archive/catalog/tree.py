@@ -17,11 +17,13 @@ from __future__ import annotations
 import contextlib
 import os
 import posixpath
+import threading
 from pathlib import Path
 
 from archive.catalog.index import IndexRow, ensure_index, read_item_file, rebuild_index, search
 from archive.catalog.root import ArchiveRoot, open_root
 from archive.catalog.stac import STAC_VERSION, write_item
+from archive.errors import FormatError
 
 CATALOG_ID = "archive"
 COLLECTION_ID = "flights"
@@ -97,21 +99,35 @@ def collection_dict(rows: list[IndexRow]) -> dict:
     }
 
 
+_HELD = threading.local()
+
+
 @contextlib.contextmanager
 def locked(root: ArchiveRoot):
     """An exclusive lock on the archive's catalog (so that two ingests never interleave their
-    read of the index and their writes); none where fcntl does not exist."""
+    read of the index and their writes); none where fcntl does not exist. Reentrant within a
+    thread (a flock taken twice by one process through two files would wait for itself).
+    OSError when the lock file cannot be opened (a read-only archive)."""
     try:
         import fcntl
     except ImportError:  # not POSIX
         yield
         return
+    held = getattr(_HELD, "paths", None)
+    if held is None:
+        held = _HELD.paths = set()
+    key = str(Path(root.path).absolute())
+    if key in held:
+        yield
+        return
     root.collection_path.parent.mkdir(parents=True, exist_ok=True)
     with open(root.collection_path.parent / ".catalog.lock", "a") as f:
         fcntl.flock(f, fcntl.LOCK_EX)
+        held.add(key)
         try:
             yield
         finally:
+            held.discard(key)
             fcntl.flock(f, fcntl.LOCK_UN)
 
 
@@ -123,7 +139,10 @@ def _link_items(root: ArchiveRoot) -> int:
         return 0
     links = item_links()
     for path in sorted(root.items.glob("*.json")):
-        item = read_item_file(path)
+        try:
+            item = read_item_file(path)
+        except FormatError:  # a damaged Item: recorded as such by the index (rebuild recreates it first)
+            continue
         others = [ln for ln in item.get("links") or [] if ln.get("rel") not in ("root", "parent", "collection")]
         if item.get("collection") != COLLECTION_ID or (item.get("links") or []) != [*links, *others]:
             item["collection"] = COLLECTION_ID

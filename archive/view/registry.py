@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from archive.errors import InputError, MissingInputError
+from archive.errors import ArchiveError, InputError, MissingInputError
 from archive.params import NavigationParams
 from archive.view.cache import ByteLRU
 from archive.view.flights import Flight
@@ -119,10 +119,20 @@ class FlightRegistry:
         catalog search``): bbox (W, S, E, N degrees), datetime 'A/B' (ISO 8601, '..' open),
         wavelength (nm, within the flight's bands). Catalog flights first (by start time), then
         raw flights."""
-        features = []
+        features: list[dict] = []
+        damaged: list[dict] = []
         if self.archive is not None:
+            from archive.catalog.index import damaged_flights
+
             ids = self.archive.search(bbox=bbox, datetime=datetime, wavelength=wavelength)
-            features += [self._item(cid) for cid in ids]
+            for cid in ids:
+                try:
+                    features.append(self._item(cid))
+                except (ArchiveError, KeyError, TypeError, ValueError) as exc:  # costs only this flight
+                    damaged.append({"id": cid, "reason": " ".join(str(exc).split())[:300],
+                                    "fix": "run 'archive catalog rebuild'"})
+            known = {d["id"] for d in damaged}
+            damaged += [d.as_dict() for d in damaged_flights(self.archive) if d.id not in known]
         if self.raw:
             from archive.catalog.index import parse_datetime_range
 
@@ -139,7 +149,8 @@ class FlightRegistry:
                                                    and p["min_wavelength"] <= wavelength <= p["max_wavelength"]):
                     continue
                 features.append(feature)
-        return {"type": "FeatureCollection", "features": features, "numberMatched": len(features)}
+        return {"type": "FeatureCollection", "features": features, "numberMatched": len(features),
+                "damaged": damaged}
 
     # ---- opened flights ------------------------------------------------------------------
     def flight(self, cid: str) -> Flight:

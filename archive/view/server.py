@@ -5,7 +5,9 @@ trace):
 
 - ``GET /`` the page (``static/index.html``); ``GET /static/...`` its assets (Leaflet vendored);
 - ``GET /api/collections?bbox=W,S,E,N&datetime=A/B&wavelength=NM`` GeoJSON FeatureCollection of
-  the footprints (id, time range, wavelength range, bands, nominal gsd...);
+  the footprints (id, time range, wavelength range, bands, nominal gsd...), and ``damaged``: the
+  flights the catalog cannot describe (``{id, reason, fix}``: an unreadable Item, a collection
+  without an Item), each costing only itself;
 - ``GET /api/collections/{id}`` what the page needs to build its controls (bands, modes, cubes,
   default ground height, lowest camera altitude);
 - ``GET /api/collections/{id}/tiles/{z}/{x}/{y}.png?wavelengths=R,G,B|band=I&mode=&stretch=&cubes=A-B
