@@ -142,9 +142,9 @@ def _probe_in_child(index: int | None) -> dict:
 
 def _gl(workers: int) -> tuple[list[Check], bool]:
     """EGL devices, what each renders with, the device a worker would use: (checks, can render)."""
-    from archive.errors import RenderError
-    from archive.render.device import (check_renderer, choose_device, egl_devices, is_software_renderer,
-                                       spread_environments)
+    from archive.errors import ArchiveError, RenderError
+    from archive.render.gather import band_pass_choice
+    from archive.render.device import check_renderer, choose_device, egl_devices, spread_environments
 
     checks: list[Check] = []
     try:
@@ -197,26 +197,15 @@ def _gl(workers: int) -> tuple[list[Check], bool]:
             f"worker {i}: {' '.join(f'{k}={v}' for k, v in env.items())}" for i, env in enumerate(spread))))
     elif workers > 1:
         checks.append(Check("ok", f"--workers {workers}", "all workers open the same device (one GPU or none)"))
-    software = is_software_renderer(probe.get("renderer"))
-    checks.append(Check("ok", "band passes", _band_pass(probe.get("renderer"), software)))
-    return checks, True
-
-
-def _band_pass(renderer: str | None, software: bool) -> str:
-    """How render tasks would gather bands with this renderer (ARCHIVE_BAND_PASS, else by renderer)."""
-    from archive.render import gather
-
-    chooser = getattr(gather, "band_pass_method", None)
+    unsupported = None if probe.get("compute") else f"GL {probe.get('version')} has no compute shaders (4.3)"
     try:
-        if chooser is not None:
-            method = chooser(renderer)
-        else:
-            method = "cpu" if gather.use_cpu_gather(renderer) else "gl"
-    except Exception as exc:
-        return f"ARCHIVE_BAND_PASS is invalid: {exc}"
-    why = "software renderer: numpy is cheaper than llvmpipe's passes" if software else "a GPU renderer"
-    setting = os.environ.get("ARCHIVE_BAND_PASS")
-    return f"{method} ({f'ARCHIVE_BAND_PASS={setting}' if setting else why})"
+        choice = band_pass_choice(probe.get("renderer"), compute_unsupported=unsupported)
+    except ArchiveError as exc:
+        checks.append(Check("FAIL", "band passes", str(exc), "set ARCHIVE_BAND_PASS to auto, cpu, gl or compute, or unset it"))
+        return checks, False
+    checks.append(Check("ok", "band passes", f"{choice.method} ({choice.reason})",
+                        data={"method": choice.method, "reason": choice.reason}))
+    return checks, True
 
 
 def _optional() -> list[Check]:
