@@ -13,10 +13,18 @@
   first flight starts and rewritten as each flight finishes: a killed job leaves an honest report
   (its unfinished flights ``pending``, ``complete`` false).
 - **Resume.** With ``resume``, a flight whose output is complete (its STAC Item, written last,
-  exists) and whose recipe (``archive:recipe.request``: same options, same sources) equals this
-  request is skipped; an output without its Item (killed while publishing) is rendered again, and
-  temporaries of killed runs are removed. A complete output made with another recipe is an error
-  before anything starts, unless ``overwrite``.
+  exists) and whose recipe equals this request is skipped: the same options and sources
+  (``archive:recipe.request``) AND the same inputs (``archive:recipe.inputs``: each source's content
+  version and navigation parameters, :func:`input_versions`; a flight re-ingested with another sync
+  offset, or calibrated, is not the same recipe: its output is rendered again). An output without
+  its Item (killed while publishing; a replaced output loses its old Item before its new data lands)
+  is rendered again, and temporaries of killed runs are removed. A complete output made with other
+  options is an error before anything starts, unless ``overwrite``.
+- **One batch per folder.** The batch holds ``DIR/.archive-batch.lock`` (:class:`archive.files.FileLock`:
+  host, PID, start, a heartbeat lease) from its first check to its last report: a second batch into
+  the same ``DIR`` stops at once with one line naming who holds it.
+- **Full disk.** A report that cannot be written (disk full) costs a warning while flights go on,
+  and is written again at the next rewrite; if the last one fails, one line says so (exit non-zero).
 - **Waves.** At most :func:`archive.cluster.flight_slots` flights are in the scheduler at once (from
   the workers' render slots and memory, counted again as workers come and go): the next flight is
   submitted when one finishes, so the tasks the scheduler holds, the submission time and the
@@ -39,19 +47,60 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from archive.errors import ArchiveError, InputError
-from archive.files import path_exists, remove_path, write_atomic
+from archive.files import FileLock, path_exists, remove_path, write_atomic
 
-__all__ = ["FORMATS", "REPORT", "Flight", "recipe_request", "run_batch"]
+__all__ = ["FORMATS", "LOCK", "REPORT", "Flight", "input_versions", "recipe_request", "run_batch"]
 
 #: Formats of the per-flight outputs.
 FORMATS = ("zarr", "tif", "hdr")
 #: The batch report's file name in the output directory.
 REPORT = "report.json"
+#: The lock file a batch holds in its output directory.
+LOCK = ".archive-batch.lock"
 
 
 def recipe_request(options) -> dict:
     """The JSON form of a request as an output's Item records it (``archive:recipe.request``)."""
     return json.loads(json.dumps(dataclasses.asdict(options), default=str))
+
+
+def _file_stamp(path: str | os.PathLike) -> dict:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return {"path": str(path), "missing": True}
+    return {"path": str(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def input_versions(options, source: str) -> list[dict]:
+    """What the output of ``source`` depends on beyond ``options`` (``archive:recipe.inputs``): for a
+    collection id, its navigation parameters, ground height and content version
+    (:func:`archive.collection.content_version`); for a raw flight directory, its files' names,
+    sizes and modification times (the navigation sidecar included); then every file the options
+    name (calibration, white reference, DEM), by size and modification time."""
+    import hashlib
+
+    from archive.collection import content_version
+
+    entries: list[dict] = []
+    if Path(source).is_dir():
+        files = sorted((p for p in Path(source).iterdir() if p.is_file()), key=lambda p: p.name)
+        stamps = [[p.name, *(lambda st: (st.st_size, st.st_mtime_ns))(p.stat())] for p in files]
+        sidecar = Path(source) / "navigation_params.json"
+        try:
+            nav = json.loads(sidecar.read_text()) if sidecar.is_file() else None
+        except (OSError, ValueError):
+            nav = "unreadable"
+        entries.append({"source": str(Path(source).absolute()), "navigation_params": nav,
+                        "version": hashlib.sha256(json.dumps(stamps).encode()).hexdigest()})
+    elif options.archive is not None:
+        store = Path(options.archive) / "collections" / f"{source}.zarr"
+        entries.append({"source": str(source), **(content_version(store) or {"version": None})})
+    for name in ("calibration", "white_reference", "dem"):
+        value = getattr(options, name, None)
+        if value:
+            entries.append({"option": name, **_file_stamp(value)})
+    return json.loads(json.dumps(entries, default=str))
 
 
 @dataclass
@@ -71,6 +120,7 @@ class Flight:
     futures: list = field(default_factory=list)
     left: int = 0
     started: float = 0.0
+    inputs: list | None = None   #: :func:`input_versions` when the batch was decided (the Item records it)
 
     def entry(self) -> dict:
         return {"id": self.name, "status": self.status, "path": str(self.output.path), "error": self.error,
@@ -119,12 +169,19 @@ def _decide(flight: Flight, resume: bool, overwrite: bool) -> None:
         _remove_leftovers(output)
     if complete and resume:
         try:
-            stored = json.loads(item.read_text())["properties"]["archive:recipe"]["request"]
+            recipe = json.loads(item.read_text())["properties"]["archive:recipe"]
+            stored, stored_inputs = recipe["request"], recipe.get("inputs")
         except (OSError, ValueError, KeyError, TypeError):
-            stored = None
+            stored = stored_inputs = None
         wanted = recipe_request(flight.recipe)
-        if stored == wanted:
+        if stored == wanted and stored_inputs == flight.inputs:
             flight.status = "skipped"
+            return
+        if stored == wanted:
+            # same request, other inputs (re-ingested, calibrated; or an Item that does not record
+            # them): the output is stale and rendered again; its old Item goes first (publish.Output)
+            output.overwrite = True
+            output.check()
             return
         if not overwrite:
             what = "an unreadable recipe" if stored is None else f"another recipe ({_differences(stored, wanted)})"
@@ -156,19 +213,31 @@ def _reason(exc: BaseException) -> str:
 
 
 class _Report:
-    """``DIR/report.json``, rewritten atomically whenever a flight finishes."""
+    """``DIR/report.json``, rewritten atomically whenever a flight finishes. A rewrite that fails
+    (disk full, quota) does not stop the batch: ``warn`` is told once, the report stays as last
+    written, and the next rewrite tries again (:meth:`write` returns whether it was written)."""
 
-    def __init__(self, directory: Path, flights: list[Flight]):
+    def __init__(self, directory: Path, flights: list[Flight], warn: Callable[[str], None] | None = None):
         self.path, self.flights = directory / REPORT, flights
+        self.warn, self.error = warn or (lambda line: None), None
         for tmp in directory.glob(f"{REPORT}.*.partial"):   # a killed run's report being rewritten
             remove_path(tmp)
 
-    def write(self, complete: bool = False) -> None:
+    def write(self, complete: bool = False) -> bool:
         counts = {s: sum(f.status == s for f in self.flights) for s in ("done", "skipped", "failed", "pending")}
         doc = {"outputs": [f.entry() for f in self.flights], "flights": len(self.flights), **counts,
                "complete": complete}
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        write_atomic(self.path, json.dumps(doc, indent=1) + "\n")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            write_atomic(self.path, json.dumps(doc, indent=1) + "\n")
+        except OSError as exc:
+            if self.error is None:
+                self.warn(f"warning: cannot write {self.path} ({exc.strerror or exc}); the flights go on and "
+                          "the report is written again as they finish")
+            self.error = exc
+            return False
+        self.error = None
+        return True
 
 
 def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, resume: bool = False,
@@ -192,26 +261,45 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
     directory = _directory(out)
     if options.archive is not None:   # recipes independent of the working directory
         options = dataclasses.replace(options, archive=os.fspath(Path(options.archive).absolute()))
-    flights = []
-    for src in dict.fromkeys(options.sources):
-        name = Path(src).name if Path(src).is_dir() else str(src)
-        output = Output(directory / f"{name}.{format}", overwrite=bool(overwrite), provenance=options.provenance,
-                        zarr_format=options.zarr_format)
-        flights.append(Flight(str(src), name, output, options.with_sources([src])))
-    for flight in flights:
-        _decide(flight, resume, overwrite)
-    report = _Report(directory, flights)
-    report.write()
     tell = tell or (lambda line: None)
-    for flight in flights:
-        if flight.status == "skipped":
-            tell(f"skipped {flight.name}: {flight.output.path} is complete (same recipe)")
-    todo = [f for f in flights if f.status == "pending"]
-    state = {"graph_seconds": 0.0, "submit_seconds": 0.0, "wave": 0, "peak_tasks": 0}
-    if todo:
-        _render(todo, report, tell, state, scheduler=scheduler, workers=workers, threads=threads, quiet=quiet,
-                wave=wave)
-    report.write(complete=True)
+    made = not directory.exists()
+    lock = _lock_directory(directory)
+    try:
+        flights = []
+        for src in dict.fromkeys(options.sources):
+            name = Path(src).name if Path(src).is_dir() else str(src)
+            output = Output(directory / f"{name}.{format}", overwrite=bool(overwrite),
+                            provenance=options.provenance, zarr_format=options.zarr_format)
+            flights.append(Flight(str(src), name, output, options.with_sources([src]),
+                                  inputs=input_versions(options, str(src))))
+        for flight in flights:
+            _decide(flight, resume, overwrite)
+        report = _Report(directory, flights, warn=lambda line: print(f"archive render: {line}", file=sys.stderr))
+        if not report.write() and not path_exists(report.path):
+            raise InputError(report.path, f"cannot write the batch report ({report.error.strerror or report.error})",
+                             "free some space or choose another --out")
+        _test_hold(flights)
+        for flight in flights:
+            if flight.status == "skipped":
+                tell(f"skipped {flight.name}: {flight.output.path} is complete (same recipe)")
+        todo = [f for f in flights if f.status == "pending"]
+        state = {"graph_seconds": 0.0, "submit_seconds": 0.0, "wave": 0, "peak_tasks": 0}
+        if todo:
+            _render(todo, report, tell, state, scheduler=scheduler, workers=workers, threads=threads, quiet=quiet,
+                    wave=wave)
+        if not report.write(complete=True):
+            raise InputError(report.path, f"the batch finished ({_counts_text(flights)}) but its report could not "
+                             f"be written ({report.error.strerror or report.error})",
+                             "free some space, then run the same command with --resume to write it")
+    except BaseException:
+        lock.release()
+        if made:
+            try:
+                directory.rmdir()   # a refused batch leaves no empty folder behind
+            except OSError:
+                pass
+        raise
+    lock.release()
     outputs = []
     for f in flights:
         outputs.append({**(f.summary or {}), **f.entry(), "out": str(f.output.path)})
@@ -220,6 +308,42 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
             "graph_seconds": state["graph_seconds"], "submit_seconds": state["submit_seconds"],
             "report": str(report.path), "wave": state["wave"],
             "peak_tasks": state["peak_tasks"], "renders": sum((f.summary or {}).get("renders", 0) for f in flights)}
+
+
+#: Test-only: ``ARCHIVE_TEST_HOLD_AFTER=N`` makes a batch stop and wait (until it is killed) as soon as
+#: its report says N flights are done, so that a test kills it at a moment it controls, however
+#: loaded the machine (never set outside tests).
+TEST_HOLD_AFTER = "ARCHIVE_TEST_HOLD_AFTER"
+
+
+def _test_hold(flights: list[Flight]) -> None:
+    """The :data:`TEST_HOLD_AFTER` hook, called right after each rewrite of the report."""
+    hold = os.environ.get(TEST_HOLD_AFTER)
+    if hold is not None and sum(f.status == "done" for f in flights) >= int(hold):
+        while True:
+            time.sleep(3600)
+
+
+def _counts_text(flights: list[Flight]) -> str:
+    return ", ".join(f"{sum(f.status == s for f in flights)} {s}" for s in ("done", "skipped", "failed"))
+
+
+def _lock_directory(directory: Path) -> FileLock:
+    """Take the output folder's lock (:data:`LOCK`), creating the folder;
+    :class:`~archive.files.LockHeldError` naming the holder when another live batch has it."""
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(directory, f"cannot create the output folder ({exc.strerror or exc})",
+                         "choose an output folder you can write to") from None
+    lock = FileLock(directory / LOCK, "a batch render", what=f"output folder {directory}",
+                    fix="wait for that batch to finish, or choose another --out")
+    try:
+        lock.acquire()
+    except OSError as exc:
+        raise InputError(directory, f"cannot write there ({exc.strerror or exc})",
+                         "choose an output folder you can write to") from None
+    return lock
 
 
 def _say(quiet: bool):
@@ -282,6 +406,7 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
                 active.remove(flight)
             report.write()
             bar.update(1)
+            _test_hold(report.flights)
 
         def submit(flight: Flight, planning) -> None:
             try:
@@ -304,10 +429,8 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
                 publish_flight(flight)
 
         def publish_flight(flight: Flight) -> None:
-            from archive.pipeline import publish
-
             try:
-                publish(flight.job)
+                _publish(flight, client)
             except Exception as exc:  # noqa: BLE001
                 finish(flight, "failed", _reason(exc))
                 return
@@ -359,12 +482,32 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
 
 @dataclass
 class _FlightJob:
-    """What :func:`archive.pipeline.publish` needs of a flight: output, plan, sink, options."""
+    """What :func:`archive.pipeline.publish` needs of a flight: output, plan, sink, options (and the
+    renderers the workers used)."""
 
     output: object
     planned: object
     sink: object
     options: object
+    renderers: list | None = None
+
+
+def _publish(flight: Flight, client) -> None:
+    """:func:`archive.pipeline.publish` of a flight, whose Item's recipe also records the inputs it
+    was rendered from (``archive:recipe.inputs``, what ``--resume`` compares besides the request):
+    the data renamed into place (an old Item removed first), then the Item, last."""
+    from archive.catalog.stac import write_item
+    from archive.pipeline import product_item, worker_renderers
+
+    job = flight.job
+    try:
+        job.renderers = worker_renderers(client)
+    except Exception:  # noqa: BLE001 - a record of the renderers is not worth failing the flight
+        job.renderers = None
+    job.output.finalize(job.sink)
+    item = product_item(job.planned, job.output, job.options, job.renderers)
+    item["properties"]["archive:recipe"]["inputs"] = flight.inputs
+    write_item(job.output.item_path, item)
 
 
 def _timed_prepare(flight: Flight, budget: int, say) -> tuple[_FlightJob, object, float]:

@@ -470,6 +470,29 @@ def read_attrs(store: str | os.PathLike) -> dict:
     return attrs
 
 
+def content_version(store: str | os.PathLike) -> dict | None:
+    """What a render of the collection ``store`` depends on beyond the render's options (reads only
+    its ``zarr.json``): ``navigation_params`` (sync offset, boresight, lever arm), ``ground_height``
+    and ``fov_deg`` as recorded, and ``version``, the sha256 of everything that identifies its
+    content (plan token: sources, shapes, parameters; the raw files' sha256; the small arrays'
+    sha256, which ``calibrate --apply`` changes; terrain; calibration). A re-ingest with other
+    parameters, or a ``calibrate --apply``, gives another version; ingesting the same flight again
+    the same way gives the same (stores are byte-identical). None when it is not a complete
+    collection."""
+    try:
+        meta = json.loads((Path(store) / "zarr.json").read_text())
+    except (OSError, ValueError):
+        return None
+    attrs = meta.get("attributes") if isinstance(meta, dict) else None
+    if not isinstance(attrs, dict) or attrs.get(COMPLETE) is not True:
+        return None
+    keys = ("archive:plan", "sources", "array_sha256", "navigation_params", "ground_height", "fov_deg", "terrain",
+            "calibration", "frame")
+    text = json.dumps({k: attrs.get(k) for k in keys}, sort_keys=True, default=str)
+    return {"navigation_params": attrs.get("navigation_params"), "ground_height": attrs.get("ground_height"),
+            "fov_deg": attrs.get("fov_deg"), "version": hashlib.sha256(text.encode()).hexdigest()}
+
+
 def read_info(store: str | os.PathLike, navigation: bool = True) -> CollectionInfo:
     """The recorded description of a collection (see :class:`CollectionInfo`); with ``navigation``
     also every cube's camera clock and raw navigation."""
@@ -609,6 +632,6 @@ class CheckedDn:
 
 
 __all__ = ["COMPLETE", "CheckedDn", "CollectionInfo", "CorruptChunkError", "StoredPoses", "read_poses", "record_navigation", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS", "StorePlan", "StoredCube",
-           "chunk_tasks", "finish_store", "frame_from_attrs", "frame_to_attrs", "is_complete", "open_dn",
+           "chunk_tasks", "content_version", "finish_store", "frame_from_attrs", "frame_to_attrs", "is_complete", "open_dn",
            "open_partial", "publish", "read_attrs", "read_info", "store_lock", "verify_store", "StoredCalibration",
            "write_chunk"]

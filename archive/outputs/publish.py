@@ -1,21 +1,28 @@
 """Publishing an output: written under temporary names, renamed into place when complete.
 
 Nothing is ever half-written at the requested path: :class:`Output` creates the format's sinks
-(:mod:`archive.outputs.registry`) under hidden temporary siblings (``.<name>.partial-<pid>...``),
+(:mod:`archive.outputs.registry`) under hidden temporary siblings (``.<name>.partial-<pid>@<host>...``),
 renames them into place only when complete (:func:`archive.files.replace_path`: an existing output
 is replaced only once the new one is complete, and only with ``overwrite``), and removes them on
-failure. Temporaries a killed run left are removed by the next run's check.
+failure. Temporaries a killed run left are removed by the next run's check: only those made on
+THIS host whose process is gone (another host's PID means nothing here: its temporaries stay).
+
+Replacing an output: its old STAC Item (``<out>.json``, which says the output is complete) is
+removed BEFORE the new data is renamed into place, and the pipeline writes the new Item last, so a
+kill at any moment leaves either the old output with its Item, or data without an Item (rendered
+again by ``--resume``), never new data beside the old Item.
 """
 
 from __future__ import annotations
 
 import errno
 import os
+import signal
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from archive.errors import InputError, OutputExistsError
-from archive.files import path_exists, remove_path, replace_path
+from archive.files import host_name, path_exists, pid_alive, remove_path, replace_path
 from archive.outputs.base import OutputMeta
 from archive.outputs.quicklook import quicklook_png
 from archive.outputs.registry import output_format, writer
@@ -23,28 +30,45 @@ from archive.outputs.registry import output_format, writer
 __all__ = ["Output"]
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    return True
+#: Test-only: ``ARCHIVE_TEST_KILL_AT=after-data`` makes the process SIGKILL itself once an output's
+#: data is renamed into place and before its Item is written (never set outside tests).
+TEST_KILL_AT = "ARCHIVE_TEST_KILL_AT"
+
+
+def _test_kill(point: str) -> None:
+    if os.environ.get(TEST_KILL_AT) == point:
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _temp_owner(rest: str) -> tuple[int | None, str | None]:
+    """(PID, host) from the part of a temporary's name after ``.partial-``: ``<pid>@<host>[tag]``
+    (host None: a name from before hosts were recorded, ``<pid>[tag]``)."""
+    digits = ""
+    for ch in rest:
+        if not ch.isdigit():
+            break
+        digits += ch
+    if not digits:
+        return None, None
+    rest = rest[len(digits):]
+    if not rest.startswith("@"):
+        return int(digits), None
+    return int(digits), rest[1:].split(".", 1)[0]
 
 
 def _remove_stale_temps(final: Path) -> None:
-    """Remove ``.<name>.partial-<pid>...`` siblings of ``final`` whose process is gone."""
+    """Remove ``.<name>.partial-<pid>@<host>...`` siblings of ``final`` made on THIS host by a process
+    that is gone. Another host's are left alone: its PIDs mean nothing here, and on a shared file
+    system its render may be writing them right now."""
     if not final.parent.is_dir():
         return
     prefix = f".{final.name}.partial-"
+    here = host_name()
     for tmp in final.parent.glob(f"{prefix}*"):
-        digits = ""
-        for ch in tmp.name[len(prefix):]:
-            if not ch.isdigit():
-                break
-            digits += ch
-        if digits and int(digits) != os.getpid() and not _pid_alive(int(digits)):
+        pid, host = _temp_owner(tmp.name[len(prefix):])
+        if pid is None or (host is not None and host != here):
+            continue
+        if pid != os.getpid() and not pid_alive(pid):
             remove_path(tmp)
 
 
@@ -83,7 +107,7 @@ class Output:
         return self.writer.sibling(self.path) if self.provenance else None
 
     def _temp(self, final: Path, tag: str = "") -> Path:
-        tmp = final.with_name(f".{final.name}.partial-{os.getpid()}{tag}")
+        tmp = final.with_name(f".{final.name}.partial-{os.getpid()}@{host_name()}{tag}")
         self._temps.append(tmp)
         return tmp
 
@@ -161,7 +185,9 @@ class Output:
 
     def finalize(self, sink=None) -> None:
         """Finish the output (its writer's: ENVI header, COG layout; the quicklook) and rename
-        everything into place."""
+        everything into place; an existing Item (of the output being replaced) is removed first, so
+        that no reader takes the new data for the output the old Item describes (the caller writes
+        the new Item last)."""
         sink = self._sink if sink is None else sink
         meta = self._meta
         moves: list[tuple[Path, Path]] = []
@@ -174,8 +200,10 @@ class Output:
             quicklook_png(read_band, meta.grid, meta.wavelengths, meta.nbands, tmp)
             moves.append((tmp, self.quicklook))
         self.check()  # something may have appeared meanwhile
+        remove_path(self.item_path)   # the old output is no longer complete from here on
         for tmp, final in moves:
             replace_path(tmp, final)
+        _test_kill("after-data")
 
     def cleanup(self) -> None:
         """Remove every temporary this output created (never the final paths)."""
