@@ -285,8 +285,15 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
         todo = [f for f in flights if f.status == "pending"]
         state = {"graph_seconds": 0.0, "submit_seconds": 0.0, "wave": 0, "peak_tasks": 0}
         if todo:
-            _render(todo, report, tell, state, scheduler=scheduler, workers=workers, threads=threads, quiet=quiet,
-                    wave=wave)
+            try:
+                _render(todo, report, tell, state, scheduler=scheduler, workers=workers, threads=threads,
+                        quiet=quiet, wave=wave)
+            except ArchiveError as exc:   # the whole batch stopped (its cluster did not start...)
+                for flight in todo:
+                    if flight.status == "pending":
+                        flight.status, flight.error = "failed", " ".join(str(exc).split())
+                report.write(complete=True)
+                raise
         if not report.write(complete=True):
             raise InputError(report.path, f"the batch finished ({_counts_text(flights)}) but its report could not "
                              f"be written ({report.error.strerror or report.error})",

@@ -55,7 +55,36 @@ def positive(value, option: str, what: str) -> int | None:
     return None if value is None else int(value)
 
 
+#: Tries to start a local cluster: a worker process that dies while the cluster starts (killed, out
+#: of memory) costs one more try, then a one-line error.
+START_ATTEMPTS = 2
+
+
 def start_cluster(scheduler, workers: int | None, say, threads: int | None = None):
+    """(client, cluster or None) of :func:`_start_cluster`; a local cluster whose start fails (a
+    worker process died while starting) is started again, up to :data:`START_ATTEMPTS` times, then
+    a one-line :class:`~archive.errors.RenderError` says why (never Dask's traceback)."""
+    attempts = 1 if scheduler else START_ATTEMPTS
+    for attempt in range(1, attempts + 1):
+        try:
+            return _start_cluster(scheduler, workers, say, threads)
+        except ArchiveError:
+            raise
+        except (RuntimeError, OSError, TimeoutError) as exc:
+            cause = exc
+            while cause.__cause__ is not None:   # Dask's "Nanny failed to start." wraps why
+                cause = cause.__cause__
+            why = " ".join(f"{type(cause).__name__}: {cause}".split())
+            if attempt < attempts:
+                say(f"archive render: the local Dask cluster did not start ({why}); starting it again")
+                continue
+            raise RenderError(f"the local Dask cluster did not start, {attempts} times: a worker process died "
+                              f"while starting ({why}); check the memory left (dmesg), the DASK_* variables "
+                              "(preloads) and run 'archive doctor'") from None
+    raise AssertionError("unreachable")
+
+
+def _start_cluster(scheduler, workers: int | None, say, threads: int | None = None):
     """(client, cluster or None): ``scheduler`` (an address, or a :class:`SlurmJobs`: workers as Slurm
     jobs) or a local cluster of GPU-resourced workers.
 
