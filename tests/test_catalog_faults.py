@@ -116,6 +116,19 @@ def test_a_damaged_index_is_detected_and_rebuilt(archive, capsys, damage):
         registry.close()
 
 
+def test_ingest_again_over_a_damaged_index(pristine, archive, capsys):
+    """Re-ingesting a flight ("already ingested") over a 0-byte index: the index is rebuilt, not a
+    traceback and not a flight lost."""
+    archive_dir, ids = archive
+    (archive_dir / "catalog" / "index.sqlite").write_bytes(b"")
+    item = json.loads((archive_dir / "catalog" / "items" / f"{ids[0]}.json").read_text())
+    raw = pristine[0].parent / "flight0"
+    code, out, err = cli(capsys, "ingest", str(raw), "--archive", str(archive_dir), "--fov", str(FOV),
+                         "--ground-height", str(item["properties"]["archive:ground_height"]), "--quiet")
+    assert code == 0, err
+    assert searched(capsys, archive_dir) == ids
+
+
 def _client(archive_dir: Path):
     from starlette.testclient import TestClient
 

@@ -500,8 +500,25 @@ def search(path: str | os.PathLike, bbox: tuple[float, float, float, float] | No
     if where:
         sql += " WHERE " + " AND ".join(where)
     sql += " ORDER BY i.start_time, i.id"
-    with closing(connect_readonly(path)) as con:
-        return [_row(r) for r in con.execute(sql, params)]
+    try:
+        with closing(connect_readonly(path)) as con:
+            return [_row(r) for r in con.execute(sql, params)]
+    except sqlite3.DatabaseError as exc:
+        root = _archive_of(path)
+        if root is None:
+            raise FormatError(path, f"not a usable catalog index ({_one_line(exc)})",
+                              "it is a cache of an archive's Items: 'archive catalog rebuild' recreates it") from None
+        with closing(connect_readonly(ensure_index(root))) as con:  # the archive's own, damaged: healed first
+            return [_row(r) for r in con.execute(sql, params)]
+
+
+def _archive_of(index: str | os.PathLike) -> ArchiveRoot | None:
+    """The archive whose own index ``index`` is (``<ARCHIVE>/catalog/index.sqlite``), else None."""
+    path = Path(index)
+    root = path.parent.parent
+    if path.name == "index.sqlite" and path.parent.name == "catalog" and (root / "archive.json").is_file():
+        return ArchiveRoot(root)
+    return None
 
 
 def time_clause(source, start: float | None, end: float | None, alias: str = "i") -> tuple[str, list]:
