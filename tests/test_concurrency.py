@@ -128,3 +128,70 @@ def test_a_waiting_ingest_takes_over_from_a_killed_one(raw, tmp_path):
                                        "--overwrite"), capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
     assert "waiting" not in again.stderr and not (arc / "collections" / f"{cid}.zarr.lock").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# Batches: one per output folder; temporaries of other hosts
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def ingested(raw, tmp_path_factory) -> tuple[Path, str]:
+    from archive.ingest.command import ingest
+
+    arc = tmp_path_factory.mktemp("ingested") / "arc"
+    (r,) = ingest([str(raw)], arc, float(FOV), progress=False)
+    return arc, r.cid
+
+
+def batch_cmd(arc: Path, out: Path, *extra: str) -> list[str]:
+    return archive_cmd("render", "--archive", str(arc), "--query-bbox", "-180,-90,180,90", "--gsd", "0.2", "--out",
+                       str(out), "--format", "tif", "--quiet", "--workers", "1", *extra)
+
+
+def test_a_second_batch_into_the_same_folder_says_who_holds_it(ingested, tmp_path):
+    """Two batches into one --out DIR: the second stops at once, naming the first (PID, host, since),
+    and touches nothing; once the first is killed, a --resume takes the folder over and completes it.
+    (Before: both ran, did the work twice, and the last report marked complete outputs failed.)"""
+    import signal
+
+    arc, cid = ingested
+    out = tmp_path / "out"
+    first = subprocess.Popen(batch_cmd(arc, out), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             start_new_session=True, env={**os.environ, "ARCHIVE_TEST_HOLD_AFTER": "0"})
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / "report.json").exists() and time.monotonic() < deadline and first.poll() is None:
+            time.sleep(0.05)
+        assert first.poll() is None and (out / "report.json").exists()   # held, holding the folder
+        report = (out / "report.json").read_bytes()
+        second = subprocess.run(batch_cmd(arc, out, "--resume"), capture_output=True, text=True, timeout=300)
+        assert second.returncode == 2
+        assert second.stderr.count("\n") == 1 and "Traceback" not in second.stderr
+        assert f"output folder {out} is locked: a batch render by PID {first.pid} on {host_name()} since " \
+            in second.stderr and "choose another --out" in second.stderr
+        assert (out / "report.json").read_bytes() == report
+    finally:
+        os.killpg(first.pid, signal.SIGKILL)
+        first.wait(timeout=30)
+    third = subprocess.run(batch_cmd(arc, out, "--resume"), capture_output=True, text=True, timeout=300)
+    assert third.returncode == 0, third.stderr
+    doc = json.loads((out / "report.json").read_text())
+    assert doc["complete"] and doc["done"] == 1
+    assert sorted(p.name for p in out.iterdir()) == sorted([f"{cid}.tif", f"{cid}.tif.json", "report.json"])
+
+
+def test_temporaries_of_other_hosts_are_left_alone(ingested, tmp_path):
+    """A killed run's temporaries are removed only when made on THIS host by a dead process; another
+    host's (its PID means nothing here; on a shared file system it may be writing them now) stay."""
+    arc, cid = ingested
+    out = tmp_path / "out"
+    assert subprocess.run(batch_cmd(arc, out), capture_output=True, text=True, timeout=300).returncode == 0
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    ours = out / f".{cid}.tif.partial-{dead.pid}@{host_name()}.tiles"
+    theirs = out / f".{cid}.tif.partial-{dead.pid}@some-other-node.tiles"
+    live = out / f".{cid}.tif.partial-{os.getpid()}@{host_name()}"
+    for p in (ours, theirs, live):
+        p.write_bytes(b"x")
+    done = subprocess.run(batch_cmd(arc, out, "--resume"), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert not ours.exists() and theirs.exists() and live.exists()
