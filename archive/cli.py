@@ -95,6 +95,11 @@ def _add_simulate(sub) -> None:
     p.add_argument("--cubes-per-pass", type=_positive_int, default=2,
                    help="cubes recorded back to back on each straight pass (default 2)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--scene-seed", type=int, metavar="K",
+                   help="seed of the ground (scene and targets) and of the camera's radiometry (default: --seed): "
+                        "flights of one --scene-seed fly over the same field, each with its own wobble, noise and "
+                        "start (e.g. --seed 1 --scene-seed 0 --start 2024-06-19T16:00:00Z flies seed 0's field a "
+                        "week later)")
     p.add_argument("--start", metavar="ISO8601",
                    help="UTC start of the flight (the first line follows 0.5 s later), e.g. 2024-06-12T16:00:00Z (default: 2024-06-12T16:00:00Z "
                         "plus --seed minutes, so flights of different seeds get different ids)")
@@ -169,7 +174,8 @@ def _add_render(sub) -> None:
         "names as these options (--ground-height is ground_height)."))
     _add_sources(p, "*", "optional with --query-*")
     p.add_argument("--out", required=True, metavar="PATH", help="output path ending in .zarr, .tif or .hdr")
-    p.add_argument("--gsd", required=True, type=float, metavar="M", help="output pixel size, metres")
+    p.add_argument("--gsd", type=float, metavar="M",
+                   help="output pixel size, metres (required unless --like gives it)")
     _add_fov(p, "required for raw sources; 47.5 for a Pika L and for 'archive simulate' flights")
     p.add_argument("--calibration", metavar="FILE.icp", help="radiometric calibration (default: the *.icp in the flight directory)")
     p.add_argument("--ground-height", default="auto", metavar="M|auto",
@@ -196,6 +202,17 @@ def _add_render(sub) -> None:
     p.add_argument("--overlap", choices=["last", "nadir", "mean"], default="last",
                    help="where lines overlap: the later line wins (default), the line seen closest to nadir "
                         "(smallest view zenith) wins, or the mean")
+    g = p.add_argument_group("the output grid (default: the flights' footprint, pixel edges on multiples of --gsd)")
+    g.add_argument("--bounds", metavar="W,S,E,N",
+                   help="extent of the output, metres in the output CRS (--crs, else the flights' UTM zone): its "
+                        "top-left pixel corner at W,N, whole pixels down to S and across to E (add --align to snap "
+                        "the edges outward to multiples of --gsd, like gdalwarp -te/-tap)")
+    g.add_argument("--align", action="store_true",
+                   help="pixel edges on multiples of --gsd (gdalwarp -tap): outputs of one --gsd share pixels; "
+                        "the footprint grid, tiles and stacks are aligned anyway")
+    g.add_argument("--like", metavar="FILE",
+                   help="take the CRS, GSD, corner and size of an existing output (.zarr, a stack's too, .tif or "
+                        ".hdr): the flights are rendered from their raw lines onto that very grid (--gsd optional)")
     p.add_argument("--zarr-format", type=int, choices=[2, 3], default=2, metavar="2|3",
                    help="Zarr version of a .zarr output: 2 (default; GDAL >= 3.10, hence QGIS and rasterio, open "
                         "it) or 3 (zarr-python 3, xarray); the same arrays and attributes either way")

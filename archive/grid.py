@@ -170,3 +170,59 @@ class Grid:
 def boxes_intersect(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
     """Whether two pixel boxes ``(row0, col0, height, width)`` of one grid share a pixel."""
     return a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]
+
+
+# ---------------------------------------------------------------------------------------------
+# The grid a render asks for: --bounds, --align, --like
+# ---------------------------------------------------------------------------------------------
+def snapped(epsg: int, west: float, south: float, east: float, north: float, gsd: float) -> Grid:
+    """The grid whose top-left corner is exactly (``west``, ``north``) and that covers the bounds
+    (metres) with whole ``gsd`` pixels (the east and south edges rounded up to a whole pixel, within
+    :data:`_SNAP_TOLERANCE` of one): ``gdalwarp -te W S E N -tr GSD GSD`` without ``-tap``."""
+    if not all(math.isfinite(v) for v in (west, south, east, north)) or east <= west or north <= south:
+        raise InputError("--bounds", f"W,S,E,N = {west:g},{south:g},{east:g},{north:g} is not a box",
+                         "give west < east and south < north, metres in the output CRS")
+    width = math.ceil((east - west) / gsd - _SNAP_TOLERANCE)
+    height = math.ceil((north - south) / gsd - _SNAP_TOLERANCE)
+    return Grid(epsg, gsd, west, north, max(width, 1), max(height, 1))
+
+
+@dataclass(frozen=True)
+class GridRequest:
+    """What a render asks of its output grid, decided once into a :class:`Grid` by :meth:`decide`.
+
+    like: a whole grid (``--like FILE``: CRS, GSD, corner and size of an existing output), used as
+    is; bounds: (west, south, east, north) metres in the output CRS (``--bounds``); align: pixel
+    edges on multiples of the GSD (``--align``, ``gdalwarp -tap``). Without ``like`` or ``bounds``
+    the grid is the union of the flights' footprints, snapped outward to multiples of the GSD (so
+    aligned already: ``align`` changes nothing there).
+    """
+
+    like: Grid | None = None
+    bounds: tuple[float, float, float, float] | None = None
+    align: bool = False
+
+    @property
+    def fixed(self) -> bool:
+        """Whether the grid does not depend on the flights (``like``)."""
+        return self.like is not None
+
+    def decide(self, epsg: int, footprint: tuple[float, float, float, float], gsd: float) -> Grid:
+        """The output grid in ``epsg`` at ``gsd`` m for flights whose meshes span ``footprint``
+        (west, south, east, north; metres in ``epsg``). ``like`` wins whole (its CRS and GSD)."""
+        if self.like is not None:
+            return self.like
+        if self.bounds is None:
+            return Grid.from_bounds(epsg, *footprint, gsd)
+        if self.align:
+            return Grid.from_bounds(epsg, *self.bounds, gsd)
+        return snapped(epsg, *self.bounds, gsd)
+
+    def __dask_tokenize__(self):
+        return ("archive.grid.GridRequest", self.like, self.bounds, self.align)
+
+
+def aligned(grid: Grid) -> bool:
+    """Whether the pixel edges of ``grid`` lie on multiples of its GSD (within float noise)."""
+    off = np.array([grid.x0, grid.y0]) / grid.gsd
+    return bool(np.max(np.abs(off - np.round(off))) <= 1e-6)

@@ -26,7 +26,7 @@ from archive.params import DEFAULT_MAX_VIEW_ANGLE, NavigationParams
 from archive.sources.base import MODES
 from archive.sources.select import parse_bands
 
-__all__ = ["DEFAULT_MAX_VIEW_ANGLE", "KEYWORDS", "RenderOptions", "check_gsd"]
+__all__ = ["DEFAULT_MAX_VIEW_ANGLE", "KEYWORDS", "RenderOptions", "check_gsd", "grid_request", "parse_bounds"]
 
 
 def _parse_floats(text: str, option: str) -> list[float]:
@@ -76,7 +76,32 @@ def _triple(value, option: str) -> tuple[float, float, float] | None:
     return out  # type: ignore[return-value]
 
 
+def parse_bounds(value, option: str = "--bounds") -> tuple[float, float, float, float] | None:
+    """None, 'W,S,E,N' (the CLI's text) or four numbers -> (west, south, east, north), metres;
+    InputError naming ``option`` unless four finite numbers with west < east and south < north."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        values = _parse_floats(value, option)
+    else:
+        try:
+            values = [float(v) for v in value]
+        except (TypeError, ValueError):
+            values = []
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise InputError(option, f"expected four numbers W,S,E,N (metres in the output CRS), got {value!r}",
+                         f"e.g. {option} 236000,3890000,236500,3890400")
+    w, s, e, n = values
+    if not (w < e and s < n):
+        raise InputError(option, f"W,S,E,N = {value if isinstance(value, str) else values} is not a box",
+                         "give west < east and south < north, metres in the output CRS")
+    return (w, s, e, n)
+
+
 def check_gsd(gsd) -> None:
+    if gsd is None:
+        raise InputError("--gsd", "the output pixel size is required", "pass --gsd M, or --like FILE to take "
+                         "the grid of an existing output")
     if not (isinstance(gsd, (int, float)) and not isinstance(gsd, bool) and math.isfinite(gsd) and gsd > 0):
         raise InputError("--gsd", f"must be a positive number of metres, got {gsd!r}", "e.g. --gsd 0.25")
 
@@ -127,19 +152,28 @@ class RenderOptions:
     dem_datum: str | None = None
     provenance: bool = False
     zarr_format: int = 2
+    bounds: tuple[float, float, float, float] | None = None
+    align: bool = False
+    like: str | None = None
 
     @classmethod
     def create(cls, sources, *, gsd, archive=None, fov=None, calibration=None, ground_height="auto",
                wavelengths=None, bands="all", mode=None, white_reference=None, sync_offset=None,
                boresight=None, lever_arm=None, overlap="last", crs=None,
                max_view_angle=DEFAULT_MAX_VIEW_ANGLE, dem=None, dem_datum=None, provenance=False,
-               zarr_format=2) -> RenderOptions:
-        """A request from API keywords (or CLI values); InputError for malformed values."""
+               zarr_format=2, bounds=None, align=False, like=None) -> RenderOptions:
+        """A request from API keywords (or CLI values); InputError for malformed values. With
+        ``like`` and no ``gsd``, the GSD is the one of that output (read here, metadata only)."""
         if isinstance(sources, (str, os.PathLike)):
             sources = [sources]
         def fspath(p):
             return None if p is None else os.fspath(p)
 
+        like = None if like is None else os.path.abspath(os.fspath(like))
+        if gsd is None and like is not None:
+            from archive.outputs.like import read_grid
+
+            gsd = read_grid(like).gsd
         return cls(
             sources=tuple(os.fspath(s) for s in (sources or ())), gsd=gsd, archive=fspath(archive),
             fov=_number(fov, "--fov", "degrees"), calibration=fspath(calibration),
@@ -151,7 +185,7 @@ class RenderOptions:
             overlap=overlap, crs=None if crs is None else str(crs),
             max_view_angle=_number(max_view_angle, "--max-view-angle", "degrees"),
             dem=fspath(dem), dem_datum=None if dem_datum is None else str(dem_datum), provenance=bool(provenance),
-            zarr_format=_zarr_format(zarr_format))
+            zarr_format=_zarr_format(zarr_format), bounds=parse_bounds(bounds), align=bool(align), like=like)
 
     def with_sources(self, sources: Sequence[str]) -> RenderOptions:
         """This request for other sources."""
@@ -197,9 +231,31 @@ class RenderOptions:
         if self.mode == "reflectance" and not self.white_reference:
             raise InputError("--mode", "reflectance needs a white reference spectrum", "pass --white-reference FILE")
         _check_dem(self)
+        if self.like is not None and (self.bounds is not None or self.align):
+            raise InputError("--like", f"takes the whole grid of {self.like}, so --bounds and --align have nothing "
+                             "to decide", "leave --bounds/--align out, or --like")
         return NavigationParams(fov_deg=float(fov),
                                 sync_offset=None if self.sync_offset is None else float(self.sync_offset),
                                 boresight_deg=self.boresight, lever_arm_m=self.lever_arm)
+
+
+def grid_request(options: RenderOptions):
+    """The :class:`~archive.grid.GridRequest` of ``options`` (``--like``'s output read once, here:
+    metadata only), checked against ``--gsd`` and ``--crs``."""
+    from archive.grid import GridRequest
+
+    if options.like is None:
+        return GridRequest(None, options.bounds, options.align)
+    from archive.outputs.like import read_grid
+
+    like = read_grid(options.like)
+    if not math.isclose(float(options.gsd), like.gsd, rel_tol=1e-9):
+        raise InputError("--gsd", f"{options.gsd:g} m, but --like {options.like} has {like.gsd:g} m pixels",
+                         "leave --gsd out with --like")
+    if options.crs is not None and projected_epsg(options.crs) != like.epsg:
+        raise InputError("--crs", f"{options.crs}, but --like {options.like} is in EPSG:{like.epsg}",
+                         "leave --crs out with --like")
+    return GridRequest(like)
 
 
 def _check_dem(options: RenderOptions) -> None:

@@ -38,7 +38,8 @@ import numpy as np
 from archive.cluster import active_client, check_gpu_workers, execute, start_cluster, task_budget
 from archive.errors import InputError
 from archive.graph.mosaic import rule_key
-from archive.options import DEFAULT_MAX_VIEW_ANGLE, RenderOptions, check_gsd
+from archive.grid import GridRequest
+from archive.options import DEFAULT_MAX_VIEW_ANGLE, RenderOptions, check_gsd, grid_request
 from archive.outputs.base import variable_for_mode
 from archive.outputs.publish import Output
 from archive.outputs.zarr import mosaic_dataset
@@ -96,6 +97,7 @@ class Inputs:
     max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE
     dem: object = None  #: the :class:`archive.dem.DemSpec` the meshes follow (grounds are then None)
     meshes: tuple | None = None  #: with a DEM: each source's terrain meshes (built here: DEM errors come early)
+    grid: GridRequest = GridRequest()  #: what the output grid is asked to be (--bounds, --align, --like)
 
 
 def _quiet(text: str) -> None:
@@ -114,6 +116,7 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
     from archive.graph.plan import cube_meshes
     from archive.sources import open_source
 
+    grid = grid_request(options)   # --like read once, before the sources
     # absolute paths: workers (maybe on another machine sharing the file system) open them again
     archive = None if options.archive is None else Path(options.archive).absolute()
 
@@ -157,7 +160,7 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
     params = RenderParams(gsd=float(options.gsd), ground_height=grounds[0], mode=mode,
                           bands=tuple(bands[0]), overlap=options.overlap, navigation=nav)
     return Inputs(tuple(sources), tuple(tuple(b) for b in bands), params, tuple(grounds), options.crs,
-                  float(options.max_view_angle), dem, meshes if dem is not None else None)
+                  float(options.max_view_angle), dem, meshes if dem is not None else None, grid)
 
 
 @dataclass(frozen=True, eq=False)
@@ -226,7 +229,7 @@ def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget:
         meshes = [cube_meshes(s, p.navigation.fov_deg, ground, inputs.max_view_angle) for s in sources]
     else:   # terrain meshes, built by open_inputs
         meshes = [list(inputs.meshes[i]) for i in idx]
-    plan = plan_render(sources, meshes, bands, p.gsd, crs=inputs.crs)
+    plan = plan_render(sources, meshes, bands, p.gsd, crs=inputs.crs, grid=inputs.grid)
     # the graph builds the meshes again in tasks on the workers (DESIGN 9: shipped from here, a
     # terrain flight's meshes made graphs of MBs); the plan keeps their windows only
     plan = plan.without_meshes(MeshParams(p.navigation.fov_deg, math.nan if inputs.dem is not None else ground,

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from archive.errors import InputError
-from archive.grid import Grid
+from archive.grid import Grid, GridRequest
 from archive.navigation import (DEFAULT_MAX_VIEW_ANGLE, frame_interval, joined, projected_epsg, to_lonlat,
                                 utm_epsg_for)
 
@@ -196,22 +196,26 @@ def job_epsg(meshes: Sequence[Sequence], crs: int | str | None = None) -> int:
 
 
 def plan_render(sources: Sequence, meshes: Sequence[Sequence], bands: Sequence[Sequence[int]],
-                gsd: float, group: int = GROUP, crs: int | str | None = None) -> RenderPlan:
-    """The output grid (union of the meshes' bounds, snapped outward to ``gsd``, in the CRS of
-    :func:`job_epsg`) and the cube jobs; meshes of another CRS are transformed into it (vertices,
-    not rasters).
+                gsd: float, group: int = GROUP, crs: int | str | None = None,
+                grid: GridRequest | None = None) -> RenderPlan:
+    """The output grid (``grid``'s :meth:`~archive.grid.GridRequest.decide`; by default the union of
+    the meshes' bounds, snapped outward to ``gsd``, in the CRS of :func:`job_epsg`) and the cube jobs
+    (the cubes whose meshes touch it, each windowed to the grid); meshes of another CRS are
+    transformed into it (vertices, not rasters). InputError when ``grid`` (--bounds, --like) holds
+    no line of the flights.
 
     meshes[s][c]: mesh of cube c of source s; bands[s]: source band indices of the output bands.
     """
-    epsg = job_epsg(meshes, crs)
+    request = GridRequest() if grid is None else grid
+    epsg = job_epsg(meshes, request.like.epsg if request.like is not None else crs)
     meshes = [[m if m.epsg == epsg else m.to_epsg(epsg) for m in ms] for ms in meshes]
     kept = [m for ms in meshes for m in ms if m.rows >= 2]
     if not kept:
         raise InputError(None, "no line of the flights can be rendered (every line lacks navigation or "
                          "looks too far off nadir)", "check the sync offset and --max-view-angle")
     bounds = np.array([m.bounds_utm() for m in kept])
-    grid = Grid.from_bounds(epsg, bounds[:, 0].min(), bounds[:, 1].min(), bounds[:, 2].max(),
-                            bounds[:, 3].max(), gsd)
+    footprint = (bounds[:, 0].min(), bounds[:, 1].min(), bounds[:, 2].max(), bounds[:, 3].max())
+    grid = request.decide(epsg, footprint, gsd)
     jobs = []
     for s, ms in enumerate(meshes):
         for c, mesh in enumerate(ms):
@@ -220,6 +224,13 @@ def plan_render(sources: Sequence, meshes: Sequence[Sequence], bands: Sequence[S
                 continue
             row0, col0, window = crop
             jobs.append(CubeJob(s, c, mesh, (row0, col0, window.height, window.width), window))
+    if not jobs:
+        option = "--like" if request.like is not None else "--bounds"
+        w, s_, e, n = grid.bounds
+        fw, fs, fe, fn = footprint
+        raise InputError(option, f"the grid W,S,E,N = {w:.0f},{s_:.0f},{e:.0f},{n:.0f} (EPSG:{epsg}) holds no line "
+                         f"of the flights, which cover {fw:.0f},{fs:.0f},{fe:.0f},{fn:.0f}",
+                         f"give {option} over the flights, or other flights")
     lengths = {len(b) for b in bands}
     if len(lengths) != 1 or 0 in lengths:
         raise InputError(None, f"the sources select different numbers of bands ({sorted(lengths)})",

@@ -304,7 +304,8 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                     bank_deg: float | None = None, record_turns: bool = False, pause_s: float = 0.0,
                     pause_cube: int = 0, boresight_deg: Sequence[float] = (0.0, 0.0, 0.0),
                     lever_arm_m: Sequence[float] = (0.0, 0.0, 0.0), terrain: str | None = None,
-                    heading_deg: float = HEADING_DEG, wobble: bool = True, start=None) -> Truth:
+                    heading_deg: float = HEADING_DEG, wobble: bool = True, start=None,
+                    scene_seed: int | None = None) -> Truth:
     """Write a simulated flight into ``directory`` and return its :class:`Truth`.
 
     ``cubes`` cubes of ``lines`` lines x ``samples`` samples x ``bands`` bands (400-1000 nm,
@@ -351,6 +352,12 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
     ``start``: UTC time the flight starts, its first line :data:`RUN_S` later (ISO 8601 text or a datetime; :func:`start_gps`); the
     default depends on the seed (2024-06-12T16:00:00Z plus ``seed`` minutes), so flights of
     different seeds get different collection ids (``<sensor>_<start>``) and can share an archive.
+
+    ``scene_seed``: the seed of the ground (the scene's textures and targets) and of the camera's
+    radiometry (its gain and dark frames), None: ``seed``. Flights of one ``scene_seed`` (and one
+    site, heading, cubes, lines and recorder) fly over the same ground, each with its own wobble,
+    noise and (by default) start: the same field flown again on another day. A flight whose
+    ``scene_seed`` equals its ``seed`` is the flight of that seed, byte for byte.
     """
     if not math.isfinite(heading_deg):
         raise InputError("simulate", f"heading must be a finite number of degrees, got {heading_deg!r}")
@@ -382,6 +389,11 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
             into_turn = 0.5 * math.pi * (SPACING / 2.0) / SPEED
         into_turn = min(into_turn, RECORD_TURN_FRACTION * record_s)
     motion = default_wobble(rng)     # drawn either way: the same seed gives the same scene
+    if scene_seed is not None and int(scene_seed) != int(seed):
+        # the ground (and camera) of flight ``scene_seed``: its generator, past its wobble draws
+        rng = np.random.default_rng(int(scene_seed))
+        default_wobble(rng)
+    ground_seed = int(seed) if scene_seed is None else int(scene_seed)
     if not wobble:
         motion = {name: Wobble() for name in motion}
     traj = Trajectory(epsg, e0, n0, float(heading_deg), SPEED, SPACING, HEIGHT, GROUND_HEIGHT, t_start,
@@ -399,7 +411,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
     wavelengths = np.round(np.linspace(400.0, 1000.0, bands), 3)
     fwhm = band_fwhm(wavelengths)
     spectra = material_spectra(wavelengths)
-    scene = Scene(e0, n0, int(seed), 1.2, random_waves(rng), tuple(layout(traj, spans, rng)),
+    scene = Scene(e0, n0, ground_seed, 1.2, random_waves(rng), tuple(layout(traj, spans, rng)),
                   wavelengths, spectra)
     radiometry = make_radiometry(spectra[MATERIALS.index("white")], wavelengths, samples,
                                  [(p.shutter_ms, p.gain_db) for p in plans], rng)
@@ -520,6 +532,6 @@ def run(args: argparse.Namespace) -> int:
                             pause_cube=opt("pause_cube", 0),
                             boresight_deg=opt("boresight", (0.0, 0.0, 0.0)),
                             lever_arm_m=opt("lever_arm", (0.0, 0.0, 0.0)), terrain=opt("terrain", None),
-                            start=opt("start", None))
+                            start=opt("start", None), scene_seed=opt("scene_seed", None))
     print(summary(truth))
     return 0
