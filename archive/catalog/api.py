@@ -17,6 +17,15 @@ asset hrefs absolute paths on this machine. ``bbox``, ``intersects`` and ``S_INT
 footprints exactly; ``datetime`` selects flights whose [start, end] meets the interval, as
 ``archive catalog search --datetime``. Paging: ``token`` is an offset into the sorted result.
 Errors are ``{"code", "description"}`` with a 4xx status.
+
+Untrusted input is bounded before it is parsed: a POST body (at most MAX_BODY_BYTES, JSON nested at
+most :data:`archive.catalog.cql.MAX_NESTING` deep), a filter (length, nesting, operator count:
+:func:`archive.catalog.cql.check_text`; the ``cql2`` parser is native code, whose stack overflow
+would end the process), numbers (finite, integers within 64 bits; ``limit`` a positive integer;
+``token`` offsets at most MAX_OFFSET). Every parse or translate failure is a 400 with a message.
+The index is checked before use and rebuilt when it does not answer for the Items (in the user's
+cache folder for a read-only archive: :func:`archive.catalog.index.ensure_index`); an Item damaged
+since is left out of its page and listed under ``archive:damaged``.
 """
 
 from __future__ import annotations
