@@ -196,6 +196,26 @@ def test_a_damaged_item_costs_only_its_flight(archive, capsys, damage):
     assert catalog_problems(open_root(archive_dir)) == []
 
 
+def test_a_lost_collection_store_is_listed_as_damaged(archive, capsys):
+    """An Item whose collection store is gone: listed as damaged (not as a viewable flight) by the
+    viewer, validate and rebuild, which keeps the Item and exits 1."""
+    archive_dir, ids = archive
+    shutil.rmtree(archive_dir / "collections" / f"{ids[0]}.zarr")
+    client, registry = _client(archive_dir)
+    try:
+        doc = client.get("/api/collections").json()
+        assert [f["id"] for f in doc["features"]] == [ids[1]]
+        assert [d["id"] for d in doc["damaged"]] == [ids[0]] and "missing" in doc["damaged"][0]["reason"]
+    finally:
+        client.close()
+        registry.close()
+    code, out, _ = cli(capsys, "catalog", "validate", "--archive", str(archive_dir))
+    assert code == 1 and f"collections/{ids[0]}.zarr is missing" in out, out
+    code, out, _ = cli(capsys, "catalog", "rebuild", "--archive", str(archive_dir))
+    assert code == 1 and f"DAMAGED {ids[0]}: collection store" in out, out
+    assert (archive_dir / "catalog" / "items" / f"{ids[0]}.json").is_file()
+
+
 # ---- read-only archives ---------------------------------------------------------------------------
 def _readonly_prefix(target: Path) -> list[str]:
     """A command prefix that runs a command with ``target`` mounted read-only (a private mount

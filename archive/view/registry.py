@@ -133,6 +133,8 @@ class FlightRegistry:
                                     "fix": "run 'archive catalog rebuild'"})
             known = {d["id"] for d in damaged}
             damaged += [d.as_dict() for d in damaged_flights(self.archive) if d.id not in known]
+            unusable = {d["id"] for d in damaged}  # e.g. an Item whose collection store is gone
+            features = [f for f in features if f["id"] not in unusable]
         if self.raw:
             from archive.catalog.index import parse_datetime_range
 
