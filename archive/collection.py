@@ -46,6 +46,8 @@ import hashlib
 import json
 import os
 import shutil
+import threading
+import time
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -149,6 +151,25 @@ def _cube(path: str, size: int, mtime_ns: int) -> EnviCube:
     return EnviCube(path)
 
 
+#: Test-only: ``ARCHIVE_TEST_HOLD_AFTER_CHUNKS=N`` makes an ingest stop (its chunk tasks wait until
+#: the process is killed) once its store holds N dn chunks (kept from a resumed run or written), so
+#: that a test kills it mid-store at a moment it controls (never set outside tests).
+TEST_HOLD_AFTER_CHUNKS = "ARCHIVE_TEST_HOLD_AFTER_CHUNKS"
+_held = {"chunks": 0}
+_held_lock = threading.Lock()
+
+
+def _test_hold_chunk() -> None:
+    hold = os.environ.get(TEST_HOLD_AFTER_CHUNKS)
+    if hold is None:
+        return
+    with _held_lock:
+        go = _held["chunks"] < int(hold)
+        _held["chunks"] += go
+    while not go:
+        time.sleep(3600)
+
+
 def write_chunk(store: str, task: ChunkTask, chunk_lines: int, resume: bool) -> tuple[int, int, str]:
     """Dask task body: read one band of the raw cubes for ``task``, write it as one dn chunk, and
     return (band, chunk, hex sha256 of the chunk's values).
@@ -159,6 +180,7 @@ def write_chunk(store: str, task: ChunkTask, chunk_lines: int, resume: bool) -> 
     with the fill value 0 to ``chunk_lines`` lines, as Zarr stores it. With ``resume``, a chunk
     already on disk that decodes to the same values is kept. Memory: one chunk and its encoding.
     """
+    _test_hold_chunk()
     parts = []
     for path, a, b in task.pieces:
         st = os.stat(path)

@@ -31,7 +31,7 @@ import numpy as np
 
 import archive
 from archive.catalog.root import ArchiveRoot, check_collection_id, create_archive, open_root
-from archive.errors import InputError
+from archive.errors import ArchiveError, InputError
 from archive.collection import (FORMAT, FORMAT_VERSION, NAV_COLUMNS, StorePlan, chunk_tasks, finish_store,
                                 frame_to_attrs, hash_file_task, is_complete, open_partial, publish, read_attrs,
                                 sha256_file, store_lock, verify_store, write_chunk)
@@ -341,6 +341,9 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
     root = _create_archive(archive_path)
     results = []
     for plan in plans:
+        if not overwrite and _already_ingested(root, plan, directories[plans.index(plan)]):
+            results.append(IngestResult(plan.cid, root.store(plan.cid), "already ingested"))
+            continue
         # One writer per collection id, across processes and hosts (DESIGN 5): a second ingest of
         # the same flight waits here, then finds it ingested.
         lock = store_lock(root.store(plan.cid), f"ingest of {plan.cid}")
@@ -375,24 +378,7 @@ def _ingest_one(root: ArchiveRoot, plan: StorePlan, directory: str, overwrite: b
 
     final = root.store(plan.cid)
     if final.exists() and not overwrite:
-        if not is_complete(final):
-            raise InputError(final, "exists but has no completion marker", "pass --overwrite to re-ingest")
-        attrs = read_attrs(final)
-        recorded = attrs.get("navigation_params") or {}
-        wanted = plan.attrs["navigation_params"]
-        if any(recorded.get(k, 0.0 if k == "sync_offset" else [0.0] * 3) != v for k, v in wanted.items()):
-            raise InputError(final, f"was ingested with other navigation parameters ({recorded or 'none'}, "
-                             f"now {wanted})", "pass --overwrite to re-ingest with the new ones")
-        old_dem = _dem_of(attrs.get("terrain"))
-        if old_dem != _dem_of(plan.attrs.get("terrain")):
-            new_dem = _dem_of(plan.attrs.get("terrain"))
-            raise InputError(final, f"was ingested with {'the DEM ' + old_dem[0] if old_dem else 'no DEM'}, "
-                             f"now {'the DEM ' + new_dem[0] if new_dem else 'none'}",
-                             "pass --overwrite to re-ingest (the catalog footprint follows the DEM)")
-        if not _same_sources(attrs, plan):
-            raise InputError(final, f"holds a different flight than {directory} under the "
-                             f"same id {plan.cid} (same sensor, same start second)",
-                             "pass --overwrite to replace it")
+        _check_ingested(root, plan, directory)
         if not _cataloged(root, plan.cid):
             with _disk_full_is_an_error(root, plan.cid):
                 catalog_collection(root, plan.cid)  # an earlier run may have died before cataloging
@@ -401,6 +387,43 @@ def _ingest_one(root: ArchiveRoot, plan: StorePlan, directory: str, overwrite: b
         resumed = write_flight(plan, root, workers, progress)
         catalog_collection(root, plan.cid)
     return IngestResult(plan.cid, final, "resumed" if resumed else "ingested")
+
+
+def _check_ingested(root: ArchiveRoot, plan: StorePlan, directory: str) -> None:
+    """InputError unless the existing store of ``plan``'s id is complete and holds this flight, ingested
+    with the same navigation parameters and DEM (then a rerun is a no-op)."""
+    final = root.store(plan.cid)
+    if not is_complete(final):
+        raise InputError(final, "exists but has no completion marker", "pass --overwrite to re-ingest")
+    attrs = read_attrs(final)
+    recorded = attrs.get("navigation_params") or {}
+    wanted = plan.attrs["navigation_params"]
+    if any(recorded.get(k, 0.0 if k == "sync_offset" else [0.0] * 3) != v for k, v in wanted.items()):
+        raise InputError(final, f"was ingested with other navigation parameters ({recorded or 'none'}, "
+                         f"now {wanted})", "pass --overwrite to re-ingest with the new ones")
+    old_dem = _dem_of(attrs.get("terrain"))
+    if old_dem != _dem_of(plan.attrs.get("terrain")):
+        new_dem = _dem_of(plan.attrs.get("terrain"))
+        raise InputError(final, f"was ingested with {'the DEM ' + old_dem[0] if old_dem else 'no DEM'}, "
+                         f"now {'the DEM ' + new_dem[0] if new_dem else 'none'}",
+                         "pass --overwrite to re-ingest (the catalog footprint follows the DEM)")
+    if not _same_sources(attrs, plan):
+        raise InputError(final, f"holds a different flight than {directory} under the "
+                         f"same id {plan.cid} (same sensor, same start second)",
+                         "pass --overwrite to replace it")
+
+
+def _already_ingested(root: ArchiveRoot, plan: StorePlan, directory: str) -> bool:
+    """Whether ``plan``'s flight is ingested and cataloged as asked (read only, without the lock: a
+    rerun after success writes nothing, not even a lock file); False when in any doubt (the locked
+    path then decides, and says why)."""
+    try:
+        if not root.store(plan.cid).exists():
+            return False
+        _check_ingested(root, plan, directory)
+        return _cataloged(root, plan.cid)
+    except (ArchiveError, OSError, ValueError):
+        return False
 
 
 def _disk_full(exc: BaseException) -> bool:
