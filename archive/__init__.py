@@ -6,6 +6,7 @@ The library API (:mod:`archive.api`), imported on first use so that ``import arc
     arc = archive.open_archive("demo/archive")          # an Archive: .search(bbox=, datetime=, wavelength=)
     ds = archive.mosaic(ids, archive=arc, gsd=0.25)     # a lazy xarray.Dataset
     archive.georectify(["demo/flight"], "demo/mosaic.zarr", gsd=0.25, fov=47.5)   # `archive render`
+    da = archive.stack(arc.search(bbox=...), archive=arc, gsd=0.25)   # lazy (time, band, y, x) on one grid
 
 ``archive.render`` is the GL renderer's package (``archive/render/``), not a function.
 """
@@ -17,9 +18,9 @@ try:
 except PackageNotFoundError:  # running from a source tree without install
     __version__ = "0.0.0+unknown"
 
-__all__ = ["Archive", "__version__", "georectify", "mosaic", "open_archive"]
+__all__ = ["Archive", "__version__", "georectify", "mosaic", "open_archive", "stack"]
 
-_API = ("Archive", "georectify", "mosaic", "open_archive")
+_API = ("Archive", "georectify", "mosaic", "open_archive", "stack")
 
 
 def __getattr__(name: str):

@@ -28,7 +28,7 @@ from archive.errors import InputError
 if TYPE_CHECKING:
     from archive.cluster import SlurmJobs
 
-__all__ = ["Archive", "georectify", "mosaic", "open_archive", "plan"]
+__all__ = ["Archive", "georectify", "mosaic", "open_archive", "plan", "stack"]
 
 Source = str | os.PathLike
 
@@ -153,10 +153,48 @@ def mosaic(sources: Source | Sequence[Source], *, band_group: int | None = None,
     return pipeline.mosaic(_options(sources, options), band_group=band_group, quiet=quiet)
 
 
+def _stack_sources(ids_or_query, options: dict) -> list:
+    """The flights of :func:`stack`: ids / directories as given, or the ids of ``archive`` matching a
+    query dict (keys bbox, datetime, wavelength as :meth:`Archive.search`)."""
+    if isinstance(ids_or_query, dict):
+        where = options.get("archive")
+        if where is None:
+            raise InputError("archive", "a catalog query needs the archive to search", "pass archive=...")
+        unknown = set(ids_or_query) - {"bbox", "datetime", "wavelength"}
+        if unknown:
+            raise InputError("query", f"unknown keys {sorted(unknown)}", "use bbox, datetime, wavelength")
+        arc = where if isinstance(where, Archive) else open_archive(where)
+        ids = arc.search(**ids_or_query)
+        if not ids:
+            raise InputError(arc.path, f"no flight in the catalog matches {ids_or_query}",
+                             "check the query with archive.open_archive(...).search(...)")
+        return ids
+    return ids_or_query
+
+
+def stack(ids_or_query, *, band_group: int | None = None, quiet: bool = True, **options):
+    """The time stack of flights as a lazy ``xarray.DataArray`` (time, band, y, x): nothing rendered
+    until computed.
+
+    ids_or_query: collection ids (and/or raw flight directories), or a query dict ({"bbox": ...,
+    "datetime": ..., "wavelength": ...}, as :meth:`Archive.search`) of ``archive``. Render options as
+    :func:`mosaic` (gsd required unless like; bounds, like, crs: the grid). The grid is the one
+    ``archive render ... --stack`` gives: aligned, the union of the flights' footprints (or bounds,
+    or like's); each time step is one flight rendered alone from its raw lines onto it (the same
+    values as the Zarr stack and as ``archive render ID --like X.zarr``, bit for bit); ``time`` is
+    each flight's first line (UTC, datetime64[ns]) in time order, ``flight`` its id. Computing a
+    window (``.sel(x=slice(...), y=slice(...))``, one ``time``) renders only its tiles.
+    """
+    from archive.stacks import stack as lazy_stack
+
+    return lazy_stack(_options(_stack_sources(ids_or_query, options), options), band_group=band_group,
+                      quiet=quiet)
+
+
 def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: Source | None = None,
                scheduler: str | SlurmJobs | None = None, workers: int | None = None, threads: int | None = None,
                overwrite: bool = False, quiet: bool = True, per_flight: bool = False, format: str = "zarr",
-               resume: bool = False, tell=None, **options) -> dict:
+               resume: bool = False, tell=None, stack: bool = False, **options) -> dict:
     """Georectify ``sources`` into ``out`` (.zarr, .tif or .hdr) exactly as ``archive render``;
     returns its summary (out, width, height, gsd, epsg, bands, wavelengths, mode, cubes, sources,
     renders, assemblies, seconds, graph_seconds, left_out, provenance).
@@ -170,13 +208,23 @@ def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: So
     output; quiet: no progress bar or notes; per_flight: one output per source,
     ``out/<name>.<format>`` (then the summary holds ``outputs``, and ``out/report.json`` the batch
     report; each flight succeeds or fails alone, :mod:`archive.batch`); resume: skip per-flight
-    outputs that are complete with the same recipe; tell: called with one line per finished flight.
+    outputs that are complete with the same recipe (with ``stack``: add the flights the stack lacks);
+    tell: called with one line per finished flight; stack: one Zarr ``out`` (time, band, y, x) of
+    all sources on one aligned grid (:mod:`archive.stacks`; the summary holds ``flights``,
+    ``added``, ``skipped``, ``left_out``).
     Nothing is left at ``out`` when anything fails; the output's STAC Item, ``<out>.json``, is
     written last.
     """
     from archive import pipeline
 
     request = _options(sources, options)
+    if stack:
+        from archive.stacks import run_stack
+
+        if quicklook:
+            raise InputError("--quicklook", "a stack has no quicklook", "leave --quicklook out with --stack")
+        return run_stack(request, out, overwrite=overwrite, resume=resume, scheduler=scheduler, workers=workers,
+                         threads=threads, quiet=quiet, tell=tell)
     if per_flight:   # each flight a job of its own, in waves
         from archive.batch import run_batch
 

@@ -250,6 +250,11 @@ def _add_render(sub) -> None:
     q.add_argument("--mosaic", action="store_true",
                    help="one mosaic of all matching flights at --out (default: one output per flight, "
                         "--out DIR/<id>.<format>)")
+    q.add_argument("--stack", action="store_true",
+                   help="one Zarr time stack at --out X.zarr: variable (time, band, y, x), time = each flight's "
+                        "start, coordinate 'flight' = its id, every flight rendered from its raw lines onto one "
+                        "aligned grid (the union of the footprints, or --bounds/--like); --resume adds the "
+                        "flights it lacks")
     q.add_argument("--format", choices=["zarr", "tif", "hdr"], default="zarr",
                    help="format of the per-flight outputs in --out DIR (default zarr)")
     q.add_argument("--resume", action="store_true",

@@ -157,7 +157,7 @@ class RenderOptions:
     like: str | None = None
 
     @classmethod
-    def create(cls, sources, *, gsd, archive=None, fov=None, calibration=None, ground_height="auto",
+    def create(cls, sources, *, gsd=None, archive=None, fov=None, calibration=None, ground_height="auto",
                wavelengths=None, bands="all", mode=None, white_reference=None, sync_offset=None,
                boresight=None, lever_arm=None, overlap="last", crs=None,
                max_view_angle=DEFAULT_MAX_VIEW_ANGLE, dem=None, dem_datum=None, provenance=False,

@@ -50,7 +50,7 @@ if TYPE_CHECKING:
     from archive.graph.plan import RenderPlan
 
 __all__ = ["OUTPUT_BUDGET", "TASK_BUDGET_BYTES", "Inputs", "OutputPlan", "build_output", "check_size", "describe",
-           "georectify", "mosaic", "open_inputs", "plan", "plan_output", "publish"]
+           "georectify", "mosaic", "open_inputs", "plan", "plan_output", "planned_dataset", "publish"]
 
 #: Largest render task: cube window x 4 bands x float32 (plus its flags), bytes.
 TASK_BUDGET_BYTES = 2 * 1024**3
@@ -440,10 +440,13 @@ def _left_out_text(left_out: dict | None) -> str:
 # Lazy mosaics
 # ---------------------------------------------------------------------------------------------
 def plan(options: RenderOptions, *, band_group: int | None = None, budget: int | None = None,
-         quiet: bool = True) -> OutputPlan:
-    """Check, open and plan ``options`` as one mosaic (metadata only: no pixel is read, no GL)."""
+         quiet: bool = True, grid: GridRequest | None = None) -> OutputPlan:
+    """Check, open and plan ``options`` as one mosaic (metadata only: no pixel is read, no GL);
+    ``grid``: the output grid asked for instead of the options' (a stack's grid, :mod:`archive.stack`)."""
     nav = options.check()
     inputs = open_inputs(options, nav, _say(quiet), mosaic=True)
+    if grid is not None:
+        inputs = dataclasses.replace(inputs, grid=grid)
     return plan_output(inputs, budget=budget, band_group=band_group)
 
 
@@ -459,14 +462,18 @@ def mosaic(options: RenderOptions, *, band_group: int | None = None, quiet: bool
     index, ``wavelength`` in nm, indexed for ``.sel(wavelength=..., method="nearest")``), with the
     CRS set (rioxarray ``spatial_ref``).
     """
-    from archive.graph.lazy import mosaic_arrays
-
     client = active_client()
     budget = None
     if client is not None:
         check_gpu_workers(client, f"the active Dask client ({client.scheduler.address})")
         budget = task_budget(client)
-    planned = plan(options, band_group=band_group, budget=budget, quiet=quiet)
+    return planned_dataset(plan(options, band_group=band_group, budget=budget, quiet=quiet))
+
+
+def planned_dataset(planned: OutputPlan):
+    """The lazy ``xarray.Dataset`` of a planned output (:func:`mosaic`'s, from its plan)."""
+    from archive.graph.lazy import mosaic_arrays
+
     p, grid = planned.params, planned.plan.grid
     values, saturated = mosaic_arrays(planned.plan, list(planned.sources), mode=p.mode, overlap=p.overlap,
                                       layers=planned.layers_spec(rule_only=True)

@@ -71,7 +71,15 @@ def render_keywords(args: argparse.Namespace) -> dict:
     ids = _query_ids(args)
     if ids is not None:
         keywords["sources"] += [i for i in ids if i not in keywords["sources"]]
-        keywords["per_flight"] = not args.mosaic
+        keywords["per_flight"] = not (args.mosaic or args.stack)
+    if args.stack:
+        if ids is None and not keywords["sources"]:
+            raise InputError("--stack", "stacks the flights of a catalog query or of SOURCE...",
+                             "add --archive A with --query-bbox/--query-datetime/--query-wavelength")
+        if args.mosaic:
+            raise InputError("--stack", "--stack and --mosaic are two kinds of output", "give one of them")
+        keywords["stack"] = True
+        keywords.pop("format", None)
     return keywords
 
 
@@ -85,6 +93,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"archive render: {line}", flush=True)
 
     s = georectify(**render_keywords(args), tell=tell)
+    if "added" in s:
+        n = len(s["flights"])
+        print(f"archive render: stack {s['out']}: {n} flight{'s' if n != 1 else ''} on {s['width']} x {s['height']} px "
+              f"at {s['gsd']:g} m, EPSG:{s['epsg']}, {s['bands']} bands: {len(s['added'])} added, "
+              f"{len(s['skipped'])} already there, {len(s['left_out'])} left out, in {s['seconds']:.1f} s.")
+        return 0
     if "outputs" in s:
         n = len(s["outputs"])
         print(f"archive render: {n} flight{'s' if n != 1 else ''} in {s['seconds']:.1f} s: {s['done']} done, "

@@ -1,0 +1,569 @@
+"""Time stacks: every flight of one place rendered from its raw lines onto one aligned grid (DESIGN 11).
+
+``archive render --archive A --query-... --stack --out X.zarr`` (and :func:`run_stack`) writes one
+Zarr store whose data variable (``radiance``, ``dn``... by mode) is ``(time, band, y, x)`` float32,
+NaN where a flight has no line, with coordinates ``time`` (each flight's first line, UTC, CF-encoded
+as microseconds since 1970-01-01) and ``flight`` (the collection id, along ``time``), ``saturated``
+``(time, y, x)``, and the coordinates, CRS and grid of a mosaic output (:mod:`archive.outputs.zarr`),
+so that ``--like X.zarr`` takes its grid.
+
+- **Grid.** One aligned grid (pixel edges on multiples of the GSD): the union of the flights'
+  footprints in the UTM zone holding most flights (``--crs`` forces one), or ``--bounds`` (snapped
+  outward), or ``--like`` (taken whole). Each slice is its flight rendered alone onto that grid, by
+  the same steps as ``archive render ID --like X.zarr`` (:func:`archive.pipeline.open_inputs`,
+  ``plan_output``, ``build_output``): the same values, bit for bit.
+- **Slice by slice.** Chunks are (1 flight, 1 band, 1024, 1024): a flight is rendered into a
+  temporary single-flight store, its chunk files are moved into the stack at its time index, then
+  the stack's metadata is rewritten with one more time step (the consolidated metadata last: a
+  reader sees the stack before or after the slice, never half of it). A new stack is made under a
+  temporary name and renamed into place with its first slice; ``--overwrite`` builds the new stack
+  under a temporary name and replaces the old one when complete.
+- **Complete and resumable.** The stack's STAC Item ``X.zarr.json`` (datacube ``cube:dimensions``)
+  is written last and says the stack is complete; ``--resume`` adds the flights of the request the
+  stack lacks (after new ingests, or a killed run), at the end of ``time``, on the stack's own grid
+  (a request with other options is refused unless ``--overwrite``). Flights that have no line on the
+  grid are left out with a note.
+- **Memory.** Flights are opened, planned, rendered and moved one at a time (one graph in the
+  scheduler at once): memory does not grow with the number of flights.
+
+:func:`stack` is the lazy form (``archive.stack``): the same values as an ``xarray.DataArray``
+backed by dask, nothing rendered until computed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shutil
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+
+from archive.errors import ArchiveError, InputError, OutputExistsError
+from archive.files import host_name, path_exists, remove_path, replace_path
+from archive.grid import Grid, GridRequest
+
+__all__ = ["STACK_ATTR", "StackFlight", "run_stack", "stack", "stack_grid"]
+
+#: Root attribute of a stack store: {"flights": [per time step: id, start, end, ...], "request": {...}}.
+STACK_ATTR = "archive_stack"
+#: CF units of the ``time`` coordinate (int64).
+TIME_UNITS = "microseconds since 1970-01-01T00:00:00"
+#: The datacube STAC extension the stack's Item declares (when its schema is vendored).
+DATACUBE_EXTENSION = "https://stac-extensions.github.io/datacube/v2.2.0/schema.json"
+
+_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+
+
+@dataclass(frozen=True)
+class StackFlight:
+    """One time step of a stack: the flight's ``id`` (collection id or directory name), its ``source``
+    (what the request names), UTC ``start``/``end`` of its lines (ISO 8601) and its processing
+    attributes (ground height or DEM, sync offset, cubes)."""
+
+    id: str
+    source: str
+    start: str
+    end: str
+    attrs: dict = dataclasses.field(default_factory=dict, compare=False)
+
+    def to_dict(self) -> dict:
+        return {"id": self.id, "source": self.source, "start": self.start, "end": self.end, **self.attrs}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> StackFlight:
+        rest = {k: v for k, v in d.items() if k not in ("id", "source", "start", "end")}
+        return cls(str(d["id"]), str(d.get("source", d["id"])), str(d["start"]), str(d["end"]), rest)
+
+    @property
+    def microseconds(self) -> int:
+        """The flight's start as CF time: microseconds since 1970-01-01 UTC."""
+        when = datetime.fromisoformat(self.start.replace("Z", "+00:00"))
+        delta = when - _EPOCH
+        return (delta.days * 86400 + delta.seconds) * 1_000_000 + delta.microseconds
+
+
+def _say(quiet: bool):
+    def say(text: str) -> None:
+        if not quiet:
+            print(text, file=sys.stderr)
+    return say
+
+
+def _flight_name(source: str) -> str:
+    return Path(source).name if Path(source).is_dir() else str(source)
+
+
+def _alone(options, source: str):
+    """The request of one flight of a stack: ``options`` for ``source`` alone, the grid left to the stack."""
+    return dataclasses.replace(options.with_sources([source]), bounds=None, align=False, like=None)
+
+
+def _time_span(planned) -> tuple[str, str]:
+    """(first, last) line of a planned output, ISO 8601 UTC with microseconds."""
+    from archive.formats.lcf import gps_seconds_to_datetime
+
+    sources = planned.sources
+    first = min(float(s.line_times(c)[0]) for s in sources for c in range(len(s.cubes)))
+    last = max(float(s.line_times(c)[-1]) for s in sources for c in range(len(s.cubes)))
+    iso = lambda t: gps_seconds_to_datetime(t).astimezone(UTC).isoformat(timespec="microseconds")  # noqa: E731
+    return iso(first), iso(last)
+
+
+def stack_grid(options, nav, sources: Sequence[str], say=None) -> Grid:
+    """The grid of a new stack of ``sources`` (metadata only: poses, no pixel): ``options.like``'s
+    grid whole; else ``options.bounds`` or the union of the flights' footprints, pixel edges snapped
+    outward to multiples of the GSD, in ``options.crs`` or the UTM zone most flights' grids are in
+    (ties: the lowest EPSG code). Each flight is opened and planned alone (nothing held between
+    flights but its footprint)."""
+    from archive.pipeline import open_inputs, plan_output
+
+    say = say or (lambda text: None)
+    if options.like is not None:
+        from archive.options import grid_request
+
+        return grid_request(options).like
+    footprints: list[tuple[int, tuple[float, float, float, float], object]] = []
+    for src in sources:
+        alone = _alone(options, src)
+        inputs = open_inputs(alone, nav, say, mosaic=True)
+        grid = plan_output(inputs).plan.grid
+        footprints.append((grid.epsg, grid.bounds, inputs))
+        del inputs
+        footprints[-1] = footprints[-1][:2] + (src,)
+    epsgs = [e for e, _, _ in footprints]
+    epsg = min(set(epsgs), key=lambda e: (-epsgs.count(e), e))
+    boxes = []
+    for e, box, src in footprints:
+        if e != epsg:   # a flight of another zone: its footprint in the stack's CRS
+            alone = dataclasses.replace(_alone(options, src), crs=f"EPSG:{epsg}")
+            box = plan_output(open_inputs(alone, nav, say, mosaic=True)).plan.grid.bounds
+        boxes.append(box)
+    b = np.array(boxes)
+    union = (float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max()))
+    return GridRequest(None, options.bounds, True).decide(epsg, union, float(options.gsd))
+
+
+# ---------------------------------------------------------------------------------------------
+# The store
+# ---------------------------------------------------------------------------------------------
+def _request_json(options) -> dict:
+    """The stack's recipe: the request without its sources (a resume may add flights)."""
+    from archive.batch import recipe_request
+
+    return recipe_request(dataclasses.replace(options, sources=()))
+
+
+@dataclass
+class _Layout:
+    """What a stack store holds besides its slices: the grid, the bands (source indices,
+    wavelengths, fwhm, nm), the data variable, the root attributes and the Zarr version."""
+
+    grid: Grid
+    bands: tuple[int, ...]
+    wavelengths: tuple[float, ...] | None
+    fwhm: tuple[float, ...] | None
+    variable: str
+    attrs: dict
+    zarr_format: int
+
+    def arrays(self, flights: Sequence[StackFlight]) -> tuple[dict, list]:
+        """(root attributes, :class:`~archive.outputs.zarr_metadata.ArraySpec` list) of the store
+        holding ``flights`` as its time steps (no slice data: only the coordinates')."""
+        from archive.outputs.zarr import store_layout
+        from archive.outputs.zarr_metadata import ArraySpec
+
+        root, arrays = store_layout(self.grid, self.bands, self.wavelengths, self.fwhm, self.variable, self.attrs)
+        n = len(flights)
+        out = []
+        for spec in arrays:
+            if spec.name in (self.variable, "saturated"):
+                attrs = dict(spec.attrs)
+                if spec.name == self.variable:
+                    attrs["coordinates"] = " ".join(sorted(attrs.get("coordinates", "").split() + ["flight"]))
+                else:
+                    attrs["coordinates"] = "flight"
+                spec = dataclasses.replace(spec, shape=(n, *spec.shape), chunks=(1, *spec.chunks),
+                                           dims=("time", *spec.dims), attrs=attrs)
+            out.append(spec)
+        ids = [f.id for f in flights]
+        width = max([len(i) for i in ids] + [1])
+        out.append(ArraySpec("time", np.dtype(np.int64), (n,), (n,), ("time",),
+                             {"units": TIME_UNITS, "calendar": "proleptic_gregorian", "standard_name": "time",
+                              "long_name": "start of the flight (its first line), UTC", "axis": "T"},
+                             data=np.array([f.microseconds for f in flights], np.int64)))
+        out.append(ArraySpec("flight", np.dtype(f"<U{width}"), (n,), (n,), ("time",),
+                             {"long_name": "flight (collection id) of each time step"},
+                             data=np.array(ids, dtype=f"<U{width}")))
+        return dict(root), out
+
+
+def _chunk_files(store: Path, name: str, zarr_format: int, coords: tuple[int, ...]) -> Path:
+    """The file of chunk ``coords`` of array ``name`` of a store :mod:`archive.outputs.zarr_metadata`
+    wrote (v2: '.'-separated keys; v3: 'c/'-prefixed, '/'-separated)."""
+    key = ".".join(str(c) for c in coords) if zarr_format == 2 else "/".join(["c", *(str(c) for c in coords)])
+    return store / name / key
+
+
+def _commit(store: Path, layout: _Layout, flights: list[StackFlight], request: dict) -> None:
+    """Rewrite the metadata and coordinates of ``store`` for ``flights`` (its time steps): every
+    array's documents and coordinate chunks first, the root documents (consolidated metadata) last,
+    each file replaced atomically."""
+    from archive.outputs.zarr_metadata import write_store
+
+    root_attrs, arrays = layout.arrays(flights)
+    root_attrs[STACK_ATTR] = json.dumps({"variable": layout.variable, "flights": [f.to_dict() for f in flights],
+                                         "request": request})
+    tmp = store.with_name(f".{store.name}.partial-{os.getpid()}@{host_name()}.meta")
+    remove_path(tmp)
+    try:
+        write_store(tmp, root_attrs, arrays, layout.zarr_format)
+        files = sorted(p for p in tmp.rglob("*") if p.is_file())
+        late = {".zmetadata", "zarr.json"}
+        ordered = ([p for p in files if p.parent != tmp] + [p for p in files if p.parent == tmp and p.name not in late]
+                   + [p for p in files if p.parent == tmp and p.name in late])
+        for src in ordered:
+            dest = store / src.relative_to(tmp)
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(src, dest)
+    finally:
+        remove_path(tmp)
+
+
+def _move_slice(slice_store: Path, store: Path, layout: _Layout, t: int, slice_format: int) -> None:
+    """Move the chunk files of a rendered single-flight store (``slice_store``: values (band, y, x)
+    and ``saturated`` (y, x)) into time step ``t`` of ``store``; chunks left at ``t`` by a killed
+    run are removed first (an all-NaN chunk is not written, so it must not be found there)."""
+    g = layout.grid
+    rows, cols = math.ceil(g.height / _chunk()), math.ceil(g.width / _chunk())
+    for name, nb in ((layout.variable, len(layout.bands)), ("saturated", None)):
+        for b in range(nb or 1):
+            for r in range(rows):
+                for c in range(cols):
+                    src_coords = (r, c) if nb is None else (b, r, c)
+                    src = _chunk_files(slice_store, name, slice_format, src_coords)
+                    dest = _chunk_files(store, name, layout.zarr_format, (t, *src_coords))
+                    if path_exists(dest):
+                        remove_path(dest)
+                    if src.exists():
+                        dest.parent.mkdir(parents=True, exist_ok=True)
+                        os.replace(src, dest)
+
+
+def _chunk() -> int:
+    from archive.outputs.base import CHUNK
+
+    return CHUNK
+
+
+def read_stack(path: str | os.PathLike) -> tuple[_Layout, list[StackFlight], dict | None]:
+    """(layout, flights, request) of an existing stack store; InputError when ``path`` is no stack."""
+    import zarr
+
+    from archive.outputs.like import read_grid
+
+    path = Path(path)
+    try:
+        group = zarr.open_group(path, mode="r")
+        attrs = dict(group.attrs)
+    except Exception as exc:  # noqa: BLE001 - any unreadable store is the same user error
+        raise InputError(path, f"is not a readable Zarr store ({type(exc).__name__})",
+                         "pass --overwrite to replace it, or choose another --out") from None
+    if STACK_ATTR not in attrs:
+        raise InputError(path, "is a Zarr store but not a stack (no archive_stack attribute)",
+                         "pass --overwrite to replace it, or choose another --out")
+    meta = json.loads(attrs[STACK_ATTR])
+    flights = [StackFlight.from_dict(d) for d in meta["flights"]]
+    grid = read_grid(path)
+    variable = str(meta["variable"])
+    wavelengths = tuple(float(v) for v in group["wavelength"][:]) if "wavelength" in group else None
+    fwhm = tuple(float(v) for v in group["fwhm"][:]) if "fwhm" in group else None
+    bands = tuple(int(v) for v in group["band"][:])
+    keep = {k: v for k, v in attrs.items() if k not in (STACK_ATTR, "archive_grid", "Conventions", "zarr_conventions")
+            and not k.startswith(("proj:", "spatial:"))}
+    zarr_format = 2 if (path / ".zgroup").exists() else 3
+    return _Layout(grid, bands, wavelengths, fwhm, variable, keep, zarr_format), flights, meta.get("request")
+
+
+# ---------------------------------------------------------------------------------------------
+# Writing a stack
+# ---------------------------------------------------------------------------------------------
+def _differences(stored: dict, wanted: dict) -> str:
+    keys = [k for k in wanted if stored.get(k) != wanted.get(k)] + [k for k in stored if k not in wanted]
+    return ", ".join(f"{k} {stored.get(k)!r} there, {wanted.get(k)!r} now" for k in keys[:4])
+
+
+def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, scheduler=None,
+              workers: int | None = None, threads: int | None = None, quiet: bool = True,
+              tell: Callable[[str], None] | None = None) -> dict:
+    """Write (or, with ``resume``, complete) the stack of ``options.sources`` at ``out`` (a .zarr);
+    see the module docstring. ``tell(line)`` gets one line per flight (done / skipped / left out).
+    Returns ``{"out", "flights" (ids in the stack, time order), "added", "skipped", "left_out",
+    "renders" (render tasks run), "width", "height", "gsd", "epsg", "bands", "seconds"}``.
+    ArchiveError before anything is written for problems of the whole request."""
+    from archive.cluster import execute, start_cluster, task_budget
+    from archive.options import check_gsd
+    from archive.outputs.publish import Output
+    from archive.pipeline import build_output, open_inputs, plan_output
+
+    started = time.perf_counter()
+    tell = tell or (lambda line: None)
+    say = _say(quiet)
+    check_gsd(options.gsd)
+    out = Path(out).absolute()
+    if out.suffix.lower() != ".zarr":
+        raise InputError(out, "a stack is one Zarr store (time, band, y, x)", "name --out X.zarr")
+    if options.provenance:
+        raise InputError("--provenance", "a stack holds no provenance layers",
+                         "render the flight alone with --like X.zarr --provenance")
+    if options.archive is not None:   # recipes independent of the working directory
+        options = dataclasses.replace(options, archive=os.fspath(Path(options.archive).absolute()))
+    nav = options.check()
+    Output(out, overwrite=True).check()   # a writable folder; temporaries of killed runs removed
+    item_path = out.with_name(out.name + ".json")
+    request = _request_json(options)
+    existing = path_exists(out)
+    if existing and not (resume or overwrite):
+        raise OutputExistsError(out)
+    layout: _Layout | None = None
+    flights: list[StackFlight] = []
+    if existing and resume:
+        try:
+            layout, flights, stored = read_stack(out)
+        except InputError:
+            if not overwrite:
+                raise
+            layout, flights, stored = None, [], None
+        if layout is not None and stored != request:
+            if not overwrite:
+                raise InputError(out, f"the stack was made with another request ({_differences(stored or {}, request)})",
+                                 "pass the same options to --resume it, or --overwrite to make it again")
+            layout, flights = None, []
+    fresh = layout is None
+    target = out if not fresh else out.with_name(f".{out.name}.partial-{os.getpid()}@{host_name()}")
+    if fresh:
+        remove_path(target)
+    sources = list(dict.fromkeys(options.sources))
+    have = {f.id for f in flights}
+    todo = [s for s in sources if _flight_name(s) not in have]
+    for s in sources:
+        if _flight_name(s) in have:
+            tell(f"skipped {_flight_name(s)}: in the stack already")
+    grid = layout.grid if layout is not None else stack_grid(options, nav, todo, say)
+    client = cluster = None
+    added: list[str] = []
+    left_out: list[str] = []
+    renders = 0
+    made_target = False
+    try:
+        if todo:
+            client, cluster = start_cluster(scheduler, workers, say, threads)
+            budget = task_budget(client)
+            # time order of the flights to add (their planning is repeated when rendering: one flight held at a time)
+            order = []
+            for src in todo:
+                inputs = open_inputs(_alone(options, src), nav, say, mosaic=True)
+                first = min(float(s.line_times(c)[0]) for s in inputs.sources for c in range(len(s.cubes)))
+                order.append((first, _flight_name(src), src))
+                del inputs
+            order.sort()
+            if not quiet:
+                from tqdm import tqdm
+                bar = tqdm(total=len(order), desc="stack", unit="flight", file=sys.stderr)
+            else:
+                bar = None
+            for _, name, src in order:
+                t0 = time.perf_counter()
+                alone = _alone(options, src)
+                inputs = dataclasses.replace(open_inputs(alone, nav, say, mosaic=True), grid=GridRequest(grid))
+                try:
+                    planned = plan_output(inputs, budget=budget)
+                except InputError as exc:
+                    if "holds no line" not in exc.problem:
+                        raise
+                    left_out.append(name)
+                    tell(f"left out {name}: no line of it on the stack's grid")
+                    if bar is not None:
+                        bar.update(1)
+                    continue
+                if layout is None:
+                    layout = _Layout(grid, tuple(planned.plan.bands[0]),
+                                     None if planned.wavelengths is None else tuple(planned.wavelengths),
+                                     None if planned.fwhm is None else tuple(planned.fwhm), planned.variable,
+                                     _stack_attrs(planned.attrs), options.zarr_format)
+                _check_like(layout, planned, name)
+                slice_out = Output(out.with_name(f".{out.name}.slice.zarr"), overwrite=True,
+                                   zarr_format=layout.zarr_format)
+                try:
+                    sink, graph = build_output(planned, slice_out)
+                    if len(graph):
+                        execute(client, graph, quiet=True, shared=cluster is None)
+                    renders += graph.renders
+                    start, end = _time_span(planned)
+                    flight = StackFlight(name, src, start, end, _flight_attrs(planned))
+                    if fresh and not made_target:
+                        _commit(target, layout, [flight], request)   # the store, with its first time step
+                        made_target = True
+                    _move_slice(Path(sink.path), target, layout, len(flights), layout.zarr_format)
+                    flights.append(flight)
+                    _commit(target, layout, flights, request)
+                finally:
+                    slice_out.cleanup()
+                if fresh and target != out and not overwrite:
+                    replace_path(target, out)   # a new stack appears with its first slice: resumable from here
+                    target = out
+                    fresh = False
+                added.append(name)
+                tell(f"done {name}: time step {len(flights) - 1} ({time.perf_counter() - t0:.1f} s)")
+                if bar is not None:
+                    bar.update(1)
+            if bar is not None:
+                bar.close()
+        if not flights:
+            raise InputError("--stack", "no flight of the request has a line on the stack's grid",
+                             "check --bounds / --like, or the query")
+        remove_path(item_path)   # the stack changes: not complete until its new Item is written
+        if target != out:
+            replace_path(target, out)
+            target = out
+        _write_item(out, layout, flights, options)
+    finally:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
+        if target != out:
+            remove_path(target)
+    g = layout.grid
+    return {"out": str(out), "flights": [f.id for f in flights], "added": added,
+            "skipped": [f.id for f in flights if f.id not in added], "left_out": left_out, "renders": renders,
+            "width": g.width, "height": g.height, "gsd": g.gsd, "epsg": g.epsg, "bands": len(layout.bands),
+            "seconds": time.perf_counter() - started}
+
+
+#: Processing attributes that differ between the flights of a stack (kept per flight, not at the root).
+_PER_FLIGHT = ("ground_height_m", "dem", "dem_datum", "sync_offset_s", "sources")
+
+
+def _stack_attrs(attrs: dict) -> dict:
+    return {k: v for k, v in attrs.items() if k not in _PER_FLIGHT}
+
+
+def _flight_attrs(planned) -> dict:
+    a = planned.attrs
+    out = {k: a[k] for k in _PER_FLIGHT if k in a and k != "sources"}
+    out["cubes"] = len(planned.plan.jobs)
+    return json.loads(json.dumps(out, default=str))
+
+
+def _check_like(layout: _Layout, planned, name: str) -> None:
+    """InputError unless flight ``name`` gives the stack's bands and variable."""
+    wl = None if planned.wavelengths is None else tuple(planned.wavelengths)
+    if tuple(planned.plan.bands[0]) != layout.bands or wl != layout.wavelengths:
+        raise InputError(name, f"selects other bands than the stack ({list(planned.plan.bands[0])} vs "
+                         f"{list(layout.bands)})", "stack flights of one camera, or pass --wavelengths")
+    if planned.variable != layout.variable:
+        raise InputError(name, f"renders {planned.variable!r} but the stack holds {layout.variable!r}",
+                         "pass --mode for every flight (a flight without calibration renders raw DN)")
+
+
+def _write_item(out: Path, layout: _Layout, flights: list[StackFlight], options) -> None:
+    """The stack's STAC Item ``<out>.json`` (written last): a product Item of the grid and bands,
+    the time span of its flights, and the datacube extension's ``cube:dimensions``/``cube:variables``."""
+    from archive.catalog.product import product_item, render_command
+    from archive.catalog.stac import write_item
+
+    g = layout.grid
+    start = datetime.fromisoformat(min(f.start for f in flights))
+    end = datetime.fromisoformat(max(f.end for f in flights))
+    command = render_command(options.with_sources([f.source for f in flights]), out) + " --stack"
+    item = product_item(out, fmt="zarr", grid=g, band_indices=layout.bands, wavelengths=layout.wavelengths,
+                        fwhm=layout.fwhm, variable=layout.variable, attrs=layout.attrs, start=start, end=end,
+                        sources=[f.source for f in flights], command=command, request=options)
+    w, s, e, n = g.bounds
+    props = item["properties"]
+    props["cube:dimensions"] = {
+        "time": {"type": "temporal", "extent": [flights[0].start, flights[-1].start],
+                 "values": [f.start for f in flights]},
+        "band": {"type": "bands", "values": [f"b{b}" for b in layout.bands]},
+        "y": {"type": "spatial", "axis": "y", "extent": [s, n], "step": -g.gsd, "reference_system": g.epsg},
+        "x": {"type": "spatial", "axis": "x", "extent": [w, e], "step": g.gsd, "reference_system": g.epsg},
+    }
+    props["cube:variables"] = {
+        layout.variable: {"type": "data", "dimensions": ["time", "band", "y", "x"],
+                          "description": f"{layout.variable} of each flight on the stack's grid, NaN where it has no line"},
+        "saturated": {"type": "auxiliary", "dimensions": ["time", "y", "x"]},
+        "flight": {"type": "auxiliary", "dimensions": ["time"], "values": [f.id for f in flights]},
+    }
+    props["archive:stack"] = {"flights": [f.to_dict() for f in flights]}
+    if _datacube_vendored():
+        item["stac_extensions"].append(DATACUBE_EXTENSION)
+    write_item(out.with_name(out.name + ".json"), item)
+
+
+def _datacube_vendored() -> bool:
+    from importlib import resources
+
+    try:
+        return resources.files("archive").joinpath("..", "catalogs", "schemas", "extensions", "datacube").is_dir()
+    except (OSError, TypeError):
+        return False
+
+
+# ---------------------------------------------------------------------------------------------
+# The lazy stack
+# ---------------------------------------------------------------------------------------------
+def stack(options, *, band_group: int | None = None, quiet: bool = True):
+    """The stack of ``options`` as a lazy ``xarray.DataArray`` (time, band, y, x), nothing rendered
+    until computed: each time step is :func:`archive.mosaic` of its flight alone on the stack's grid
+    (:func:`stack_grid`), so its values are the Zarr stack's, bit for bit. Coordinates as the Zarr
+    stack (``time`` as datetime64[ns] UTC, ``flight``, ``band``, ``wavelength``, x/y); the CRS set.
+    A window (``.sel(x=..., y=...)``, ``.isel(time=...)``) renders only the flights and cubes under
+    it (dask culls the other tiles' tasks; a tile no cube of a flight touches is NaN without GL)."""
+    import xarray as xr
+
+    from archive.cluster import active_client, check_gpu_workers, task_budget
+    from archive.pipeline import plan as plan_of, planned_dataset
+
+    nav = options.check()
+    if options.provenance:
+        raise InputError("provenance", "a stack holds no provenance layers")
+    sources = list(dict.fromkeys(options.sources))
+    grid = stack_grid(options, nav, sources, _say(quiet))
+    client = active_client()
+    budget = None
+    if client is not None:
+        check_gpu_workers(client, f"the active Dask client ({client.scheduler.address})")
+        budget = task_budget(client)
+    steps = []
+    for src in sources:
+        try:
+            planned = plan_of(_alone(options, src), band_group=band_group, budget=budget, quiet=quiet,
+                              grid=GridRequest(grid))
+        except InputError as exc:
+            if "holds no line" in exc.problem:
+                continue   # left out, as the Zarr stack leaves it out
+            raise
+        steps.append((_time_span(planned)[0], _flight_name(src), planned.variable, planned_dataset(planned)))
+    if not steps:
+        raise InputError("stack", "no flight of the request has a line on the stack's grid",
+                         "check bounds / like, or the flights")
+    steps.sort(key=lambda s: (s[0], s[1]))
+    variable, first = steps[0][2], steps[0][3]
+    for _, name, var, ds in steps:
+        if var != variable or not np.array_equal(ds["band"].values, first["band"].values):
+            raise InputError(name, "renders other bands or another variable than the stack's first flight",
+                             "stack flights of one camera, or pass wavelengths and mode")
+    times = [np.datetime64(datetime.fromisoformat(t).astimezone(UTC).replace(tzinfo=None), "ns") for t, *_ in steps]
+    out = xr.concat([ds[variable] for *_, ds in steps], dim="time", coords="minimal", compat="override",
+                    join="exact", combine_attrs="override")
+    out = out.assign_coords(time=("time", np.array(times)), flight=("time", [name for _, name, *_ in steps]))
+    out["time"].attrs.update({"standard_name": "time", "long_name": "start of the flight (its first line), UTC"})
+    return out
