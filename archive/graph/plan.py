@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from archive.errors import InputError
-from archive.grid import Grid, GridRequest
+from archive.grid import Grid, GridRequest, aligned, boxes_intersect
 from archive.navigation import (DEFAULT_MAX_VIEW_ANGLE, frame_interval, joined, projected_epsg, to_lonlat,
                                 utm_epsg_for)
 
@@ -30,7 +30,8 @@ GROUP = 4
 class CubeJob:
     """One cube to render: ``source`` index, ``cube`` index, its mesh and window on the output grid.
 
-    box: (row0, col0, height, width) of the window in output pixels. mesh: None in a plan whose
+    box: (row0, col0, height, width) of the window in output pixels (on a grid asked for on the GSD
+    lattice it may reach past the grid: see :func:`plan_render`). mesh: None in a plan whose
     meshes tasks build (:attr:`RenderPlan.mesh_params`).
     """
 
@@ -216,10 +217,26 @@ def plan_render(sources: Sequence, meshes: Sequence[Sequence], bands: Sequence[S
     bounds = np.array([m.bounds_utm() for m in kept])
     footprint = (bounds[:, 0].min(), bounds[:, 1].min(), bounds[:, 2].max(), bounds[:, 3].max())
     grid = request.decide(epsg, footprint, gsd)
+    # On a grid asked for (--bounds --align, --like, a tile, a stack) that lies on the GSD lattice, a
+    # cube's window is its own box on that lattice, whatever the grid's extent (it may reach past
+    # the grid: the writers keep what falls inside): a pixel is then drawn with the same GL set-up
+    # in every such grid, so tiles stitched equal their union and a stack's slice its --like render,
+    # bit for bit. Elsewhere (the footprint grid, which holds every window) the window is the crop.
+    on_lattice = (request.bounds is not None or request.like is not None) and aligned(grid)
     jobs = []
     for s, ms in enumerate(meshes):
         for c, mesh in enumerate(ms):
-            crop = grid.crop(*mesh.bounds_utm()) if mesh.rows >= 2 else None
+            if mesh.rows < 2:
+                continue
+            if on_lattice:
+                window = Grid.from_bounds(epsg, *mesh.bounds_utm(), grid.gsd)
+                box = (round((grid.y0 - window.y0) / grid.gsd), round((window.x0 - grid.x0) / grid.gsd),
+                       window.height, window.width)
+                if not boxes_intersect(box, (0, 0, grid.height, grid.width)):
+                    continue
+                jobs.append(CubeJob(s, c, mesh, box, window))
+                continue
+            crop = grid.crop(*mesh.bounds_utm())
             if crop is None:
                 continue
             row0, col0, window = crop
