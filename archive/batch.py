@@ -511,10 +511,13 @@ def _publish(flight: Flight, client) -> None:
         job.renderers = worker_renderers(client)
     except Exception:  # noqa: BLE001 - a record of the renderers is not worth failing the flight
         job.renderers = None
-    job.output.finalize(job.sink)
-    item = product_item(job.planned, job.output, job.options, job.renderers)
-    item["properties"]["archive:recipe"]["inputs"] = flight.inputs
-    write_item(job.output.item_path, item)
+    try:
+        job.output.finalize(job.sink)
+        item = product_item(job.planned, job.output, job.options, job.renderers)
+        item["properties"]["archive:recipe"]["inputs"] = flight.inputs
+        write_item(job.output.item_path, item)
+    finally:
+        job.output.cleanup()   # its turn to publish ends with the Item
 
 
 def _timed_prepare(flight: Flight, budget: int, say) -> tuple[_FlightJob, object, float]:

@@ -87,7 +87,7 @@ def replace_path(tmp: str | os.PathLike, final: str | os.PathLike) -> None:
     tmp, final = Path(tmp), Path(final)
     old = None
     if path_exists(final):
-        old = final.with_name(f".{final.name}.old-{os.getpid()}")
+        old = final.with_name(f".{final.name}.old-{os.getpid()}@{host_name()}")
         remove_path(old)
         os.replace(final, old)
     try:

@@ -10,7 +10,9 @@ THIS host whose process is gone (another host's PID means nothing here: its temp
 Replacing an output: its old STAC Item (``<out>.json``, which says the output is complete) is
 removed BEFORE the new data is renamed into place, and the pipeline writes the new Item last, so a
 kill at any moment leaves either the old output with its Item, or data without an Item (rendered
-again by ``--resume``), never new data beside the old Item.
+again by ``--resume``), never new data beside the old Item. Two processes publishing the same
+output take turns (a lock, ``.<name>.publish.lock``, from :meth:`Output.finalize` until
+:meth:`Output.cleanup`, so the Item written after the rename is part of the turn).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from archive.errors import InputError, OutputExistsError
-from archive.files import host_name, path_exists, pid_alive, remove_path, replace_path
+from archive.files import FileLock, host_name, path_exists, pid_alive, remove_path, replace_path
 from archive.outputs.base import OutputMeta
 from archive.outputs.quicklook import quicklook_png
 from archive.outputs.registry import output_format, writer
@@ -99,6 +101,7 @@ class Output:
             raise InputError(self.quicklook, "the quicklook must be a .png file", "name it <something>.png")
         self._sink = self._meta = None
         self._layers = self._layers_spec = None
+        self._publishing: FileLock | None = None
 
     @property
     def provenance_path(self) -> Path | None:
@@ -199,6 +202,9 @@ class Output:
             tmp = self._temp(self.quicklook)
             quicklook_png(read_band, meta.grid, meta.wavelengths, meta.nbands, tmp)
             moves.append((tmp, self.quicklook))
+        self._publishing = FileLock(self.path.with_name(f".{self.path.name}.publish.lock"), f"publishing {self.path}",
+                                    what=f"output {self.path}")
+        self._publishing.acquire(wait=float("inf"))   # released by cleanup(), after the Item
         self.check()  # something may have appeared meanwhile
         remove_path(self.item_path)   # the old output is no longer complete from here on
         for tmp, final in moves:
@@ -206,7 +212,10 @@ class Output:
         _test_kill("after-data")
 
     def cleanup(self) -> None:
-        """Remove every temporary this output created (never the final paths)."""
+        """Remove every temporary this output created (never the final paths); end its turn to publish."""
+        if self._publishing is not None:
+            self._publishing.release()
+            self._publishing = None
         for tmp in self._temps:
             remove_path(tmp)
         self._temps.clear()
