@@ -99,6 +99,11 @@ def test_kill_between_data_and_item_of_a_single_render(flights, tmp_path):
                  "--overwrite", env={"ARCHIVE_TEST_KILL_AT": "after-data"})
     assert killed.returncode == -signal.SIGKILL, killed.stderr
     assert values(out).shape != old.shape and not Path(f"{out}.json").exists()
+    # the next render (here: the first request again) takes over and leaves nothing hidden behind
+    assert run("render", ids[0], "--archive", str(archive), "--gsd", "0.1", "--out", str(out), "--quiet",
+               "--overwrite").returncode == 0
+    assert np.array_equal(values(out), old, equal_nan=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["one.tif", "one.tif.json"]
 
 
 def test_reingest_then_resume_renders_again(flights, tmp_path):

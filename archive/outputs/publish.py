@@ -124,6 +124,10 @@ class Output:
         return paths + [self.item_path] + ([self.quicklook] if self.quicklook is not None else [])
 
     @property
+    def _lock_path(self) -> Path:
+        return self.path.with_name(f".{self.path.name}.publish.lock")
+
+    @property
     def item_path(self) -> Path:
         """The output's STAC Item, ``<out>.json`` (:mod:`archive.catalog.product`)."""
         return self.path.with_name(self.path.name + ".json")
@@ -135,6 +139,9 @@ class Output:
         Also removes the temporaries a killed earlier run left beside a final path (their process,
         named in the temporary's name, no longer runs on this machine).
         """
+        stale = FileLock(self._lock_path, "checking")
+        if path_exists(stale.path) and stale.try_acquire() is None:   # a killed publisher's (see FileLock)
+            stale.release()
         for final in self.finals:
             _remove_stale_temps(final)
             if final.parent.exists() and not final.parent.is_dir():
@@ -202,8 +209,7 @@ class Output:
             tmp = self._temp(self.quicklook)
             quicklook_png(read_band, meta.grid, meta.wavelengths, meta.nbands, tmp)
             moves.append((tmp, self.quicklook))
-        self._publishing = FileLock(self.path.with_name(f".{self.path.name}.publish.lock"), f"publishing {self.path}",
-                                    what=f"output {self.path}")
+        self._publishing = FileLock(self._lock_path, f"publishing {self.path}", what=f"output {self.path}")
         self._publishing.acquire(wait=float("inf"))   # released by cleanup(), after the Item
         self.check()  # something may have appeared meanwhile
         remove_path(self.item_path)   # the old output is no longer complete from here on
