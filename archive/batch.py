@@ -145,7 +145,8 @@ def _differences(stored: dict, wanted: dict) -> str:
 
 def _remove_leftovers(output) -> None:
     """Temporaries of killed runs beside ``output``'s files: Item partials (``<name>.<hex>.partial``)
-    and the output's ``.<name>.partial-<pid>...`` whose process is gone (its check removes those)."""
+    and the output's ``.<name>.partial-<pid>@<host>...`` made on this host by a process that is gone
+    (its check removes those). The folder's lock is held: no other batch writes here."""
     for final in output.finals:
         for tmp in final.parent.glob(f"{final.name}.*.partial"):
             remove_path(tmp)

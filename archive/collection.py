@@ -653,7 +653,7 @@ class CheckedDn:
         return out
 
 
-__all__ = ["COMPLETE", "CheckedDn", "CollectionInfo", "CorruptChunkError", "StoredPoses", "read_poses", "record_navigation", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS", "StorePlan", "StoredCube",
-           "chunk_tasks", "content_version", "finish_store", "frame_from_attrs", "frame_to_attrs", "is_complete", "open_dn",
-           "open_partial", "publish", "read_attrs", "read_info", "store_lock", "verify_store", "StoredCalibration",
-           "write_chunk"]
+__all__ = ["COMPLETE", "CheckedDn", "CollectionInfo", "CorruptChunkError", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS",
+           "StorePlan", "StoredCalibration", "StoredCube", "StoredPoses", "chunk_tasks", "content_version",
+           "finish_store", "frame_from_attrs", "frame_to_attrs", "is_complete", "open_dn", "open_partial", "publish",
+           "read_attrs", "read_info", "read_poses", "record_navigation", "store_lock", "verify_store", "write_chunk"]

@@ -110,7 +110,8 @@ def test_batch_outputs_on_a_small_disk(ingested, tmp_path, small_disk):
     assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
     doc = json.loads((out / "report.json").read_text())
     assert doc["complete"] and doc["failed"] == 1 and "space" in doc["outputs"][0]["error"], doc
-    assert [line for line in done.stdout.splitlines() if " failed " in line][0].startswith(f"archive render: failed {cid}:")
+    failed = [line for line in done.stdout.splitlines() if " failed " in line]
+    assert failed[0].startswith(f"archive render: failed {cid}:"), done.stdout
     small_disk.resize(out, "64m")
     done = cli(*batch_args(arc, out, "--resume"))
     assert done.returncode == 0, done.stderr

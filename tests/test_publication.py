@@ -93,7 +93,8 @@ def test_kill_between_data_and_item_of_a_single_render(flights, tmp_path):
     new data and no Item says it is complete (the old Item was removed first)."""
     _, archive, ids = flights
     out = tmp_path / "one.tif"
-    assert run("render", ids[0], "--archive", str(archive), "--gsd", "0.1", "--out", str(out), "--quiet").returncode == 0
+    first = run("render", ids[0], "--archive", str(archive), "--gsd", "0.1", "--out", str(out), "--quiet")
+    assert first.returncode == 0, first.stderr
     old = values(out)
     killed = run("render", ids[0], "--archive", str(archive), "--gsd", "0.2", "--out", str(out), "--quiet",
                  "--overwrite", env={"ARCHIVE_TEST_KILL_AT": "after-data"})
