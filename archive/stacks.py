@@ -36,7 +36,6 @@ import dataclasses
 import json
 import math
 import os
-import shutil
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -46,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from archive.errors import ArchiveError, InputError, OutputExistsError
+from archive.errors import InputError
 from archive.files import host_name, path_exists, remove_path, replace_path
 from archive.grid import Grid, GridRequest
 
@@ -331,7 +330,8 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
     request = _request_json(options)
     existing = path_exists(out)
     if existing and not (resume or overwrite):
-        raise OutputExistsError(out)
+        raise InputError(out, "output exists already", "pass --resume to add the flights the stack lacks, or "
+                         "--overwrite to make it again")
     layout: _Layout | None = None
     flights: list[StackFlight] = []
     if existing and resume:

@@ -1,0 +1,200 @@
+"""One grid for the whole archive (issue 32), through the real CLI: --bounds/--align/--like on a
+render, time stacks (archive render --stack, --resume, archive.stack), the simulator flying the
+same ground again.
+
+Small flights (2 cubes x 60 lines x 32 samples x 4 bands) of one field flown on three days: seed k
+with --scene-seed 0 (same ground and camera, its own wobble and noise), a week apart.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+FOV = "47.5"
+GSD = "0.5"
+SHAPE = ["--cubes", "2", "--samples", "32", "--lines", "60", "--bands", "4"]
+DAYS = ("2024-06-12", "2024-06-19", "2024-06-26")
+
+
+def cli(*args: str, cwd: Path | None = None, ok: bool = True) -> subprocess.CompletedProcess:
+    """``python -m archive ARGS`` in a subprocess; asserts the exit code (0, or not 0 with ``ok=False``)."""
+    proc = subprocess.run([sys.executable, "-m", "archive", *args], capture_output=True, text=True, cwd=cwd,
+                          timeout=300)
+    assert (proc.returncode == 0) == ok, (args, proc.returncode, proc.stdout, proc.stderr)
+    return proc
+
+
+@pytest.fixture(scope="module")
+def field(tmp_path_factory):
+    """(root, archive, ids): three flights of one field, a week apart; the first two ingested."""
+    from archive.ingest.command import ingest
+
+    root = tmp_path_factory.mktemp("field")
+    ids = []
+    for k, day in enumerate(DAYS):
+        cli("simulate", str(root / f"day{k}"), *SHAPE, "--seed", str(k), "--scene-seed", "0",
+            "--start", f"{day}T16:00:00Z", "--quiet")
+        if k < 2:
+            (r,) = ingest([str(root / f"day{k}")], root / "archive", float(FOV), progress=False)
+            ids.append(r.cid)
+    return root, root / "archive", ids
+
+
+def values(path: Path, variable: str = "radiance") -> np.ndarray:
+    with xr.open_zarr(path) as ds:
+        return ds[variable].values
+
+
+# ---------------------------------------------------------------------------------------------
+# The simulator flies the same ground again
+# ---------------------------------------------------------------------------------------------
+def test_scene_seed_flies_the_same_ground(field, tmp_path):
+    from archive.simulator.command import simulate_flight
+    from archive.simulator.truth import load_truth
+
+    root, _, _ = field
+    t0, t1 = load_truth(root / "day0" / "truth"), load_truth(root / "day1" / "truth")
+    assert t0.scene.to_dict() == t1.scene.to_dict()   # the same ground
+    assert t0.cubes[0].line_time[0] + 7 * 86400 == pytest.approx(t1.cubes[0].line_time[0], abs=1e-6)
+    assert not np.array_equal(t0.cubes[0].position_utm, t1.cubes[0].position_utm)   # its own wobble
+    # a flight whose scene seed is its seed is that seed's flight, byte for byte
+    small = dict(cubes=1, samples=16, lines=20, bands=2)
+    simulate_flight(tmp_path / "a", seed=3, **small)
+    simulate_flight(tmp_path / "b", seed=3, scene_seed=3, **small)
+    for f in (tmp_path / "a").iterdir():
+        if f.is_file():
+            assert f.read_bytes() == (tmp_path / "b" / f.name).read_bytes(), f.name
+
+
+# ---------------------------------------------------------------------------------------------
+# Grid options
+# ---------------------------------------------------------------------------------------------
+def test_bounds_align_and_like(field, tmp_path):
+    import rasterio
+
+    root, _, _ = field
+    day0, day1 = str(root / "day0"), str(root / "day1")
+    cli("render", day0, "--fov", FOV, "--gsd", "0.1", "--out", str(tmp_path / "foot.tif"), "--quiet")
+    with rasterio.open(tmp_path / "foot.tif") as ds:
+        w, s, e, n = ds.bounds
+    # --bounds without --align: the top-left corner exactly at W,N; with --align: edges on multiples of the GSD
+    box = (w + 2.03, s + 3.01, e - 4.02, n - 2.07)
+    text = ",".join(f"{v:.2f}" for v in box)
+    cli("render", day0, "--fov", FOV, "--gsd", "0.1", "--bounds", text, "--out", str(tmp_path / "exact.zarr"),
+        "--quiet")
+    cli("render", day0, "--fov", FOV, "--gsd", "0.1", "--bounds", text, "--align", "--out",
+        str(tmp_path / "part.zarr"), "--quiet")
+    big = f"{np.floor(w) - 5:.0f},{np.floor(s) - 5:.0f},{np.ceil(e) + 5:.0f},{np.ceil(n) + 5:.0f}"
+    cli("render", day0, "--fov", FOV, "--gsd", "0.1", "--bounds", big, "--align", "--out",
+        str(tmp_path / "big.zarr"), "--quiet")
+    from archive.outputs.like import read_grid
+
+    exact, part, whole = (read_grid(tmp_path / f) for f in ("exact.zarr", "part.zarr", "big.zarr"))
+    assert (exact.x0, exact.y0) == (float(f"{box[0]:.2f}"), float(f"{box[3]:.2f}"))
+    for g in (part, whole):
+        assert abs(g.x0 / 0.1 - round(g.x0 / 0.1)) < 1e-6 and abs(g.y0 / 0.1 - round(g.y0 / 0.1)) < 1e-6
+    pw, ps, pe, pn = part.bounds
+    assert pw <= box[0] < pw + 0.1 and pn - 0.1 < box[3] <= pn and pe - 0.1 < box[2] <= pe
+    # alignment exact: the part's pixels are the big render's, bit for bit
+    r0, c0 = round((whole.y0 - part.y0) / 0.1), round((part.x0 - whole.x0) / 0.1)
+    cut = values(tmp_path / "big.zarr")[:, r0:r0 + part.height, c0:c0 + part.width]
+    mine = values(tmp_path / "part.zarr")
+    assert np.isfinite(mine).mean() > 0.2
+    np.testing.assert_array_equal(cut, mine)
+    # --like a COG: the other day's flight on that very grid, --gsd taken from it
+    cli("render", day1, "--fov", FOV, "--like", str(tmp_path / "foot.tif"), "--out", str(tmp_path / "day1.tif"),
+        "--quiet")
+    with rasterio.open(tmp_path / "foot.tif") as a, rasterio.open(tmp_path / "day1.tif") as b:
+        assert (a.crs, a.transform, a.shape) == (b.crs, b.transform, b.shape)
+
+
+def test_bad_grid_input_is_refused_in_one_line(field, tmp_path):
+    root, archive, ids = field
+    day0 = str(root / "day0")
+    (tmp_path / "notes.tif").write_text("not a raster")
+    cases = [
+        (["--like", str(tmp_path / "notes.tif")], "--like"),
+        (["--like", day0], "not an output"),
+        (["--gsd", GSD, "--bounds", "1000,2000,1100,2100"], "holds no line"),
+        (["--gsd", GSD, "--bounds", "5,5,1,1"], "not a box"),
+        ([], "--gsd"),
+    ]
+    for extra, words in cases:
+        proc = cli("render", day0, "--fov", FOV, *extra, "--out", str(tmp_path / "x.zarr"), ok=False)
+        err = proc.stderr.strip()
+        assert len(err.splitlines()) == 1 and words in err and "Traceback" not in err, (extra, err)
+    assert not (tmp_path / "x.zarr").exists()
+    proc = cli("render", "--stack", "--gsd", GSD, "--out", str(tmp_path / "s.zarr"), ok=False)
+    assert len(proc.stderr.strip().splitlines()) == 1 and "--stack" in proc.stderr
+
+
+# ---------------------------------------------------------------------------------------------
+# Time stacks
+# ---------------------------------------------------------------------------------------------
+def test_stack_slices_equal_like_renders_and_resume_adds_only_the_missing(field, tmp_path):
+    from archive.ingest.command import ingest
+    from archive.outputs.like import read_grid
+
+    root, archive, ids = field
+    archive = Path(_copy(archive, tmp_path / "archive"))
+    out = tmp_path / "field.zarr"
+    query = ["--archive", str(archive), "--query-datetime", "2024-06-01/2024-07-01"]
+    proc = cli("render", *query, "--stack", "--gsd", GSD, "--out", str(out), "--quiet")
+    assert "2 added" in proc.stdout, proc.stdout
+    with xr.open_zarr(out, decode_coords="all") as ds:
+        assert ds.radiance.dims == ("time", "band", "y", "x")
+        assert list(ds.flight.values) == ids
+        assert [str(t)[:10] for t in ds.time.values] == list(DAYS[:2])
+        assert ds.radiance.encoding["chunks"][:2] == (1, 1)   # chunks never hold two flights
+    grid = read_grid(out)
+    assert abs(grid.x0 / grid.gsd - round(grid.x0 / grid.gsd)) < 1e-6   # aligned
+    # each slice is that flight rendered alone with --like the stack, bit for bit
+    stack = values(out)
+    for t, cid in enumerate(ids):
+        one = tmp_path / f"{cid}.zarr"
+        cli("render", cid, "--archive", str(archive), "--like", str(out), "--out", str(one), "--quiet")
+        assert np.isfinite(stack[t]).mean() > 0.15
+        np.testing.assert_array_equal(stack[t], values(one))
+        np.testing.assert_array_equal(values(out, "saturated")[t], values(one, "saturated"))
+    item = json.loads((tmp_path / "field.zarr.json").read_text())
+    dims = item["properties"]["cube:dimensions"]
+    assert dims["time"]["values"][0].startswith(DAYS[0]) and dims["x"]["step"] == float(GSD)
+    assert item["properties"]["archive:recipe"]["sources"] == ids
+    # a new flight of the field ingested: --resume renders it alone, at the end of time
+    (r,) = ingest([str(root / "day2")], archive, float(FOV), progress=False)
+    before = {p: p.stat().st_mtime_ns for p in (out / "radiance").glob("[01].*")}
+    proc = cli("render", *query, "--stack", "--gsd", GSD, "--out", str(out), "--resume")
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("archive render: ")]
+    assert sum("skipped" in line for line in lines) == 2 and sum(" done " in f" {line}" for line in lines) == 1
+    assert "1 added, 2 already there" in proc.stdout
+    assert {p: p.stat().st_mtime_ns for p in before} == before   # the old slices untouched
+    np.testing.assert_array_equal(values(out)[:2], stack)
+    with xr.open_zarr(out) as ds:
+        assert list(ds.flight.values) == [*ids, r.cid]
+    # the same stack asked with other options: refused in one line, the stack left as it is
+    proc = cli("render", *query, "--stack", "--gsd", "0.25", "--out", str(out), "--resume", ok=False)
+    assert len(proc.stderr.strip().splitlines()) == 1 and "gsd" in proc.stderr
+    proc = cli("render", *query, "--stack", "--gsd", GSD, "--out", str(out), ok=False)
+    assert "--resume" in proc.stderr
+    # archive.stack: the same values, lazily; a window renders only its part
+    import archive as lib
+
+    da = lib.stack({"datetime": "2024-06-01/2024-07-01"}, archive=archive, like=out)
+    assert list(da.flight.values) == [*ids, r.cid] and da.dims == ("time", "band", "y", "x")
+    np.testing.assert_array_equal(da.values, values(out))
+    window = da.isel(time=1, x=slice(5, 25), y=slice(3, 20))
+    np.testing.assert_array_equal(window.values, values(out)[1, :, 3:20, 5:25])
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    import shutil
+
+    shutil.copytree(src, dst)
+    return dst
