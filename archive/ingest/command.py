@@ -347,7 +347,11 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
         # One writer per collection id, across processes and hosts (DESIGN 5): a second ingest of
         # the same flight waits here, then finds it ingested.
         lock = store_lock(root.store(plan.cid), f"ingest of {plan.cid}")
-        lock.acquire(wait=math.inf, notify=lambda line: print(f"archive ingest: {line}", file=sys.stderr))
+        try:
+            lock.acquire(wait=math.inf, notify=lambda line: print(f"archive ingest: {line}", file=sys.stderr))
+        except OSError as exc:
+            raise InputError(root.collections, f"cannot write there ({exc.strerror or exc})",
+                             "ingest into an archive you can write to") from None
         try:
             results.append(_ingest_one(root, plan, directories[plans.index(plan)], overwrite, workers, progress))
         finally:
