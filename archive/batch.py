@@ -121,6 +121,7 @@ class Flight:
     left: int = 0
     started: float = 0.0
     inputs: list | None = None   #: :func:`input_versions` when the batch was decided (the Item records it)
+    note: str | None = None   #: why a complete output of the same request is rendered again
 
     def entry(self) -> dict:
         return {"id": self.name, "status": self.status, "path": str(self.output.path), "error": self.error,
@@ -141,6 +142,22 @@ def _directory(out) -> Path:
 def _differences(stored: dict, wanted: dict) -> str:
     keys = [k for k in wanted if stored.get(k) != wanted.get(k)] + [k for k in stored if k not in wanted]
     return ", ".join(f"{k} {stored.get(k)!r} there, {wanted.get(k)!r} now" for k in keys[:4])
+
+
+def _input_changes(stored: list | None, wanted: list | None) -> str:
+    """What differs between two ``archive:recipe.inputs`` (for the line that says a flight is stale)."""
+    if not isinstance(stored, list):
+        return "its Item does not record them"
+    if len(stored) != len(wanted or []):
+        return f"{len(stored)} inputs there, {len(wanted or [])} now"
+    for old, new in zip(stored, wanted or [], strict=True):
+        if old == new or not isinstance(old, dict):
+            continue
+        name = new.get("source") or new.get("option")
+        keys = [k for k in new if k != "version" and old.get(k) != new.get(k)] or ["version"]
+        short = (lambda v: v[:12] if isinstance(v, str) and len(v) == 64 else v)
+        return f"{name}: " + ", ".join(f"{k} {short(old.get(k))!r} there, {short(new.get(k))!r} now" for k in keys[:3])
+    return "unknown"
 
 
 def _remove_leftovers(output) -> None:
@@ -181,6 +198,7 @@ def _decide(flight: Flight, resume: bool, overwrite: bool) -> None:
         if stored == wanted:
             # same request, other inputs (re-ingested, calibrated; or an Item that does not record
             # them): the output is stale and rendered again; its old Item goes first (publish.Output)
+            flight.note = f"its inputs changed since it was rendered ({_input_changes(stored_inputs, flight.inputs)})"
             output.overwrite = True
             output.check()
             return
@@ -283,6 +301,8 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
         for flight in flights:
             if flight.status == "skipped":
                 tell(f"skipped {flight.name}: {flight.output.path} is complete (same recipe)")
+            elif flight.note:
+                tell(f"stale {flight.name}: {flight.note}; rendering it again")
         todo = [f for f in flights if f.status == "pending"]
         state = {"graph_seconds": 0.0, "submit_seconds": 0.0, "wave": 0, "peak_tasks": 0}
         if todo:

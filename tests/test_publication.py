@@ -124,6 +124,8 @@ def test_reingest_then_resume_renders_again(flights, tmp_path):
     resumed = batch(archive, out, "0.1", "--resume")
     assert resumed.returncode == 0, resumed.stderr
     assert statuses(out) == {ids[0]: "done", ids[1]: "skipped"}, resumed.stdout
+    assert f"archive render: stale {ids[0]}: its inputs changed since it was rendered ({ids[0]}: navigation_params " \
+        in resumed.stdout and "'sync_offset': 0.2" in resumed.stdout and "rendering it again" in resumed.stdout
     assert recipe(out / f"{ids[0]}.tif.json")["inputs"][0]["navigation_params"]["sync_offset"] == 0.2
     fresh = tmp_path / "fresh.tif"
     assert run("render", ids[0], "--archive", str(archive), "--gsd", "0.1", "--out", str(fresh),
