@@ -194,7 +194,7 @@ def stack(ids_or_query, *, band_group: int | None = None, quiet: bool = True, **
 def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: Source | None = None,
                scheduler: str | SlurmJobs | None = None, workers: int | None = None, threads: int | None = None,
                overwrite: bool = False, quiet: bool = True, per_flight: bool = False, format: str = "zarr",
-               resume: bool = False, tell=None, stack: bool = False, **options) -> dict:
+               resume: bool = False, tell=None, stack: bool = False, tiles: float | None = None, **options) -> dict:
     """Georectify ``sources`` into ``out`` (.zarr, .tif or .hdr) exactly as ``archive render``;
     returns its summary (out, width, height, gsd, epsg, bands, wavelengths, mode, cubes, sources,
     renders, assemblies, seconds, graph_seconds, left_out, provenance).
@@ -211,7 +211,9 @@ def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: So
     outputs that are complete with the same recipe (with ``stack``: add the flights the stack lacks);
     tell: called with one line per finished flight; stack: one Zarr ``out`` (time, band, y, x) of
     all sources on one aligned grid (:mod:`archive.stacks`; the summary holds ``flights``,
-    ``added``, ``skipped``, ``left_out``).
+    ``added``, ``skipped``, ``left_out``); tiles: a tile side in metres: one output per tile of the
+    output CRS that a source touches, ``out/<EPSG>_<E0>_<N0>.<format>``, each the mosaic of its
+    sources, tiles as the units of a batch (:mod:`archive.tiles`).
     Nothing is left at ``out`` when anything fails; the output's STAC Item, ``<out>.json``, is
     written last.
     """
@@ -225,6 +227,13 @@ def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: So
             raise InputError("--quicklook", "a stack has no quicklook", "leave --quicklook out with --stack")
         return run_stack(request, out, overwrite=overwrite, resume=resume, scheduler=scheduler, workers=workers,
                          threads=threads, quiet=quiet, tell=tell)
+    if tiles is not None:   # each tile a job of its own, in waves
+        from archive.tiles import run_tiles
+
+        if quicklook:
+            raise InputError("--quicklook", "only one quicklook per command", "leave it out with --tiles")
+        return run_tiles(request, out, tiles, format=format, overwrite=overwrite, resume=resume, scheduler=scheduler,
+                         workers=workers, threads=threads, quiet=quiet, tell=tell)
     if per_flight:   # each flight a job of its own, in waves
         from archive.batch import run_batch
 

@@ -42,7 +42,7 @@ import json
 import os
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -122,6 +122,7 @@ class Flight:
     started: float = 0.0
     inputs: list | None = None   #: :func:`input_versions` when the batch was decided (the Item records it)
     note: str | None = None   #: why a complete output of the same request is rendered again
+    properties: dict | None = None   #: more properties of its Item (a tile's ``archive:tile``)
 
     def entry(self) -> dict:
         return {"id": self.name, "status": self.status, "path": str(self.output.path), "error": self.error,
@@ -261,7 +262,8 @@ class _Report:
 
 def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, resume: bool = False,
               scheduler: str | None = None, workers: int | None = None, threads: int | None = None,
-              quiet: bool = True, tell: Callable[[str], None] | None = None, wave: int | None = None) -> dict:
+              quiet: bool = True, tell: Callable[[str], None] | None = None, wave: int | None = None,
+              units: Sequence[tuple[str, object, dict]] | None = None) -> dict:
     """Render every source of ``options`` into ``out/<name>.<format>``, each flight on its own (see
     the module's docstring). ``tell(line)`` gets one line per flight as it finishes; ``wave``: flights
     in the scheduler at once (default :func:`archive.cluster.flight_slots`). Returns ``{"outputs":
@@ -269,7 +271,8 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
     "skipped", "failed", "seconds", "graph_seconds", "submit_seconds" (opening, planning, building
     and submitting the flights), "report", "wave", "peak_tasks" (futures held at once)}``. Raises an
     ArchiveError before anything is rendered for problems of the whole request (``out``, ``format``,
-    outputs that may not be replaced)."""
+    outputs that may not be replaced). ``units``: instead of one output per source, one output per
+    ``(name, request, Item properties)`` (a tile of :mod:`archive.tiles`: the mosaic of its sources)."""
     from archive.outputs.publish import Output
     from archive.options import check_gsd
 
@@ -285,12 +288,17 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
     lock = _lock_directory(directory)
     try:
         flights = []
-        for src in dict.fromkeys(options.sources):
-            name = Path(src).name if Path(src).is_dir() else str(src)
+        if units is None:
+            units = [(Path(src).name if Path(src).is_dir() else str(src), options.with_sources([src]), None)
+                     for src in dict.fromkeys(options.sources)]
+        for name, recipe, properties in units:
             output = Output(directory / f"{name}.{format}", overwrite=bool(overwrite),
                             provenance=options.provenance, zarr_format=options.zarr_format)
-            flights.append(Flight(str(src), name, output, options.with_sources([src]),
-                                  inputs=input_versions(options, str(src))))
+            inputs = [entry for src in recipe.sources for entry in input_versions(recipe, str(src))]
+            if len(recipe.sources) > 1:   # the files the options name once, not once per source
+                inputs = [e for k, e in enumerate(inputs) if "option" not in e or e not in inputs[:k]]
+            flights.append(Flight(",".join(recipe.sources), name, output, recipe, inputs=inputs,
+                                  properties=properties))
         for flight in flights:
             _decide(flight, resume, overwrite)
         report = _Report(directory, flights, warn=lambda line: print(f"archive render: {line}", file=sys.stderr))
@@ -536,6 +544,7 @@ def _publish(flight: Flight, client) -> None:
         job.output.finalize(job.sink)
         item = product_item(job.planned, job.output, job.options, job.renderers)
         item["properties"]["archive:recipe"]["inputs"] = flight.inputs
+        item["properties"].update(flight.properties or {})
         write_item(job.output.item_path, item)
     finally:
         job.output.cleanup()   # its turn to publish ends with the Item
@@ -554,8 +563,10 @@ def _prepare(flight: Flight, budget: int, say) -> tuple[_FlightJob, object]:
 
     recipe = flight.recipe
     nav = recipe.check()
-    inputs = open_inputs(recipe, nav, say, mosaic=False)
-    planned = plan_output(inputs, [0], budget=budget)
+    if len(recipe.sources) > 1:   # a tile: the mosaic of its flights
+        planned = plan_output(open_inputs(recipe, nav, say, mosaic=True), budget=budget)
+    else:
+        planned = plan_output(open_inputs(recipe, nav, say, mosaic=False), [0], budget=budget)
     sink, graph = build_output(planned, flight.output)
     flight.summary = _summary(planned, flight.output, graph)
     return _FlightJob(flight.output, planned, sink, recipe), graph

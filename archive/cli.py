@@ -255,6 +255,11 @@ def _add_render(sub) -> None:
                         "start, coordinate 'flight' = its id, every flight rendered from its raw lines onto one "
                         "aligned grid (the union of the footprints, or --bounds/--like); --resume adds the "
                         "flights it lacks")
+    q.add_argument("--tiles", type=float, metavar="SIZE",
+                   help="one output per tile of SIZE metres (edges on multiples of SIZE in the output CRS, SIZE a "
+                        "multiple of --gsd) that a matching flight touches, --out DIR/<EPSG>_<E0>_<N0>.<format> (lower-"
+                        "left corner): the mosaic (--overlap) of the tile's flights, each with its STAC Item; tiles "
+                        "are the batch's units (report.json, --resume); --bounds selects tiles")
     q.add_argument("--format", choices=["zarr", "tif", "hdr"], default="zarr",
                    help="format of the per-flight outputs in --out DIR (default zarr)")
     q.add_argument("--resume", action="store_true",

@@ -72,6 +72,15 @@ def render_keywords(args: argparse.Namespace) -> dict:
     if ids is not None:
         keywords["sources"] += [i for i in ids if i not in keywords["sources"]]
         keywords["per_flight"] = not (args.mosaic or args.stack)
+    if args.tiles is not None:
+        if not args.archive:
+            raise InputError("--tiles", "tiles the flights of an archive's catalog", "pass --archive A with "
+                             "--query-bbox/--query-datetime/--query-wavelength (or collection ids)")
+        if args.stack or args.mosaic:
+            raise InputError("--tiles", f"--tiles and {'--stack' if args.stack else '--mosaic'} are two kinds of output",
+                             "give one of them")
+        keywords["tiles"] = args.tiles
+        keywords["per_flight"] = False
     if args.stack:
         if ids is None and not keywords["sources"]:
             raise InputError("--stack", "stacks the flights of a catalog query or of SOURCE...",
@@ -101,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if "outputs" in s:
         n = len(s["outputs"])
-        print(f"archive render: {n} flight{'s' if n != 1 else ''} in {s['seconds']:.1f} s: {s['done']} done, "
+        unit = "tile" if "tiles" in s else "flight"
+        print(f"archive render: {n} {unit}{'s' if n != 1 else ''} in {s['seconds']:.1f} s: {s['done']} done, "
               f"{s['skipped']} skipped, {s['failed']} failed; report {s['report']}.")
         return 1 if s["failed"] else 0
     print(f"archive render: wrote {describe(s)} in {s['seconds']:.1f} s.")

@@ -264,6 +264,7 @@ LAYERS = [
     ("graph", ("archive.graph",)),
     ("commands", ("archive.options", "archive.cluster", "archive.pipeline", "archive.api", "archive.render_command",
                   "archive.ingest", "archive.simulator", "archive.view", "archive.calibrate", "archive.batch", "archive.stacks",
+                  "archive.tiles",
                   "archive.doctor")),
     ("entry", ("archive.cli", "archive.__main__")),
 ]
