@@ -198,3 +198,53 @@ def _copy(src: Path, dst: Path) -> Path:
 
     shutil.copytree(src, dst)
     return dst
+
+
+# ---------------------------------------------------------------------------------------------
+# Tiles
+# ---------------------------------------------------------------------------------------------
+def test_tiles_stitched_equal_the_union_render(field, tmp_path):
+    import rasterio
+
+    root, archive, ids = field
+    query = ["--archive", str(archive), "--query-datetime", "2024-06-12/2024-06-20"]
+    proc = cli("render", *query, "--tiles", "10", "--gsd", "0.1", "--out", str(tmp_path / "tiles"), "--format", "tif",
+               "--quiet")
+    tiles = sorted((tmp_path / "tiles").glob("*.tif"))
+    assert len(tiles) >= 4 and f"{len(tiles)} tiles in" in proc.stdout
+    report = json.loads((tmp_path / "tiles" / "report.json").read_text())
+    assert report["done"] == len(tiles) and report["complete"]
+    corners = []
+    for path in tiles:
+        epsg, e0, n0 = (int(v) for v in path.stem.split("_"))
+        with rasterio.open(path) as ds:   # named by its lower-left corner, 10 m on multiples of 10 m
+            assert ds.crs.to_epsg() == epsg and tuple(ds.bounds) == (e0, n0, e0 + 10, n0 + 10)
+        item = json.loads(path.with_name(path.name + ".json").read_text())
+        assert set(item["properties"]["archive:tile"]["flights"]) <= set(ids)
+        corners.append((e0, n0))
+    w, s = min(c[0] for c in corners), min(c[1] for c in corners)
+    e, n = max(c[0] for c in corners) + 10, max(c[1] for c in corners) + 10
+    union = tmp_path / "union.tif"
+    cli("render", *ids, "--archive", str(archive), "--bounds", f"{w},{s},{e},{n}", "--align", "--gsd", "0.1",
+        "--out", str(union), "--quiet")
+    with rasterio.open(union) as ds:
+        whole = ds.read()
+    covered = np.zeros(whole.shape[1:], bool)
+    for path, (e0, n0) in zip(tiles, corners):
+        r0, c0 = round((n - n0 - 10) / 0.1), round((e0 - w) / 0.1)
+        with rasterio.open(path) as ds:
+            np.testing.assert_array_equal(ds.read(), whole[:, r0:r0 + 100, c0:c0 + 100], err_msg=path.name)
+        covered[r0:r0 + 100, c0:c0 + 100] = True
+    assert np.isnan(whole[:, ~covered]).all()   # no flight outside the tiles
+    assert np.isfinite(whole).mean() > 0.1
+    # --resume: every tile complete with the same recipe is skipped
+    proc = cli("render", *query, "--tiles", "10", "--gsd", "0.1", "--out", str(tmp_path / "tiles"), "--format", "tif",
+               "--resume", "--quiet")
+    assert f"0 done, {len(tiles)} skipped" in proc.stdout
+
+
+def test_tiles_need_an_archive(tmp_path):
+    proc = cli("render", "somewhere", "--tiles", "10", "--gsd", "0.1", "--out", str(tmp_path / "t"), ok=False)
+    err = proc.stderr.strip()
+    assert len(err.splitlines()) == 1 and "--tiles" in err and "--archive" in err
+    assert not (tmp_path / "t").exists()
