@@ -49,7 +49,7 @@ from archive.errors import InputError
 from archive.files import host_name, path_exists, remove_path, replace_path
 from archive.grid import Grid, GridRequest
 
-__all__ = ["STACK_ATTR", "StackFlight", "run_stack", "stack", "stack_grid"]
+__all__ = ["STACK_ATTR", "StackFlight", "read_stack", "run_stack", "stack", "stack_grid", "survey"]
 
 #: Root attribute of a stack store: {"flights": [per time step: id, start, end, ...], "request": {...}}.
 STACK_ATTR = "archive_stack"
@@ -116,12 +116,42 @@ def _time_span(planned) -> tuple[str, str]:
     return iso(first), iso(last)
 
 
-def stack_grid(options, nav, sources: Sequence[str], say=None) -> Grid:
-    """The grid of a new stack of ``sources`` (metadata only: poses, no pixel): ``options.like``'s
-    grid whole; else ``options.bounds`` or the union of the flights' footprints, pixel edges snapped
+@dataclass(frozen=True)
+class _Surveyed:
+    """A flight of a stack request as planning saw it: its source, name, first line (GPS s) and,
+    when asked, its footprint grid's EPSG code and bounds (metres)."""
+
+    source: str
+    name: str
+    first: float
+    epsg: int | None = None
+    bounds: tuple[float, float, float, float] | None = None
+
+
+def survey(options, nav, sources: Sequence[str], say=None, footprints: bool = True) -> list[_Surveyed]:
+    """Open (and with ``footprints`` plan) each flight of ``sources`` alone, one at a time (metadata
+    only: poses, no pixel); in time order (first line, then name)."""
+    from archive.pipeline import open_inputs, plan_output
+
+    say = say or (lambda text: None)
+    out = []
+    for src in sources:
+        inputs = open_inputs(_alone(options, src), nav, say, mosaic=True)
+        first = min(float(s.line_times(c)[0]) for s in inputs.sources for c in range(len(s.cubes)))
+        epsg = bounds = None
+        if footprints:
+            grid = plan_output(inputs).plan.grid
+            epsg, bounds = grid.epsg, grid.bounds
+        out.append(_Surveyed(src, _flight_name(src), first, epsg, bounds))
+        del inputs
+    return sorted(out, key=lambda f: (f.first, f.name))
+
+
+def stack_grid(options, nav, flights: Sequence[_Surveyed], say=None) -> Grid:
+    """The grid of a new stack of the surveyed ``flights`` (:func:`survey`): ``options.like``'s grid
+    whole; else ``options.bounds`` or the union of the flights' footprints, pixel edges snapped
     outward to multiples of the GSD, in ``options.crs`` or the UTM zone most flights' grids are in
-    (ties: the lowest EPSG code). Each flight is opened and planned alone (nothing held between
-    flights but its footprint)."""
+    (ties: the lowest EPSG code; a flight of another zone is planned again in it)."""
     from archive.pipeline import open_inputs, plan_output
 
     say = say or (lambda text: None)
@@ -129,20 +159,13 @@ def stack_grid(options, nav, sources: Sequence[str], say=None) -> Grid:
         from archive.options import grid_request
 
         return grid_request(options).like
-    footprints: list[tuple[int, tuple[float, float, float, float], object]] = []
-    for src in sources:
-        alone = _alone(options, src)
-        inputs = open_inputs(alone, nav, say, mosaic=True)
-        grid = plan_output(inputs).plan.grid
-        footprints.append((grid.epsg, grid.bounds, inputs))
-        del inputs
-        footprints[-1] = footprints[-1][:2] + (src,)
-    epsgs = [e for e, _, _ in footprints]
+    epsgs = [f.epsg for f in flights]
     epsg = min(set(epsgs), key=lambda e: (-epsgs.count(e), e))
     boxes = []
-    for e, box, src in footprints:
-        if e != epsg:   # a flight of another zone: its footprint in the stack's CRS
-            alone = dataclasses.replace(_alone(options, src), crs=f"EPSG:{epsg}")
+    for f in flights:
+        box = f.bounds
+        if f.epsg != epsg:   # a flight of another zone: its footprint in the stack's CRS
+            alone = dataclasses.replace(_alone(options, f.source), crs=f"EPSG:{epsg}")
             box = plan_output(open_inputs(alone, nav, say, mosaic=True)).plan.grid.bounds
         boxes.append(box)
     b = np.array(boxes)
@@ -356,7 +379,9 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
     for s in sources:
         if _flight_name(s) in have:
             tell(f"skipped {_flight_name(s)}: in the stack already")
-    grid = layout.grid if layout is not None else stack_grid(options, nav, todo, say)
+    # the flights to add, in time order (planned here one at a time, and again when rendered)
+    surveyed = survey(options, nav, todo, say, footprints=layout is None and options.like is None)
+    grid = layout.grid if layout is not None else stack_grid(options, nav, surveyed, say)
     client = cluster = None
     added: list[str] = []
     left_out: list[str] = []
@@ -366,20 +391,13 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
         if todo:
             client, cluster = start_cluster(scheduler, workers, say, threads)
             budget = task_budget(client)
-            # time order of the flights to add (their planning is repeated when rendering: one flight held at a time)
-            order = []
-            for src in todo:
-                inputs = open_inputs(_alone(options, src), nav, say, mosaic=True)
-                first = min(float(s.line_times(c)[0]) for s in inputs.sources for c in range(len(s.cubes)))
-                order.append((first, _flight_name(src), src))
-                del inputs
-            order.sort()
+            bar = None
             if not quiet:
                 from tqdm import tqdm
-                bar = tqdm(total=len(order), desc="stack", unit="flight", file=sys.stderr)
-            else:
-                bar = None
-            for _, name, src in order:
+
+                bar = tqdm(total=len(surveyed), desc="stack", unit="flight", file=sys.stderr)
+            for one in surveyed:
+                name, src = one.name, one.source
                 t0 = time.perf_counter()
                 alone = _alone(options, src)
                 inputs = dataclasses.replace(open_inputs(alone, nav, say, mosaic=True), grid=GridRequest(grid))
@@ -536,14 +554,15 @@ def stack(options, *, band_group: int | None = None, quiet: bool = True):
     if options.provenance:
         raise InputError("provenance", "a stack holds no provenance layers")
     sources = list(dict.fromkeys(options.sources))
-    grid = stack_grid(options, nav, sources, _say(quiet))
+    surveyed = survey(options, nav, sources, _say(quiet), footprints=options.like is None)
+    grid = stack_grid(options, nav, surveyed, _say(quiet))
     client = active_client()
     budget = None
     if client is not None:
         check_gpu_workers(client, f"the active Dask client ({client.scheduler.address})")
         budget = task_budget(client)
     steps = []
-    for src in sources:
+    for src in (f.source for f in surveyed):
         try:
             planned = plan_of(_alone(options, src), band_group=band_group, budget=budget, quiet=quiet,
                               grid=GridRequest(grid))
