@@ -31,7 +31,7 @@ import sys
 from dataclasses import asdict, dataclass, field
 from importlib.resources import files
 
-__all__ = ["Check", "probe_device", "report", "run"]
+__all__ = ["Check", "report", "run"]
 
 #: Distributions whose versions the report lists (distribution name, module to find it by).
 PACKAGES = ("numpy", "scipy", "pyproj", "zarr", "dask", "distributed", "xarray", "rioxarray", "rasterio",
@@ -106,26 +106,9 @@ def _package_data() -> Check:
     return Check("ok", "package data", "shaders, catalog schema, viewer page")
 
 
-def probe_device(index: int | None) -> dict:
-    """Open a GL context on EGL device ``index`` (None: EGL's default display) in this process and
-    describe it: renderer, vendor, version, GL version code, compute shaders (GL >= 4.3), max
-    texture size. Raises whatever the context creation raises."""
-    import moderngl
-
-    kwargs = {} if index is None else {"device_index": int(index)}
-    ctx = moderngl.create_context(standalone=True, backend="egl", require=330, **kwargs)
-    try:
-        info = ctx.info
-        return {"renderer": info.get("GL_RENDERER"), "vendor": info.get("GL_VENDOR"),
-                "version": info.get("GL_VERSION"), "version_code": ctx.version_code,
-                "compute": ctx.version_code >= 430, "max_texture_size": int(info.get("GL_MAX_TEXTURE_SIZE"))}
-    finally:
-        ctx.release()
-
-
 def _probe_in_child(index: int | None) -> dict:
-    """:func:`probe_device` in a child interpreter (a driver that crashes costs only its line)."""
-    code = ("import json, sys; from archive.doctor import probe_device; "
+    """:func:`archive.render.device.probe_device` in a child interpreter (a driver that crashes costs only its line)."""
+    code = ("import json, sys; from archive.render.device import probe_device; "
             f"print(json.dumps(probe_device({index!r})))")
     try:
         done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=PROBE_SECONDS)
@@ -147,10 +130,10 @@ def _gl(workers: int) -> tuple[list[Check], bool]:
     from archive.render.device import check_renderer, choose_device, egl_devices, spread_environments
 
     checks: list[Check] = []
-    try:
-        import moderngl  # noqa: F401
-    except ImportError as exc:
-        return [Check("FAIL", "moderngl", f"cannot import: {exc}", "pip install moderngl")], False
+    import importlib.util
+
+    if importlib.util.find_spec("moderngl") is None:
+        return [Check("FAIL", "moderngl", "not installed", "pip install moderngl")], False
     devices = egl_devices()
     if not devices:
         checks.append(Check("warn", "EGL devices", "none listed (no libEGL, or no EGL_EXT_device_enumeration): "

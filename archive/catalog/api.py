@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlencode
 
-from archive.catalog.cql import (MAX_NESTING, QUERYABLES, check_json_text, check_tree, parse, parse_bbox_values,
+from archive.catalog.cql import (MAX_NESTING, check_json_text, check_tree, parse, parse_bbox_values,
                                  queryables_schema, split_antimeridian, to_sql)
 from archive.catalog.index import (connect_readonly, ensure_index, geometry_wkb, read_item_file, spatial_clause,
                                    time_clause)

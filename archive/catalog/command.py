@@ -91,7 +91,7 @@ def _rebuild(root: ArchiveRoot, everything: bool) -> int:
     """``archive catalog rebuild``: Items recreated from their collections where missing or
     damaged, then the index and the STAC tree rebuilt from the Items. A read-only archive is
     refused in one line (its readers need no rebuild)."""
-    from archive.catalog.index import _unwritable, cache_index_path
+    from archive.catalog.index import cache_index_path, unwritable
     from archive.catalog.tree import locked, write_catalog
     from archive.errors import InputError
 
@@ -100,7 +100,7 @@ def _rebuild(root: ArchiveRoot, everything: bool) -> int:
             failed = _recreate_items(root, everything)
             catalog = write_catalog(root, rescan=True)  # links the Items, rebuilds the index from them
     except OSError as exc:
-        if not _unwritable(exc):
+        if not unwritable(exc):
             raise
         raise InputError(root.path / "catalog", f"cannot be written ({exc.strerror or exc}): a read-only archive "
                                                 "is not rebuilt",

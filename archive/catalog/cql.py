@@ -331,7 +331,7 @@ class Translator:
                          "t_* (temporal)")
 
     def _spatial(self, args: list) -> str:
-        from archive.catalog.index import box_wkb, geometry_wkb, spatial_clause
+        from archive.catalog.index import geometry_wkb, spatial_clause
 
         if len(args) != 2:
             raise InputError("filter", f"S_INTERSECTS takes 2 arguments, got {len(args)}")

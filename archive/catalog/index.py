@@ -406,7 +406,9 @@ def cache_index_path(root: ArchiveRoot) -> Path:
     return Path(base) / "archive" / "catalog" / f"{name}-{digest}" / "index.sqlite"
 
 
-def _unwritable(exc: BaseException) -> bool:
+def unwritable(exc: BaseException) -> bool:
+    """Whether ``exc`` (an OSError or sqlite3.OperationalError) says the archive cannot be written
+    (read-only file system or database, permission denied)."""
     import errno
 
     if isinstance(exc, sqlite3.OperationalError):
@@ -438,14 +440,14 @@ def ensure_index(root: ArchiveRoot) -> Path:
     if problem is None:
         return own
     try:
-        from archive.catalog.tree import locked
+        from archive.catalog.root import locked
 
         with locked(root):
             if index_problem(own, root) is not None:  # another process may have rebuilt it meanwhile
                 rebuild_index(root)
         return own
     except (OSError, sqlite3.OperationalError) as exc:
-        if not _unwritable(exc):
+        if not unwritable(exc):
             raise
     cache = cache_index_path(root)
     if index_problem(cache, root) is None:
@@ -453,7 +455,7 @@ def ensure_index(root: ArchiveRoot) -> Path:
     try:
         rebuild_index(root, cache)
     except (OSError, sqlite3.OperationalError) as exc:
-        if not _unwritable(exc):
+        if not unwritable(exc):
             raise
         raise InputError(own, f"the catalog index is {problem}, the archive cannot be written and neither can "
                               f"the cache folder {cache.parent} ({_one_line(exc)})",

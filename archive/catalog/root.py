@@ -13,9 +13,11 @@ Layout::
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -138,3 +140,35 @@ def create_archive(path: str | os.PathLike) -> ArchiveRoot:
     (root / "catalog" / "items").mkdir(parents=True, exist_ok=True)
     write_atomic(root / MARKER, json.dumps({"format": FORMAT, "version": VERSION}, indent=2) + "\n")
     return ArchiveRoot(root)
+
+
+_HELD = threading.local()
+
+
+@contextlib.contextmanager
+def locked(root: ArchiveRoot):
+    """An exclusive lock on the archive's catalog (so that two ingests never interleave their
+    read of the index and their writes); none where fcntl does not exist. Reentrant within a
+    thread (a flock taken twice by one process through two files would wait for itself).
+    OSError when the lock file cannot be opened (a read-only archive)."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX
+        yield
+        return
+    held = getattr(_HELD, "paths", None)
+    if held is None:
+        held = _HELD.paths = set()
+    key = str(Path(root.path).absolute())
+    if key in held:
+        yield
+        return
+    root.collection_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(root.collection_path.parent / ".catalog.lock", "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        held.add(key)
+        try:
+            yield
+        finally:
+            held.discard(key)
+            fcntl.flock(f, fcntl.LOCK_UN)

@@ -14,14 +14,12 @@ each written to a temporary name and renamed, the Collection before the Catalog 
 
 from __future__ import annotations
 
-import contextlib
 import os
 import posixpath
-import threading
 from pathlib import Path
 
 from archive.catalog.index import IndexRow, ensure_index, read_item_file, rebuild_index, search
-from archive.catalog.root import ArchiveRoot, open_root
+from archive.catalog.root import ArchiveRoot, locked, open_root  # locked: the catalog lock (re-exported)
 from archive.catalog.stac import STAC_VERSION, write_item
 from archive.errors import FormatError
 
@@ -99,36 +97,6 @@ def collection_dict(rows: list[IndexRow]) -> dict:
     }
 
 
-_HELD = threading.local()
-
-
-@contextlib.contextmanager
-def locked(root: ArchiveRoot):
-    """An exclusive lock on the archive's catalog (so that two ingests never interleave their
-    read of the index and their writes); none where fcntl does not exist. Reentrant within a
-    thread (a flock taken twice by one process through two files would wait for itself).
-    OSError when the lock file cannot be opened (a read-only archive)."""
-    try:
-        import fcntl
-    except ImportError:  # not POSIX
-        yield
-        return
-    held = getattr(_HELD, "paths", None)
-    if held is None:
-        held = _HELD.paths = set()
-    key = str(Path(root.path).absolute())
-    if key in held:
-        yield
-        return
-    root.collection_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(root.collection_path.parent / ".catalog.lock", "a") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
-        held.add(key)
-        try:
-            yield
-        finally:
-            held.discard(key)
-            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def _link_items(root: ArchiveRoot) -> int:

@@ -33,7 +33,7 @@ from typing import Mapping, Sequence
 from archive.errors import RenderError
 
 __all__ = ["DeviceChoice", "EGLDevice", "bound_gpus", "check_renderer", "choose_device", "egl_devices",
-           "gpu_required", "is_software_renderer", "spread_environments"]
+           "gpu_required", "is_software_renderer", "probe_device", "spread_environments"]
 
 #: EGL enums (EGL registry, eglext.h).
 _EGL_EXTENSIONS = 0x3055
@@ -245,3 +245,21 @@ def spread_environments(devices: Sequence[EGLDevice], workers: int,
     if len(hardware) < 2:
         return empty
     return [{"ARCHIVE_GL_DEVICE": str(hardware[i % len(hardware)].index)} for i in range(workers)]
+
+
+def probe_device(index: int | None) -> dict:
+    """Open a GL context on EGL device ``index`` (None: EGL's default display) in this process and
+    describe it: renderer, vendor, version, GL version code, compute shaders (GL >= 4.3), max
+    texture size (pixels); the context is released. Raises whatever the context creation raises
+    (``archive doctor`` calls it in a child process, so that a crashing driver costs one line)."""
+    import moderngl
+
+    kwargs = {} if index is None else {"device_index": int(index)}
+    ctx = moderngl.create_context(standalone=True, backend="egl", require=330, **kwargs)
+    try:
+        info = ctx.info
+        return {"renderer": info.get("GL_RENDERER"), "vendor": info.get("GL_VENDOR"),
+                "version": info.get("GL_VERSION"), "version_code": ctx.version_code,
+                "compute": ctx.version_code >= 430, "max_texture_size": int(info.get("GL_MAX_TEXTURE_SIZE"))}
+    finally:
+        ctx.release()
