@@ -177,6 +177,13 @@ def test_a_damaged_item_costs_only_its_flight(archive, capsys, damage):
     assert len(problems) == 1 and bad in problems[0][0] and "rebuild" in problems[0][1], problems
     code, out, _ = cli(capsys, "catalog", "validate", "--archive", str(archive_dir))
     assert code == 1 and bad in out and "INVALID" in out, out
+    # verify: the data of both flights is intact, the damaged Item makes it fail, naming it
+    code, out, _ = cli(capsys, "verify", "--archive", str(archive_dir), "--quiet")
+    damaged = [line for line in out.splitlines() if "DAMAGED" in line]
+    assert code == 1 and len(damaged) == 1 and bad in damaged[0] and "rebuild" in damaged[0], out
+    assert f"{bad}: OK" in out and f"{good}: OK" in out, out   # its data is intact
+    code, out, _ = cli(capsys, "verify", "--archive", str(archive_dir), good, "--quiet")
+    assert code == 0 and "DAMAGED" not in out, out
     # search and list: the other flight, and a warning naming the damaged one
     code, out, err = cli(capsys, "catalog", "list", "--archive", str(archive_dir), "--json")
     assert code == 0 and [f["id"] for f in json.loads(out)["features"]] == [good]
@@ -194,6 +201,8 @@ def test_a_damaged_item_costs_only_its_flight(archive, capsys, damage):
     code, out, _ = cli(capsys, "catalog", "validate", "--archive", str(archive_dir))
     assert code == 0, out
     assert catalog_problems(open_root(archive_dir)) == []
+    code, out, _ = cli(capsys, "verify", "--archive", str(archive_dir), "--quiet")
+    assert code == 0 and "DAMAGED" not in out, out
 
 
 def test_a_lost_collection_store_is_listed_as_damaged(archive, capsys):

@@ -477,10 +477,17 @@ def run_verify(args: argparse.Namespace) -> int:
     ids = [args.id] if args.id else root.collection_ids()
     if args.id:
         root.require_collection(args.id)
+    from archive.catalog.health import catalog_problems
+
+    bad = 0
+    for where, problem in catalog_problems(root):   # the catalog too: a damaged Item or index
+        if args.id and args.id not in Path(where).name and Path(where).name != "index.sqlite":
+            continue
+        bad += 1
+        print(f"{where}: DAMAGED: {problem}")
     if not ids:
         print(f"{root.path}: no collections")
-        return 0
-    bad = 0
+        return 1 if bad else 0
     for cid in ids:
         problems = verify_store(root.store(cid), progress=not args.quiet)
         if problems:
