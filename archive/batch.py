@@ -64,43 +64,11 @@ def recipe_request(options) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(options), default=str))
 
 
-def _file_stamp(path: str | os.PathLike) -> dict:
-    try:
-        st = os.stat(path)
-    except OSError:
-        return {"path": str(path), "missing": True}
-    return {"path": str(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
-
-
 def input_versions(options, source: str) -> list[dict]:
-    """What the output of ``source`` depends on beyond ``options`` (``archive:recipe.inputs``): for a
-    collection id, its navigation parameters, ground height and content version
-    (:func:`archive.collection.content_version`); for a raw flight directory, its files' names,
-    sizes and modification times (the navigation sidecar included); then every file the options
-    name (calibration, white reference, DEM), by size and modification time."""
-    import hashlib
+    """:func:`archive.pipeline.input_versions` (what ``--resume`` compares besides the request)."""
+    from archive.pipeline import input_versions as versions
 
-    from archive.collection import content_version
-
-    entries: list[dict] = []
-    if Path(source).is_dir():
-        files = sorted((p for p in Path(source).iterdir() if p.is_file()), key=lambda p: p.name)
-        stamps = [[p.name, *(lambda st: (st.st_size, st.st_mtime_ns))(p.stat())] for p in files]
-        sidecar = Path(source) / "navigation_params.json"
-        try:
-            nav = json.loads(sidecar.read_text()) if sidecar.is_file() else None
-        except (OSError, ValueError):
-            nav = "unreadable"
-        entries.append({"source": str(Path(source).absolute()), "navigation_params": nav,
-                        "version": hashlib.sha256(json.dumps(stamps).encode()).hexdigest()})
-    elif options.archive is not None:
-        store = Path(options.archive) / "collections" / f"{source}.zarr"
-        entries.append({"source": str(source), **(content_version(store) or {"version": None})})
-    for name in ("calibration", "white_reference", "dem"):
-        value = getattr(options, name, None)
-        if value:
-            entries.append({"option": name, **_file_stamp(value)})
-    return json.loads(json.dumps(entries, default=str))
+    return versions(options, source)
 
 
 @dataclass

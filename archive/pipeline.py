@@ -293,6 +293,46 @@ class _Job:
     renderers: list | None = None   # what the workers' GL contexts opened (worker_renderers)
 
 
+def _file_stamp(path: str | os.PathLike) -> dict:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return {"path": str(path), "missing": True}
+    return {"path": str(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def input_versions(options, source: str) -> list[dict]:
+    """What the output of ``source`` depends on beyond ``options`` (``archive:recipe.inputs``): for a
+    collection id, its navigation parameters, ground height and content version
+    (:func:`archive.collection.content_version`); for a raw flight directory, its files' names,
+    sizes and modification times (the navigation sidecar included); then every file the options
+    name (calibration, white reference, DEM), by size and modification time."""
+    import hashlib
+    import json
+
+    from archive.collection import content_version
+
+    entries: list[dict] = []
+    if Path(source).is_dir():
+        files = sorted((p for p in Path(source).iterdir() if p.is_file()), key=lambda p: p.name)
+        stamps = [[p.name, *(lambda st: (st.st_size, st.st_mtime_ns))(p.stat())] for p in files]
+        sidecar = Path(source) / "navigation_params.json"
+        try:
+            nav = json.loads(sidecar.read_text()) if sidecar.is_file() else None
+        except (OSError, ValueError):
+            nav = "unreadable"
+        entries.append({"source": str(Path(source).absolute()), "navigation_params": nav,
+                        "version": hashlib.sha256(json.dumps(stamps).encode()).hexdigest()})
+    elif options.archive is not None:
+        store = Path(options.archive) / "collections" / f"{source}.zarr"
+        entries.append({"source": str(source), **(content_version(store) or {"version": None})})
+    for name in ("calibration", "white_reference", "dem"):
+        value = getattr(options, name, None)
+        if value:
+            entries.append({"option": name, **_file_stamp(value)})
+    return json.loads(json.dumps(entries, default=str))
+
+
 def worker_renderers(client) -> list[dict]:
     """The GL renderers the workers of ``client`` opened (one dict per worker and context: worker,
     EGL device, why that device, renderer and vendor strings, and the band pass its render tasks
@@ -345,7 +385,12 @@ def publish(job: _Job) -> None:
     from archive.catalog.stac import write_item
 
     job.output.finalize(job.sink)
-    write_item(job.output.item_path, product_item(job.planned, job.output, job.options, job.renderers))
+    item = product_item(job.planned, job.output, job.options, job.renderers)
+    # what --resume compares besides the request (archive.batch): each source's content version
+    inputs = [entry for src in job.options.sources for entry in input_versions(job.options, str(src))]
+    item["properties"]["archive:recipe"]["inputs"] = [   # an option's file once, whatever the sources
+        e for k, e in enumerate(inputs) if "option" not in e or e not in inputs[:k]]
+    write_item(job.output.item_path, item)
 
 
 def _say(quiet: bool):

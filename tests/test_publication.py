@@ -136,3 +136,21 @@ def test_reingest_then_resume_renders_again(flights, tmp_path):
     # and now it is the same recipe again
     assert batch(archive, out, "0.1", "--resume").returncode == 0
     assert statuses(out) == {ids[0]: "skipped", ids[1]: "skipped"}
+
+
+def test_a_single_render_records_its_inputs(flights, tmp_path):
+    """``archive render ID`` (not a batch) records the same ``archive:recipe.inputs`` a batch does: the
+    collection's content version and navigation parameters, so a later batch --resume can judge it."""
+    from archive.batch import input_versions
+    from archive.options import RenderOptions
+
+    _, archive, ids = flights
+    out = tmp_path / "one.tif"
+    done = run("render", ids[0], "--archive", str(archive), "--gsd", "0.5", "--out", str(out), "--quiet",
+               "--workers", "1")
+    assert done.returncode == 0, done.stderr
+    recipe = json.loads(Path(f"{out}.json").read_text())["properties"]["archive:recipe"]
+    (entry,) = recipe["inputs"]
+    assert entry["source"] == ids[0] and entry["version"]
+    options = RenderOptions.create(sources=[ids[0]], archive=str(archive), gsd=0.5)
+    assert recipe["inputs"] == input_versions(options, ids[0])
