@@ -23,8 +23,10 @@ so that ``--like X.zarr`` takes its grid.
   stack lacks (after new ingests, or a killed run), at the end of ``time``, on the stack's own grid
   (a request with other options is refused unless ``--overwrite``). Flights that have no line on the
   grid are left out with a note.
-- **Memory.** Flights are opened, planned, rendered and moved one at a time (one graph in the
-  scheduler at once): memory does not grow with the number of flights.
+- **Memory.** Flights enter the scheduler in waves, as batches do: at most
+  :func:`archive.cluster.flight_slots` flights at once (each rendering into its own temporary
+  slice store), the next submitted when the earliest is committed; the client holds the plans of
+  the wave only. Memory does not grow with the number of flights (bench/bench_stack.py).
 
 :func:`stack` is the lazy form (``archive.stack``): the same values as an ``xarray.DataArray``
 backed by dask, nothing rendered until computed.
@@ -38,6 +40,7 @@ import math
 import os
 import sys
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -330,7 +333,7 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
     Returns ``{"out", "flights" (ids in the stack, time order), "added", "skipped", "left_out",
     "renders" (render tasks run), "width", "height", "gsd", "epsg", "bands", "seconds"}``.
     ArchiveError before anything is written for problems of the whole request."""
-    from archive.cluster import execute, start_cluster, task_budget
+    from archive.cluster import flight_slots, start_cluster, task_budget, wait_for_writers
     from archive.options import check_gsd
     from archive.outputs.publish import Output
     from archive.pipeline import build_output, open_inputs, plan_output
@@ -396,52 +399,72 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
                 from tqdm import tqdm
 
                 bar = tqdm(total=len(surveyed), desc="stack", unit="flight", file=sys.stderr)
-            for one in surveyed:
-                name, src = one.name, one.source
-                t0 = time.perf_counter()
-                alone = _alone(options, src)
-                inputs = dataclasses.replace(open_inputs(alone, nav, say, mosaic=True), grid=GridRequest(grid))
-                try:
-                    planned = plan_output(inputs, budget=budget)
-                except InputError as exc:
-                    if "holds no line" not in exc.problem:
-                        raise
-                    left_out.append(name)
-                    tell(f"left out {name}: no line of it on the stack's grid")
-                    if bar is not None:
-                        bar.update(1)
-                    continue
-                if layout is None:
-                    layout = _Layout(grid, tuple(planned.plan.bands[0]),
-                                     None if planned.wavelengths is None else tuple(planned.wavelengths),
-                                     None if planned.fwhm is None else tuple(planned.fwhm), planned.variable,
-                                     _stack_attrs(planned.attrs), options.zarr_format)
-                _check_like(layout, planned, name)
-                slice_out = Output(out.with_name(f".{out.name}.slice.zarr"), overwrite=True,
-                                   zarr_format=layout.zarr_format)
-                try:
-                    sink, graph = build_output(planned, slice_out)
-                    if len(graph):
-                        execute(client, graph, quiet=True, shared=cluster is None)
-                    renders += graph.renders
-                    start, end = _time_span(planned)
-                    flight = StackFlight(name, src, start, end, _flight_attrs(planned))
+            slots = max(1, flight_slots(client, budget))
+            queue, inflight = deque(surveyed), deque()
+            try:
+                while queue or inflight:
+                    # a wave: up to ``slots`` flights in the scheduler, each rendering into a slice store
+                    # of its own; committed in time order as the earliest one completes
+                    while queue and len(inflight) < slots:
+                        one = queue.popleft()
+                        t0 = time.perf_counter()
+                        inputs = dataclasses.replace(open_inputs(_alone(options, one.source), nav, say, mosaic=True),
+                                                     grid=GridRequest(grid))
+                        try:
+                            planned = plan_output(inputs, budget=budget)
+                        except InputError as exc:
+                            if "holds no line" not in exc.problem:
+                                raise
+                            left_out.append(one.name)
+                            tell(f"left out {one.name}: no line of it on the stack's grid")
+                            if bar is not None:
+                                bar.update(1)
+                            continue
+                        if layout is None:
+                            layout = _Layout(grid, tuple(planned.plan.bands[0]),
+                                             None if planned.wavelengths is None else tuple(planned.wavelengths),
+                                             None if planned.fwhm is None else tuple(planned.fwhm),
+                                             planned.variable, _stack_attrs(planned.attrs), options.zarr_format)
+                        _check_like(layout, planned, one.name)
+                        slice_out = Output(out.with_name(f".{out.name}.slice-{len(added) + len(inflight)}.zarr"),
+                                           overwrite=True, zarr_format=layout.zarr_format)
+                        record = _Slice(one, planned, slice_out, t0)
+                        inflight.append(record)
+                        record.sink, graph = build_output(planned, slice_out)
+                        record.renders = graph.renders
+                        record.futures = client.compute(list(graph.writes)) if len(graph) else []
+                    if not inflight:
+                        continue
+                    record = inflight.popleft()
+                    _wait(record.futures, record.flight.name)
+                    renders += record.renders
+                    start, end = _time_span(record.planned)
+                    flight = StackFlight(record.flight.name, record.flight.source, start, end,
+                                         _flight_attrs(record.planned))
                     if fresh and not made_target:
                         _commit(target, layout, [flight], request)   # the store, with its first time step
                         made_target = True
-                    _move_slice(Path(sink.path), target, layout, len(flights), layout.zarr_format)
+                    _move_slice(Path(record.sink.path), target, layout, len(flights), layout.zarr_format)
                     flights.append(flight)
                     _commit(target, layout, flights, request)
-                finally:
-                    slice_out.cleanup()
-                if fresh and target != out and not overwrite:
-                    replace_path(target, out)   # a new stack appears with its first slice: resumable from here
-                    target = out
-                    fresh = False
-                added.append(name)
-                tell(f"done {name}: time step {len(flights) - 1} ({time.perf_counter() - t0:.1f} s)")
-                if bar is not None:
-                    bar.update(1)
+                    record.output.cleanup()
+                    if fresh and target != out and not overwrite:
+                        replace_path(target, out)   # a new stack appears with its first slice: resumable
+                        target = out
+                        fresh = False
+                    added.append(flight.id)
+                    tell(f"done {flight.id}: time step {len(flights) - 1} "
+                         f"({time.perf_counter() - record.started:.1f} s)")
+                    if bar is not None:
+                        bar.update(1)
+            finally:
+                pending = [f for r in inflight for f in r.futures if not f.done()]
+                if pending:
+                    client.cancel(pending, force=True)
+                    if cluster is None:   # a shared scheduler: no chunk may land after the clean-up
+                        wait_for_writers(client)
+                for record in inflight:
+                    record.output.cleanup()
             if bar is not None:
                 bar.close()
         if not flights:
@@ -464,6 +487,42 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
             "skipped": [f.id for f in flights if f.id not in added], "left_out": left_out, "renders": renders,
             "width": g.width, "height": g.height, "gsd": g.gsd, "epsg": g.epsg, "bands": len(layout.bands),
             "seconds": time.perf_counter() - started}
+
+
+@dataclass(eq=False)
+class _Slice:
+    """A flight of a wave: its survey, plan, slice output (a temporary single-flight store), sink,
+    render count, futures and when its planning started."""
+
+    flight: _Surveyed
+    planned: object
+    output: object
+    started: float
+    sink: object = None
+    renders: int = 0
+    futures: list = dataclasses.field(default_factory=list)
+
+
+def _wait(futures: list, name: str) -> None:
+    """Wait for a flight's writer tasks; the first task error as an ArchiveError naming the flight."""
+    from distributed import KilledWorker, wait
+
+    from archive.errors import ArchiveError, RenderError
+
+    wait(futures)
+    for future in futures:
+        if future.status == "error":
+            exc = future.exception()
+            if isinstance(exc, ArchiveError):
+                raise exc
+            if isinstance(exc, KilledWorker):
+                raise RenderError(f"{name}: a Dask worker died while rendering it ({exc}); it may have run out of "
+                                  "memory or crashed in OpenGL: try a larger --gsd or fewer --wavelengths")
+            raise RenderError(f"{name}: a render task failed: {type(exc).__name__}: {exc}")
+        if future.status == "cancelled":
+            raise RenderError(f"{name}: its tasks were cancelled (the scheduler lost them)")
+    for future in futures:
+        future.release()
 
 
 #: Processing attributes that differ between the flights of a stack (kept per flight, not at the root).
