@@ -379,6 +379,20 @@ def product_item(planned: OutputPlan, output: Output, options: RenderOptions,
     return doc
 
 
+#: Test-only: ``ARCHIVE_TEST_HOLD_PUBLISH=PATH`` makes a render wait before publishing its output while
+#: the file PATH exists (touching ``PATH.reached``): a test kills it after its writes and before its
+#: publication at a moment it controls, however loaded the machine (never set outside tests).
+TEST_HOLD_PUBLISH = "ARCHIVE_TEST_HOLD_PUBLISH"
+
+
+def _test_hold_publish() -> None:
+    hold = os.environ.get(TEST_HOLD_PUBLISH)
+    if hold and Path(hold).exists():
+        Path(f"{hold}.reached").touch()
+        while Path(hold).exists():
+            time.sleep(0.05)
+
+
 def publish(job: _Job) -> None:
     """Finish a job's output (ENVI header, COG layout), rename it into place, then write its STAC
     Item beside it, ``<out>.json``, last: an Item says the output is complete."""
@@ -434,6 +448,7 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
             execute(client, graph, quiet, shared=cluster is None)
         graph_seconds = time.perf_counter() - t
         renderers = worker_renderers(client)
+        _test_hold_publish()
         for job in jobs:
             job.renderers = renderers
             publish(job)

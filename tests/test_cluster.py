@@ -80,14 +80,15 @@ def _stop(proc: subprocess.Popen, grace: float = 10.0) -> None:
 
 
 @contextlib.contextmanager
-def dask_cluster(logs: Path, workers: int = 2, memory_limit: str = "1GB"):
-    """Start ``dask scheduler`` and ``workers`` x ``dask worker`` on 127.0.0.1; always torn down."""
+def dask_cluster(logs: Path, workers: int = 2, memory_limit: str = "1GB", env: dict | None = None):
+    """Start ``dask scheduler`` and ``workers`` x ``dask worker`` on 127.0.0.1 (``env``: more
+    environment variables for them); always torn down."""
     from dask.utils import parse_bytes
     from distributed import Client
 
     logs.mkdir(parents=True, exist_ok=True)
     # llvmpipe: one rendering thread per worker on this small machine
-    env = {**os.environ, "LP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "LP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1", **(env or {})}
     procs: list[subprocess.Popen] = []
 
     def start(args: list[str], name: str) -> subprocess.Popen:
@@ -251,8 +252,13 @@ def test_worker_killed_mid_job_gives_identical_output(flights, reference, tmp_pa
 
     _, values, saturated, _, _ = reference
     out = tmp_path / "killed.zarr"
-    # its own cluster: the test kills one of its workers
-    with dask_cluster(tmp_path / "logs") as cluster, Client(cluster.address) as client:
+    # its own cluster: the test kills one of its workers. Tile writes wait while the hold file exists
+    # (the ARCHIVE_TEST_HOLD_WRITES hook), so the job cannot end before the kill, however loaded the
+    # machine, and the renders stay in the workers' memory until then
+    hold = tmp_path / "writes.hold"
+    hold.touch()
+    with dask_cluster(tmp_path / "logs", env={"ARCHIVE_TEST_HOLD_WRITES": str(hold)}) as cluster, \
+            Client(cluster.address) as client:
         before = _task_counts(client)
         _forgotten_before = _task_counts(client, "forgotten").get("render", 0)
         job = subprocess.Popen(_render_args(flights, out, "--scheduler", cluster.address, "--quiet"),
@@ -267,8 +273,10 @@ def test_worker_killed_mid_job_gives_identical_output(flights, reference, tmp_pa
             victim = next(p for p in cluster.workers
                           if pids[victim_addr] in [c.pid for c in _children(p)])
             os.killpg(victim.pid, signal.SIGKILL)      # the worker and its nanny: a lost machine
+            hold.unlink()                              # the writers go on
             stdout, stderr = job.communicate(timeout=300)
         finally:
+            hold.unlink(missing_ok=True)
             if job.poll() is None:
                 job.kill()
                 job.wait()
@@ -305,10 +313,15 @@ def test_interrupted_job_leaves_no_output_and_rerun_completes(flights, cluster, 
 
     _, values, saturated, _, _ = reference
     out = tmp_path / "interrupted.zarr"
+    # the command waits before publishing while the hold file exists (ARCHIVE_TEST_HOLD_PUBLISH): the
+    # kill lands before the output is complete however loaded the machine
+    hold = tmp_path.parent / f"{tmp_path.name}.hold"
+    hold.touch()
     with Client(cluster.address) as client:
         before = _task_counts(client)
         job = subprocess.Popen(_render_args(flights, out, "--scheduler", cluster.address, "--quiet"),
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "ARCHIVE_TEST_HOLD_PUBLISH": str(hold)})
         try:
             _wait_for(client, before, "write", 1, job)   # chunks are landing in the store
             job.kill()                                   # SIGKILL: no cleanup code runs
@@ -317,6 +330,7 @@ def test_interrupted_job_leaves_no_output_and_rerun_completes(flights, cluster, 
             if job.poll() is None:
                 job.kill()
                 job.wait()
+            hold.unlink()
     assert job.returncode == -signal.SIGKILL
     assert not out.exists()                       # nothing that looks like a finished output
     leftovers = [p for p in tmp_path.iterdir() if p.name != "interrupted.zarr"]

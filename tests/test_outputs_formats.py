@@ -225,30 +225,20 @@ def test_blank_tiles_are_nan(rendered):
 # ---------------------------------------------------------------------------------------------
 # A render killed while writing, then run again
 # ---------------------------------------------------------------------------------------------
-def _writing_began(folder: Path, name: str) -> bool:
-    """True once tile data lands in the temporaries of ``name`` (a chunk file, a spool file, or
-    non-zero bytes in the preallocated ENVI data)."""
-    for tmp in folder.glob(f".{Path(name).stem if name.endswith('.hdr') else name}.partial-*"):
-        if tmp.is_dir():
-            if any(p.is_file() and not p.name.endswith(".json") for p in tmp.rglob("*")):
-                return True
-        elif tmp.stat().st_size > 1 << 20:
-            with open(tmp, "rb") as f:
-                size = tmp.stat().st_size
-                if any(any(os.pread(f.fileno(), 4096, off)) for off in range(0, size, size // 256)):
-                    return True
-    return False
-
-
 @pytest.mark.parametrize("name", ["m.zarr", "m.tif", "m.hdr"])
 def test_killed_while_writing_leaves_nothing_and_rerun_is_identical(flight, rendered, tmp_path, name):
     folder, values = rendered
     out = tmp_path / name
     cmd = [sys.executable, "-m", "archive", *_args(flight, out)]
-    job = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    # each worker writes one tile, then its next tile write waits while the hold file exists (the
+    # ARCHIVE_TEST_HOLD_WRITES hook): the kill lands mid-job however loaded the machine
+    hold = tmp_path.parent / f"{tmp_path.name}.hold"
+    hold.touch()
+    job = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
+                           env={**os.environ, "ARCHIVE_TEST_HOLD_WRITES": f"{hold}:1"})
     try:
         deadline = time.monotonic() + 120
-        while not _writing_began(tmp_path, name):
+        while not Path(f"{hold}.reached").exists():
             assert job.poll() is None, job.stderr.read().decode()
             assert time.monotonic() < deadline
             time.sleep(0.02)

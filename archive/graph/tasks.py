@@ -427,6 +427,36 @@ def write_layers_task(sink, rule: str, tile: Box, names: Sequence[str], boxes: S
     return write_values_task(sink, 0, tile, (values, None))
 
 
+#: Test-only: ``ARCHIVE_TEST_HOLD_WRITES=PATH[:N]`` makes each worker process's tile writes after its
+#: first N (default 0) wait while the file PATH exists, touching ``PATH.reached`` when one starts to
+#: wait: a test kills a render, or one of its workers, mid-job at a moment it controls, however loaded
+#: the machine (never set outside tests).
+TEST_HOLD_WRITES = "ARCHIVE_TEST_HOLD_WRITES"
+_TEST_WRITES = {"count": 0}
+
+
+def _test_hold_writes() -> None:
+    """The :data:`TEST_HOLD_WRITES` hook, called as each tile write starts."""
+    import os
+
+    hold = os.environ.get(TEST_HOLD_WRITES)
+    if not hold:
+        return
+    path, _, first = hold.partition(":")
+    with _GL_LOCK:
+        _TEST_WRITES["count"] += 1
+        count = _TEST_WRITES["count"]
+    if count <= int(first or 0):
+        return
+    import time
+    from pathlib import Path
+
+    if Path(path).exists():
+        Path(f"{path}.reached").touch()
+    while Path(path).exists():
+        time.sleep(0.05)
+
+
 def write_values_task(sink, band0: int, tile: Box, assembled: tuple[np.ndarray, np.ndarray],
                       saturated_before: np.ndarray | None = None):
     """Write an assembled tile's values (nbands, h, w) through ``sink``, band by band.
@@ -434,6 +464,7 @@ def write_values_task(sink, band0: int, tile: Box, assembled: tuple[np.ndarray, 
     Returns what :func:`assemble_write_task` returns.
     """
     values, saturated = assembled
+    _test_hold_writes()
     with sink.open_tile(band0, tile, values.shape[0]) as writer:
         for b in range(values.shape[0]):
             buffer = writer.buffer()
@@ -477,6 +508,7 @@ def assemble_write_task(sink, rule: str, band0: int, tile: Box, nbands: int,
     if len(boxes) != len(renders):
         raise ValueError(f"{len(boxes)} boxes for {len(renders)} renders")
     parts = _tile_parts(tile, boxes, renders)
+    _test_hold_writes()
     with sink.open_tile(band0, tile, nbands) as writer:
         buffer = writer.buffer()
         if tile[2] > buffer.shape[0] or tile[3] > buffer.shape[1]:
@@ -496,6 +528,7 @@ def _write_nadir(sink, band0: int, tile: Box, nbands: int, boxes: Sequence[Box],
     parts = _tile_parts(tile, boxes, renders)
     parts_keys = _tile_keys(tile, boxes, keys)
     winner = nadir_winners(tile[2], tile[3], [(k, tr, tc) for k, (_, _, tr, tc) in zip(parts_keys, parts)])
+    _test_hold_writes()
     with sink.open_tile(band0, tile, nbands) as writer:
         buffer = writer.buffer()
         buffer[...] = np.nan   # the grid's outside part (zarr's padding of edge chunks)
@@ -517,6 +550,7 @@ def gate_task(*done) -> None:
 def blank_write_task(sink, band0: int, tile: Box, nbands: int):
     """Write NaN into every band of a tile no cube touches (formats without a fill value: ENVI, COG);
     returns what the sink's tile writer passes on (None)."""
+    _test_hold_writes()
     with sink.open_tile(band0, tile, nbands) as writer:
         buffer = writer.buffer()
         buffer[...] = np.nan
