@@ -40,6 +40,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -249,7 +250,9 @@ def _commit(store: Path, layout: _Layout, flights: list[StackFlight], request: d
     tmp = store.with_name(f".{store.name}.partial-{os.getpid()}@{host_name()}.meta")
     remove_path(tmp)
     try:
-        write_store(tmp, root_attrs, arrays, layout.zarr_format)
+        with warnings.catch_warnings():   # Zarr v3: 'flight' is fixed-length UTF-32, not yet in the v3 spec
+            warnings.filterwarnings("ignore", message=".*does not have a Zarr V3 specification.*")
+            write_store(tmp, root_attrs, arrays, layout.zarr_format)
         files = sorted(p for p in tmp.rglob("*") if p.is_file())
         late = {".zmetadata", "zarr.json"}
         ordered = ([p for p in files if p.parent != tmp] + [p for p in files if p.parent == tmp and p.name not in late]
@@ -352,6 +355,8 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
         options = dataclasses.replace(options, archive=os.fspath(Path(options.archive).absolute()))
     nav = options.check()
     Output(out, overwrite=True).check()   # a writable folder; temporaries of killed runs removed
+    for tmp in out.parent.glob(f"..{out.name}.slice-*.zarr.partial-*"):   # and their slice stores
+        Output(tmp.parent / tmp.name[1:].split(".partial-")[0], overwrite=True).check()
     item_path = out.with_name(out.name + ".json")
     request = _request_json(options)
     existing = path_exists(out)
@@ -457,6 +462,7 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
                          f"({time.perf_counter() - record.started:.1f} s)")
                     if bar is not None:
                         bar.update(1)
+                    _test_hold(len(added))
             finally:
                 pending = [f for r in inflight for f in r.futures if not f.done()]
                 if pending:
@@ -487,6 +493,17 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
             "skipped": [f.id for f in flights if f.id not in added], "left_out": left_out, "renders": renders,
             "width": g.width, "height": g.height, "gsd": g.gsd, "epsg": g.epsg, "bands": len(layout.bands),
             "seconds": time.perf_counter() - started}
+
+
+def _test_hold(added: int) -> None:
+    """Test-only: with ``ARCHIVE_TEST_HOLD_AFTER=N`` (:data:`archive.batch.TEST_HOLD_AFTER`) a stack
+    waits, once N flights are committed, until it is killed (never set outside tests)."""
+    from archive.batch import TEST_HOLD_AFTER
+
+    hold = os.environ.get(TEST_HOLD_AFTER)
+    if hold is not None and added >= int(hold):
+        while True:
+            time.sleep(3600)
 
 
 @dataclass(eq=False)

@@ -248,3 +248,40 @@ def test_tiles_need_an_archive(tmp_path):
     err = proc.stderr.strip()
     assert len(err.splitlines()) == 1 and "--tiles" in err and "--archive" in err
     assert not (tmp_path / "t").exists()
+
+
+def test_a_killed_stack_is_resumed(field, tmp_path):
+    import os
+    import signal
+    import time
+
+    root, archive, ids = field
+    out = tmp_path / "killed.zarr"
+    query = ["--archive", str(archive), "--query-datetime", "2024-06-12/2024-06-20"]
+    args = [sys.executable, "-m", "archive", "render", *query, "--stack", "--gsd", GSD, "--out", str(out), "--quiet"]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env={**os.environ, "ARCHIVE_TEST_HOLD_AFTER": "1"})
+    try:
+        deadline = time.monotonic() + 120
+        while True:   # the first slice committed: the stack exists under its name, without its Item
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            if (out / ".zmetadata").exists() and json.loads((out / ".zattrs").read_text()).get("archive_stack"):
+                break
+            time.sleep(0.2)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+    with xr.open_zarr(out) as ds:
+        assert ds.sizes["time"] == 1
+    assert not (tmp_path / "killed.zarr.json").exists()   # not complete
+    proc = cli("render", *query, "--stack", "--gsd", GSD, "--out", str(out), "--quiet", ok=False)
+    assert "--resume" in proc.stderr
+    proc = cli("render", *query, "--stack", "--gsd", GSD, "--out", str(out), "--resume", "--quiet")
+    assert "1 added, 1 already there" in proc.stdout
+    assert (tmp_path / "killed.zarr.json").exists()
+    assert not [p for p in tmp_path.iterdir() if ".partial-" in p.name]   # no temporaries left
+    fresh = tmp_path / "fresh.zarr"
+    cli("render", *query, "--stack", "--gsd", GSD, "--out", str(fresh), "--quiet")
+    np.testing.assert_array_equal(values(out), values(fresh))
+    with xr.open_zarr(out) as a, xr.open_zarr(fresh) as b:
+        assert list(a.flight.values) == list(b.flight.values) == ids
