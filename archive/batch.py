@@ -314,18 +314,29 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
             "peak_tasks": state["peak_tasks"], "renders": sum((f.summary or {}).get("renders", 0) for f in flights)}
 
 
-#: Test-only: ``ARCHIVE_TEST_HOLD_AFTER=N`` makes a batch stop and wait (until it is killed) as soon as
-#: its report says N flights are done, so that a test kills it at a moment it controls, however
-#: loaded the machine (never set outside tests).
+#: Test-only: ``ARCHIVE_TEST_HOLD_AFTER=N`` makes a batch stop and wait (until it is killed; with
+#: ``N:PATH``, while the file PATH exists) as soon as its report says N flights are done, so that a
+#: test kills it, or one of its workers, at a moment it controls, however loaded the machine (never
+#: set outside tests).
 TEST_HOLD_AFTER = "ARCHIVE_TEST_HOLD_AFTER"
 
 
 def _test_hold(flights: list[Flight]) -> None:
-    """The :data:`TEST_HOLD_AFTER` hook, called right after each rewrite of the report."""
+    """The :data:`TEST_HOLD_AFTER` hook, called right after each rewrite of the report. ``N:PATH``
+    holds only while the file PATH exists (touching ``PATH.reached`` once), then goes on."""
     hold = os.environ.get(TEST_HOLD_AFTER)
-    if hold is not None and sum(f.status == "done" for f in flights) >= int(hold):
+    if hold is None:
+        return
+    count, _, path = hold.partition(":")
+    if sum(f.status == "done" for f in flights) < int(count):
+        return
+    if not path:
         while True:
             time.sleep(3600)
+    if Path(path).exists():
+        Path(f"{path}.reached").touch()
+    while Path(path).exists():
+        time.sleep(0.05)
 
 
 def _counts_text(flights: list[Flight]) -> str:
