@@ -136,8 +136,11 @@ def mosaic(sources: Source | Sequence[Source], *, band_group: int | None = None,
     :data:`~archive.params.DEFAULT_MAX_VIEW_ANGLE`); dem: a DEM GeoTIFF (any CRS) the meshes follow
     instead of flat ground (exclusive with a numeric ground_height; ground no line sees is NaN);
     dem_datum: 'ellipsoid' | 'egm96' | 'egm2008', required when the DEM's CRS does not declare its
-    vertical datum. And: band_group: bands per render task and per band chunk (default sized to the
-    task memory budget); quiet: no notes on stderr.
+    vertical datum; bounds: (west, south, east, north) metres in the output CRS, the grid's extent
+    (top-left corner exactly there); align: with bounds, pixel edges snapped outward to multiples of
+    the GSD (``gdalwarp -tap``); like: an existing output (.zarr, a stack too, .tif, .hdr) whose CRS,
+    GSD, corner and size the grid takes (gsd may then be left out). And: band_group: bands per render
+    task and per band chunk (default sized to the task memory budget); quiet: no notes on stderr.
 
     The data variable is named by mode ('radiance', 'dn', 'relative', 'reflectance'), (band, y, x)
     float32 with NaN where no line covers a pixel, a dask array chunked (band group, 1024, 1024) like

@@ -190,7 +190,15 @@ def test_stack_slices_equal_like_renders_and_resume_adds_only_the_missing(field,
     assert list(da.flight.values) == [*ids, r.cid] and da.dims == ("time", "band", "y", "x")
     np.testing.assert_array_equal(da.values, values(out))
     window = da.isel(time=1, x=slice(5, 25), y=slice(3, 20))
-    np.testing.assert_array_equal(window.values, values(out)[1, :, 3:20, 5:25])
+    from collections import Counter
+
+    from dask.diagnostics import Profiler
+
+    with Profiler() as prof:
+        got = window.compute(scheduler="threads")
+    np.testing.assert_array_equal(got.values, values(out)[1, :, 3:20, 5:25])
+    ran = Counter(str(r.key if isinstance(r.key, str) else r.key[0]).split("-")[0] for r in prof.results)
+    assert 0 < ran["render"] <= 2 and ran["lookup"] <= 2   # that flight's cubes only (of 3 flights x 2 cubes)
 
 
 def _copy(src: Path, dst: Path) -> Path:
