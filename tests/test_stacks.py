@@ -157,12 +157,16 @@ def test_stack_slices_equal_like_renders_and_resume_adds_only_the_missing(field,
     assert abs(grid.x0 / grid.gsd - round(grid.x0 / grid.gsd)) < 1e-6   # aligned
     # each slice is that flight rendered alone with --like the stack, bit for bit
     stack = values(out)
+    one = tmp_path / "first.zarr"
+    cli("render", ids[0], "--archive", str(archive), "--like", str(out), "--out", str(one), "--quiet")
+    np.testing.assert_array_equal(stack[0], values(one))
+    np.testing.assert_array_equal(values(out, "saturated")[0], values(one, "saturated"))
+    # and a batch, one output per flight, --like the stack (the grid options of a batch)
+    cli("render", *query, "--like", str(out), "--out", str(tmp_path / "each"), "--quiet")
     for t, cid in enumerate(ids):
-        one = tmp_path / f"{cid}.zarr"
-        cli("render", cid, "--archive", str(archive), "--like", str(out), "--out", str(one), "--quiet")
         assert np.isfinite(stack[t]).mean() > 0.15
-        np.testing.assert_array_equal(stack[t], values(one))
-        np.testing.assert_array_equal(values(out, "saturated")[t], values(one, "saturated"))
+        assert read_grid(tmp_path / "each" / f"{cid}.zarr") == grid
+        np.testing.assert_array_equal(stack[t], values(tmp_path / "each" / f"{cid}.zarr"))
     item = json.loads((tmp_path / "field.zarr.json").read_text())
     dims = item["properties"]["cube:dimensions"]
     assert dims["time"]["values"][0].startswith(DAYS[0]) and dims["x"]["step"] == float(GSD)
