@@ -228,8 +228,7 @@ class RenderOptions:
             raise InputError("--provenance", f"with --overlap {self.overlap} an output pixel has no single source "
                              "pixel, so its provenance layers cannot be written",
                              f"use --overlap {' or '.join(WINNER_RULES)} with --provenance")
-        if self.mode == "reflectance" and not self.white_reference:
-            raise InputError("--mode", "reflectance needs a white reference spectrum", "pass --white-reference FILE")
+        # reflectance without --white-reference: the flight's downwelling spectra, else the source refuses
         _check_dem(self)
         if self.like is not None and (self.bounds is not None or self.align):
             raise InputError("--like", f"takes the whole grid of {self.like}, so --bounds and --align have nothing "

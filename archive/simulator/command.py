@@ -29,6 +29,7 @@ from archive.errors import InputError, OutputExistsError
 from archive.formats.icp import Calibration, DarkFrame, write_icp
 from archive.formats.lcf import LcfData, write_lcf
 from archive.formats.times import write_times
+from archive.simulator.clouds import Clouds, write_downwelling
 from archive.simulator.layout import layout
 from archive.simulator.mount import Mount, camera_path
 from archive.simulator.scene import MATERIALS, Scene, material_spectra, random_waves
@@ -249,6 +250,7 @@ class _Context:
     ku: int
     seed: int
     terrain: Terrain | None = None
+    clouds: object = None      # archive.simulator.clouds.Clouds, or None (clear sky)
 
 
 def _cube_block(job: tuple[_CubePlan, int, np.ndarray], ctx: _Context) -> np.ndarray:
@@ -258,6 +260,8 @@ def _cube_block(job: tuple[_CubePlan, int, np.ndarray], ctx: _Context) -> np.nda
     a = trace_abundance(ctx.scene, ctx.camera, t, plan.shutter_ms / 1000.0, ctx.fov_deg, ctx.samples,
                         ctx.ku, KT, ctx.terrain)
     radiance = np.tensordot(ctx.spectra_t, a.astype(np.float32), axes=(1, 0))
+    if ctx.clouds is not None:   # the sky's brightness at each line's exposure start
+        radiance *= ctx.clouds.factor(t).astype(np.float32)[None, :, None]
     rng = np.random.default_rng([ctx.seed, plan.index, i0])
     return ctx.radiometry.dn(radiance, plan.shutter_ms, plan.gain_db, rng)
 
@@ -305,7 +309,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                     pause_cube: int = 0, boresight_deg: Sequence[float] = (0.0, 0.0, 0.0),
                     lever_arm_m: Sequence[float] = (0.0, 0.0, 0.0), terrain: str | None = None,
                     heading_deg: float = HEADING_DEG, wobble: bool = True, start=None,
-                    scene_seed: int | None = None) -> Truth:
+                    scene_seed: int | None = None, clouds: bool = False) -> Truth:
     """Write a simulated flight into ``directory`` and return its :class:`Truth`.
 
     ``cubes`` cubes of ``lines`` lines x ``samples`` samples x ``bands`` bands (400-1000 nm,
@@ -358,6 +362,10 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
     site, heading, cubes, lines and recorder) fly over the same ground, each with its own wobble,
     noise and (by default) start: the same field flown again on another day. A flight whose
     ``scene_seed`` equals its ``seed`` is the flight of that seed, byte for byte.
+
+    ``clouds``: the sky's brightness drifts 30 % within cubes (:mod:`archive.simulator.clouds`); the
+    directory gets the kit's downwelling spectra (one per cube) and ``downwelling.dcp``, the truth
+    ``clouds.json``.
     """
     if not math.isfinite(heading_deg):
         raise InputError("simulate", f"heading must be a finite number of degrees, got {heading_deg!r}")
@@ -419,8 +427,9 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
     pixel = 2.0 * HEIGHT * math.tan(math.radians(fov_deg) / 2.0) / samples
     ku = max(4, int(math.ceil(pixel / SUBSAMPLE_M)))
     block = max(1, min(MAX_POINTS // (KT * samples * ku), MAX_VALUES // (bands * samples)))
+    sky = Clouds.for_cubes([p.line_time[0] for p in plans]) if clouds else None
     context = _Context(scene, camera, radiometry, spectra.T.astype(np.float32), fov_deg, samples, ku,
-                       int(seed), relief)
+                       int(seed), relief, sky)
 
     workers = _workers()
     tmp = directory.with_name(f".{directory.name}.simulate-{os.getpid()}")
@@ -456,6 +465,8 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                       pause_line=None if pause is None else pause[1],
                       pause_s=recorder.pause_s, record_turns=bool(into_turn), terrain=relief)
         save_truth(truth, tmp / "truth")
+        if sky is not None:
+            write_downwelling(tmp, [p.base for p in plans], sky)
         if relief is not None:
             write_dem(tmp / DEM_NAME, relief, epsg, dem_bounds(truth))
         _finalize(tmp, directory)
@@ -532,6 +543,7 @@ def run(args: argparse.Namespace) -> int:
                             pause_cube=opt("pause_cube", 0),
                             boresight_deg=opt("boresight", (0.0, 0.0, 0.0)),
                             lever_arm_m=opt("lever_arm", (0.0, 0.0, 0.0)), terrain=opt("terrain", None),
-                            start=opt("start", None), scene_seed=opt("scene_seed", None))
+                            start=opt("start", None), scene_seed=opt("scene_seed", None),
+                            clouds=bool(opt("clouds", False)))
     print(summary(truth))
     return 0

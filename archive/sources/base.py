@@ -164,8 +164,9 @@ def _exposure(shutter_ms: float | None, gain_db: float | None, ref_shutter: floa
 
 def white_for(white_reference, bands: list[int], nbands: int, where: str) -> np.ndarray:
     if white_reference is None:
-        raise InputError(where, "mode 'reflectance' needs a white reference spectrum",
-                         "pass --white-reference FILE, or use --mode radiance")
+        raise InputError(where, "mode 'reflectance' needs a white reference spectrum or the flight's downwelling "
+                         "spectra (<ImageSetName>_downwelling_<k>_pre.spec beside each cube and a *.dcp), "
+                         "and it has neither", "pass --white-reference FILE, or use --mode radiance")
     white = np.asarray(white_reference, float).ravel()
     if white.size != nbands:
         raise InputError(where, f"white reference has {white.size} values for {nbands} bands",
@@ -177,7 +178,8 @@ def white_for(white_reference, bands: list[int], nbands: int, where: str) -> np.
 
 
 def radiometry_for(header: EnviHeader, bands: list[int], mode: str, calibration, white_reference,
-                   where: str, no_calibration: tuple[str, str], responses: np.ndarray | None = None) -> Radiometry:
+                   where: str, no_calibration: tuple[str, str], responses: np.ndarray | None = None,
+                   sky=None) -> Radiometry:
     """Radiometric terms of ``bands`` (checked indices) of the cube described by ``header``.
 
     ``calibration`` is None (no calibration) or a callable returning (dark, gain, shutter_cal,
@@ -188,7 +190,11 @@ def radiometry_for(header: EnviHeader, bands: list[int], mode: str, calibration,
       against 1 ms at 0 dB (DN per ms at 0 dB);
     - radiance: dark and gain of the calibration, response = (shutter / shutter_cal) x
       10**((gain - gain_cal) / 20);
-    - reflectance: radiance divided by ``white_reference`` (bands of the cube), per band.
+    - reflectance: radiance divided by ``white_reference`` (bands of the cube), per band, when
+      given; else by the sky's irradiance: ``sky`` a callable returning (spectrum (len(bands),),
+      factor (lines,)), X(line, band) = factor[line] * spectrum[band] in the radiance's unit
+      (:mod:`archive.irradiance`): gain / spectrum per band, response x factor per line; neither:
+      InputError naming what is missing.
 
     ``no_calibration`` is the (problem, fix) said when a mode needs a calibration and there is none.
     ``responses``: (lines,) exposure factors that replace the header's in 'relative', 'radiance' and
@@ -213,12 +219,18 @@ def radiometry_for(header: EnviHeader, bands: list[int], mode: str, calibration,
                              "add it to the header, or use --mode raw")
     dark, gain, shutter_cal, gain_cal = calibration()
     gain = np.asarray(gain, np.float64)
-    if mode == "reflectance":
+    factor = None
+    if mode == "reflectance" and (white_reference is not None or sky is None):
         gain = gain / white_for(white_reference, bands, h.bands, where)[:, None]
+    elif mode == "reflectance":
+        spectrum, factor = sky()
+        gain = gain / np.asarray(spectrum, np.float64)[:, None]
     if responses is None:
         resp = np.full(h.lines, response(h.shutter, h.gain, shutter_cal, gain_cal), np.float32)
     else:
         resp = np.asarray(responses, np.float32)
+    if factor is not None:
+        resp = (resp.astype(np.float64) * np.asarray(factor, np.float64)).astype(np.float32)
     return Radiometry(np.asarray(dark, np.float64).astype(np.float32), gain.astype(np.float32), resp, saturation)
 
 

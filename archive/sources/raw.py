@@ -17,8 +17,10 @@ from archive.formats.flight import CubeFiles, discover_flight
 from archive.formats.icp import Calibration, read_icp
 from archive.formats.lcf import read_lcf
 from archive.formats.times import read_times
+from archive.irradiance import SkyIrradiance
 from archive.navigation import LocalFrame, local_frame_for
 from archive.params import NavigationParams
+from archive.sources.downwelling import DownwellingFiles
 from archive.sources.base import CubeInfo, Radiometry, band_list, check_mode, radiometry_for
 from archive.sources.navigation import CubeNavigation, FlightNavigation, NavigatedSource
 
@@ -72,7 +74,8 @@ class RawFlightSource(NavigatedSource):
     ground_height: float | None = None  # nor a ground height it was processed with
 
     def __init__(self, directory: str | os.PathLike, params: NavigationParams,
-                 calibration: str | os.PathLike | None = None, white_reference: np.ndarray | None = None):
+                 calibration: str | os.PathLike | None = None, white_reference: np.ndarray | None = None,
+                 irradiance_calibration: str | os.PathLike | None = None):
         flight = discover_flight(directory)
         self.directory = Path(flight.directory)
         self.label = str(self.directory)
@@ -121,6 +124,8 @@ class RawFlightSource(NavigatedSource):
                      first_time=self.navigation.first_time(i))
             for i, c in enumerate(raw))
         self.id: str = flight_id(self.directory.name, float(nav[0].lcf.time[0]))
+        self.downwelling = DownwellingFiles.find(self.directory, [c.files.base for c in raw], irradiance_calibration)
+        self._sky: SkyIrradiance | None = None
 
     def __repr__(self) -> str:
         return f"RawFlightSource({str(self.directory)!r}, cubes={len(self.cubes)})"
@@ -128,6 +133,7 @@ class RawFlightSource(NavigatedSource):
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
         state["_calibration"] = None  # re-read on demand: keeps pickles small
+        state["_sky"] = None
         return state
 
     def __dask_tokenize__(self):
@@ -137,7 +143,7 @@ class RawFlightSource(NavigatedSource):
                       for c in self._raw)
         white = None if self.white_reference is None else self.white_reference.tobytes()
         return ("RawFlightSource", str(self.directory), self.id, files, self.params,
-                str(self.calibration_path), white)
+                str(self.calibration_path), white, self.downwelling.token())
 
     # --- pixels and radiometry ----------------------------------------------------------------
 
@@ -174,6 +180,22 @@ class RawFlightSource(NavigatedSource):
             return np.asarray(dark)[idx], np.asarray(gain)[idx], cal.shutter_cal, cal.gain_cal
 
         white = white_reference if white_reference is not None else self.white_reference
+        sky = None
+        if mode == "reflectance" and white is None and self.downwelling.present:
+            def sky():
+                spectrum, factor, _ = self.sky().cube_terms(self.line_times(cube), idx, str(c.files.data))
+                return spectrum, factor
         return radiometry_for(h, idx, mode, None if cal is None else calibration, white, self.label,
                               ("needs a radiometric calibration (*.icp) and there is none",
-                               "pass --calibration FILE.icp, or use --mode raw"))
+                               "pass --calibration FILE.icp, or use --mode raw"), sky=sky)
+
+    def sky(self) -> SkyIrradiance:
+        """The flight's downwelling irradiance (read on first use; InputError naming the missing or
+        garbled file when it cannot be)."""
+        if self._sky is None:
+            if self.wavelengths is None:
+                raise InputError(self._raw[0].header.path, "has no 'wavelength' key: the sky's spectra cannot be "
+                                 "matched to the bands", "add it, or pass --white-reference FILE")
+            self._sky = self.downwelling.read([self.navigation.first_time(i) for i in range(len(self.cubes))],
+                                              self.wavelengths, self.fwhm)
+        return self._sky

@@ -1,0 +1,77 @@
+"""The downwelling files of a raw flight directory: one ``.spec`` per cube (found by name beside it,
+:func:`archive.formats.spec.downwelling_name`) and the spectrometer's ``*.dcp`` (in the directory, or
+``--irradiance-calibration``). Found at open (names only), read on first use."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from archive.errors import InputError, MissingInputError
+from archive.formats.spec import downwelling_name, read_dcp, read_spec
+from archive.irradiance import CubeIrradiance, SkyIrradiance, to_bands
+
+__all__ = ["DownwellingFiles"]
+
+
+@dataclass(frozen=True)
+class DownwellingFiles:
+    """specs: per cube, its expected ``.spec`` path (None when the cube's name is not Resonon's);
+    found: per cube, whether it exists; calibration: the ``.dcp`` (None: none found)."""
+
+    directory: Path
+    specs: tuple[Path | None, ...]
+    found: tuple[bool, ...]
+    calibration: Path | None
+
+    @classmethod
+    def find(cls, directory: Path, bases: Sequence[str], calibration: str | os.PathLike | None = None) -> DownwellingFiles:
+        """Look for each cube's spectrum and the pack; InputError when the directory holds several
+        ``*.dcp`` and none is chosen, MissingInputError for a ``calibration`` that is not a file."""
+        specs = tuple(None if downwelling_name(b) is None else directory / downwelling_name(b) for b in bases)
+        found = tuple(p is not None and p.is_file() for p in specs)
+        if calibration is not None:
+            cal = Path(calibration)
+            if not cal.is_file():
+                raise MissingInputError(cal, "downwelling calibration (.dcp)", "check --irradiance-calibration")
+        else:
+            dcps = sorted(p for p in directory.iterdir() if p.is_file() and p.suffix.lower() == ".dcp")
+            if len(dcps) > 1:
+                raise InputError(directory, f"{len(dcps)} downwelling calibrations: {', '.join(p.name for p in dcps)}",
+                                 "pass --irradiance-calibration to choose one")
+            cal = dcps[0] if dcps else None
+        return cls(directory, specs, found, cal)
+
+    @property
+    def present(self) -> bool:
+        """Whether the flight has any downwelling spectrum."""
+        return any(self.found)
+
+    def token(self) -> tuple:
+        """What reflectance depends on: the files by name, size and modification time."""
+        files = [p for p, f in zip(self.specs, self.found, strict=True) if f]
+        files += [self.calibration] if self.calibration is not None else []
+        return tuple((str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in files)
+
+    def read(self, first_times: Sequence[float], bands_nm, fwhm_nm) -> SkyIrradiance:
+        """Every cube's spectrum converted and resampled (:func:`archive.irradiance.to_bands`),
+        stamped at ``first_times`` (.lcf s of each cube's first line). A cube without its spectrum,
+        or a flight with spectra and no pack, is refused naming the file."""
+        for path, found in zip(self.specs, self.found, strict=True):
+            if not found:
+                what = "downwelling spectrum (.spec)" if path is not None else "downwelling spectrum"
+                raise MissingInputError(path if path is not None else self.directory, what,
+                                        "every cube needs <ImageSetName>_downwelling_<k>_pre.spec(.hdr) beside "
+                                        "it; or pass --white-reference FILE, or use --mode radiance")
+        if self.calibration is None:
+            raise MissingInputError(self.directory / "*.dcp", "downwelling calibration (.dcp)",
+                                    "copy the spectrometer's .dcp into the flight directory or pass "
+                                    "--irradiance-calibration FILE.dcp")
+        cal = read_dcp(self.calibration)
+        cubes = []
+        for path, t in zip(self.specs, first_times, strict=True):
+            x, shift, found = to_bands(read_spec(path), cal, bands_nm, fwhm_nm)
+            cubes.append(CubeIrradiance(str(path), float(t), x, shift, found))
+        return SkyIrradiance(tuple(cubes), str(self.calibration))
