@@ -3,7 +3,7 @@ spectrometer records of it, and the truth reflectance.
 
 The sky's brightness ``c(t)`` (a factor on the scene's radiance, 1 = clear) is drawn at each cube's
 first line (its spectrometer reading, as Resonon's recorder takes one ``_pre`` spectrum per cube) and
-varies linearly in time between those readings, held after the last: 1.0, 0.7, 1.0, 0.7, ... (a
+varies linearly in time between those readings, held after the last: 1.0, 0.7, 0.85, 1.0, ... (a
 cloud passing: radiance drifts 30 % within every cube but the last). It is grey (all wavelengths
 alike), so the irradiance the renderer rebuilds is exact up to resampling (README: radiometry).
 
@@ -29,7 +29,7 @@ from archive.simulator.scene import illumination
 __all__ = ["CLOUD_FACTORS", "Clouds", "DCP_NAME", "SPEC_PIXELS", "load_clouds", "spectrometer_wavelengths",
            "truth_reflectance", "write_downwelling"]
 
-CLOUD_FACTORS = (1.0, 0.7)      #: sky brightness at consecutive cubes' first lines, cycled
+CLOUD_FACTORS = (1.0, 0.7, 0.85)  #: sky brightness at consecutive cubes' first lines, cycled
 SPEC_PIXELS = 2048              #: Flame pixels
 SPEC_SHUTTER_CAL = 5.7          #: ms, the pack's calibration shutter
 SPEC_SHUTTER = 8.0              #: ms, the spectra's shutter
