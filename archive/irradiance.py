@@ -175,7 +175,8 @@ class SkyIrradiance:
     def qa(self, cube_times: Sequence[np.ndarray]) -> dict:
         """QA summary: per cube the relative change of X within it (max over bands of
         (max - min) / mean), whether it exceeds :data:`CHANGE_WARN`, the fraction of its lines below
-        :data:`LOW_IRRADIANCE` x the flight's median, and the wavelength shifts."""
+        :data:`LOW_IRRADIANCE` x the flight's median, the largest relative error of the separable
+        form over all bands, and the wavelength shifts."""
         per = [self.per_line(t) for t in cube_times]
         median = np.median(np.concatenate(per), axis=0)
         out = []
@@ -183,6 +184,7 @@ class SkyIrradiance:
             change = float(np.max((x.max(axis=0) - x.min(axis=0)) / x.mean(axis=0)))
             low = float(np.mean(np.mean(x / median, axis=1) < LOW_IRRADIANCE))
             out.append({"spec": c.spec, "time": c.time, "change": round(change, 6),
+                        "separable_error": round(separable(x)[2], 6),
                         "changed": change > CHANGE_WARN, "low_fraction": round(low, 6),
                         "shift_nm": None if c.shift_nm is None else round(c.shift_nm, 4),
                         "fraunhofer_lines": c.lines_found,

@@ -376,6 +376,10 @@ def product_item(planned: OutputPlan, output: Output, options: RenderOptions,
         # run, kept out of archive:recipe.request so that a resume on other hardware is the same recipe
         doc["properties"]["archive:renderers"] = renderers
         doc["properties"]["archive:recipe"]["renderers"] = sorted({str(r.get("renderer")) for r in renderers})
+    if planned.params.mode == "reflectance":   # what it was divided by, and the sky's QA (issue 34)
+        from archive.sources.downwelling import reflectance_record
+
+        doc["properties"]["archive:reflectance"] = reflectance_record(planned.sources, options.white_reference)
     return doc
 
 

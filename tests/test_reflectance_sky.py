@@ -154,3 +154,20 @@ def test_missing_or_garbled_spectra_are_refused_by_name(flight, tmp_path):
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "sim_downwelling_2_pre.spec" in lines[0], done.stderr
     assert not out.exists()
+
+
+def test_the_command_renders_reflectance_and_records_the_sky(flight, tmp_path):
+    """``archive render --mode reflectance`` without --white-reference: the flight's spectra; the STAC
+    Item records the source and the QA (the cube whose sky changed 35 % is flagged)."""
+    import json
+
+    out = tmp_path / "refl.tif"
+    done = subprocess.run([sys.executable, "-m", "archive", "render", str(flight[0].directory), "--fov", "47.5",
+                           "--gsd", "0.5", "--mode", "reflectance", "--bands", "0,21", "--out", str(out), "--quiet"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    record = json.loads(out.with_name(out.name + ".json").read_text())["properties"]["archive:reflectance"]
+    assert record["source"] == "downwelling"
+    cubes = record["flights"][0]["cubes"]
+    assert [c["changed"] for c in cubes] == [True, False, True, False]
+    assert record["summary"]["max_separable_error"] < 1e-9      # a grey sky: exact

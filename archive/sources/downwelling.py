@@ -7,13 +7,19 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 from archive.errors import InputError, MissingInputError
 from archive.formats.spec import downwelling_name, read_dcp, read_spec
 from archive.irradiance import CubeIrradiance, SkyIrradiance, to_bands
 
-__all__ = ["DownwellingFiles"]
+__all__ = ["DownwellingFiles", "reflectance_record"]
+
+
+@lru_cache(maxsize=16)
+def _read(files: DownwellingFiles, token: tuple, first_times: tuple, bands_nm: tuple, fwhm_nm) -> SkyIrradiance:
+    return files._read(first_times, bands_nm, fwhm_nm)
 
 
 @dataclass(frozen=True)
@@ -58,7 +64,13 @@ class DownwellingFiles:
     def read(self, first_times: Sequence[float], bands_nm, fwhm_nm) -> SkyIrradiance:
         """Every cube's spectrum converted and resampled (:func:`archive.irradiance.to_bands`),
         stamped at ``first_times`` (.lcf s of each cube's first line). A cube without its spectrum,
-        or a flight with spectra and no pack, is refused naming the file."""
+        or a flight with spectra and no pack, is refused naming the file. Read once per process for
+        the same files (names, sizes, modification times) and arguments: every render task of a
+        flight unpickles its own source, and parsing three 2048-value headers costs ~20 ms."""
+        return _read(self, self.token(), tuple(float(t) for t in first_times), tuple(bands_nm),
+                     None if fwhm_nm is None else tuple(fwhm_nm))
+
+    def _read(self, first_times: Sequence[float], bands_nm, fwhm_nm) -> SkyIrradiance:
         for path, found in zip(self.specs, self.found, strict=True):
             if not found:
                 what = "downwelling spectrum (.spec)" if path is not None else "downwelling spectrum"
@@ -75,3 +87,26 @@ class DownwellingFiles:
             x, shift, found = to_bands(read_spec(path), cal, bands_nm, fwhm_nm)
             cubes.append(CubeIrradiance(str(path), float(t), x, shift, found))
         return SkyIrradiance(tuple(cubes), str(self.calibration))
+
+
+def reflectance_record(sources, white_reference: str | None) -> dict:
+    """What a reflectance output was divided by, for its STAC Item (``archive:reflectance``): the
+    white reference file, or per flight the sky spectrometer's QA
+    (:meth:`archive.irradiance.SkyIrradiance.qa`: per cube the change of irradiance within it,
+    whether it passes the threshold, the fraction of lines under low irradiance, the separable
+    form's error, the Fraunhofer wavelength check)."""
+    if white_reference:
+        return {"source": "white_reference", "file": str(white_reference)}
+    flights = []
+    for s in sources:
+        sky = getattr(s, "sky", None)
+        if sky is None:
+            continue
+        qa = sky().qa([s.line_times(i) for i in range(len(s.cubes))])
+        flights.append({"id": s.id, **qa})
+    changed = sum(c["changed"] for f in flights for c in f["cubes"])
+    low = max((c["low_fraction"] for f in flights for c in f["cubes"]), default=0.0)
+    return {"source": "downwelling", "flights": flights,
+            "summary": {"cubes_irradiance_changed": changed, "max_low_irradiance_fraction": low,
+                        "max_separable_error": max((c["separable_error"] for f in flights for c in f["cubes"]),
+                                                   default=0.0)}}
