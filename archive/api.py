@@ -22,6 +22,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from archive.api_errors import python_errors
 from archive.catalog.root import ArchiveRoot
 from archive.errors import InputError
 
@@ -31,6 +32,15 @@ if TYPE_CHECKING:
 __all__ = ["Archive", "georectify", "mosaic", "open_archive", "plan", "stack"]
 
 Source = str | os.PathLike
+
+
+def _render_keywords(*more: str):
+    """The keywords of a rendering function: the render options and ``more``."""
+    def valid() -> tuple[str, ...]:
+        from archive.options import KEYWORDS
+
+        return (*KEYWORDS, "band_group", "quiet", *more)
+    return valid
 
 
 # ---------------------------------------------------------------------------------------------
@@ -64,6 +74,7 @@ class Archive(ArchiveRoot):
     """An opened archive: its paths and collections (:class:`~archive.catalog.root.ArchiveRoot`)
     and its catalog's queries."""
 
+    @python_errors("Archive.search", lambda: ("bbox", "datetime", "wavelength"))
     def search(self, bbox=None, datetime=None, wavelength: float | None = None) -> list[str]:
         """Ids of the collections matching every given filter, sorted by start time then id (what
         ``archive catalog search`` lists).
@@ -108,6 +119,7 @@ def _options(sources, options: dict):
     return RenderOptions.create(sources, **options)
 
 
+@python_errors("archive.plan", _render_keywords())
 def plan(sources: Source | Sequence[Source], *, band_group: int | None = None, quiet: bool = True, **options):
     """The plan of a mosaic of ``sources`` (:class:`archive.pipeline.OutputPlan`: opened sources,
     grid, cube meshes and windows, band groups), from metadata only: no pixel read, no GL.
@@ -117,6 +129,7 @@ def plan(sources: Source | Sequence[Source], *, band_group: int | None = None, q
     return pipeline.plan(_options(sources, options), band_group=band_group, quiet=quiet)
 
 
+@python_errors("archive.mosaic", _render_keywords())
 def mosaic(sources: Source | Sequence[Source], *, band_group: int | None = None, quiet: bool = True, **options):
     """A lazy ``xarray.Dataset`` of the mosaic of ``sources``: nothing is rendered until computed.
 
@@ -175,6 +188,7 @@ def _stack_sources(ids_or_query, options: dict) -> list:
     return ids_or_query
 
 
+@python_errors("archive.stack", _render_keywords())
 def stack(ids_or_query, *, band_group: int | None = None, quiet: bool = True, **options):
     """The time stack of flights as a lazy ``xarray.DataArray`` (time, band, y, x): nothing rendered
     until computed.
@@ -194,6 +208,9 @@ def stack(ids_or_query, *, band_group: int | None = None, quiet: bool = True, **
                       quiet=quiet)
 
 
+@python_errors("archive.georectify", _render_keywords(
+    "quicklook", "scheduler", "workers", "threads", "overwrite", "per_flight", "format", "resume", "tell", "stack",
+    "tiles"))
 def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: Source | None = None,
                scheduler: str | SlurmJobs | None = None, workers: int | None = None, threads: int | None = None,
                overwrite: bool = False, quiet: bool = True, per_flight: bool = False, format: str = "zarr",

@@ -364,7 +364,9 @@ def _lock_directory(directory: Path) -> FileLock:
 def _say(quiet: bool):
     def say(text: str) -> None:
         if not quiet:
-            print(text, file=sys.stderr)
+            from tqdm import tqdm
+
+            tqdm.write(text, file=sys.stderr)   # on a line of its own, the progress bar drawn again below
     return say
 
 

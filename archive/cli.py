@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import math
+import os
 import re
 import sys
 from collections.abc import Sequence
@@ -103,6 +104,9 @@ def _add_simulate(sub) -> None:
     p.add_argument("--start", metavar="ISO8601",
                    help="UTC start of the flight (the first line follows 0.5 s later), e.g. 2024-06-12T16:00:00Z (default: 2024-06-12T16:00:00Z "
                         "plus --seed minutes, so flights of different seeds get different ids)")
+    p.add_argument("--clouds", action="store_true",
+                   help="the sky's brightness drifts 30 %% within cubes; writes the kit's downwelling spectra "
+                        "(<set>_downwelling_<k>_pre.spec per cube, downwelling.dcp) and the truth (truth/clouds.json)")
     p.add_argument("--lat", type=float, default=35.12, help="latitude of the site, degrees (default 35.12)")
     p.add_argument("--lon", type=float, default=-89.94, help="longitude of the site, degrees (default -89.94)")
     p.add_argument("--fov", type=float, default=47.5, help="across-track field of view, degrees (default 47.5)")
@@ -454,13 +458,37 @@ def join_negative_values(argv: Sequence[str]) -> list[str]:
     return out
 
 
+def _stdout_closed() -> int:
+    """The reader of stdout went away (``archive ... --json | head``): no traceback, no message (the
+    reader asked for no more), stdout pointed at /dev/null so that the interpreter's last flush
+    cannot fail, and the exit code of a process killed by SIGPIPE (128 + 13)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
+    return 141
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(join_negative_values(sys.argv[1:] if argv is None else argv))
+    try:
+        args = parser.parse_args(join_negative_values(sys.argv[1:] if argv is None else argv))
+    except SystemExit as done:  # --help, --version, a usage error: their text may meet a closed stdout
+        try:
+            sys.stdout.flush()
+        except BrokenPipeError:
+            _stdout_closed()
+        raise done
     module_name, func_name = HANDLERS[args.command].split(":")
     try:
         handler = getattr(importlib.import_module(module_name), func_name)
-        return int(handler(args) or 0)
+        code = int(handler(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here, inside the try, not at interpreter exit
+        return code
+    except BrokenPipeError:
+        return _stdout_closed()
     except ArchiveError as exc:
         print(f"archive {args.command}: error: {exc}", file=sys.stderr)
         return exc.exit_code

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 
 from archive.api import georectify, open_archive
 from archive.errors import InputError
@@ -98,8 +99,12 @@ def run(args: argparse.Namespace) -> int:
     then the totals; exit code 1 when a flight failed)."""
     from archive.pipeline import describe
 
+    from tqdm import tqdm
+
     def tell(line: str) -> None:
-        print(f"archive render: {line}", flush=True)
+        # past the progress bar (stderr, the same terminal): cleared, the line, the bar drawn again
+        with tqdm.external_write_mode(file=sys.stdout):
+            print(f"archive render: {line}", flush=True)
 
     s = georectify(**render_keywords(args), tell=tell)
     if "added" in s:

@@ -263,6 +263,7 @@ LAYERS = [
     ("writers", ("archive.outputs",)),
     ("graph", ("archive.graph",)),
     ("commands", ("archive.options", "archive.cluster", "archive.pipeline", "archive.api", "archive.render_command",
+                  "archive.api_errors",
                   "archive.ingest", "archive.simulator", "archive.view", "archive.calibrate", "archive.batch", "archive.stacks",
                   "archive.tiles",
                   "archive.doctor")),

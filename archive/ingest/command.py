@@ -338,10 +338,11 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
     plans = [prepare_flight(d, fov_deg, calibration, ground_height, sync_offset, boresight, lever_arm,
                             dem, dem_datum)
              for d in directories]
+    pairs = _distinct_flights(list(directories), plans)
     root = _create_archive(archive_path)
     results = []
-    for plan in plans:
-        if not overwrite and _already_ingested(root, plan, directories[plans.index(plan)]):
+    for directory, plan in pairs:
+        if not overwrite and _already_ingested(root, plan, directory):
             results.append(IngestResult(plan.cid, root.store(plan.cid), "already ingested"))
             continue
         # One writer per collection id, across processes and hosts (DESIGN 5): a second ingest of
@@ -353,10 +354,26 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
             raise InputError(root.collections, f"cannot write there ({exc.strerror or exc})",
                              "ingest into an archive you can write to") from None
         try:
-            results.append(_ingest_one(root, plan, directories[plans.index(plan)], overwrite, workers, progress))
+            results.append(_ingest_one(root, plan, directory, overwrite, workers, progress))
         finally:
             lock.release()
     return results
+
+
+def _distinct_flights(directories: list[str], plans: list[StorePlan]) -> list[tuple[str, StorePlan]]:
+    """(directory, plan) per flight, a directory given twice taken once; two directories holding
+    the same flight id (a copy of a flight) are refused before anything is written."""
+    seen: dict[str, str] = {}
+    pairs = []
+    for directory, plan in zip(directories, plans):
+        first = seen.get(plan.cid)
+        if first is None:
+            seen[plan.cid] = directory
+            pairs.append((directory, plan))
+        elif os.path.realpath(first) != os.path.realpath(directory):
+            raise InputError(directory, f"is the same flight as {first} (both are {plan.cid})",
+                             "ingest one of them; remove the copy from the command line")
+    return pairs
 
 
 def _create_archive(archive_path: str | os.PathLike) -> ArchiveRoot:
