@@ -124,6 +124,28 @@ def test_pystac_client_equals_catalog_search(stac, capsys, kind, query, cli, met
     assert got == _cli_ids(archive_dir, capsys, *cli), (kind, query)
 
 
+@pytest.mark.parametrize("limit", [1, 2, 10])
+def test_pystac_client_collection_items_and_counts(stac, capsys, limit):
+    """The first calls of many notebooks (issue 36): the collection's get_items() (pystac-client sends
+    collections=flights to /collections/flights/items), get_item(id), and search(...).matched() from
+    numberMatched, whatever the page size."""
+    base, archive_dir, ids = stac
+    client = pystac_client.Client.open(base)
+    collection = client.get_collection("flights")
+    everything = _cli_ids(archive_dir, capsys)
+    assert sorted(item.id for item in collection.get_items()) == sorted(everything) == sorted(ids.values())
+    memphis = collection.get_item(ids["memphis"])
+    assert memphis is not None and memphis.id == ids["memphis"] and memphis.collection_id == "flights"
+    assert collection.get_item("no-such-flight") is None
+    assert client.search(collections=["flights"], limit=limit).matched() == 3
+    box = client.search(bbox=[-100, 30, -80, 40], limit=limit)
+    assert box.matched() == len(_cli_ids(archive_dir, capsys, "--bbox", "-100,30,-80,40")) == 1
+    assert client.search(collections=["other"], limit=limit).matched() == 0
+    page = _get(f"{base}/collections/flights/items?limit={limit}&collections=flights")
+    assert page["numberMatched"] == 3 and page["numberReturned"] == min(limit, 3) == len(page["features"])
+    assert _get(f"{base}/collections/flights/items?collections=other")["numberMatched"] == 0
+
+
 def test_cql2_filters(stac):
     base, _, ids = stac
     m, d, s = ids["memphis"], ids["dakota"], ids["sydney"]

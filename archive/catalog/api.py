@@ -241,14 +241,14 @@ class StacApi:
         form (searches that collection only)."""
         if collection is not None:
             self._check_collection(collection)
-            if params.get("collections") not in (None, ""):
-                raise InputError("collections", "not a parameter of /collections/{id}/items")
         where, args, order, limit, offset = self._query(params, method, collection)
         con = self._con()
         sql = (f"SELECT i.id, i.item_path, i.min_wavelength, i.max_wavelength FROM items AS i WHERE {where} "
                f"ORDER BY {order} LIMIT ? OFFSET ?")
         try:
             rows = con.execute(sql, [*args, limit + 1, offset]).fetchall()
+            # OGC API Features' count (pystac-client's search.matched()): the same WHERE, no page
+            matched = con.execute(f"SELECT COUNT(*) FROM items AS i WHERE {where}", args).fetchone()[0]
         except sqlite3.OperationalError as exc:  # e.g. an over-long expression
             raise InputError("filter", f"the query cannot be run: {exc}") from None
         more = len(rows) > limit
@@ -276,7 +276,7 @@ class StacApi:
                 links.append({"rel": "next", "href": f"{url}?{urlencode(query)}", "type": GEOJSON_TYPE,
                               "method": "GET"})
         page = {"type": "FeatureCollection", "features": features, "links": links,
-                "numberReturned": len(features)}
+                "numberMatched": matched, "numberReturned": len(features)}
         if damaged:
             page["archive:damaged"] = damaged
         return page
@@ -333,8 +333,8 @@ class StacApi:
             where.append(f"i.id IN ({', '.join('?' for _ in ids)})" if ids else "0")
             args += ids
         collections = _list(params.get("collections"), "collections")
-        if collection is not None:
-            collections = [collection]
+        if collection is not None:   # /collections/{id}/items: pystac-client also sends collections=id
+            collections = [collection] if collections is None else [c for c in collections if c == collection]
         if collections is not None and COLLECTION_ID not in collections:
             where.append("0")
         filt = params.get("filter")
