@@ -12,7 +12,7 @@ import pytest
 from archive.errors import FormatError, MissingInputError
 from archive.formats.spec import (IrradianceCalibration, downwelling_name, read_dcp, read_spec, write_dcp,
                                   write_spec)
-from archive.irradiance import FRAUNHOFER_NM, SkyIrradiance, CubeIrradiance, band_weights, fraunhofer_shift, separable
+from archive.sources.irradiance import FRAUNHOFER_NM, SkyIrradiance, CubeIrradiance, band_weights, fraunhofer_shift, separable
 
 SAMPLES = Path(__file__).resolve().parents[2] / "shared" / "samples" / "resonon"
 DCP = SAMPLES / "john-waczak__RobotTeam.jl" / "FLMS152151_Sept2019.dcp"

@@ -193,7 +193,7 @@ def radiometry_for(header: EnviHeader, bands: list[int], mode: str, calibration,
     - reflectance: radiance divided by ``white_reference`` (bands of the cube), per band, when
       given; else by the sky's irradiance: ``sky`` a callable returning (spectrum (len(bands),),
       factor (lines,)), X(line, band) = factor[line] * spectrum[band] in the radiance's unit
-      (:mod:`archive.irradiance`): gain / spectrum per band, response x factor per line; neither:
+      (:mod:`archive.sources.irradiance`): gain / spectrum per band, response x factor per line; neither:
       InputError naming what is missing.
 
     ``no_calibration`` is the (problem, fix) said when a mode needs a calibration and there is none.

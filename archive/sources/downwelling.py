@@ -12,7 +12,7 @@ from pathlib import Path
 
 from archive.errors import InputError, MissingInputError
 from archive.formats.spec import downwelling_name, read_dcp, read_spec
-from archive.irradiance import CubeIrradiance, SkyIrradiance, to_bands
+from archive.sources.irradiance import CubeIrradiance, SkyIrradiance, to_bands
 
 __all__ = ["DownwellingFiles", "reflectance_record"]
 
@@ -62,7 +62,7 @@ class DownwellingFiles:
         return tuple((str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in files)
 
     def read(self, first_times: Sequence[float], bands_nm, fwhm_nm) -> SkyIrradiance:
-        """Every cube's spectrum converted and resampled (:func:`archive.irradiance.to_bands`),
+        """Every cube's spectrum converted and resampled (:func:`archive.sources.irradiance.to_bands`),
         stamped at ``first_times`` (.lcf s of each cube's first line). A cube without its spectrum,
         or a flight with spectra and no pack, is refused naming the file. Read once per process for
         the same files (names, sizes, modification times) and arguments: every render task of a
@@ -92,7 +92,7 @@ class DownwellingFiles:
 def reflectance_record(sources, white_reference: str | None) -> dict:
     """What a reflectance output was divided by, for its STAC Item (``archive:reflectance``): the
     white reference file, or per flight the sky spectrometer's QA
-    (:meth:`archive.irradiance.SkyIrradiance.qa`: per cube the change of irradiance within it,
+    (:meth:`archive.sources.irradiance.SkyIrradiance.qa`: per cube the change of irradiance within it,
     whether it passes the threshold, the fraction of lines under low irradiance, the separable
     form's error, the Fraunhofer wavelength check)."""
     if white_reference:

@@ -17,7 +17,7 @@ from archive.formats.flight import CubeFiles, discover_flight
 from archive.formats.icp import Calibration, read_icp
 from archive.formats.lcf import read_lcf
 from archive.formats.times import read_times
-from archive.irradiance import SkyIrradiance
+from archive.sources.irradiance import SkyIrradiance
 from archive.navigation import LocalFrame, local_frame_for
 from archive.params import NavigationParams
 from archive.sources.downwelling import DownwellingFiles
