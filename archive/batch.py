@@ -108,6 +108,16 @@ def _directory(out) -> Path:
     return directory
 
 
+def _with_defaults(stored, options):
+    """A stored request with the fields it lacks (recorded before they existed: --bounds, --align,
+    --like) at their defaults, so that an older output of the same request is the same recipe."""
+    if not isinstance(stored, dict):
+        return stored
+    missing = {f.name: f.default for f in dataclasses.fields(options)
+               if f.name not in stored and f.default is not dataclasses.MISSING}
+    return {**json.loads(json.dumps(missing, default=str)), **stored}
+
+
 def _differences(stored: dict, wanted: dict) -> str:
     keys = [k for k in wanted if stored.get(k) != wanted.get(k)] + [k for k in stored if k not in wanted]
     return ", ".join(f"{k} {stored.get(k)!r} there, {wanted.get(k)!r} now" for k in keys[:4])
@@ -161,6 +171,7 @@ def _decide(flight: Flight, resume: bool, overwrite: bool) -> None:
         except (OSError, ValueError, KeyError, TypeError):
             stored = stored_inputs = None
         wanted = recipe_request(flight.recipe)
+        stored = _with_defaults(stored, flight.recipe)
         if stored == wanted and stored_inputs == flight.inputs:
             flight.status = "skipped"
             return

@@ -297,3 +297,19 @@ def test_a_killed_stack_is_resumed(field, tmp_path):
     np.testing.assert_array_equal(values(out), values(fresh))
     with xr.open_zarr(out) as a, xr.open_zarr(fresh) as b:
         assert list(a.flight.values) == list(b.flight.values) == ids
+
+
+def test_outputs_recorded_before_the_grid_options_resume_as_the_same_recipe(field, tmp_path):
+    root, archive, ids = field
+    batch = ["render", "--archive", str(archive), "--query-datetime", "2024-06-12", "--gsd", GSD,
+             "--out", str(tmp_path / "b"), "--quiet"]
+    cli(*batch)
+    item_path = tmp_path / "b" / f"{ids[0]}.zarr.json"
+    item = json.loads(item_path.read_text())
+    request = item["properties"]["archive:recipe"]["request"]
+    assert (request["bounds"], request["align"], request["like"]) == (None, False, None)
+    for name in ("bounds", "align", "like"):   # as an Item written before these options existed
+        del request[name]
+    item_path.write_text(json.dumps(item))
+    proc = cli(*batch, "--resume")
+    assert "0 done, 1 skipped" in proc.stdout, proc.stdout
