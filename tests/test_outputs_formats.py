@@ -110,7 +110,7 @@ def test_cog_equals_zarr_and_is_a_valid_cog(rendered):
         assert ds.overviews(1) == [2, 4, 8, 16]
         wl = [float(ds.tags(b + 1)["wavelength"]) for b in range(nb)]
         np.testing.assert_allclose(wl, z["wavelength"].values)
-        assert ds.descriptions[0] == f"band 0: {wl[0]:.1f} nm"
+        assert ds.descriptions[0] == f"{wl[0]:.1f} nm"
         np.testing.assert_array_equal(_bits(ds.read()), _bits(values))
     # overviews: NaN-aware 2 x 2 means, each level from the one below
     expected = values

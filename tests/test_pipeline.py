@@ -155,7 +155,7 @@ def test_cog_and_envi_with_selected_wavelengths(rendered, flight, scheduler, tmp
     with rasterio.open(tif) as cog:
         assert cog.count == 2 and cog.crs.to_epsg() == 32616
         assert tuple(cog.transform)[:6] == tuple(_grid_of(ds).transform)[:6]
-        assert cog.descriptions == ("band 1: 520.0 nm", "band 3: 760.0 nm")
+        assert cog.descriptions == ("520.0 nm", "760.0 nm")
         assert cog.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
         _same(cog.read(), full[[1, 3]])
     assert png.stat().st_size > 0

@@ -121,6 +121,11 @@ def check_bands(band0: int, nbands: int, total: int, what: str) -> None:
 
 _VARIABLES = {"raw": "dn", "relative": "relative", "radiance": "radiance", "reflectance": "reflectance"}
 
+#: Units of each data variable, UDUNITS strings (CF ``units``; GDAL's band unit type): counts and
+#: ratios "1"; radiance in the units of Resonon's calibration files (.icp), microflicks
+#: (uW cm-2 sr-1 um-1 = 1e-5 W m-2 sr-1 nm-1).
+VARIABLE_UNITS = {"dn": "1", "relative": "1", "reflectance": "1", "radiance": "uW cm-2 sr-1 um-1"}
+
 
 def variable_for_mode(mode: str) -> str:
     """Name of the data variable for a radiometric mode ('raw' -> 'dn', 'radiance' -> 'radiance'...)."""
@@ -161,6 +166,13 @@ class OutputMeta:
 
     @property
     def labels(self) -> list[str]:
+        """Band names as GDAL, QGIS and ENVI show them: the wavelength with its unit ("650.0 nm"),
+        else the source band counted from 1 as those tools count bands ("source band 4")."""
         if self.wavelengths is None:
-            return [f"band {i}" for i in self.band_indices]
-        return [f"band {i}: {w:.1f} nm" for i, w in zip(self.band_indices, self.wavelengths)]
+            return [f"source band {i + 1}" for i in self.band_indices]
+        return [f"{w:.1f} nm" for w in self.wavelengths]
+
+    @property
+    def units(self) -> str | None:
+        """The values' unit (:data:`VARIABLE_UNITS`), None for an unknown variable."""
+        return VARIABLE_UNITS.get(self.variable)

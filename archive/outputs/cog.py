@@ -227,6 +227,8 @@ def _cog_metadata(meta: OutputMeta) -> str:
     bands, imagery = [], []
     for b, label in enumerate(meta.labels):
         items = {"DESCRIPTION": label}
+        if meta.units is not None:
+            items["UNITTYPE"] = meta.units   # GDAL's band unit (rasterio .units, QGIS's band info)
         standard = {}
         if meta.wavelengths is not None:
             items.update(wavelength=f"{meta.wavelengths[b]:.4f}", wavelength_units="nm")

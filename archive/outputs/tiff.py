@@ -235,13 +235,14 @@ def _geokeys(epsg: int) -> list[int]:
 def gdal_metadata(dataset: dict[str, str], bands: Sequence[dict[str, str]],
                   band_domains: Sequence[dict[str, dict[str, str]]] | None = None) -> str:
     """GDAL's GDAL_METADATA XML: dataset items, then per band (``sample`` 0-based) its items; a band
-    item named DESCRIPTION is the band description (``role="description"``). ``band_domains``: per
+    item named DESCRIPTION is the band description (``role="description"``), UNITTYPE its unit
+    (``role="unittype"``). ``band_domains``: per
     band, ``{domain: {name: value}}`` written with ``domain="..."`` (e.g. GDAL's standard IMAGERY
     items ``CENTRAL_WAVELENGTH_UM`` and ``FWHM_UM``, which GDAL >= 3.10 reports as the band's)."""
     items = [f'<Item name="{escape(k)}">{escape(v)}</Item>' for k, v in dataset.items()]
     for i, band in enumerate(bands):
         for k, v in band.items():
-            role = ' role="description"' if k == "DESCRIPTION" else ""
+            role = {"DESCRIPTION": ' role="description"', "UNITTYPE": ' role="unittype"'}.get(k, "")
             items.append(f'<Item name="{escape(k)}" sample="{i}"{role}>{escape(v)}</Item>')
         for domain, domain_items in (band_domains[i] if band_domains else {}).items():
             for k, v in domain_items.items():

@@ -23,7 +23,7 @@ import numpy as np
 from archive.codecs import numcodecs_blosc
 from archive.files import write_atomic
 from archive.grid import Grid
-from archive.outputs.base import CHUNK, OutputMeta, Sink, TileWriter, check_bands, chunk_buffer
+from archive.outputs.base import CHUNK, VARIABLE_UNITS, OutputMeta, Sink, TileWriter, check_bands, chunk_buffer
 from archive.outputs.layers import layer_attrs, layers_metadata
 from archive.outputs.zarr_metadata import ArraySpec, add_arrays, write_store
 
@@ -119,8 +119,6 @@ class ChunkWriter:
         write_atomic(path, data)
 
 
-#: CF ``units`` of the data variable by name (UDUNITS: "1" for counts and ratios); radiance has none.
-_CF_UNITS = {"dn": "1", "relative": "1", "reflectance": "1"}
 
 
 #: Zarr-conventions declarations (``zarr_conventions`` attribute) of the GeoZarr ``proj:`` and
@@ -186,8 +184,8 @@ _SATURATED_ATTRS = {"long_name": "saturated", "flag_values": [0, 1], "flag_meani
 
 def _values_attrs(variable: str) -> dict:
     attrs = {"long_name": variable, "_description": "NaN where no image line covers the pixel"}
-    if variable in _CF_UNITS:  # radiance is in the calibration's units, which it does not name
-        attrs["units"] = _CF_UNITS[variable]
+    if variable in VARIABLE_UNITS:  # CF units; GDAL's Zarr driver shows them as the band unit
+        attrs["units"] = VARIABLE_UNITS[variable]
     return attrs
 
 
@@ -217,6 +215,7 @@ def mosaic_dataset(grid: Grid, values, saturated, band_indices: Sequence[int],
         coords["fwhm"] = ("band", np.asarray(fwhm, dtype=np.float64))
     ds = xr.Dataset({variable: (("band", "y", "x"), values), "saturated": (("y", "x"), saturated)}, coords=coords)
     ds[variable].attrs.update(_values_attrs(variable))
+    ds[variable].encoding["_FillValue"] = np.float32(np.nan)   # NaN is nodata: .rio.nodata, GDAL, to_zarr
     ds["saturated"].attrs.update(_SATURATED_ATTRS)
     ds["band"].attrs.update(_BAND_ATTRS)
     if wavelengths is not None:
