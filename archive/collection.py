@@ -23,6 +23,9 @@ Layout of ``<ARCHIVE>/collections/<id>.zarr`` (axis orders in brackets)::
     dark          [cube, band, sample]  calibration dark of each cube, float32 (only with a calibration)
     gain          [set, band, sample]   calibration gain, float32; cube k uses gain[gain_index[k]]
     gain_index    [cube]
+    downwelling   [cube, band]          the sky spectrometer's X per cube on the camera's bands (microflicks:
+                  a white panel's radiance; only for flights with downwelling spectra, issue 34); the
+                  attribute ``downwelling`` names the spectra and the .dcp (also in ``sources``, hashed)
 
 Group attributes hold the id, software version, field of view, ground height, the local frame,
 every cube's full header metadata, the source files (name, size, sha256), calibration reference
@@ -578,6 +581,19 @@ def read_poses(store: str | os.PathLike) -> StoredPoses:
     return StoredPoses(group["time"][...], group["position"][...], Rotation.from_quat(group["attitude"][...]),
                        tuple(int(v) for v in group["dn"].shape), _band_values(group, "wavelength"),
                        _band_values(group, "fwhm"))
+
+
+def read_downwelling(store: str | os.PathLike) -> np.ndarray | None:
+    """(cubes, bands) stored downwelling X (microflicks) of a collection, None when it has none."""
+    group = zarr.open_group(store, mode="r")
+    if "downwelling" not in group:
+        return None
+    x = np.asarray(group["downwelling"][...], np.float64)
+    digest = (group.attrs.get("array_sha256") or {}).get("downwelling")
+    if digest is not None and array_digest(x) != digest:
+        raise CorruptChunkError(store, "array 'downwelling' does not match its recorded sha256",
+                                "run `archive verify` and re-ingest the flight")
+    return x
 
 
 class StoredCalibration:

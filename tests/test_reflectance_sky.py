@@ -171,3 +171,27 @@ def test_the_command_renders_reflectance_and_records_the_sky(flight, tmp_path):
     cubes = record["flights"][0]["cubes"]
     assert [c["changed"] for c in cubes] == [True, False, True, False]
     assert record["summary"]["max_separable_error"] < 1e-9      # a grey sky: exact
+
+
+def test_ingest_keeps_the_sky_and_the_collection_renders_the_same(flight, tmp_path):
+    """The collection stores X per cube (checksummed) and the spectra among its source files; its
+    reflectance terms equal the raw flight's; a collection without spectra refuses by name."""
+    from archive.collection import read_attrs
+    from archive.ingest.command import ingest
+    from archive.sources import open_source
+
+    truth, source = flight[0], flight[1]
+    ingest([str(truth.directory)], str(tmp_path / "arc"), truth.fov_deg, progress=False)
+    (cid,) = [p.name[:-5] for p in (tmp_path / "arc" / "collections").glob("*.zarr")]
+    coll = open_source(cid, NavigationParams(fov_deg=truth.fov_deg), archive=tmp_path / "arc")
+    names = {s["name"] for s in read_attrs(coll.store)["sources"]}
+    assert {"downwelling.dcp", "sim_downwelling_1_pre.spec", "sim_downwelling_1_pre.spec.hdr"} <= names
+    for k in range(len(source.cubes)):
+        a, b = coll.radiometry(k, BANDS_USED, "reflectance"), source.radiometry(k, BANDS_USED, "reflectance")
+        np.testing.assert_array_equal(a.gain, b.gain)
+        np.testing.assert_array_equal(a.response, b.response)
+    plain = _copy(flight, tmp_path / "p", drop=("*.spec", "*.spec.hdr", "*.dcp"))
+    ingest([str(plain.directory)], str(tmp_path / "arc2"), truth.fov_deg, progress=False)
+    coll = open_source(cid, NavigationParams(fov_deg=truth.fov_deg), archive=tmp_path / "arc2")
+    with pytest.raises(InputError, match="neither"):
+        coll.radiometry(0, [0], "reflectance")

@@ -187,6 +187,13 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
         arrays["navigation_use"] = np.concatenate([np.ones(len(lcf.time), np.uint8) if lcf.use is None
                                                    else lcf.use.astype(np.uint8) for lcf in lcfs])
         dims["navigation_use"] = ("nav_sample",)
+    downwelling = None
+    if src.downwelling.present:   # the sky spectrometer's X per cube on the bands (issue 34)
+        sky = src.sky()           # a missing or garbled .spec / .dcp is refused here, naming it
+        arrays["downwelling"] = np.stack([c.x_bands for c in sky.cubes]).astype(np.float64)
+        dims["downwelling"] = ("cube", "band")
+        downwelling = {"calibration": Path(sky.calibration).name, "spectra": [Path(c.spec).name for c in sky.cubes],
+                       "shift_nm": [c.shift_nm for c in sky.cubes]}
     if cal is not None:
         arrays["dark"] = np.stack(darks).astype(np.float32)
         arrays["gain"] = np.stack(gains).astype(np.float32)
@@ -215,6 +222,14 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
             names[str(p)] = p.name
     if src.calibration_path is not None:
         p = Path(src.calibration_path)
+        sources.append((str(p), p.stat().st_size))
+        names[str(p)] = p.name
+    if downwelling is not None:   # checksummed like the cubes' files
+        for p in [q for q, f in zip(src.downwelling.specs, src.downwelling.found, strict=True) if f]:
+            for q in (p, p.with_name(p.name + ".hdr")):
+                sources.append((str(q), q.stat().st_size))
+                names[str(q)] = q.name
+        p = src.downwelling.calibration
         sources.append((str(p), p.stat().st_size))
         names[str(p)] = p.name
     cubes = [{
@@ -249,6 +264,8 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
     }
     if terrain is not None:
         attrs["terrain"] = terrain
+    if downwelling is not None:
+        attrs["downwelling"] = downwelling
     return StorePlan(cid=cid, arrays=arrays, attrs=attrs, data_files=[str(f.data) for f in files],
                      cube_lines=[h.lines for h in headers], bands=first.bands, samples=first.samples,
                      dtype=first.dtype.newbyteorder("<"), sources=sources, dims=dims)

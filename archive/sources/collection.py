@@ -8,10 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from archive.collection import CheckedDn, StoredCalibration, read_info
+from archive.collection import CheckedDn, StoredCalibration, read_downwelling, read_info
+from archive.errors import InputError
 from archive.formats.envi import EnviHeader
 from archive.params import NavigationParams
 from archive.sources.base import CubeInfo, Radiometry, band_list, check_mode, radiometry_for
+from archive.sources.irradiance import CubeIrradiance, SkyIrradiance
 from archive.sources.navigation import CubeNavigation, FlightNavigation, NavigatedSource
 
 __all__ = ["CollectionSource"]
@@ -111,6 +113,24 @@ class CollectionSource(NavigatedSource):
             return dark, gain, float(cal["shutter_cal"]), float(cal["gain_cal"])
 
         white = white_reference if white_reference is not None else self.white_reference
+        sky = None
+        if mode == "reflectance" and white is None and self.info.attrs.get("downwelling"):
+            def sky():
+                spectrum, factor, _ = self.sky().cube_terms(self.line_times(cube), idx, self._where(cube))
+                return spectrum, factor
         return radiometry_for(h, idx, mode, None if cal is None else calibration, white, self.label,
                               ("needs a radiometric calibration and none was ingested",
-                               "re-ingest with --calibration FILE.icp, or use --mode raw"))
+                               "re-ingest with --calibration FILE.icp, or use --mode raw"), sky=sky)
+
+    def sky(self) -> SkyIrradiance:
+        """The downwelling irradiance stored at ingest, stamped at each cube's first line with this
+        source's navigation parameters (InputError when the collection has none)."""
+        record = self.info.attrs.get("downwelling")
+        x = read_downwelling(self.store) if record else None
+        if x is None:
+            raise InputError(self.label, "was ingested without downwelling spectra",
+                             "pass --white-reference FILE, or re-ingest the flight with its .spec files and .dcp")
+        return SkyIrradiance(tuple(CubeIrradiance(name, float(self.navigation.first_time(i)), x[i], shift, 0)
+                                   for i, (name, shift) in enumerate(zip(record["spectra"], record["shift_nm"],
+                                                                         strict=True))),
+                             record["calibration"])
