@@ -366,17 +366,33 @@ def test_odc_stac_loads_envi_from_its_item(rendered):
     item = pystac.Item.from_file(str(path))
     assert Path(item.assets["data"].get_absolute_href()) == out.with_suffix("")
     assert Path(item.assets["header"].get_absolute_href()) == out
+    assert item.assets["data"].media_type == "image/x-envi" and item.assets["header"].media_type == "text/plain"
     with rasterio.open(out.with_suffix("")) as ds:
         values, transform = ds.read(), ds.transform
-    odc.stac.configure_rio(GDAL_DISABLE_READDIR_ON_OPEN="FALSE")
+    odc.stac.configure_rio(GDAL_DISABLE_READDIR_ON_OPEN="FALSE")   # the README's recipe, as written there
     try:
-        loaded = odc.stac.load([item])
+        loaded = odc.stac.load([pystac.Item.from_file(str(path))])
     finally:
         odc.stac.configure_rio(GDAL_DISABLE_READDIR_ON_OPEN="EMPTY_DIR")
     assert loaded.odc.geobox.crs.epsg == planned.plan.grid.epsg
     assert tuple(loaded.odc.geobox.affine)[:6] == pytest.approx(tuple(transform)[:6], abs=1e-9)
     for b, name in enumerate(loaded.data_vars):
         np.testing.assert_array_equal(loaded[name].values[0].view(np.uint32), values[b].view(np.uint32))
+
+
+def test_every_asset_has_a_media_type(rendered):
+    """Loaders pick assets by media type (issue 36): no asset of an output Item goes without one."""
+    outputs, _, _ = rendered
+    for fmt, (_, path) in outputs.items():
+        item = pystac.Item.from_file(str(path))
+        assert all(a.media_type for a in item.assets.values()), (fmt, {k: a.media_type for k, a in item.assets.items()})
+
+
+def test_readme_gives_the_odc_stac_envi_recipe():
+    """The README's recipe is the one the ENVI test above runs (configure_rio, not the environment)."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    assert 'odc.stac.configure_rio(GDAL_DISABLE_READDIR_ON_OPEN="FALSE")' in readme
+    assert "with `GDAL_DISABLE_READDIR_ON_OPEN=FALSE`, an ENVI" not in readme
 
 
 def test_grid_footprint(rendered_cog):
@@ -417,10 +433,11 @@ def _write_geotiff(path: Path, count: int) -> None:
 
 
 def test_product_items_of_every_format(tmp_path):
-    # ENVI: the data file and the header, two assets; no media type for ENVI data (none registered)
+    # ENVI: the data file and the header, two assets; ENVI data has no registered media type: image/x-envi
     envi = _item(tmp_path / "m.hdr", "envi")
     assert validate(envi)[0] == CORE_SCHEMAS["Feature"]
-    assert envi["id"] == "m.hdr" and envi["assets"]["data"]["href"] == "./m" and "type" not in envi["assets"]["data"]
+    assert envi["id"] == "m.hdr" and envi["assets"]["data"]["href"] == "./m"
+    assert envi["assets"]["data"]["type"] == "image/x-envi"
     assert envi["assets"]["header"] == {"href": "./m.hdr", "type": "text/plain", "title": "ENVI header",
                                         "roles": ["metadata"]}
     eo = envi["assets"]["data"]["eo:bands"]

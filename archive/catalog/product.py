@@ -51,6 +51,9 @@ from archive.errors import InputError, MissingInputError
 COG_MEDIA_TYPE = "image/tiff; application=geotiff; profile=cloud-optimized"
 GEOTIFF_MEDIA_TYPE = "image/tiff; application=geotiff"
 TEXT_MEDIA_TYPE = "text/plain"
+#: ENVI has no registered media type: an unregistered image type, so that loaders which go by the
+#: media type (odc-stac: image/* is raster) take the data file, whose header GDAL finds beside it.
+ENVI_MEDIA_TYPE = "image/x-envi"
 #: Output format names (as :data:`archive.outputs.FORMATS` gives them) -> file suffix.
 FORMATS = {"zarr": ".zarr", "cog": ".tif", "envi": ".hdr"}
 #: processing:level of a rendered output, by its data variable.
@@ -169,7 +172,8 @@ def _provenance(provenance: Path, out: Path, fmt: str, variable: str, grid, item
         data = provenance.with_suffix("")
         bands, names = _raster_file_bands(data)
         assets = {
-            "provenance": {"href": _href(data, item_dir), "title": "Provenance layers (ENVI BSQ data)",
+            "provenance": {"href": _href(data, item_dir), "type": ENVI_MEDIA_TYPE,
+                           "title": "Provenance layers (ENVI BSQ data)",
                            "roles": ["metadata"], **_grid_fields(grid), "raster:bands": bands, "archive:layers": names},
             "provenance_header": {"href": _href(provenance, item_dir), "type": TEXT_MEDIA_TYPE,
                                   "title": "ENVI header of the provenance layers", "roles": ["metadata"]},
@@ -234,9 +238,7 @@ def product_item(out: str | os.PathLike, *, fmt: str, grid, band_indices: Sequen
     elif fmt == "envi":
         if out.suffix != ".hdr":
             raise InputError(out, "an ENVI output is named by its header, PATH.hdr")
-        # No registered media type for ENVI: left out, so that loaders go by the 'data' role (GDAL's
-        # ENVI driver finds the header beside the data file).
-        assets["data"] = {"href": _href(out.with_suffix(""), item_dir),
+        assets["data"] = {"href": _href(out.with_suffix(""), item_dir), "type": ENVI_MEDIA_TYPE,
                           "title": f"{variable} (ENVI BSQ, float32 little-endian, NaN where not covered)", **data}
         assets["header"] = {"href": _href(out, item_dir), "type": TEXT_MEDIA_TYPE, "title": "ENVI header",
                             "roles": ["metadata"]}
