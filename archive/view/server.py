@@ -25,6 +25,11 @@ trace):
 - ``GET /api/collections/{id}/stats?bbox=&wavelengths=&mode=&percentiles=2,98`` per band
   percentiles of the view;
 - ``GET /api/status`` counters, cache sizes and the server's resident memory;
+- ``GET /api/stacks`` the time stacks served (``--stack X.zarr``): name, time steps (flight,
+  start), bands, grid, footprint; ``GET /api/stacks/{name}/tiles/{z}/{x}/{y}.png?time=T&bands=I,J,K``
+  a tile of time step T (2-98 % stretch of that step), ``.../values/{z}/{x}/{y}?time=&bands=`` its
+  float32 planes (each tile pixel the stack pixel under its centre: the Zarr's values),
+  ``.../point?lon=&lat=&time=`` the spectrum of the stack pixel there (:mod:`archive.view.stacks`);
 - ``/stac/...`` the STAC API of the archive's catalog (:mod:`archive.catalog.api`).
 
 All drawing runs on one render thread (:class:`~archive.view.worker.RenderThread`), the latest view
@@ -186,9 +191,10 @@ def registry_gsd(registry: FlightRegistry, cid: str) -> float:
 
 # ---- the app ----------------------------------------------------------------------------------
 def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CACHE_MB << 20) // 4,
-               allowed_hosts: tuple[str, ...] | None = None):
+               allowed_hosts: tuple[str, ...] | None = None, stacks: dict | None = None):
     """The Starlette application serving ``registry``'s flights. allowed_hosts: Host header names
-    accepted (None: any), e.g. the loopback names when bound to loopback."""
+    accepted (None: any), e.g. the loopback names when bound to loopback; stacks: the time stacks
+    served, by name (:func:`archive.view.stacks.open_stacks`)."""
     from contextlib import asynccontextmanager
 
     from starlette.applications import Starlette
@@ -353,6 +359,47 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
     async def status(request):
         return JSONResponse(viewer.status())
 
+    stacks = dict(stacks or {})
+
+    def stack_of(request):
+        name = request.path_params["name"]
+        if name not in stacks:
+            raise MissingInputError(name, "stack", "open one of /api/stacks")
+        return stacks[name]
+
+    async def stack_list(request):
+        return JSONResponse({"stacks": [await run_in_threadpool(v.info) for v in stacks.values()]})
+
+    def stack_tile_args(request):
+        from archive.view.stacks import default_bands, parse_bands
+
+        view = stack_of(request)
+        z, x, y = (request.path_params[k] for k in ("z", "x", "y"))
+        p = request.query_params
+        return view, z, x, y, p.get("time", "0"), parse_bands(p.get("bands"), default_bands(view))
+
+    async def stack_tile(request):
+        view, *args = stack_tile_args(request)
+        png = await run_in_threadpool(view.png, *args)
+        return Response(status_code=204) if png is None else Response(png, media_type="image/png")
+
+    async def stack_values(request):
+        view, *args = stack_tile_args(request)
+        planes = await run_in_threadpool(view.values, *args)
+        if planes is None:
+            return Response(status_code=204)
+        return Response(planes.astype("<f4").tobytes(), media_type="application/octet-stream",
+                        headers={"X-Bands": str(planes.shape[0])})
+
+    async def stack_point(request):
+        p = request.query_params
+        lon, lat = parse_number(p, "lon", -180.0, 180.0), parse_number(p, "lat", -90.0, 90.0)
+        if lon is None or lat is None:
+            raise InputError("lon/lat", "a point needs lon and lat, degrees")
+        found = await run_in_threadpool(stack_of(request).point, lon, lat, p.get("time", "0"))
+        return JSONResponse(found if found is not None else {"error": "no stack pixel there", "status": 404},
+                            status_code=200 if found is not None else 404)
+
     @asynccontextmanager
     async def lifespan(app):
         yield
@@ -369,6 +416,10 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
         Route("/api/collections/{cid}/outline", outline),
         Route("/api/collections/{cid}/point", point),
         Route("/api/collections/{cid}/stats", stats),
+        Route("/api/stacks", stack_list),
+        Route("/api/stacks/{name}/tiles/{z:int}/{x:int}/{y:int}.png", stack_tile),
+        Route("/api/stacks/{name}/values/{z:int}/{x:int}/{y:int}", stack_values),
+        Route("/api/stacks/{name}/point", stack_point),
         Mount("/static", StaticFiles(directory=str(static)), name="static"),
         *stac_routes(None if registry.archive is None else ArchiveRoot(registry.archive.path)),
     ]
@@ -427,7 +478,7 @@ def url_of(sock: socket.socket) -> str:
 
 
 def serve(registry: FlightRegistry, host: str = "127.0.0.1", port: int = 8000, *, allow_remote: bool = False,
-          cache_mb: int = DEFAULT_CACHE_MB, announce=print, ready=None) -> None:
+          cache_mb: int = DEFAULT_CACHE_MB, announce=print, ready=None, stacks: dict | None = None) -> None:
     """Serve ``registry`` until interrupted. ``announce(text)`` is told the URL once listening;
     ``ready(server)`` (optional) gets the uvicorn Server (tests stop it with ``should_exit``)."""
     import uvicorn
@@ -435,7 +486,7 @@ def serve(registry: FlightRegistry, host: str = "127.0.0.1", port: int = 8000, *
     check_host(host, allow_remote)
     sock = _bind(host, int(port))
     allowed = (*LOOPBACK_NAMES, host) if is_loopback(host) else None
-    app = create_app(registry, tile_cache_bytes=(cache_mb << 20) // 4, allowed_hosts=allowed)
+    app = create_app(registry, tile_cache_bytes=(cache_mb << 20) // 4, allowed_hosts=allowed, stacks=stacks)
     config = uvicorn.Config(app, log_level="warning", access_log=False, lifespan="on",
                             timeout_graceful_shutdown=3)
     server = uvicorn.Server(config)
@@ -460,13 +511,16 @@ def run(args: argparse.Namespace) -> int:
     registry = FlightRegistry(args.archive, args.directories, args.fov, bands_cache=ByteLRU(cache // 2),
                               lookup_cache=ByteLRU(cache // 4))
     count = len(registry.catalog_ids()) + len(registry.raw)
+    from archive.view.stacks import open_stacks
+
+    stacks = open_stacks(getattr(args, "stack", None))
 
     def announce(url: str) -> None:
         print(f"archive view: {count} flight{'s' if count != 1 else ''} at {url}  (Ctrl-C stops)", flush=True)
 
     try:
         serve(registry, args.host, args.port, allow_remote=args.allow_remote, cache_mb=args.cache_mb,
-              announce=announce)
+              announce=announce, stacks=stacks)
     except KeyboardInterrupt:  # Ctrl-C is how a viewer is stopped: uvicorn has shut down cleanly
         pass
     print("archive view: stopped", flush=True)
