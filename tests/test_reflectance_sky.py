@@ -195,3 +195,17 @@ def test_ingest_keeps_the_sky_and_the_collection_renders_the_same(flight, tmp_pa
     coll = open_source(cid, NavigationParams(fov_deg=truth.fov_deg), archive=tmp_path / "arc2")
     with pytest.raises(InputError, match="neither"):
         coll.radiometry(0, [0], "reflectance")
+
+
+def test_a_dcp_kept_elsewhere(flight, tmp_path):
+    """--irradiance-calibration (open_source's irradiance_calibration): the pack outside the flight."""
+    from archive.sources import open_source
+
+    src = _copy(flight, tmp_path / "a", drop=("*.dcp",))
+    pack = shutil.copy(flight[0].directory / "downwelling.dcp", tmp_path / "elsewhere.dcp")
+    moved = open_source(src.directory, NavigationParams(fov_deg=flight[0].fov_deg), irradiance_calibration=pack)
+    a, b = moved.radiometry(1, [0, 9], "reflectance"), flight[1].radiometry(1, [0, 9], "reflectance")
+    np.testing.assert_array_equal(a.gain, b.gain)
+    np.testing.assert_array_equal(a.response, b.response)
+    with pytest.raises(MissingInputError, match="nowhere.dcp"):
+        open_source(src.directory, NavigationParams(fov_deg=47.5), irradiance_calibration=tmp_path / "nowhere.dcp")

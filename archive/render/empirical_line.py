@@ -26,7 +26,8 @@ from archive.errors import FormatError, InputError, MissingInputError
 from archive.render.reference import reference_values
 from archive.sources.base import Radiometry
 
-__all__ = ["EmpiricalLine", "Panel", "empirical_radiometry", "fit_empirical_line", "read_panels"]
+__all__ = ["EmpiricalLine", "Panel", "PanelledSource", "empirical_radiometry", "fit_empirical_line", "panelled",
+           "read_panels"]
 
 _MAX_BYTES = 16 << 20
 
@@ -174,3 +175,50 @@ def empirical_radiometry(radiance: Radiometry, line: EmpiricalLine, bands_in_fit
     gain = np.asarray(radiance.gain, np.float64) * a
     dark = np.asarray(radiance.dark, np.float64) - c * (resp[0] if resp.size else 1.0) / gain
     return Radiometry(dark.astype(np.float32), gain.astype(np.float32), radiance.response, radiance.saturation)
+
+
+class PanelledSource:
+    """A flight source whose 'reflectance' is the empirical line fitted on it (:func:`panelled`);
+    every other mode and attribute is the wrapped source's. Picklable, tokenized by the wrapped
+    source and the fit."""
+
+    def __init__(self, inner, bands, line: EmpiricalLine):
+        self.inner = inner
+        self.fit = {int(b): (float(line.a[i]), float(line.c[i])) for i, b in enumerate(bands)}
+        self.line = line
+
+    def __getstate__(self) -> dict:
+        return self.__dict__.copy()
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+
+    def __getattr__(self, name: str):
+        if name.startswith("__") or name in ("inner", "fit", "line"):
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+    def __repr__(self) -> str:
+        return f"PanelledSource({self.inner!r})"
+
+    def __dask_tokenize__(self):
+        from dask.base import tokenize
+
+        return ("PanelledSource", tokenize(self.inner), sorted(self.fit.items()))
+
+    def radiometry(self, cube: int, bands, mode: str, white_reference=None) -> Radiometry:
+        if mode != "reflectance":
+            return self.inner.radiometry(cube, bands, mode, white_reference)
+        missing = [b for b in bands if int(b) not in self.fit]
+        if missing:
+            raise InputError("--panels", f"bands {missing} were not fitted on the panels")
+        a = np.array([self.fit[int(b)][0] for b in bands])
+        c = np.array([self.fit[int(b)][1] for b in bands])
+        one = EmpiricalLine(a, c, self.line.radiance, self.line.reflectance, self.line.pixels)
+        return empirical_radiometry(self.inner.radiometry(cube, bands, "radiance"), one, range(len(bands)))
+
+
+def panelled(source, meshes: dict, bands, panels_path: str | os.PathLike) -> PanelledSource:
+    """``source`` with reflectance from the panels of ``panels_path`` (fitted on ``bands``)."""
+    return PanelledSource(source, list(bands), fit_empirical_line(source, meshes, list(bands),
+                                                                  read_panels(panels_path)))

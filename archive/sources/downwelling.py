@@ -89,7 +89,7 @@ class DownwellingFiles:
         return SkyIrradiance(tuple(cubes), str(self.calibration))
 
 
-def reflectance_record(sources, white_reference: str | None) -> dict:
+def reflectance_record(sources, white_reference: str | None, panels: str | None = None) -> dict:
     """What a reflectance output was divided by, for its STAC Item (``archive:reflectance``): the
     white reference file, or per flight the sky spectrometer's QA
     (:meth:`archive.sources.irradiance.SkyIrradiance.qa`: per cube the change of irradiance within it,
@@ -97,6 +97,11 @@ def reflectance_record(sources, white_reference: str | None) -> dict:
     form's error, the Fraunhofer wavelength check)."""
     if white_reference:
         return {"source": "white_reference", "file": str(white_reference)}
+    if panels:   # the empirical line: its fit per flight (a, c per band of the flight)
+        return {"source": "panels", "file": str(panels),
+                "flights": [{"id": s.id, "bands": sorted(s.fit), "a": [s.fit[b][0] for b in sorted(s.fit)],
+                             "c": [s.fit[b][1] for b in sorted(s.fit)], "panel_pixels": s.line.pixels.tolist()}
+                            for s in sources]}
     flights = []
     for s in sources:
         sky = getattr(s, "sky", None)

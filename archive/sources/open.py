@@ -21,19 +21,25 @@ __all__ = ["collection_fov", "open_source"]
 def open_source(path_or_id: str | os.PathLike, params: NavigationParams,
                 calibration: str | os.PathLike | None = None,
                 white_reference: np.ndarray | None = None,
-                archive: str | os.PathLike | None = None) -> FlightSource:
+                archive: str | os.PathLike | None = None,
+                irradiance_calibration: str | os.PathLike | None = None) -> FlightSource:
     """A flight source: a raw flight directory, or a collection id in ``archive``.
 
     A directory wins over a collection of the same name. A collection carries its own calibration,
-    so ``calibration`` must be None for one.
+    so ``calibration`` must be None for one; likewise its downwelling spectra
+    (``irradiance_calibration``: a raw flight's ``.dcp`` kept elsewhere).
     """
     path = Path(path_or_id)
     if path.is_dir():
-        return RawFlightSource(path.absolute(), params, calibration=calibration, white_reference=white_reference)
+        return RawFlightSource(path.absolute(), params, calibration=calibration, white_reference=white_reference,
+                               irradiance_calibration=irradiance_calibration)
     if archive is not None and not path.exists():
         if calibration is not None:
             raise InputError("--calibration", f"collection {path_or_id} carries the calibration it was "
                              "ingested with", "leave out --calibration, or re-ingest with another .icp")
+        if irradiance_calibration is not None:
+            raise InputError("--irradiance-calibration", f"collection {path_or_id} carries the downwelling "
+                             "irradiance it was ingested with", "leave it out, or re-ingest the flight")
         store = open_root(archive).require_collection(str(path_or_id))
         return CollectionSource(store, str(path_or_id), params, white_reference=white_reference)
     if path.exists():
