@@ -192,6 +192,12 @@ def _add_render(sub) -> None:
                    help="radiometric mode (default radiance; raw DN, with a note, when the flight has no calibration)")
     p.add_argument("--white-reference", metavar="FILE",
                    help="white reference for --mode reflectance: text file of two columns, wavelength (nm) and radiance")
+    p.add_argument("--irradiance-calibration", metavar="FILE.dcp",
+                   help="the downwelling spectrometer's calibration pack when it is not in the flight directory "
+                        "(--mode reflectance without --white-reference divides by the flight's sky spectra)")
+    p.add_argument("--panels", metavar="FILE.geojson",
+                   help="--mode reflectance by the empirical line: polygons (lon, lat) of panels with properties "
+                        "'reflectance' (a number or a list) and 'wavelengths' (nm); two panels or more")
     p.add_argument("--sync-offset", type=float, default=None, metavar="S",
                    help="camera-to-navigation time offset, seconds (default: as ingested for a collection, else 0)")
     _add_mounting(p, recorded=True)

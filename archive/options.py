@@ -142,6 +142,8 @@ class RenderOptions:
     bands: str | tuple[int, ...] = "all"
     mode: str | None = None
     white_reference: str | None = None
+    irradiance_calibration: str | None = None
+    panels: str | None = None
     sync_offset: float | None = None
     boresight: tuple[float, float, float] | None = None
     lever_arm: tuple[float, float, float] | None = None
@@ -158,7 +160,8 @@ class RenderOptions:
 
     @classmethod
     def create(cls, sources, *, gsd=None, archive=None, fov=None, calibration=None, ground_height="auto",
-               wavelengths=None, bands="all", mode=None, white_reference=None, sync_offset=None,
+               wavelengths=None, bands="all", mode=None, white_reference=None, irradiance_calibration=None,
+               panels=None, sync_offset=None,
                boresight=None, lever_arm=None, overlap="last", crs=None,
                max_view_angle=DEFAULT_MAX_VIEW_ANGLE, dem=None, dem_datum=None, provenance=False,
                zarr_format=2, bounds=None, align=False, like=None) -> RenderOptions:
@@ -180,6 +183,8 @@ class RenderOptions:
             ground_height="auto" if ground_height is None else ground_height,
             wavelengths=_wavelength_list(wavelengths), bands=parse_bands(bands), mode=mode,
             white_reference=fspath(white_reference),
+            irradiance_calibration=None if irradiance_calibration is None else os.path.abspath(irradiance_calibration),
+            panels=None if panels is None else os.path.abspath(panels),
             sync_offset=_number(sync_offset, "--sync-offset", "seconds"),
             boresight=_triple(boresight, "--boresight"), lever_arm=_triple(lever_arm, "--lever-arm"),
             overlap=overlap, crs=None if crs is None else str(crs),
@@ -229,6 +234,9 @@ class RenderOptions:
                              "pixel, so its provenance layers cannot be written",
                              f"use --overlap {' or '.join(WINNER_RULES)} with --provenance")
         # reflectance without --white-reference: the flight's downwelling spectra, else the source refuses
+        if self.panels and (self.mode != "reflectance" or self.white_reference or self.dem):
+            raise InputError("--panels", "fits the empirical line of --mode reflectance on a flat ground",
+                             "use --panels with --mode reflectance, without --white-reference or --dem")
         _check_dem(self)
         if self.like is not None and (self.bounds is not None or self.align):
             raise InputError("--like", f"takes the whole grid of {self.like}, so --bounds and --align have nothing "

@@ -122,7 +122,8 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
 
     def opened(src, white=None):
         return open_source(Path(src).absolute() if Path(src).is_dir() else src, nav, calibration=options.calibration,
-                           white_reference=white, archive=archive)
+                           white_reference=white, archive=archive,
+                           irradiance_calibration=options.irradiance_calibration)
 
     sources = [opened(src) for src in options.sources]
     if options.white_reference:   # interpolated to each source's wavelengths: opened again with it
@@ -136,6 +137,12 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
     if mode == "radiance" and uncalibrated and not options.calibration:
         say(f"archive render: {uncalibrated[0].label} has no radiometric calibration (*.icp): rendering raw DN")
         mode = "raw"
+    if options.panels:   # the empirical line, fitted per flight on its selected bands (issue 34)
+        from archive.render.empirical_line import panelled
+
+        sources = [panelled(s, dict(enumerate(cube_meshes(s, nav.fov_deg, resolve_ground_height(
+            options.ground_height, [s]), float(options.max_view_angle)))), b, options.panels)
+            for s, b in zip(sources, bands)]
     for s, b in zip(sources, bands):
         s.radiometry(0, b[:1], mode)  # mode problems (calibration, white reference) surface now
     from archive.dem import DemSpec
@@ -326,7 +333,7 @@ def input_versions(options, source: str) -> list[dict]:
     elif options.archive is not None:
         store = Path(options.archive) / "collections" / f"{source}.zarr"
         entries.append({"source": str(source), **(content_version(store) or {"version": None})})
-    for name in ("calibration", "white_reference", "dem"):
+    for name in ("calibration", "white_reference", "dem", "irradiance_calibration", "panels"):
         value = getattr(options, name, None)
         if value:
             entries.append({"option": name, **_file_stamp(value)})
@@ -379,7 +386,8 @@ def product_item(planned: OutputPlan, output: Output, options: RenderOptions,
     if planned.params.mode == "reflectance":   # what it was divided by, and the sky's QA (issue 34)
         from archive.sources.downwelling import reflectance_record
 
-        doc["properties"]["archive:reflectance"] = reflectance_record(planned.sources, options.white_reference)
+        doc["properties"]["archive:reflectance"] = reflectance_record(planned.sources, options.white_reference,
+                                                                     options.panels)
     return doc
 
 

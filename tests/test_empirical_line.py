@@ -70,18 +70,32 @@ def test_two_panels_give_reflectance_within_2_percent(tmp_path):
             assert np.all(np.abs(rel) < 0.02), (p["name"], rel)
             checked += 1
     assert checked >= 2
+    # the command: --mode reflectance --panels FILE, the fit recorded in the output's Item
+    import subprocess
+    import sys
 
+    import rasterio
 
-def test_panels_file_errors_name_the_feature(tmp_path):
-    bad = tmp_path / "bad.geojson"
-    bad.write_text(json.dumps({"type": "FeatureCollection", "features": [
-        {"type": "Feature", "geometry": {"type": "Point", "coordinates": [0, 0]}, "properties": {"reflectance": 0.5}}]}))
-    with pytest.raises(FormatError, match="feature 0.*Polygon"):
-        read_panels(bad)
-    bad.write_text("{not json")
-    with pytest.raises(FormatError, match="bad.geojson"):
-        read_panels(bad)
-    one = tmp_path / "one.geojson"
-    one.write_text(json.dumps({"type": "FeatureCollection", "features": []}))
-    with pytest.raises(InputError, match="features"):
-        read_panels(one)
+    out = tmp_path / "refl.tif"
+    done = subprocess.run([sys.executable, "-m", "archive", "render", str(directory), "--fov", "47.5", "--gsd",
+                           str(grid.gsd), "--mode", "reflectance", "--panels", str(tmp_path / "panels.geojson"),
+                           "--out", str(out), "--quiet"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    record = json.loads(out.with_name(out.name + ".json").read_text())["properties"]["archive:reflectance"]
+    assert record["source"] == "panels"
+    np.testing.assert_allclose(record["flights"][0]["a"], line.a, rtol=1e-9)
+    with rasterio.open(out) as ds:
+        values = ds.read()
+        t = ds.transform
+    ex, ny = np.meshgrid(t.c + (np.arange(values.shape[2]) + 0.5) * t.a, t.f + (np.arange(values.shape[1]) + 0.5) * t.e)
+    seen = 0
+    for p in ordered[1:-1]:
+        w, s, e, n = p["interior"]
+        m = 1.5 * grid.gsd
+        use = (ex > w + m) & (ex < e - m) & (ny > s + m) & (ny < n - m) & ~np.isnan(values[0])
+        if use.sum() < 10:
+            continue
+        expected = truth_reflectance(truth, np.array([(w + e) / 2]), np.array([(s + n) / 2]))[:, 0]
+        assert np.all(np.abs(np.median(values[:, use], axis=1) / expected - 1) < 0.02), p["name"]
+        seen += 1
+    assert seen >= 2
