@@ -605,12 +605,11 @@ def _write_item(out: Path, layout: _Layout, flights: list[StackFlight], options)
 
 
 def _datacube_vendored() -> bool:
-    from importlib import resources
+    """Whether ``archive catalog validate`` has the datacube extension's schema (then the Item
+    declares it; else its ``cube:*`` fields stand as additional properties, valid STAC either way)."""
+    from archive.catalog.validate import vendored_schemas
 
-    try:
-        return resources.files("archive").joinpath("..", "catalogs", "schemas", "extensions", "datacube").is_dir()
-    except (OSError, TypeError):
-        return False
+    return DATACUBE_EXTENSION in vendored_schemas()
 
 
 # ---------------------------------------------------------------------------------------------
