@@ -209,3 +209,12 @@ def test_a_dcp_kept_elsewhere(flight, tmp_path):
     np.testing.assert_array_equal(a.response, b.response)
     with pytest.raises(MissingInputError, match="nowhere.dcp"):
         open_source(src.directory, NavigationParams(fov_deg=47.5), irradiance_calibration=tmp_path / "nowhere.dcp")
+
+
+def test_two_packs_refused_only_for_reflectance(flight, tmp_path):
+    src = _copy(flight, tmp_path / "a")
+    shutil.copy(src.directory / "downwelling.dcp", src.directory / "other.dcp")
+    src = RawFlightSource(src.directory, NavigationParams(fov_deg=flight[0].fov_deg))
+    src.radiometry(0, [0], "radiance")
+    with pytest.raises(InputError, match="2 downwelling calibrations.*--irradiance-calibration"):
+        src.radiometry(0, [0], "reflectance")

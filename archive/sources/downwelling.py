@@ -25,17 +25,19 @@ def _read(files: DownwellingFiles, token: tuple, first_times: tuple, bands_nm: t
 @dataclass(frozen=True)
 class DownwellingFiles:
     """specs: per cube, its expected ``.spec`` path (None when the cube's name is not Resonon's);
-    found: per cube, whether it exists; calibration: the ``.dcp`` (None: none found)."""
+    found: per cube, whether it exists; calibration: the ``.dcp`` (None: none found, or several:
+    ``ambiguous`` names them, refused when read)."""
 
     directory: Path
     specs: tuple[Path | None, ...]
     found: tuple[bool, ...]
     calibration: Path | None
+    ambiguous: tuple[str, ...] = ()
 
     @classmethod
     def find(cls, directory: Path, bases: Sequence[str], calibration: str | os.PathLike | None = None) -> DownwellingFiles:
-        """Look for each cube's spectrum and the pack; InputError when the directory holds several
-        ``*.dcp`` and none is chosen, MissingInputError for a ``calibration`` that is not a file."""
+        """Look for each cube's spectrum and the pack (names only); MissingInputError for a
+        ``calibration`` that is not a file."""
         specs = tuple(None if downwelling_name(b) is None else directory / downwelling_name(b) for b in bases)
         found = tuple(p is not None and p.is_file() for p in specs)
         if calibration is not None:
@@ -44,10 +46,9 @@ class DownwellingFiles:
                 raise MissingInputError(cal, "downwelling calibration (.dcp)", "check --irradiance-calibration")
         else:
             dcps = sorted(p for p in directory.iterdir() if p.is_file() and p.suffix.lower() == ".dcp")
-            if len(dcps) > 1:
-                raise InputError(directory, f"{len(dcps)} downwelling calibrations: {', '.join(p.name for p in dcps)}",
-                                 "pass --irradiance-calibration to choose one")
-            cal = dcps[0] if dcps else None
+            cal = dcps[0] if len(dcps) == 1 else None
+            if len(dcps) > 1:   # refused when reflectance needs one, not when rendering radiance
+                return cls(directory, specs, found, None, tuple(p.name for p in dcps))
         return cls(directory, specs, found, cal)
 
     @property
@@ -77,6 +78,9 @@ class DownwellingFiles:
                 raise MissingInputError(path if path is not None else self.directory, what,
                                         "every cube needs <ImageSetName>_downwelling_<k>_pre.spec(.hdr) beside "
                                         "it; or pass --white-reference FILE, or use --mode radiance")
+        if self.ambiguous:
+            raise InputError(self.directory, f"{len(self.ambiguous)} downwelling calibrations: "
+                             f"{', '.join(self.ambiguous)}", "pass --irradiance-calibration to choose one")
         if self.calibration is None:
             raise MissingInputError(self.directory / "*.dcp", "downwelling calibration (.dcp)",
                                     "copy the spectrometer's .dcp into the flight directory or pass "
