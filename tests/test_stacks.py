@@ -171,6 +171,7 @@ def test_stack_slices_equal_like_renders_and_resume_adds_only_the_missing(field,
     dims = item["properties"]["cube:dimensions"]
     assert dims["time"]["values"][0].startswith(DAYS[0]) and dims["x"]["step"] == float(GSD)
     assert item["properties"]["archive:recipe"]["sources"] == ids
+    cli("catalog", "validate", str(tmp_path / "field.zarr.json"))   # valid STAC
     # a new flight of the field ingested: --resume renders it alone, at the end of time
     (r,) = ingest([str(root / "day2")], archive, float(FOV), progress=False)
     before = {p: p.stat().st_mtime_ns for p in (out / "radiance").glob("[01].*")}
