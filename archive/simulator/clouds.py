@@ -4,8 +4,10 @@ spectrometer records of it, and the truth reflectance.
 The sky's brightness ``c(t)`` (a factor on the scene's radiance, 1 = clear) is drawn at each cube's
 first line (its spectrometer reading, as Resonon's recorder takes one ``_pre`` spectrum per cube) and
 varies linearly in time between those readings, held after the last: 1.0, 0.7, 0.85, 1.0, ... (a
-cloud passing: radiance drifts 30 % within every cube but the last). It is grey (all wavelengths
-alike), so the irradiance the renderer rebuilds is exact up to resampling (README: radiometry).
+cloud passing: radiance drifts 30 % within cubes). By default it is grey (all wavelengths alike), so
+the irradiance the renderer rebuilds is exact up to resampling; ``colour`` tilts every other stamp's
+spectrum, so the renderer's separable form (spectrum x factor per cube) is an approximation whose
+recorded error the tests check against the truth.
 
 Files written into the flight directory (Resonon's layout, DESIGN 11): per cube
 ``sim_downwelling_<k>_pre.spec`` + ``.spec.hdr`` (2048 float64 raw counts, ``shutter`` ms) and
@@ -46,21 +48,33 @@ def spectrometer_wavelengths() -> np.ndarray:
 
 
 class Clouds:
-    """The sky's brightness: factors at stamps (GPS s), linear between, held outside."""
+    """The sky: brightness ``factors`` and colour ``tilts`` at stamps (GPS s), linear between, held
+    outside. At time t and wavelength lam (nm) the illumination is multiplied by
+    ``factor(t) * (1 + tilt(t) * (lam - 700) / 300)`` (tilt 0: grey)."""
 
-    def __init__(self, stamps, factors):
+    def __init__(self, stamps, factors, tilts=None):
         self.stamps = np.asarray(stamps, float)
         self.factors = np.asarray(factors, float)
+        self.tilts = np.zeros_like(self.factors) if tilts is None else np.asarray(tilts, float)
 
     @classmethod
-    def for_cubes(cls, first_times) -> Clouds:
-        """One stamp per cube at its first line's true time, factors :data:`CLOUD_FACTORS` cycled."""
+    def for_cubes(cls, first_times, colour: float = 0.0) -> Clouds:
+        """One stamp per cube at its first line's true time, factors :data:`CLOUD_FACTORS` cycled;
+        ``colour``: the tilt of every other stamp (0: a grey sky; 0.04: the sky 4 % bluer at 400 nm
+        and 4 % redder at 1000 nm under the cloud, so consecutive spectra differ in shape)."""
         n = len(first_times)
-        return cls(first_times, [CLOUD_FACTORS[k % len(CLOUD_FACTORS)] for k in range(n)])
+        return cls(first_times, [CLOUD_FACTORS[k % len(CLOUD_FACTORS)] for k in range(n)],
+                   [colour * (k % 2) for k in range(n)])
 
     def factor(self, t) -> np.ndarray:
         """(n,) brightness at GPS times ``t`` (s)."""
         return np.interp(np.asarray(t, float), self.stamps, self.factors)
+
+    def field(self, t, wavelengths) -> np.ndarray:
+        """(n, bands) multiplier of the illumination at times ``t`` (s) and ``wavelengths`` (nm)."""
+        tilt = np.interp(np.asarray(t, float), self.stamps, self.tilts)
+        lam = (np.asarray(wavelengths, float) - 700.0) / 300.0
+        return self.factor(t)[:, None] * (1.0 + tilt[:, None] * lam[None, :])
 
 
 def _sensitivity(wl: np.ndarray) -> np.ndarray:
@@ -76,15 +90,16 @@ def write_downwelling(directory: str | os.PathLike, bases, clouds: Clouds) -> No
     gain = _sensitivity(wl)
     offset = np.full(SPEC_PIXELS, SPEC_OFFSET, np.float32)
     write_dcp(directory / DCP_NAME, IrradianceCalibration(None, gain, offset.astype(float), wl, SPEC_SHUTTER_CAL))
-    for base, c in zip(bases, clouds.factors, strict=True):
-        x = illumination(wl) * c                                    # white-panel radiance, microflicks
+    for base, t in zip(bases, clouds.stamps, strict=True):
+        x = illumination(wl) * clouds.field([t], wl)[0]            # white-panel radiance, microflicks
         raw = x / (gain * (SPEC_SHUTTER_CAL / SPEC_SHUTTER)) + offset.astype(float)
         k = base.rsplit("_", 1)[1]
         write_spec(directory / f"sim_downwelling_{k}_pre.spec", raw, wl, SPEC_SHUTTER)
     (directory / "truth").mkdir(exist_ok=True)
     (directory / "truth" / "clouds.json").write_text(json.dumps(
-        {"stamps_gps_s": clouds.stamps.tolist(), "factors": clouds.factors.tolist(),
-         "model": "linear between stamps, held outside; grey"}, indent=1), encoding="utf-8")
+        {"stamps_gps_s": clouds.stamps.tolist(), "factors": clouds.factors.tolist(), "tilts": clouds.tilts.tolist(),
+         "model": "factor * (1 + tilt * (nm - 700) / 300), each linear between stamps, held outside"}, indent=1),
+        encoding="utf-8")
 
 
 def load_clouds(directory: str | os.PathLike) -> Clouds:
@@ -93,7 +108,7 @@ def load_clouds(directory: str | os.PathLike) -> Clouds:
     if not path.is_file():
         raise MissingInputError(path, "cloud truth", "simulate the flight with --clouds")
     d = json.loads(path.read_text(encoding="utf-8"))
-    return Clouds(d["stamps_gps_s"], d["factors"])
+    return Clouds(d["stamps_gps_s"], d["factors"], d.get("tilts"))
 
 
 def truth_reflectance(truth, e, n, crs=None) -> np.ndarray:

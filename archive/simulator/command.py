@@ -261,7 +261,7 @@ def _cube_block(job: tuple[_CubePlan, int, np.ndarray], ctx: _Context) -> np.nda
                         ctx.ku, KT, ctx.terrain)
     radiance = np.tensordot(ctx.spectra_t, a.astype(np.float32), axes=(1, 0))
     if ctx.clouds is not None:   # the sky's brightness at each line's exposure start
-        radiance *= ctx.clouds.factor(t).astype(np.float32)[None, :, None]
+        radiance *= ctx.clouds.field(t, ctx.scene.wavelengths).T.astype(np.float32)[:, :, None]
     rng = np.random.default_rng([ctx.seed, plan.index, i0])
     return ctx.radiometry.dn(radiance, plan.shutter_ms, plan.gain_db, rng)
 
@@ -309,7 +309,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                     pause_cube: int = 0, boresight_deg: Sequence[float] = (0.0, 0.0, 0.0),
                     lever_arm_m: Sequence[float] = (0.0, 0.0, 0.0), terrain: str | None = None,
                     heading_deg: float = HEADING_DEG, wobble: bool = True, start=None,
-                    scene_seed: int | None = None, clouds: bool = False) -> Truth:
+                    scene_seed: int | None = None, clouds: bool = False, cloud_colour: float = 0.0) -> Truth:
     """Write a simulated flight into ``directory`` and return its :class:`Truth`.
 
     ``cubes`` cubes of ``lines`` lines x ``samples`` samples x ``bands`` bands (400-1000 nm,
@@ -365,7 +365,8 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
 
     ``clouds``: the sky's brightness drifts 30 % within cubes (:mod:`archive.simulator.clouds`); the
     directory gets the kit's downwelling spectra (one per cube) and ``downwelling.dcp``, the truth
-    ``clouds.json``.
+    ``clouds.json``. ``cloud_colour``: the sky's spectrum also changes shape (every other spectrum
+    tilted by this fraction per 300 nm; 0: grey).
     """
     if not math.isfinite(heading_deg):
         raise InputError("simulate", f"heading must be a finite number of degrees, got {heading_deg!r}")
@@ -427,7 +428,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
     pixel = 2.0 * HEIGHT * math.tan(math.radians(fov_deg) / 2.0) / samples
     ku = max(4, int(math.ceil(pixel / SUBSAMPLE_M)))
     block = max(1, min(MAX_POINTS // (KT * samples * ku), MAX_VALUES // (bands * samples)))
-    sky = Clouds.for_cubes([p.line_time[0] for p in plans]) if clouds else None
+    sky = Clouds.for_cubes([p.line_time[0] for p in plans], float(cloud_colour)) if clouds else None
     context = _Context(scene, camera, radiometry, spectra.T.astype(np.float32), fov_deg, samples, ku,
                        int(seed), relief, sky)
 
