@@ -246,3 +246,35 @@ def test_a_coloured_sky_costs_what_the_separable_error_says(tmp_path):
             continue
         rel = np.median((r.values[:, use] - expected[:, use]) / expected[:, use], axis=1)
         assert np.all(np.abs(rel) < bound + 0.005), (k, rel, bound)
+
+
+def test_the_viewer_shows_reflectance_of_a_flight_with_spectra(flight, tmp_path):
+    """The viewer's /point in mode reflectance (refused for flights without spectra) equals
+    archive.mosaic's reflectance bit for bit."""
+    import warnings
+
+    from pyproj import Transformer
+
+    import archive
+    from archive.ingest.command import ingest
+    from archive.view.registry import FlightRegistry
+    from archive.view.server import create_app
+
+    truth = flight[0]
+    (result,) = ingest([truth.directory], tmp_path / "arc", truth.fov_deg, progress=False)
+    gsd = 0.5
+    ds = archive.mosaic([result.cid], archive=tmp_path / "arc", gsd=gsd, mode="reflectance")
+    values = ds["reflectance"].values
+    to_ll = Transformer.from_crs(ds.rio.crs.to_epsg(), 4326, always_xy=True)
+    rows, cols = np.nonzero(np.isfinite(values).all(axis=0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        from starlette.testclient import TestClient
+    with TestClient(create_app(FlightRegistry(tmp_path / "arc"))) as client:
+        for k in np.random.default_rng(3).choice(len(rows), 8, replace=False):
+            lon, lat = to_ll.transform(float(ds.x[cols[k]]), float(ds.y[rows[k]]))
+            got = client.get(f"/api/collections/{result.cid}/point",
+                             params={"lon": repr(lon), "lat": repr(lat), "mode": "reflectance", "gsd": str(gsd)})
+            assert got.status_code == 200, got.text
+            spectrum = np.array([np.nan if v is None else v for v in got.json()["values"]], np.float32)
+            assert np.array_equal(spectrum.view(np.uint32), values[:, rows[k], cols[k]].view(np.uint32))
