@@ -544,3 +544,105 @@ def test_keyboard_flight_list_wheel_notches_and_narrow_layout(server, browser, a
     assert q.evaluate("document.documentElement.scrollWidth") <= 390   # nothing wider than the screen
     narrow.settled()
     narrow.close()
+
+
+def _boxes_overlap(a: dict, b: dict) -> bool:
+    return a["x"] < b["x"] + b["width"] and b["x"] < a["x"] + a["width"] and \
+        a["y"] < b["y"] + b["height"] and b["y"] < a["y"] + a["height"]
+
+
+def test_panel_toggle_is_tapped_not_zoomed_on_a_phone(server, browser, archive_of_flights):
+    """A finger on ☰ at 390 x 844 opens the panel: nothing (Leaflet's zoom buttons) lies over it,
+    at phone size collapsed and open, and at desktop size (issue 36)."""
+    p = browser.new_page(viewport={"width": 390, "height": 844}, has_touch=True, is_mobile=True,
+                         device_scale_factor=1)
+    errors: list[str] = []
+    p.on("pageerror", lambda exc: errors.append(str(exc)))
+    p.goto(server)
+    p.wait_for_function("() => window.viewer.booted && window.viewer.settled")
+    assert p.evaluate("document.body.classList.contains('collapsed')")
+    on_top = """() => { const b = document.getElementById('panel-toggle').getBoundingClientRect();
+        const e = document.elementFromPoint(b.x + b.width / 2, b.y + b.height / 2);
+        return e && e.closest('#panel-toggle') !== null; }"""
+    assert p.evaluate(on_top)
+    zoom = p.evaluate("window.viewer.map.getZoom()")
+    box = p.locator("#panel-toggle").bounding_box()
+    p.touchscreen.tap(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    p.wait_for_function("() => !document.body.classList.contains('collapsed')", timeout=10_000)
+    assert p.get_attribute("#panel-toggle", "aria-expanded") == "true"
+    assert p.evaluate("window.viewer.map.getZoom()") == zoom   # the tap did not zoom the map
+    assert p.locator("#panel").is_visible() and p.evaluate(on_top)
+    for control in p.locator(".leaflet-control-zoom a").all():
+        assert not _boxes_overlap(control.bounding_box(), box)
+    p.touchscreen.tap(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    p.wait_for_function("() => document.body.classList.contains('collapsed')", timeout=10_000)
+    assert not errors, errors
+    p.close()
+    wide = Page(browser, server, width=1400, height=900)
+    assert wide.page.evaluate(on_top)
+    wide.page.click("#panel-toggle")
+    wide.page.wait_for_function("() => document.body.classList.contains('collapsed')")
+    assert wide.page.evaluate(on_top)
+    wide.close()
+
+
+def test_refused_values_stay_out_of_the_hash_and_labels_do_not_collide(server, browser, archive_of_flights):
+    """A shared link never carries a refused value; footprint labels never overlap, fewer when zoomed
+    out; the flight list uses the panel's height; the spectrum chart is in sight with its axis label
+    whole at 1400 x 900 (issue 36)."""
+    _, ids = archive_of_flights
+    cid = ids[1]
+    page = Page(browser, server, f"open={cid}", width=1400, height=900)
+    p = page.page
+    p.wait_for_function(f"() => window.viewer.open === '{cid}'")
+    page.settled()
+    p.evaluate(f"() => {{ location.hash = 'open={cid}&stretch=5000,100&cubes=3-9'; }}")   # a link with errors
+    p.wait_for_function("() => document.getElementById('err-stretch').textContent.length > 0")
+    p.wait_for_function("() => document.getElementById('err-cubes').textContent.length > 0", timeout=30_000)
+    p.wait_for_function(f"() => (window.viewer.hash || '').includes('open={cid}')")
+    p.wait_for_timeout(300)
+    shared = p.evaluate("location.hash")
+    assert "stretch=5000" not in shared and "cubes=" not in shared and "stretch=p2,p98" in shared, shared
+    # a valid manual stretch is written
+    p.fill("#stretch-low", "10")
+    p.fill("#stretch-high", "900")
+    p.locator("#stretch-high").dispatch_event("change")
+    p.wait_for_function("() => location.hash.includes('stretch=10,900')")
+
+    page.close()
+
+    # labels: the six overlapping flights fitted (the page's first view), then zoomed out
+    page = Page(browser, server, width=1400, height=900)
+    p = page.page
+    rects = [e.bounding_box() for e in p.locator(".footprint-label").all()]
+    assert 1 <= len(rects) <= len(ids)
+    assert not any(_boxes_overlap(a, b) for i, a in enumerate(rects) for b in rects[i + 1:]), rects
+    p.evaluate("() => window.viewer.map.setZoom(window.viewer.map.getZoom() - 3)")
+    page.settled()
+    assert len(p.locator(".footprint-label").all()) < len(ids)
+    # the list: more than the old 220 px when the panel has the room
+    assert p.evaluate("parseFloat(getComputedStyle(document.getElementById('flights')).maxHeight)") > 220
+
+    page.close()
+
+    # a pinned spectrum: the chart inside the window, the y-axis label inside the chart
+    page = Page(browser, server, f"flights={cid}&open={cid}", width=1400, height=900)
+    p = page.page
+    p.wait_for_function(f"() => window.viewer.open === '{cid}'")
+    page.settled()
+    feature = p.evaluate(f"window.viewer.byId.get('{cid}')")
+    ring = np.asarray(feature["geometry"]["coordinates"][0])
+    p.evaluate(f"() => window.viewer.map.setView([{ring[:, 1].mean()}, {ring[:, 0].mean()}], "
+               "window.viewer.map.getZoom())")
+    page.settled()
+    box = p.locator("#map").bounding_box()
+    p.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    p.wait_for_function("() => window.viewer.pins.length === 1", timeout=30_000)
+    p.wait_for_timeout(300)
+    chart = p.locator("#spectrum").bounding_box()
+    assert chart["y"] >= 0 and chart["y"] + chart["height"] <= 900, chart
+    label = p.evaluate("""() => { const r = document.querySelector('#spectrum .y-label').getBoundingClientRect();
+        return {x: r.x, y: r.y, width: r.width, height: r.height}; }""")
+    assert label["x"] >= chart["x"] and label["y"] >= chart["y"] - 0.5
+    assert label["y"] + label["height"] <= chart["y"] + chart["height"] + 0.5
+    page.close()

@@ -22,7 +22,9 @@ let scheduled = false;      // a pump() is due at the next animation frame
 
 // ---- the map -------------------------------------------------------------------------------
 const map = L.map("map", { maxZoom: 24, fadeAnimation: false, attributionControl: false, worldCopyJump: false,
-                           scrollWheelZoom: false, zoomSnap: 1, keyboard: true });
+                           scrollWheelZoom: false, zoomSnap: 1, keyboard: true, zoomControl: false });
+// the zoom buttons on the right: the top-left corner holds the panel toggle (☰) at every size
+L.control.zoom({ position: "topright" }).addTo(map);
 map.createPane("footprints").style.zIndex = 150;   // under the imagery (tilePane: 200)
 map.setView([20, 0], 2);
 L.control.scale({ imperial: false }).addTo(map);
@@ -535,6 +537,12 @@ function refresh() {
   if (spec.ranges) lastRanges = spec.ranges;   // else new statistics are coming: draw when they arrive
   if (!current || spec.id !== current.id) { failedSpec = null; newGeneration(); }
   current = spec;
+  // grey placeholders from the first frame: tiles made before the first view was known (the boot's
+  // fit) get theirs here
+  for (const t of tiles.values()) {
+    const tb = tileBounds(t.coords.z, t.coords.x, t.coords.y);
+    if (t.shown === null && spec.flights.some((f) => boxesMeet(f.box, tb))) t.el.classList.add("placeholder");
+  }
   viewer.ready = viewer.settled = false;
   showOutputs();
   writeHash();
@@ -577,13 +585,43 @@ function drawFootprints() {
     pane: "footprints", interactive: false,
     style: (f) => ({ color: f.id === viewer.open ? "#ff3366" : "#ffcc33", weight: f.id === viewer.open ? 2.5 : 1.5,
                      fill: false, fillRule: "nonzero" }),
-    onEachFeature: (feature, fl) => {
-      fl.bindTooltip(feature.id, { permanent: true, direction: "center", className: "footprint-label", opacity: 0.85 });
-    },
   });
   if ($("show-footprints").checked) footprints.addTo(map);
   viewer.footprints = footprints;
+  placeLabels();
 }
+
+// footprint labels where there is room: the open flight's first, then the topmost; a label is shown
+// only inside the map, over a footprint at least half its width on screen, and clear of every label
+// already placed (an archive zoomed out is imagery, not a wall of names)
+let labels = null;
+const labelFont = document.createElement("canvas").getContext("2d");
+function placeLabels() {
+  if (labels) labels.remove();
+  labels = L.layerGroup();
+  viewer.labels = [];
+  if (!footprints || !$("show-footprints").checked) return;
+  labelFont.font = "10px system-ui, sans-serif";
+  const size = map.getSize(), placed = [];
+  const ids = visibleFlights().reverse();
+  if (viewer.open && ids.includes(viewer.open)) ids.unshift(...ids.splice(ids.indexOf(viewer.open), 1));
+  for (const id of ids) {
+    const g = (viewer.outlines[id] && viewer.outlines[id].geometry) || viewer.byId.get(id).geometry;
+    const [w, s, e, n] = geometryBox(g);
+    const a = map.latLngToContainerPoint([n, w]), b = map.latLngToContainerPoint([s, e]);
+    const c = map.latLngToContainerPoint([(s + n) / 2, (w + e) / 2]);
+    const width = labelFont.measureText(id).width + 8, height = 15;
+    if (Math.abs(b.x - a.x) < width / 2 || c.x < 0 || c.y < 0 || c.x > size.x || c.y > size.y) continue;
+    const box = [c.x - width / 2 - 2, c.y - height / 2 - 2, c.x + width / 2 + 2, c.y + height / 2 + 2];
+    if (placed.some((p) => box[0] < p[2] && p[0] < box[2] && box[1] < p[3] && p[1] < box[3])) continue;
+    placed.push(box);
+    viewer.labels.push(id);
+    labels.addLayer(L.tooltip({ permanent: true, direction: "center", className: "footprint-label", opacity: 0.85,
+                                interactive: false }).setLatLng(map.containerPointToLatLng(c)).setContent(id));
+  }
+  labels.addTo(map);
+}
+map.on("zoomend moveend resize", () => placeLabels());
 
 function renderList() {
   const list = $("flights");
@@ -865,7 +903,13 @@ function hashState() {
   s.set("bands", channelsNm().map((v) => Number(v.toFixed(3))).join(","));
   if ($("mode").value) s.set("mode", $("mode").value);
   const kind = $("stretch").value;
-  s.set("stretch", kind === "manual" ? `${$("stretch-low").value},${$("stretch-high").value}` : kind === "flight" ? "p2,p98" : kind);
+  // a refused value (LOW >= HIGH, a cube range the flight does not have) is not shared: the last
+  // accepted one is
+  const lo = $("stretch-low").value, hi = $("stretch-high").value;
+  if (kind === "manual" && lo !== "" && hi !== "" && isFinite(Number(lo)) && isFinite(Number(hi)) && Number(lo) < Number(hi)) {
+    viewer.acceptedStretch = `${lo},${hi}`;
+  }
+  s.set("stretch", kind === "manual" ? (viewer.acceptedStretch || "p2,p98") : kind === "flight" ? "p2,p98" : kind);
   if (!$("per-channel").checked) s.set("shared", "1");
   if ($("overlap").value !== "last") s.set("overlap", $("overlap").value);
   if (viewer.open) {
@@ -874,7 +918,10 @@ function hashState() {
     if (p && viewer.info) {
       if (p.ground !== viewer.info.ground_height) s.set("ground", String(p.ground));
       if (p.sync !== viewer.info.sync_offset) s.set("sync", String(p.sync));
-      if (p.cubes) s.set("cubes", `${p.cubes[0]}-${p.cubes[1]}`);
+      const n = viewer.info.cubes.length;
+      if (p.cubes && p.cubes.every(Number.isInteger) && 1 <= p.cubes[0] && p.cubes[0] <= p.cubes[1] && p.cubes[1] <= n) {
+        s.set("cubes", `${p.cubes[0]}-${p.cubes[1]}`);
+      }
     }
   }
   if (viewer.hidden.size || viewer.order.join() !== viewer.features.map((f) => f.id).join()) s.set("flights", visibleFlights().join(","));

@@ -24,6 +24,8 @@ async function pinPoint(latlng) {
   viewer.pins.push(pin);
   showPixel(p);
   showPins();
+  // the chart in sight (at 1400 x 900 it lies below the panel's fold): the panel scrolls, not the page
+  $("spectrum").scrollIntoView({ block: "nearest" });
 }
 function removePin(pin) {
   pin.marker.remove();
@@ -97,7 +99,9 @@ function niceTicks(lo, hi, n = 5) {
 function drawSpectrum() {
   const svg = $("spectrum");
   const NS = "http://www.w3.org/2000/svg";
-  const W = 360, H = 200, left = 54, right = 18, top = 12, bottom = 34;
+  // room for the y-axis label and its tick labels (the viewBox follows: the chart scales to the panel)
+  const W = 360, H = 230, left = 62, right = 14, top = 14, bottom = 34;
+  svg.setAttribute("viewBox", `0 0 ${W} ${H}`);
   svg.replaceChildren();
   const pts = viewer.pins.map((s) => s.point);
   if (!pts.length) return;
@@ -162,9 +166,9 @@ $("png").addEventListener("click", () => {
   const img = new Image();
   img.onload = () => {
     const canvas = document.createElement("canvas");
-    canvas.width = 720; canvas.height = 400;
+    canvas.width = 720; canvas.height = 460;
     const ctx = canvas.getContext("2d");
-    ctx.drawImage(img, 0, 0, 720, 400);
+    ctx.drawImage(img, 0, 0, 720, 460);
     canvas.toBlob((blob) => {
       const a = document.createElement("a");
       a.href = URL.createObjectURL(blob);
