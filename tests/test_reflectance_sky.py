@@ -171,6 +171,9 @@ def test_the_command_renders_reflectance_and_records_the_sky(flight, tmp_path):
     cubes = record["flights"][0]["cubes"]
     assert [c["changed"] for c in cubes] == [True, False, True, False]
     assert record["summary"]["max_separable_error"] < 1e-9      # a grey sky: exact
+    info = subprocess.run([sys.executable, "-m", "archive", "info", str(flight[0].directory), "--fov", "47.5"],
+                          capture_output=True, text=True, timeout=120)
+    assert info.returncode == 0 and "downwelling 4 spectra, calibration" in info.stdout, info.stdout + info.stderr
 
 
 def test_ingest_keeps_the_sky_and_the_collection_renders_the_same(flight, tmp_path):

@@ -136,9 +136,28 @@ def summarize(source: RawFlightSource, fov_deg: float, dem=None) -> dict[str, An
         "gsd_per_m_height": round(2 * half / samples, 6),
         "calibration": (str(source.calibration_path) if getattr(source, "calibration_path", None) is not None
                         else "stored in the collection" if source.has_calibration else None),
+        "downwelling": _downwelling(source),
         **({} if dem is None else {"terrain": terrain_summary(source, fov_deg, dem)}),
         "cube_list": cubes,
     }
+
+
+def _downwelling(source) -> str | None:
+    """The sky spectrometer's files for --mode reflectance (issue 34): what was found, whether they
+    read; None when the flight has none."""
+    from archive.errors import ArchiveError
+
+    files = getattr(source, "downwelling", None)
+    if files is None:   # a collection
+        record = getattr(source, "info", None) and source.info.attrs.get("downwelling")
+        return f"{len(record['spectra'])} spectra stored in the collection" if record else None
+    if not files.present:
+        return None
+    try:
+        sky = source.sky()
+    except ArchiveError as exc:
+        return f"{sum(files.found)} of {len(files.found)} spectra, unusable for --mode reflectance: {exc}"
+    return f"{len(sky.cubes)} spectra, calibration {sky.calibration}"
 
 
 def format_summary(s: dict[str, Any]) -> str:
@@ -159,6 +178,7 @@ def format_summary(s: dict[str, Any]) -> str:
         f"swath      {s['swath_per_m_height']:.3f} x height above ground (FOV {s['fov_deg']:g} deg); nominal GSD "
         f"{s['gsd_per_m_height'] * 100:.3f} cm per m of height ({s['gsd_per_m_height'] * 40 * 100:.2f} cm at 40 m)",
         f"calibration {s['calibration'] or 'none (only --mode raw and relative)'}",
+        *([] if not s.get("downwelling") else [f"downwelling {s['downwelling']}"]),
         *([] if not s.get("terrain") else [
             f"terrain    {s['terrain']['dem']} ({s['terrain']['datum']} heights): ground "
             f"{s['terrain']['ground_min_m']:.1f}\u2013{s['terrain']['ground_max_m']:.1f} m above the ellipsoid under "
