@@ -37,7 +37,11 @@ class StackView:
         self.path = Path(path).absolute()
         if not self.path.exists():
             raise MissingInputError(self.path, "stack (--stack X.zarr)")
-        layout, flights, _ = read_stack(self.path)
+        try:
+            layout, flights, _ = read_stack(self.path)
+        except InputError as exc:
+            raise InputError("--stack", f"{self.path}: {exc.problem}",
+                             "give a stack written by 'archive render ... --stack --out X.zarr'") from None
         self.name = name or self.path.stem
         self.grid, self.flights, self.layout = layout.grid, flights, layout
         self.array = zarr.open_array(self.path, path=layout.variable, mode="r")
