@@ -390,8 +390,9 @@ def _add_view(sub) -> None:
     p.add_argument("--cache-mb", type=int, default=512, metavar="MIB",
                    help="memory for the tile, band and lookup caches, MiB (default 512)")
     p.add_argument("--stack", action="append", metavar="X.zarr",
-                   help="also serve this time stack (archive render --stack): the page shows one time step at a "
-                        "time, a slider steps through its flights, values read from the Zarr (repeatable)")
+                   help="also serve this time stack (archive render --stack; with --archive): the page shows one "
+                        "time step at a time, a slider steps through its flights, values read from the Zarr "
+                        "(repeatable)")
 
 
 def _add_calibrate(sub) -> None:
