@@ -23,6 +23,8 @@ sun_zenith     degree    solar zenith (topocentric, no refraction: NREL SPA via 
 sun_azimuth    degree    solar azimuth, clockwise from true north, 0..360
 overlap_count  1         how many layers of the job's line meshes cover the pixel centre (passes; a
                          fold at a turn counts each layer), whatever rule picked the value
+irradiance     1         the sky spectrometer's irradiance at the line (mean over bands) relative to the
+                         median of the flight's spectra (issue 34): below 0.25 low; NaN without spectra
 ============== ========= ==============================================================================
 
 cube, line and sample are integers stored exactly (float32 holds every integer below 2^24). The
@@ -66,6 +68,8 @@ LAYERS: tuple[Layer, ...] = (
     Layer("sun_zenith", "degree", "solar zenith angle (topocentric, without refraction)"),
     Layer("sun_azimuth", "degree", "solar azimuth, clockwise from true north"),
     Layer("overlap_count", "1", "layers of the job's line meshes covering the pixel centre"),
+    Layer("irradiance", "1", "downwelling irradiance of the source line (sky spectrometer, mean over the bands) "
+          "relative to the median of the flight's spectra; below 0.25: low (dusk, heavy cloud); NaN: no spectra"),
 )
 
 
@@ -160,6 +164,23 @@ def _line_geometry(source, cube: int, spec: ProvenanceSpec):
     return seconds, np.stack([e, n, h], axis=-1), int(poses.frame.epsg), north, sun_zenith, sun_azimuth
 
 
+def _relative_irradiance(source, cube: int) -> np.ndarray:
+    """(lines,) float32 irradiance of the cube's lines relative to the median of the flight's spectra
+    (per band, then the mean over bands), NaN when the source has no usable downwelling spectra."""
+    from archive.errors import ArchiveError
+
+    sky = getattr(source, "sky", None)
+    lines = source.cubes[cube].lines
+    try:
+        found = sky() if sky is not None else None
+    except ArchiveError:   # no spectra, or unusable ones: radiance renders do not need them
+        found = None
+    if found is None:
+        return np.full(lines, np.nan, np.float32)
+    reference = np.median(np.stack([c.x_bands for c in found.cubes]), axis=0)
+    return np.mean(found.per_line(source.line_times(cube)) / reference, axis=1).astype(np.float32)
+
+
 def cube_layers(source, cube: int, job: int, lookup, spec: ProvenanceSpec, ground: float | None = None
                 ) -> np.ndarray:
     """The layers ``spec.names`` of one cube on its window (``lookup.grid``), (len(names), h, w)
@@ -222,6 +243,7 @@ def cube_layers(source, cube: int, job: int, lookup, spec: ProvenanceSpec, groun
         "sun_zenith": lambda: sun_zenith.astype(np.float32)[line],
         "sun_azimuth": lambda: sun_azimuth.astype(np.float32)[line],
         "overlap_count": lambda: lookup.count,
+        "irradiance": lambda: _relative_irradiance(source, cube)[line],
     }
     for i, name in enumerate(spec.names):
         np.copyto(out[i], values[name](), where=covered, casting="unsafe")

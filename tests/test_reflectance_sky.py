@@ -281,3 +281,22 @@ def test_the_viewer_shows_reflectance_of_a_flight_with_spectra(flight, tmp_path)
             assert got.status_code == 200, got.text
             spectrum = np.array([np.nan if v is None else v for v in got.json()["values"]], np.float32)
             assert np.array_equal(spectrum.view(np.uint32), values[:, rows[k], cols[k]].view(np.uint32))
+
+
+def test_provenance_flags_the_sky_per_pixel(flight, tmp_path):
+    """The provenance layer 'irradiance': the pixel's line's sky relative to the flight's spectra,
+    following the clouds (0.7 .. 1.0 of clear sky against a median of 0.85 / 0.925)."""
+    import xarray as xr
+
+    out = tmp_path / "p.zarr"
+    done = subprocess.run([sys.executable, "-m", "archive", "render", str(flight[0].directory), "--fov", "47.5",
+                           "--gsd", "0.5", "--mode", "reflectance", "--bands", "0", "--provenance", "--out", str(out),
+                           "--quiet"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    ds = xr.open_zarr(out)
+    rel = ds["irradiance"].values
+    covered = np.isfinite(rel)
+    assert covered.sum() > 1000
+    median = np.median(load_clouds(flight[0].directory).factors)
+    assert rel[covered].min() == pytest.approx(0.7 / median, rel=0.02)
+    assert rel[covered].max() == pytest.approx(1.0 / median, rel=0.02)
