@@ -212,6 +212,11 @@ def test_a_dcp_kept_elsewhere(flight, tmp_path):
     np.testing.assert_array_equal(a.response, b.response)
     with pytest.raises(MissingInputError, match="nowhere.dcp"):
         open_source(src.directory, NavigationParams(fov_deg=47.5), irradiance_calibration=tmp_path / "nowhere.dcp")
+    from archive.ingest.command import ingest
+
+    (result,) = ingest([src.directory], tmp_path / "arc", 47.5, progress=False, irradiance_calibration=pack)
+    coll = open_source(result.cid, NavigationParams(fov_deg=47.5), archive=tmp_path / "arc")
+    np.testing.assert_array_equal(coll.radiometry(1, [0, 9], "reflectance").gain, b.gain)
 
 
 def test_two_packs_refused_only_for_reflectance(flight, tmp_path):

@@ -117,7 +117,8 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
                    ground_height: float | None = None, sync_offset: float = 0.0,
                    boresight: tuple[float, float, float] = (0.0, 0.0, 0.0),
                    lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                   dem: str | os.PathLike | None = None, dem_datum: str | None = None) -> StorePlan:
+                   dem: str | os.PathLike | None = None, dem_datum: str | None = None,
+                   irradiance_calibration: str | os.PathLike | None = None) -> StorePlan:
     """Read and check a raw flight (everything but the pixels) and return what its store will hold.
     ``sync_offset`` (s), ``boresight`` (roll, pitch, yaw degrees) and ``lever_arm`` (x, y, z metres,
     body frame) are recorded as the collection's navigation parameters (renders use them unless
@@ -132,7 +133,7 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
     nav = NavigationParams(fov_deg=float(fov_deg), sync_offset=float(sync_offset),
                            boresight_deg=tuple(float(v) for v in boresight),
                            lever_arm_m=tuple(float(v) for v in lever_arm))
-    src = RawFlightSource(directory, nav, calibration=calibration)
+    src = RawFlightSource(directory, nav, calibration=calibration, irradiance_calibration=irradiance_calibration)
     n = len(src.cubes)
     headers = [src.header(i) for i in range(n)]
     files = [src.files(i) for i in range(n)]
@@ -348,12 +349,15 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
            overwrite: bool = False, workers: int | None = None, progress: bool = True,
            sync_offset: float = 0.0, boresight: tuple[float, float, float] = (0.0, 0.0, 0.0),
            lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0), dem: str | os.PathLike | None = None,
-           dem_datum: str | None = None) -> list[IngestResult]:
+           dem_datum: str | None = None,
+           irradiance_calibration: str | os.PathLike | None = None) -> list[IngestResult]:
     """Ingest raw flight ``directories`` into the archive (created when absent). Every flight is
     checked before anything is written; see the module docstring. ``dem`` / ``dem_datum``: the
-    catalog footprint follows that terrain (:func:`prepare_flight`)."""
+    catalog footprint follows that terrain (:func:`prepare_flight`). ``irradiance_calibration``: the
+    downwelling spectrometer's ``.dcp`` when it is not in the flight directories (their spectra are
+    kept in the collection, issue 34)."""
     plans = [prepare_flight(d, fov_deg, calibration, ground_height, sync_offset, boresight, lever_arm,
-                            dem, dem_datum)
+                            dem, dem_datum, irradiance_calibration)
              for d in directories]
     pairs = _distinct_flights(list(directories), plans)
     root = _create_archive(archive_path)
@@ -499,7 +503,8 @@ def run(args: argparse.Namespace) -> int:
                      ground_height=args.ground_height, overwrite=args.overwrite, workers=args.workers,
                      progress=not args.quiet, sync_offset=args.sync_offset,
                      boresight=args.boresight or (0.0, 0.0, 0.0), lever_arm=args.lever_arm or (0.0, 0.0, 0.0),
-                     dem=getattr(args, "dem", None), dem_datum=getattr(args, "dem_datum", None))
+                     dem=getattr(args, "dem", None), dem_datum=getattr(args, "dem_datum", None),
+                     irradiance_calibration=getattr(args, "irradiance_calibration", None))
     for r in results:
         print(f"{r.cid}: {r.status} ({r.store})")
     return 0
