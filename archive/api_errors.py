@@ -11,15 +11,16 @@ line naming the function, the keyword and the nearest valid one.
 
 from __future__ import annotations
 
+import contextlib
 import difflib
 import functools
 import re
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from typing import TypeVar
 
 from archive.errors import ArchiveError, InputError
 
-__all__ = ["KeywordError", "python_errors", "python_words", "unknown_keyword"]
+__all__ = ["KeywordError", "keep_cli_flags", "python_errors", "python_words", "unknown_keyword"]
 
 F = TypeVar("F", bound=Callable)
 
@@ -28,6 +29,21 @@ _SWITCHES = {"overwrite", "resume", "align", "provenance", "quiet", "stack", "ap
 
 #: ``--flag`` with an optional value in capitals (FILE, DEG, W,S,E,N) or a number after it.
 _FLAG = re.compile(r"--([a-z][a-z0-9-]*)(?: ([A-Z][A-Z0-9,._]*\b|-?\d[\d.,]*\d|\d))?")
+
+
+#: Set by the command line (:func:`keep_cli_flags`): its messages name the flags the user typed.
+_CLI = {"flags": False}
+
+
+@contextlib.contextmanager
+def keep_cli_flags() -> Iterator[None]:
+    """Inside it, messages stay in the command line's words (``archive ...`` calls the same API
+    functions as Python users)."""
+    before, _CLI["flags"] = _CLI["flags"], True
+    try:
+        yield
+    finally:
+        _CLI["flags"] = before
 
 
 class KeywordError(ArchiveError, TypeError):
@@ -73,7 +89,7 @@ def python_errors(function: str, valid: Callable[[], Iterable[str]]) -> Callable
             try:
                 return func(*args, **kwargs)
             except InputError as exc:
-                if exc.where is not None and exc.where.startswith("--"):
+                if not _CLI["flags"] and exc.where is not None and exc.where.startswith("--"):
                     keyword = python_words(exc.where.split()[0])
                     exc.where = f"{function}({keyword.split('=')[0]}=...)"
                     exc.problem, exc.fix = python_words(exc.problem), python_words(exc.fix)

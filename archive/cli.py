@@ -15,6 +15,7 @@ import sys
 from collections.abc import Sequence
 
 from archive import __version__
+from archive.api_errors import keep_cli_flags
 from archive.errors import ArchiveError
 from archive.params import DEFAULT_MAX_VIEW_ANGLE
 
@@ -494,7 +495,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     module_name, func_name = HANDLERS[args.command].split(":")
     try:
         handler = getattr(importlib.import_module(module_name), func_name)
-        code = int(handler(args) or 0)
+        with keep_cli_flags():   # the library's messages name the flags typed here, not Python keywords
+            code = int(handler(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, inside the try, not at interpreter exit
         return code
     except BrokenPipeError:
