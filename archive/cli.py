@@ -308,6 +308,9 @@ def _add_ingest(sub) -> None:
     p.add_argument("--fov", required=True, type=float, metavar="DEG",
                    help="across-track field of view of the camera, degrees (47.5 for a Pika L and for 'archive simulate')")
     p.add_argument("--calibration", metavar="FILE.icp", help="radiometric calibration (default: the *.icp in the flight directory)")
+    p.add_argument("--irradiance-calibration", metavar="FILE.dcp",
+                   help="the downwelling spectrometer's calibration pack (default: the *.dcp in the flight directory); "
+                        "a flight's <set>_downwelling_<k>_pre.spec spectra are kept in the collection")
     p.add_argument("--ground-height", type=float, metavar="M",
                    help="ground height, metres above the ellipsoid, for the catalog footprint "
                         "(default: the header's 'ground elevation')")
