@@ -13,7 +13,7 @@ carries ``X(line, band)`` as the separable product ``spectrum(band) * factor(lin
 ``X(line, band) / spectrum(band)``. Exact when the sky changes in brightness only (spectra
 proportional: the simulator's clouds); otherwise its largest relative error over the cube's lines and
 bands is computed, recorded (:attr:`CubeIrradiance.separable_error`) and warned about above
-:data:`SEPARABLE_WARN` (see README: a spectral change of 4 % between two cubes costs <= 1 %).
+:data:`SEPARABLE_WARN` (README: a 4 % change of the spectrum's shape between two cubes costs 1.0-1.2 %).
 """
 
 from __future__ import annotations
