@@ -93,7 +93,7 @@ def test_geoid_dem_with_dem_datum_equals_its_ellipsoidal_twin(hills, tmp_path):
     assert open_dem(declared).datum == "egm96" and open_dem(declared).declared
     with pytest.raises(InputError, match="declares egm96 heights but --dem-datum is ellipsoid"):
         open_dem(declared, "ellipsoid")
-    with pytest.raises(InputError, match="no --dem was given"):
+    with pytest.raises(InputError, match=r"archive.mosaic\(dem_datum=...\): .*no dem was given \(add dem=FILE"):
         mosaic(directory, truth.nominal_gsd, dem_datum="egm96")
     twin, grid = mosaic(directory, truth.nominal_gsd, dem=directory / "dem.tif")
     other, grid_other = mosaic(directory, truth.nominal_gsd, dem=geoid, dem_datum="egm96")
