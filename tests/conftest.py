@@ -44,3 +44,37 @@ def serve_loopback(app, backlog: int = 16):
         server.should_exit = True
         thread.join(10)
         sock.close()
+
+
+@contextlib.contextmanager
+def archive_view(command: list[str], cwd: str | Path, env: dict | None = None, timeout: float = 60):
+    """Run ``command`` (an ``archive view ... --port 0`` command line) as a subprocess; yields (its URL
+    ``http://127.0.0.1:PORT/``, the Popen) once it printed its address; on exit sends SIGINT (the
+    server's own shutdown), killing it after 15 s. The caller may check ``proc.returncode`` afterwards."""
+    import os
+    import queue
+    import re
+    import signal
+    import subprocess
+    import threading
+
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})})
+    lines: queue.Queue = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout], daemon=True).start()
+    try:
+        try:
+            line = lines.get(timeout=timeout)
+        except queue.Empty:
+            proc.kill()
+            pytest.fail(f"archive view printed nothing: {proc.stderr.read()}")
+        found = re.search(r"http://127\.0\.0\.1:\d+/", line)
+        assert found, line
+        yield found.group(0), proc
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

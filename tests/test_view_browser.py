@@ -22,18 +22,16 @@ from __future__ import annotations
 
 import io
 import os
-import queue
 import re
-import signal
-import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
+
+from tests.conftest import archive_view
 
 CHROMIUM = Path("/usr/bin/chromium")
 LAUNCH_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
@@ -72,25 +70,9 @@ def archive_of_flights(tmp_path_factory):
 @pytest.fixture(scope="module")
 def server(archive_of_flights):
     """``archive view --archive A --port 0`` in a subprocess; yields its URL."""
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen([sys.executable, "-m", "archive", "view", "--archive", str(archive_of_flights[0]),
-                             "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env)
-    lines: queue.Queue = queue.Queue()
-    threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout], daemon=True).start()
-    try:
-        line = lines.get(timeout=60)
-    except queue.Empty:
-        proc.kill()
-        pytest.fail(f"archive view printed nothing: {proc.stderr.read()}")
-    found = re.search(r"http://127\.0\.0\.1:\d+/", line)
-    assert found, line
-    yield found.group(0)
-    proc.send_signal(signal.SIGINT)
-    try:
-        proc.wait(15)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
+    command = [sys.executable, "-m", "archive", "view", "--archive", str(archive_of_flights[0]), "--port", "0"]
+    with archive_view(command, cwd=ROOT) as (url, proc):
+        yield url
     assert proc.returncode == 0, proc.stderr.read()
 
 

@@ -8,17 +8,14 @@ Two small flights of one field a week apart (2 cubes x 60 lines x 32 samples x 4
 from __future__ import annotations
 
 import math
-import os
-import queue
-import re
-import signal
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests.conftest import archive_view
 import xarray as xr
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -94,13 +91,8 @@ def test_the_page_steps_through_the_flights(stack):
         covered = np.argwhere(np.isfinite(ds.radiance.values[1]).all(axis=0))
         r, c = covered[len(covered) // 2]
         lon, lat = Transformer.from_crs(epsg, 4326, always_xy=True).transform(float(ds.x[c]), float(ds.y[r]))
-    proc = subprocess.Popen([sys.executable, "-m", "archive", "view", "--archive", str(archive), "--stack", str(out),
-                             "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
-    lines: queue.Queue = queue.Queue()
-    threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout], daemon=True).start()
-    try:
-        url = re.search(r"http://127\.0\.0\.1:\d+/", lines.get(timeout=60)).group(0)
+    command = [sys.executable, "-m", "archive", "view", "--archive", str(archive), "--stack", str(out), "--port", "0"]
+    with archive_view(command, cwd=ROOT) as (url, _):
         with sync_api.sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=["--headless", "--no-sandbox"])
             page = browser.new_page(viewport={"width": 900, "height": 700})
@@ -129,10 +121,3 @@ def test_the_page_steps_through_the_flights(stack):
             assert None not in p["values"] and abs(p["row"] - r) <= 1 and abs(p["col"] - c) <= 1
             np.testing.assert_array_equal(np.array(p["values"], np.float32),
                                           ds.radiance.values[1, :, p["row"], p["col"]])
-    finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()

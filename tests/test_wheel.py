@@ -17,20 +17,19 @@ from __future__ import annotations
 
 import json
 import os
-import queue
 import re
 import shutil
-import signal
 import site
 import subprocess
 import sys
-import threading
 import urllib.request
 import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests.conftest import archive_view
 
 ROOT = Path(__file__).resolve().parents[1]
 FOV = "47.5"
@@ -140,33 +139,17 @@ def test_the_installed_wheel_serves_the_viewer_and_answers_doctor(installed, tmp
     done = run(installed, "ingest", str(flight), "--archive", str(tmp_path / "arc"), "--fov", FOV, "--quiet",
                cwd=tmp_path)
     assert done.returncode == 0, done.stderr
-    proc = subprocess.Popen([str(installed / "archive"), "view", "--archive", str(tmp_path / "arc"), "--port", "0"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=_env())
-    lines: queue.Queue = queue.Queue()
-    threading.Thread(target=lambda: [lines.put(line) for line in proc.stdout], daemon=True).start()
-    try:
-        try:
-            line = lines.get(timeout=60)
-        except queue.Empty:
-            proc.kill()
-            pytest.fail(f"archive view printed nothing: {proc.stderr.read()}")
-        url = re.search(r"http://127\.0\.0\.1:\d+/", line)
-        assert url, line
-        page = urllib.request.urlopen(url.group(0), timeout=30).read().decode()
+    # the wheel's own console script, its environment without the checkout (_env: no PYTHONPATH)
+    with archive_view([str(installed / "archive"), "view", "--archive", str(tmp_path / "arc"), "--port", "0"],
+                      cwd=tmp_path, env=_env()) as (url, _):
+        page = urllib.request.urlopen(url, timeout=30).read().decode()
         assets = re.findall(r'(?:src|href)="(/static/[^"]+)"', page)
         assert len(assets) >= 4 and any(a.endswith("app.js") for a in assets), page[:500]
         for asset in assets:
-            with urllib.request.urlopen(url.group(0) + asset.lstrip("/"), timeout=30) as r:
+            with urllib.request.urlopen(url + asset.lstrip("/"), timeout=30) as r:
                 assert r.status == 200 and len(r.read()) > 100, asset
-        with urllib.request.urlopen(url.group(0) + "stac/", timeout=30) as r:
+        with urllib.request.urlopen(url + "stac/", timeout=30) as r:
             assert json.loads(r.read())["type"] == "Catalog"
-    finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
     doctor = run(installed, "doctor", cwd=tmp_path)
     assert doctor.returncode == 0, doctor.stdout + doctor.stderr
     assert "ok    package data" in doctor.stdout and "this machine can render" in doctor.stdout

@@ -36,7 +36,7 @@ import numpy as np
 from archive.errors import RenderError
 from archive.render.context import get_context, load_shader
 from archive.render.renderer import (GatherIndex, Lookup, RenderResult, checked_cube, dn_texture_format, flag_saturated,
-                                     gather_index, radiometry_arrays)
+                                     gather_index, gather_result, radiometry_arrays)
 
 __all__ = ["COMPUTE_VERSION", "compute_lookup", "compute_unsupported", "gather_program", "release_buffers"]
 
@@ -169,16 +169,9 @@ def compute_lookup(lookup: Lookup | GatherIndex, dn: np.ndarray, radiometry, ban
     dn_up = np.ascontiguousarray(dn_up)
     grid = gather.grid
     height, width = grid.shape
-    shape = (nb, height, width)
-    if out is None:
-        values = np.empty(shape, np.float32)
-    elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
-        raise ValueError(f"out must be a C-contiguous float32 array of shape {shape}, got {out.dtype} {out.shape}")
-    else:
-        values = out
-    result = RenderResult(grid, values, np.zeros(grid.shape, bool), gather.covered)
+    result = gather_result(gather, nb, out)
+    values = result.values
     if nb == 0 or gather.height == 0:
-        values[...] = np.nan
         return result
 
     ctx = get_context()

@@ -26,7 +26,7 @@ import numpy as np
 
 from archive.errors import InputError
 from archive.render.renderer import (GatherIndex, Lookup, RenderResult, checked_cube, dn_texture_format, flag_saturated,
-                                     gather_index, radiometry_arrays)
+                                     gather_index, gather_result, radiometry_arrays)
 
 __all__ = ["BAND_PASS_SETTINGS", "BandPass", "CPU_RENDERERS", "GatherIndex", "MAX_ULP", "band_pass_choice",
            "band_pass_method", "calibrate_plane", "gather_index", "gather_lookup", "is_cpu_renderer", "use_cpu_gather"]
@@ -144,17 +144,9 @@ def gather_lookup(lookup: Lookup | GatherIndex, dn: np.ndarray, radiometry,
     dn, (nb, lines, samples) = checked_cube(dn, gather)
     dark, gain, resp, saturation = radiometry_arrays(radiometry, nb, lines, samples)
     dn_up, _, _ = dn_texture_format(dn)   # the values the GL path uploads (exact in float32)
-    grid = gather.grid
-    shape = (nb, grid.height, grid.width)
-    if out is None:
-        values = np.empty(shape, np.float32)
-    elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
-        raise ValueError(f"out must be a C-contiguous float32 array of shape {shape}, got {out.dtype} {out.shape}")
-    else:
-        values = out
-    result = RenderResult(grid, values, np.zeros(grid.shape, bool), gather.covered)
+    result = gather_result(gather, nb, out)
+    values = result.values
     if nb == 0 or gather.height == 0:
-        values[...] = np.nan
         return result
     row0, height, index = gather.row0, gather.height, gather.index
     values[:, :row0] = np.nan

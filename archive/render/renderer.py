@@ -180,6 +180,24 @@ def checked_cube(dn, lookup) -> tuple[np.ndarray, tuple[int, int, int]]:
     return dn, (nb, lines, samples)
 
 
+def gather_result(gather: "GatherIndex", nb: int, out: np.ndarray | None) -> RenderResult:
+    """The result a pass-2 gather (CPU or compute) fills: values (nb, height, width) float32 in
+    ``out`` when given (a C-contiguous float32 array of that shape; ValueError otherwise) or a new
+    array, no pixel flagged saturated yet, coverage from ``gather``. All NaN when there is nothing to
+    gather (no band, no covered row)."""
+    grid = gather.grid
+    shape = (nb, grid.height, grid.width)
+    if out is None:
+        values = np.empty(shape, np.float32)
+    elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous float32 array of shape {shape}, got {out.dtype} {out.shape}")
+    else:
+        values = out
+    if nb == 0 or gather.height == 0:
+        values[...] = np.nan
+    return RenderResult(grid, values, np.zeros(grid.shape, bool), gather.covered)
+
+
 def radiometry_arrays(radiometry, nb: int, lines: int, samples: int):
     if radiometry is None:
         return (np.zeros((nb, samples), np.float32), np.ones((nb, samples), np.float32),
