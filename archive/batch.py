@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from archive.errors import ArchiveError, InputError
-from archive.files import FileLock, path_exists, remove_path, write_atomic
+from archive.files import FileLock, path_exists, remove_path, test_hold, write_atomic
 
 __all__ = ["FORMATS", "LOCK", "REPORT", "Flight", "input_versions", "recipe_request", "run_batch"]
 
@@ -333,21 +333,9 @@ TEST_HOLD_AFTER = "ARCHIVE_TEST_HOLD_AFTER"
 
 
 def _test_hold(flights: list[Flight]) -> None:
-    """The :data:`TEST_HOLD_AFTER` hook, called right after each rewrite of the report. ``N:PATH``
-    holds only while the file PATH exists (touching ``PATH.reached`` once), then goes on."""
-    hold = os.environ.get(TEST_HOLD_AFTER)
-    if hold is None:
-        return
-    count, _, path = hold.partition(":")
-    if sum(f.status == "done" for f in flights) < int(count):
-        return
-    if not path:
-        while True:
-            time.sleep(3600)
-    if Path(path).exists():
-        Path(f"{path}.reached").touch()
-    while Path(path).exists():
-        time.sleep(0.05)
+    """The :data:`TEST_HOLD_AFTER` hook (:func:`archive.files.test_hold`), called right after each
+    rewrite of the report."""
+    test_hold(TEST_HOLD_AFTER, sum(f.status == "done" for f in flights))
 
 
 def _counts_text(flights: list[Flight]) -> str:

@@ -50,7 +50,6 @@ import json
 import os
 import shutil
 import threading
-import time
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -63,7 +62,7 @@ from zarr.codecs import BloscCodec
 
 from archive.codecs import numcodecs_blosc
 from archive.errors import FormatError, InputError, MissingInputError
-from archive.files import FileLock, replace_path, write_atomic
+from archive.files import FileLock, replace_path, test_hold, write_atomic
 from archive.formats.envi import EnviCube, EnviHeader, header_from_metadata
 from archive.formats.lcf import LcfData
 from archive.navigation import LocalFrame
@@ -163,14 +162,12 @@ _held_lock = threading.Lock()
 
 
 def _test_hold_chunk() -> None:
-    hold = os.environ.get(TEST_HOLD_AFTER_CHUNKS)
-    if hold is None:
+    if os.environ.get(TEST_HOLD_AFTER_CHUNKS) is None:
         return
     with _held_lock:
-        go = _held["chunks"] < int(hold)
-        _held["chunks"] += go
-    while not go:
-        time.sleep(3600)
+        before = _held["chunks"]
+        _held["chunks"] += 1
+    test_hold(TEST_HOLD_AFTER_CHUNKS, before)
 
 
 def write_chunk(store: str, task: ChunkTask, chunk_lines: int, resume: bool) -> tuple[int, int, str]:

@@ -27,7 +27,32 @@ from pathlib import Path
 from archive.errors import ArchiveError
 
 __all__ = ["FileLock", "LockHeldError", "LockOwner", "atomic_path", "host_name", "path_exists", "pid_alive",
-           "remove_path", "replace_path", "write_atomic"]
+           "remove_path", "replace_path", "test_hold", "wait_while_exists", "write_atomic"]
+
+
+def wait_while_exists(path: str | os.PathLike) -> None:
+    """Test hooks' wait (never reached outside tests): touch ``PATH.reached`` when ``path`` exists,
+    then sleep while it exists, so that a test acts at a moment it controls and lets go by deleting it."""
+    if Path(path).exists():
+        Path(f"{path}.reached").touch()
+    while Path(path).exists():
+        time.sleep(0.05)
+
+
+def test_hold(variable: str, reached: int) -> None:
+    """A test hook (the environment ``variable`` is never set outside tests): with ``N`` or ``N:PATH``
+    in it and ``reached`` >= N (flights done, tile writes started...), wait: until the process is
+    killed, or, with PATH, while that file exists (:func:`wait_while_exists`)."""
+    hold = os.environ.get(variable)
+    if hold is None:
+        return
+    count, _, path = hold.partition(":")
+    if reached < int(count):
+        return
+    if not path:
+        while True:
+            time.sleep(3600)
+    wait_while_exists(path)
 
 
 def _temporary(path: str) -> str:

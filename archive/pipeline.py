@@ -37,6 +37,7 @@ import numpy as np
 
 from archive.cluster import active_client, check_gpu_workers, execute, start_cluster, task_budget
 from archive.errors import InputError
+from archive.files import wait_while_exists
 from archive.graph.mosaic import rule_key
 from archive.grid import GridRequest
 from archive.options import DEFAULT_MAX_VIEW_ANGLE, RenderOptions, check_gsd, grid_request
@@ -397,14 +398,6 @@ def product_item(planned: OutputPlan, output: Output, options: RenderOptions,
 TEST_HOLD_PUBLISH = "ARCHIVE_TEST_HOLD_PUBLISH"
 
 
-def _test_hold_publish() -> None:
-    hold = os.environ.get(TEST_HOLD_PUBLISH)
-    if hold and Path(hold).exists():
-        Path(f"{hold}.reached").touch()
-        while Path(hold).exists():
-            time.sleep(0.05)
-
-
 def publish(job: _Job) -> None:
     """Finish a job's output (ENVI header, COG layout), rename it into place, then write its STAC
     Item beside it, ``<out>.json``, last: an Item says the output is complete."""
@@ -460,7 +453,8 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
             execute(client, graph, quiet, shared=cluster is None)
         graph_seconds = time.perf_counter() - t
         renderers = worker_renderers(client)
-        _test_hold_publish()
+        if os.environ.get(TEST_HOLD_PUBLISH):
+            wait_while_exists(os.environ[TEST_HOLD_PUBLISH])
         for job in jobs:
             job.renderers = renderers
             publish(job)

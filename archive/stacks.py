@@ -498,14 +498,12 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
 
 
 def _test_hold(added: int) -> None:
-    """Test-only: with ``ARCHIVE_TEST_HOLD_AFTER=N`` (:data:`archive.batch.TEST_HOLD_AFTER`) a stack
-    waits, once N flights are committed, until it is killed (never set outside tests)."""
+    """Test-only: with ``ARCHIVE_TEST_HOLD_AFTER=N[:PATH]`` (:data:`archive.batch.TEST_HOLD_AFTER`,
+    :func:`archive.files.test_hold`) a stack waits once N flights are committed (never set outside tests)."""
     from archive.batch import TEST_HOLD_AFTER
+    from archive.files import test_hold
 
-    hold = os.environ.get(TEST_HOLD_AFTER)
-    if hold is not None and added >= int(hold):
-        while True:
-            time.sleep(3600)
+    test_hold(TEST_HOLD_AFTER, added)
 
 
 @dataclass(eq=False)

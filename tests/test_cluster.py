@@ -257,7 +257,7 @@ def test_worker_killed_mid_job_gives_identical_output(flights, reference, tmp_pa
     # machine, and the renders stay in the workers' memory until then
     hold = tmp_path / "writes.hold"
     hold.touch()
-    with dask_cluster(tmp_path / "logs", env={"ARCHIVE_TEST_HOLD_WRITES": str(hold)}) as cluster, \
+    with dask_cluster(tmp_path / "logs", env={"ARCHIVE_TEST_HOLD_WRITES": f"0:{hold}"}) as cluster, \
             Client(cluster.address) as client:
         before = _task_counts(client)
         _forgotten_before = _task_counts(client, "forgotten").get("render", 0)

@@ -235,7 +235,7 @@ def test_killed_while_writing_leaves_nothing_and_rerun_is_identical(flight, rend
     hold = tmp_path.parent / f"{tmp_path.name}.hold"
     hold.touch()
     job = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
-                           env={**os.environ, "ARCHIVE_TEST_HOLD_WRITES": f"{hold}:1"})
+                           env={**os.environ, "ARCHIVE_TEST_HOLD_WRITES": f"1:{hold}"})
     try:
         deadline = time.monotonic() + 120
         while not Path(f"{hold}.reached").exists():

@@ -427,34 +427,26 @@ def write_layers_task(sink, rule: str, tile: Box, names: Sequence[str], boxes: S
     return write_values_task(sink, 0, tile, (values, None))
 
 
-#: Test-only: ``ARCHIVE_TEST_HOLD_WRITES=PATH[:N]`` makes each worker process's tile writes after its
-#: first N (default 0) wait while the file PATH exists, touching ``PATH.reached`` when one starts to
-#: wait: a test kills a render, or one of its workers, mid-job at a moment it controls, however loaded
-#: the machine (never set outside tests).
+#: Test-only: ``ARCHIVE_TEST_HOLD_WRITES=N[:PATH]`` makes each worker process's tile writes after its
+#: first N wait (:func:`archive.files.test_hold`: until killed, or while the file PATH exists): a test
+#: kills a render, or one of its workers, mid-job at a moment it controls, however loaded the machine
+#: (never set outside tests).
 TEST_HOLD_WRITES = "ARCHIVE_TEST_HOLD_WRITES"
-_TEST_WRITES = {"count": 0}
+_TEST_WRITES = {"started": 0}
 
 
 def _test_hold_writes() -> None:
     """The :data:`TEST_HOLD_WRITES` hook, called as each tile write starts."""
     import os
 
-    hold = os.environ.get(TEST_HOLD_WRITES)
-    if not hold:
+    if not os.environ.get(TEST_HOLD_WRITES):
         return
-    path, _, first = hold.partition(":")
-    with _GL_LOCK:
-        _TEST_WRITES["count"] += 1
-        count = _TEST_WRITES["count"]
-    if count <= int(first or 0):
-        return
-    import time
-    from pathlib import Path
+    from archive.files import test_hold
 
-    if Path(path).exists():
-        Path(f"{path}.reached").touch()
-    while Path(path).exists():
-        time.sleep(0.05)
+    with _GL_LOCK:
+        before = _TEST_WRITES["started"]
+        _TEST_WRITES["started"] += 1
+    test_hold(TEST_HOLD_WRITES, before)
 
 
 def write_values_task(sink, band0: int, tile: Box, assembled: tuple[np.ndarray, np.ndarray],
