@@ -15,7 +15,7 @@
 - **Resume.** With ``resume``, a flight whose output is complete (its STAC Item, written last,
   exists) and whose recipe equals this request is skipped: the same options and sources
   (``archive:recipe.request``) AND the same inputs (``archive:recipe.inputs``: each source's content
-  version and navigation parameters, :func:`input_versions`; a flight re-ingested with another sync
+  version and navigation parameters, :func:`archive.pipeline.recipe_inputs`; a flight re-ingested with another sync
   offset, or calibrated, is not the same recipe: its output is rendered again). An output without
   its Item (killed while publishing; a replaced output loses its old Item before its new data lands)
   is rendered again, and temporaries of killed runs are removed. A complete output made with other
@@ -49,7 +49,7 @@ from pathlib import Path
 from archive.errors import ArchiveError, InputError
 from archive.files import FileLock, path_exists, remove_path, test_hold, write_atomic
 
-__all__ = ["FORMATS", "LOCK", "REPORT", "Flight", "input_versions", "recipe_request", "run_batch"]
+__all__ = ["FORMATS", "LOCK", "REPORT", "Flight", "recipe_request", "run_batch"]
 
 #: Formats of the per-flight outputs.
 FORMATS = ("zarr", "tif", "hdr")
@@ -62,13 +62,6 @@ LOCK = ".archive-batch.lock"
 def recipe_request(options) -> dict:
     """The JSON form of a request as an output's Item records it (``archive:recipe.request``)."""
     return json.loads(json.dumps(dataclasses.asdict(options), default=str))
-
-
-def input_versions(options, source: str) -> list[dict]:
-    """:func:`archive.pipeline.input_versions` (what ``--resume`` compares besides the request)."""
-    from archive.pipeline import input_versions as versions
-
-    return versions(options, source)
 
 
 @dataclass
@@ -88,7 +81,7 @@ class Flight:
     futures: list = field(default_factory=list)
     left: int = 0
     started: float = 0.0
-    inputs: list | None = None   #: :func:`input_versions` when the batch was decided (the Item records it)
+    inputs: list | None = None   #: :func:`archive.pipeline.recipe_inputs` when the batch was decided (the Item records it)
     note: str | None = None   #: why a complete output of the same request is rendered again
     properties: dict | None = None   #: more properties of its Item (a tile's ``archive:tile``)
 
@@ -254,6 +247,7 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
     ``(name, request, Item properties)`` (a tile of :mod:`archive.tiles`: the mosaic of its sources)."""
     from archive.outputs.publish import Output
     from archive.options import check_gsd
+    from archive.pipeline import recipe_inputs
 
     started = time.perf_counter()
     check_gsd(options.gsd)
@@ -273,10 +267,7 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
         for name, recipe, properties in units:
             output = Output(directory / f"{name}.{format}", overwrite=bool(overwrite),
                             provenance=options.provenance, zarr_format=options.zarr_format)
-            inputs = [entry for src in recipe.sources for entry in input_versions(recipe, str(src))]
-            if len(recipe.sources) > 1:   # the files the options name once, not once per source
-                inputs = [e for k, e in enumerate(inputs) if "option" not in e or e not in inputs[:k]]
-            flights.append(Flight(",".join(recipe.sources), name, output, recipe, inputs=inputs,
+            flights.append(Flight(",".join(recipe.sources), name, output, recipe, inputs=recipe_inputs(recipe),
                                   properties=properties))
         for flight in flights:
             _decide(flight, resume, overwrite)
@@ -512,20 +503,12 @@ def _publish(flight: Flight, client) -> None:
     """:func:`archive.pipeline.publish` of a flight, whose Item's recipe also records the inputs it
     was rendered from (``archive:recipe.inputs``, what ``--resume`` compares besides the request):
     the data renamed into place (an old Item removed first), then the Item, last."""
-    from archive.catalog.stac import write_item
-    from archive.pipeline import product_item, worker_renderers
+    from archive.pipeline import publish, worker_renderers
 
     job = flight.job
+    job.renderers = worker_renderers(client)   # [] when a worker cannot say: a record, never a failure
     try:
-        job.renderers = worker_renderers(client)
-    except Exception:  # noqa: BLE001 - a record of the renderers is not worth failing the flight
-        job.renderers = None
-    try:
-        job.output.finalize(job.sink)
-        item = product_item(job.planned, job.output, job.options, job.renderers)
-        item["properties"]["archive:recipe"]["inputs"] = flight.inputs
-        item["properties"].update(flight.properties or {})
-        write_item(job.output.item_path, item)
+        publish(job, flight.inputs, flight.properties)
     finally:
         job.output.cleanup()   # its turn to publish ends with the Item
 

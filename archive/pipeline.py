@@ -341,6 +341,13 @@ def input_versions(options, source: str) -> list[dict]:
     return json.loads(json.dumps(entries, default=str))
 
 
+def recipe_inputs(options) -> list[dict]:
+    """``archive:recipe.inputs`` of an output rendered from ``options``: :func:`input_versions` of
+    each source, a file the options name listed once whatever the number of sources."""
+    inputs = [entry for src in options.sources for entry in input_versions(options, str(src))]
+    return [e for k, e in enumerate(inputs) if "option" not in e or e not in inputs[:k]]
+
+
 def worker_renderers(client) -> list[dict]:
     """The GL renderers the workers of ``client`` opened (one dict per worker and context: worker,
     EGL device, why that device, renderer and vendor strings, and the band pass its render tasks
@@ -398,17 +405,18 @@ def product_item(planned: OutputPlan, output: Output, options: RenderOptions,
 TEST_HOLD_PUBLISH = "ARCHIVE_TEST_HOLD_PUBLISH"
 
 
-def publish(job: _Job) -> None:
-    """Finish a job's output (ENVI header, COG layout), rename it into place, then write its STAC
-    Item beside it, ``<out>.json``, last: an Item says the output is complete."""
+def publish(job: _Job, inputs: list[dict] | None = None, properties: dict | None = None) -> None:
+    """Finish a job's output (ENVI header, COG layout), rename it into place (its old Item removed
+    first), then write its STAC Item beside it, ``<out>.json``, last: an Item says the output is
+    complete. The Item's recipe records ``inputs`` (default :func:`recipe_inputs` of the job's
+    options: what ``--resume`` compares besides the request); ``properties``: more of its properties
+    (a batch tile's)."""
     from archive.catalog.stac import write_item
 
     job.output.finalize(job.sink)
     item = product_item(job.planned, job.output, job.options, job.renderers)
-    # what --resume compares besides the request (archive.batch): each source's content version
-    inputs = [entry for src in job.options.sources for entry in input_versions(job.options, str(src))]
-    item["properties"]["archive:recipe"]["inputs"] = [   # an option's file once, whatever the sources
-        e for k, e in enumerate(inputs) if "option" not in e or e not in inputs[:k]]
+    item["properties"]["archive:recipe"]["inputs"] = recipe_inputs(job.options) if inputs is None else inputs
+    item["properties"].update(properties or {})
     write_item(job.output.item_path, item)
 
 

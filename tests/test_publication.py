@@ -141,8 +141,8 @@ def test_reingest_then_resume_renders_again(flights, tmp_path):
 def test_a_single_render_records_its_inputs(flights, tmp_path):
     """``archive render ID`` (not a batch) records the same ``archive:recipe.inputs`` a batch does: the
     collection's content version and navigation parameters, so a later batch --resume can judge it."""
-    from archive.batch import input_versions
     from archive.options import RenderOptions
+    from archive.pipeline import recipe_inputs
 
     _, archive, ids = flights
     out = tmp_path / "one.tif"
@@ -153,4 +153,4 @@ def test_a_single_render_records_its_inputs(flights, tmp_path):
     (entry,) = recipe["inputs"]
     assert entry["source"] == ids[0] and entry["version"]
     options = RenderOptions.create(sources=[ids[0]], archive=str(archive), gsd=0.5)
-    assert recipe["inputs"] == input_versions(options, ids[0])
+    assert recipe["inputs"] == recipe_inputs(options)
