@@ -130,20 +130,21 @@ def _start_cluster(scheduler, workers: int | None, say, threads: int | None = No
     from archive.render.device import egl_devices, spread_environments
 
     spread = spread_environments(egl_devices(), workers)
+    spreading = any(spread)
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
-        cluster = LocalCluster(n_workers=0 if any(spread) else workers,
+        cluster = LocalCluster(n_workers=0 if spreading else workers,
                                threads_per_worker=threads or max(2, cores), processes=True,
                                resources={"GPU": GL_SLOTS}, env={"LP_NUM_THREADS": str(cores)},
                                dashboard_address=":0", silence_logs=logging.CRITICAL)  # errors come back here
-        if any(spread):
-            for i, extra in enumerate(spread):
+        if spreading:   # one worker spec each, with its own device variables, then started together
+            for extra in spread:
                 ((name, spec),) = cluster.new_worker_spec().items()
                 options = dict(spec["options"])
                 options["env"] = {**(options.get("env") or {}), **extra}
                 cluster.worker_spec[name] = {**spec, "options": options}
             cluster.scale(workers)
     client = Client(cluster)
-    if any(spread):
+    if spreading:
         client.wait_for_workers(workers, timeout=120)
     return client, cluster
 

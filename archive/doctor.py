@@ -123,8 +123,9 @@ def _probe_in_child(index: int | None) -> dict:
         return {"error": f"unreadable answer: {done.stdout[-200:]!r}"}
 
 
-def _gl(workers: int) -> tuple[list[Check], bool]:
-    """EGL devices, what each renders with, the device a worker would use: (checks, can render)."""
+def _gl(workers: int) -> list[Check]:
+    """EGL devices, what each renders with, the device a worker would use, the band pass (a FAIL
+    check where rendering is impossible; the later checks are then left out)."""
     from archive.errors import ArchiveError, RenderError
     from archive.render.gather import band_pass_choice
     from archive.render.device import check_renderer, choose_device, egl_devices, spread_environments
@@ -133,7 +134,7 @@ def _gl(workers: int) -> tuple[list[Check], bool]:
     import importlib.util
 
     if importlib.util.find_spec("moderngl") is None:
-        return [Check("FAIL", "moderngl", "not installed", "pip install moderngl")], False
+        return [Check("FAIL", "moderngl", "not installed", "pip install moderngl")]
     devices = egl_devices()
     if not devices:
         checks.append(Check("warn", "EGL devices", "none listed (no libEGL, or no EGL_EXT_device_enumeration): "
@@ -154,7 +155,7 @@ def _gl(workers: int) -> tuple[list[Check], bool]:
         choice = choose_device(devices, os.environ)
     except RenderError as exc:
         checks.append(Check("FAIL", "worker device", str(exc), "fix or unset ARCHIVE_GL_DEVICE"))
-        return checks, False
+        return checks
     probe = probes.get(choice.index) if choice.index in probes else _probe_in_child(choice.index)
     where = "EGL's default display" if choice.index is None else f"EGL device {choice.index}"
     data = {"device": choice.index, "reason": choice.reason, "gpu_required": choice.gpu_required, **probe}
@@ -164,13 +165,13 @@ def _gl(workers: int) -> tuple[list[Check], bool]:
                             "apt-get install libegl1 libgl1 libegl-mesa0; on a GPU node its vendor's EGL library "
                             "(NVIDIA: /usr/share/glvnd/egl_vendor.d/10_nvidia.json); `archive doctor` again",
                             data=data))
-        return checks, False
+        return checks
     try:
         check_renderer(choice, probe.get("renderer"))
     except RenderError as exc:
         checks.append(Check("FAIL", "worker device", str(exc), "make the NVIDIA EGL driver visible to the process, "
                             "or unset CUDA_VISIBLE_DEVICES / ARCHIVE_REQUIRE_GPU to render on the CPU", data=data))
-        return checks, False
+        return checks
     given = f"; it was given a GPU ({choice.required_by})" if choice.gpu_required else ""
     checks.append(Check("ok", "worker device", f"a worker here opens {where}: {probe.get('renderer')} "
                         f"({choice.reason}){given}", data=data))
@@ -182,13 +183,13 @@ def _gl(workers: int) -> tuple[list[Check], bool]:
         checks.append(Check("ok", f"--workers {workers}", "all workers open the same device (one GPU or none)"))
     unsupported = None if probe.get("compute") else f"GL {probe.get('version')} has no compute shaders (4.3)"
     try:
-        choice = band_pass_choice(probe.get("renderer"), compute_unsupported=unsupported)
+        band = band_pass_choice(probe.get("renderer"), compute_unsupported=unsupported)
     except ArchiveError as exc:
         checks.append(Check("FAIL", "band passes", str(exc), "set ARCHIVE_BAND_PASS to auto, cpu, gl or compute, or unset it"))
-        return checks, False
-    checks.append(Check("ok", "band passes", f"{choice.method} ({choice.reason})",
-                        data={"method": choice.method, "reason": choice.reason}))
-    return checks, True
+        return checks
+    checks.append(Check("ok", "band passes", f"{band.method} ({band.reason})",
+                        data={"method": band.method, "reason": band.reason}))
+    return checks
 
 
 def _optional() -> list[Check]:
@@ -223,13 +224,8 @@ def _optional() -> list[Check]:
 
 def report(workers: int = 1) -> tuple[list[Check], bool]:
     """Every check of the module docstring: (checks, whether this machine can render)."""
-    checks = _packages()
-    checks.append(_package_data())
-    gl_checks, can_render = _gl(workers)
-    checks += gl_checks
-    checks += _optional()
-    ok = can_render and not any(c.status == "FAIL" for c in checks)
-    return checks, ok
+    checks = [*_packages(), _package_data(), *_gl(workers), *_optional()]
+    return checks, not any(c.status == "FAIL" for c in checks)
 
 
 def run(args) -> int:

@@ -32,7 +32,7 @@ from typing import Mapping, Sequence
 
 from archive.errors import RenderError
 
-__all__ = ["DeviceChoice", "EGLDevice", "bound_gpus", "check_renderer", "choose_device", "egl_devices",
+__all__ = ["SOFTWARE_RENDERERS", "DeviceChoice", "EGLDevice", "bound_gpus", "check_renderer", "choose_device", "egl_devices",
            "gpu_required", "is_software_renderer", "probe_device", "spread_environments"]
 
 #: EGL enums (EGL registry, eglext.h).
@@ -208,7 +208,8 @@ def choose_device(devices: Sequence[EGLDevice], environ: Mapping[str, str] | Non
 
 
 def is_software_renderer(renderer: str | None) -> bool:
-    """True for a software GL renderer string (llvmpipe, softpipe...)."""
+    """True for a software GL renderer string (llvmpipe, softpipe...): it renders on the CPU (where
+    band passes take the CPU gather, :mod:`archive.render.gather`)."""
     name = (renderer or "").lower()
     return any(s in name for s in SOFTWARE_RENDERERS)
 

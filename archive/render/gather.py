@@ -25,24 +25,19 @@ from typing import NamedTuple
 import numpy as np
 
 from archive.errors import InputError
+# software rasterisers (llvmpipe...), where the CPU gather wins: one list, archive.render.device's
+from archive.render.device import SOFTWARE_RENDERERS as CPU_RENDERERS
+from archive.render.device import is_software_renderer as is_cpu_renderer
 from archive.render.renderer import (GatherIndex, Lookup, RenderResult, checked_cube, dn_texture_format, flag_saturated,
                                      gather_index, gather_result, radiometry_arrays)
 
 __all__ = ["BAND_PASS_SETTINGS", "BandPass", "CPU_RENDERERS", "GatherIndex", "MAX_ULP", "band_pass_choice",
            "band_pass_method", "calibrate_plane", "gather_index", "gather_lookup", "is_cpu_renderer", "use_cpu_gather"]
 
-#: GL renderer names (substrings, lower case) of software rasterisers, where the CPU gather wins.
-CPU_RENDERERS = ("llvmpipe", "softpipe", "swrast", "lavapipe")
 #: The stated bound between :func:`gather_lookup` and the GL band passes, float32 ULP.
 MAX_ULP = 2
 #: Values of a band's plane computed per block (64K x 4 B: in a core's L2 cache).
 _BLOCK_VALUES = 1 << 16
-
-
-def is_cpu_renderer(renderer: str | None) -> bool:
-    """True for a software GL renderer (llvmpipe, softpipe...): its band passes run on the CPU."""
-    name = (renderer or "").lower()
-    return any(cpu in name for cpu in CPU_RENDERERS)
 
 
 class BandPass(NamedTuple):
