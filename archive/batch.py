@@ -351,15 +351,6 @@ def _lock_directory(directory: Path) -> FileLock:
     return lock
 
 
-def _say(quiet: bool):
-    def say(text: str) -> None:
-        if not quiet:
-            from tqdm import tqdm
-
-            tqdm.write(text, file=sys.stderr)   # on a line of its own, the progress bar drawn again below
-    return say
-
-
 def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler, workers, threads, quiet,
             wave) -> None:
     """Plan, submit (in waves), follow and publish ``todo``'s flights on a cluster."""
@@ -370,8 +361,9 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
     from tqdm import tqdm
 
     from archive.cluster import flight_slots, start_cluster, task_budget, wait_for_writers
+    from archive.pipeline import progress_lines
 
-    say = _say(quiet)
+    say = progress_lines(quiet)
     client, cluster = start_cluster(scheduler, workers, say, threads)
     queue = deque(todo)
     prepared: deque = deque()   # (flight, its planning's concurrent future), in submission order

@@ -49,7 +49,6 @@ import hashlib
 import json
 import os
 import shutil
-import threading
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -62,7 +61,7 @@ from zarr.codecs import BloscCodec
 
 from archive.codecs import numcodecs_blosc
 from archive.errors import FormatError, InputError, MissingInputError
-from archive.files import FileLock, replace_path, test_hold, write_atomic
+from archive.files import FileLock, replace_path, test_hold_calls, write_atomic
 from archive.formats.envi import EnviCube, EnviHeader, header_from_metadata
 from archive.formats.lcf import LcfData
 from archive.navigation import LocalFrame
@@ -157,19 +156,6 @@ def _cube(path: str, size: int, mtime_ns: int) -> EnviCube:
 #: the process is killed) once its store holds N dn chunks (kept from a resumed run or written), so
 #: that a test kills it mid-store at a moment it controls (never set outside tests).
 TEST_HOLD_AFTER_CHUNKS = "ARCHIVE_TEST_HOLD_AFTER_CHUNKS"
-_held = {"chunks": 0}
-_held_lock = threading.Lock()
-
-
-def _test_hold_chunk() -> None:
-    if os.environ.get(TEST_HOLD_AFTER_CHUNKS) is None:
-        return
-    with _held_lock:
-        before = _held["chunks"]
-        _held["chunks"] += 1
-    test_hold(TEST_HOLD_AFTER_CHUNKS, before)
-
-
 def write_chunk(store: str, task: ChunkTask, chunk_lines: int, resume: bool) -> tuple[int, int, str]:
     """Dask task body: read one band of the raw cubes for ``task``, write it as one dn chunk, and
     return (band, chunk, hex sha256 of the chunk's values).
@@ -180,7 +166,7 @@ def write_chunk(store: str, task: ChunkTask, chunk_lines: int, resume: bool) -> 
     with the fill value 0 to ``chunk_lines`` lines, as Zarr stores it. With ``resume``, a chunk
     already on disk that decodes to the same values is kept. Memory: one chunk and its encoding.
     """
-    _test_hold_chunk()
+    test_hold_calls(TEST_HOLD_AFTER_CHUNKS)
     parts = []
     for path, a, b in task.pieces:
         st = os.stat(path)

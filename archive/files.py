@@ -27,7 +27,7 @@ from pathlib import Path
 from archive.errors import ArchiveError
 
 __all__ = ["FileLock", "LockHeldError", "LockOwner", "atomic_path", "host_name", "path_exists", "pid_alive",
-           "remove_path", "replace_path", "test_hold", "wait_while_exists", "write_atomic"]
+           "remove_path", "replace_path", "test_hold", "test_hold_calls", "wait_while_exists", "write_atomic"]
 
 
 def wait_while_exists(path: str | os.PathLike) -> None:
@@ -53,6 +53,21 @@ def test_hold(variable: str, reached: int) -> None:
         while True:
             time.sleep(3600)
     wait_while_exists(path)
+
+
+_HOLD_CALLS: dict[str, int] = {}
+_HOLD_LOCK = threading.Lock()
+
+
+def test_hold_calls(variable: str) -> None:
+    """:func:`test_hold` counting this process's calls for ``variable`` (tile writes, chunk writes
+    started): the calls after its first N wait. Nothing is counted while the variable is unset."""
+    if os.environ.get(variable) is None:
+        return
+    with _HOLD_LOCK:
+        before = _HOLD_CALLS.get(variable, 0)
+        _HOLD_CALLS[variable] = before + 1
+    test_hold(variable, before)
 
 
 def _temporary(path: str) -> str:

@@ -51,7 +51,8 @@ if TYPE_CHECKING:
     from archive.graph.plan import RenderPlan
 
 __all__ = ["OUTPUT_BUDGET", "TASK_BUDGET_BYTES", "Inputs", "OutputPlan", "build_output", "check_size", "describe",
-           "georectify", "mosaic", "open_inputs", "plan", "plan_output", "planned_dataset", "publish"]
+           "client_budget", "georectify", "mosaic", "open_inputs", "plan", "plan_output", "planned_dataset",
+           "progress_lines", "publish"]
 
 #: Largest render task: cube window x 4 bands x float32 (plus its flags), bytes.
 TASK_BUDGET_BYTES = 2 * 1024**3
@@ -420,12 +421,27 @@ def publish(job: _Job, inputs: list[dict] | None = None, properties: dict | None
     write_item(job.output.item_path, item)
 
 
-def _say(quiet: bool):
+def progress_lines(quiet: bool):
+    """A ``say(text)`` for a command's progress lines: each on stderr on a line of its own (through
+    ``tqdm.write``: a progress bar being drawn is drawn again below it), nothing when ``quiet``."""
     def say(text: str) -> None:
         if not quiet:
-            print(text, file=sys.stderr)
+            from tqdm import tqdm
+
+            tqdm.write(text, file=sys.stderr)
 
     return say
+
+
+def client_budget() -> int | None:
+    """The render task budget (:func:`archive.cluster.task_budget`) of the active distributed Client
+    (its workers checked for the GPU resource), None without one: what a lazy mosaic or stack is
+    planned with."""
+    client = active_client()
+    if client is None:
+        return None
+    check_gpu_workers(client, f"the active Dask client ({client.scheduler.address})")
+    return task_budget(client)
 
 
 def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str | os.PathLike | None = None,
@@ -439,7 +455,7 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
     directly; :func:`publish` finishes each output and moves it into place.
     """
     started = time.perf_counter()
-    say = _say(quiet)
+    say = progress_lines(quiet)
     check_gsd(options.gsd)
     output = Output(Path(out).absolute(), overwrite=bool(overwrite), zarr_format=options.zarr_format,
                     quicklook=None if not quicklook else Path(quicklook).absolute(),
@@ -518,7 +534,7 @@ def plan(options: RenderOptions, *, band_group: int | None = None, budget: int |
     """Check, open and plan ``options`` as one mosaic (metadata only: no pixel is read, no GL);
     ``grid``: the output grid asked for instead of the options' (a stack's grid, :mod:`archive.stack`)."""
     nav = options.check()
-    inputs = open_inputs(options, nav, _say(quiet), mosaic=True)
+    inputs = open_inputs(options, nav, progress_lines(quiet), mosaic=True)
     if grid is not None:
         inputs = dataclasses.replace(inputs, grid=grid)
     return plan_output(inputs, budget=budget, band_group=band_group)
@@ -536,12 +552,7 @@ def mosaic(options: RenderOptions, *, band_group: int | None = None, quiet: bool
     index, ``wavelength`` in nm, indexed for ``.sel(wavelength=..., method="nearest")``), with the
     CRS set (rioxarray ``spatial_ref``).
     """
-    client = active_client()
-    budget = None
-    if client is not None:
-        check_gpu_workers(client, f"the active Dask client ({client.scheduler.address})")
-        budget = task_budget(client)
-    return planned_dataset(plan(options, band_group=band_group, budget=budget, quiet=quiet))
+    return planned_dataset(plan(options, band_group=band_group, budget=client_budget(), quiet=quiet))
 
 
 def planned_dataset(planned: OutputPlan):

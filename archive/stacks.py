@@ -93,15 +93,6 @@ class StackFlight:
         return (delta.days * 86400 + delta.seconds) * 1_000_000 + delta.microseconds
 
 
-def _say(quiet: bool):
-    def say(text: str) -> None:
-        if not quiet:
-            from tqdm import tqdm
-
-            tqdm.write(text, file=sys.stderr)   # on a line of its own, the progress bar drawn again below
-    return say
-
-
 def _flight_name(source: str) -> str:
     return Path(source).name if Path(source).is_dir() else str(source)
 
@@ -341,11 +332,11 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
     from archive.cluster import flight_slots, start_cluster, task_budget, wait_for_writers
     from archive.options import check_gsd
     from archive.outputs.publish import Output
-    from archive.pipeline import build_output, open_inputs, plan_output
+    from archive.pipeline import build_output, open_inputs, plan_output, progress_lines
 
     started = time.perf_counter()
     tell = tell or (lambda line: None)
-    say = _say(quiet)
+    say = progress_lines(quiet)
     check_gsd(options.gsd)
     out = Path(out).absolute()
     if out.suffix.lower() != ".zarr":
@@ -622,20 +613,15 @@ def stack(options, *, band_group: int | None = None, quiet: bool = True):
     it (dask culls the other tiles' tasks; a tile no cube of a flight touches is NaN without GL)."""
     import xarray as xr
 
-    from archive.cluster import active_client, check_gpu_workers, task_budget
-    from archive.pipeline import plan as plan_of, planned_dataset
+    from archive.pipeline import client_budget, plan as plan_of, planned_dataset, progress_lines
 
     nav = options.check()
     if options.provenance:
         raise InputError("provenance", "a stack holds no provenance layers")
     sources = list(dict.fromkeys(options.sources))
-    surveyed = survey(options, nav, sources, _say(quiet), footprints=options.like is None)
-    grid = stack_grid(options, nav, surveyed, _say(quiet))
-    client = active_client()
-    budget = None
-    if client is not None:
-        check_gpu_workers(client, f"the active Dask client ({client.scheduler.address})")
-        budget = task_budget(client)
+    surveyed = survey(options, nav, sources, progress_lines(quiet), footprints=options.like is None)
+    grid = stack_grid(options, nav, surveyed, progress_lines(quiet))
+    budget = client_budget()
     steps = []
     for src in (f.source for f in surveyed):
         try:

@@ -24,6 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from archive.errors import InputError, RenderError
+from archive.files import test_hold_calls
 from archive.graph.mosaic import last_saturation, last_values, make_rule, nadir_values, nadir_winners, rule_key
 from archive.grid import Grid
 
@@ -432,21 +433,6 @@ def write_layers_task(sink, rule: str, tile: Box, names: Sequence[str], boxes: S
 #: kills a render, or one of its workers, mid-job at a moment it controls, however loaded the machine
 #: (never set outside tests).
 TEST_HOLD_WRITES = "ARCHIVE_TEST_HOLD_WRITES"
-_TEST_WRITES = {"started": 0}
-
-
-def _test_hold_writes() -> None:
-    """The :data:`TEST_HOLD_WRITES` hook, called as each tile write starts."""
-    import os
-
-    if not os.environ.get(TEST_HOLD_WRITES):
-        return
-    from archive.files import test_hold
-
-    with _GL_LOCK:
-        before = _TEST_WRITES["started"]
-        _TEST_WRITES["started"] += 1
-    test_hold(TEST_HOLD_WRITES, before)
 
 
 def write_values_task(sink, band0: int, tile: Box, assembled: tuple[np.ndarray, np.ndarray],
@@ -456,7 +442,7 @@ def write_values_task(sink, band0: int, tile: Box, assembled: tuple[np.ndarray, 
     Returns what :func:`assemble_write_task` returns.
     """
     values, saturated = assembled
-    _test_hold_writes()
+    test_hold_calls(TEST_HOLD_WRITES)
     with sink.open_tile(band0, tile, values.shape[0]) as writer:
         for b in range(values.shape[0]):
             buffer = writer.buffer()
@@ -500,7 +486,7 @@ def assemble_write_task(sink, rule: str, band0: int, tile: Box, nbands: int,
     if len(boxes) != len(renders):
         raise ValueError(f"{len(boxes)} boxes for {len(renders)} renders")
     parts = _tile_parts(tile, boxes, renders)
-    _test_hold_writes()
+    test_hold_calls(TEST_HOLD_WRITES)
     with sink.open_tile(band0, tile, nbands) as writer:
         buffer = writer.buffer()
         if tile[2] > buffer.shape[0] or tile[3] > buffer.shape[1]:
@@ -520,7 +506,7 @@ def _write_nadir(sink, band0: int, tile: Box, nbands: int, boxes: Sequence[Box],
     parts = _tile_parts(tile, boxes, renders)
     parts_keys = _tile_keys(tile, boxes, keys)
     winner = nadir_winners(tile[2], tile[3], [(k, tr, tc) for k, (_, _, tr, tc) in zip(parts_keys, parts)])
-    _test_hold_writes()
+    test_hold_calls(TEST_HOLD_WRITES)
     with sink.open_tile(band0, tile, nbands) as writer:
         buffer = writer.buffer()
         buffer[...] = np.nan   # the grid's outside part (zarr's padding of edge chunks)
@@ -542,7 +528,7 @@ def gate_task(*done) -> None:
 def blank_write_task(sink, band0: int, tile: Box, nbands: int):
     """Write NaN into every band of a tile no cube touches (formats without a fill value: ENVI, COG);
     returns what the sink's tile writer passes on (None)."""
-    _test_hold_writes()
+    test_hold_calls(TEST_HOLD_WRITES)
     with sink.open_tile(band0, tile, nbands) as writer:
         buffer = writer.buffer()
         buffer[...] = np.nan
