@@ -34,7 +34,7 @@ import threading
 import numpy as np
 
 from archive.errors import RenderError
-from archive.render.context import get_context, load_shader
+from archive.render.context import get_context, load_shader, with_defines
 from archive.render.renderer import (GatherIndex, Lookup, RenderResult, checked_cube, dn_texture_format, flag_saturated,
                                      gather_index, gather_result, radiometry_arrays)
 
@@ -48,11 +48,6 @@ _LOCAL = 256
 _MAX_GROUPS = 65535
 
 _local = threading.local()
-
-
-def _with_defines(source: str, defines: tuple[str, ...]) -> str:
-    head, _, rest = source.partition("\n")
-    return "\n".join([head, *(f"#define {d}" for d in defines), rest])
 
 
 def gather_program(defines: tuple[str, ...] = ()):
@@ -70,8 +65,8 @@ def gather_program(defines: tuple[str, ...] = ()):
         if missing is not None:
             raise RenderError(missing)
         try:
-            program = ctx.compute_shader(_with_defines(load_shader("gather.comp.glsl"),
-                                                       (f"LOCAL {_LOCAL}", *defines)))
+            program = ctx.compute_shader(with_defines(load_shader("gather.comp.glsl"),
+                                                      (f"LOCAL {_LOCAL}", *defines)))
         except Exception as exc:
             raise RenderError(f"the compute gather (gather.comp.glsl) does not compile on "
                               f"{ctx.info.get('GL_RENDERER')}: {exc}") from exc

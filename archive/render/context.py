@@ -130,8 +130,8 @@ def get_program(vertex: str, fragment: str, defines: tuple[str, ...] = ()):
     if program is None:
         try:
             program = ctx.program(
-                vertex_shader=_with_defines(load_shader(vertex), defines),
-                fragment_shader=_with_defines(load_shader(fragment), defines),
+                vertex_shader=with_defines(load_shader(vertex), defines),
+                fragment_shader=with_defines(load_shader(fragment), defines),
             )
         except Exception as exc:
             raise RenderError(f"shaders {vertex} / {fragment} do not compile: {exc}") from exc
@@ -139,7 +139,8 @@ def get_program(vertex: str, fragment: str, defines: tuple[str, ...] = ()):
     return program
 
 
-def _with_defines(source: str, defines: tuple[str, ...]) -> str:
+def with_defines(source: str, defines: tuple[str, ...]) -> str:
+    """Shader ``source`` with ``#define`` lines for ``defines`` inserted after its ``#version`` line."""
     head, _, rest = source.partition("\n")
     if not head.startswith("#version"):
         raise RenderError("a shader must start with its #version line")
