@@ -336,6 +336,8 @@ def _counts_text(flights: list[Flight]) -> str:
 def _lock_directory(directory: Path) -> FileLock:
     """Take the output folder's lock (:data:`LOCK`), creating the folder;
     :class:`~archive.files.LockHeldError` naming the holder when another live batch has it."""
+    from archive.outputs.publish import unwritable_output
+
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -346,8 +348,7 @@ def _lock_directory(directory: Path) -> FileLock:
     try:
         lock.acquire()
     except OSError as exc:
-        raise InputError(directory, f"cannot write there ({exc.strerror or exc})",
-                         "choose an output folder you can write to") from None
+        raise unwritable_output(directory, exc) from None
     return lock
 
 

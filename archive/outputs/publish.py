@@ -29,7 +29,7 @@ from archive.outputs.base import OutputMeta
 from archive.outputs.quicklook import quicklook_png
 from archive.outputs.registry import output_format, writer
 
-__all__ = ["Output"]
+__all__ = ["Output", "unwritable_output"]
 
 
 #: Test-only: ``ARCHIVE_TEST_KILL_AT=after-data`` makes the process SIGKILL itself once an output's
@@ -159,7 +159,7 @@ class Output:
             try:
                 final.parent.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
-                raise _unwritable(final.parent, exc) from None
+                raise unwritable_output(final.parent, exc) from None
             self._made_dirs.extend(missing)  # deepest first: removed again if left empty
 
     def sink(self, meta: OutputMeta):
@@ -176,7 +176,7 @@ class Output:
                 size = meta.nbands * grid.height * grid.width * 4
                 raise InputError(self.path.parent, f"not enough free space for a {size / 1e9:.1f} GB output",
                                  "free some space or choose another folder") from None
-            raise _unwritable(self.path.parent, exc) from None
+            raise unwritable_output(self.path.parent, exc) from None
         self._sink, self._meta = sink, meta
         return sink
 
@@ -189,7 +189,7 @@ class Output:
         try:
             layers = self.writer.create_layers(self._temp, self.path, self._sink, self._meta, spec)
         except OSError as exc:
-            raise _unwritable(self.path.parent, exc) from None
+            raise unwritable_output(self.path.parent, exc) from None
         self._layers, self._layers_spec = layers, spec
         return layers
 
@@ -233,7 +233,8 @@ class Output:
         self._made_dirs.clear()
 
 
-def _unwritable(where: Path, exc: OSError) -> InputError:
+def unwritable_output(where: Path, exc: OSError) -> InputError:
+    """The one-line error for an output folder that cannot be written (``exc``: why)."""
     return InputError(where, f"cannot write there ({exc.strerror or exc})",
                       "choose an output folder you can write to")
 
