@@ -18,6 +18,31 @@ def resonon_samples() -> Path:
     return RESONON_SAMPLES
 
 
+#: The shape of the small flight the concurrency and fault tests share (2 cubes on one pass).
+SMALL_FLIGHT = dict(cubes=2, bands=4, samples=64, lines=100, cubes_per_pass=2)
+
+
+@pytest.fixture(scope="session")
+def small_flight(tmp_path_factory) -> Path:
+    """A small simulated raw flight (:data:`SMALL_FLIGHT`, seed 0), shared read-only by the tests."""
+    from archive.simulator.command import simulate_flight
+
+    d = tmp_path_factory.mktemp("small_flight") / "flight"
+    simulate_flight(d, seed=0, **SMALL_FLIGHT)
+    return d
+
+
+@pytest.fixture(scope="session")
+def small_archive(small_flight, tmp_path_factory) -> tuple[Path, str]:
+    """(archive, collection id) of :func:`small_flight` ingested (field of view 47.5 degrees); tests
+    read it and write their outputs elsewhere."""
+    from archive.ingest.command import ingest
+
+    arc = tmp_path_factory.mktemp("small_archive") / "arc"
+    (r,) = ingest([str(small_flight)], arc, 47.5, progress=False)
+    return arc, r.cid
+
+
 @contextlib.contextmanager
 def serve_loopback(app, backlog: int = 16):
     """Serve the ASGI ``app`` with a real uvicorn server on a free loopback port, in a thread; yields

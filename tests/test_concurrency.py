@@ -20,29 +20,19 @@ from archive.cli import main
 from archive.files import FileLock, LockHeldError, host_name
 
 FOV = "47.5"
-SHAPE = dict(cubes=2, bands=4, samples=64, lines=100, cubes_per_pass=2)
-
-
-@pytest.fixture(scope="module")
-def raw(tmp_path_factory) -> Path:
-    from archive.simulator.command import simulate_flight
-
-    d = tmp_path_factory.mktemp("raw") / "flight"
-    simulate_flight(d, seed=0, **SHAPE)
-    return d
 
 
 def archive_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "archive", *args]
 
 
-def test_ten_concurrent_ingests_of_one_flight(raw, tmp_path):
+def test_ten_concurrent_ingests_of_one_flight(small_flight, tmp_path):
     """Ten `archive ingest` of the same flight into one new archive at once: one ingests it, the
     others wait (saying so in one line) and find it ingested; one intact collection, cataloged once,
     nothing left beside it. (Before the lock, they shared one partial store: 3 of 10 runs left a
     collection without dn/time/navigation under its final name.)"""
     arc = tmp_path / "arc"
-    procs = [subprocess.Popen(archive_cmd("ingest", str(raw), "--archive", str(arc), "--fov", FOV, "--quiet",
+    procs = [subprocess.Popen(archive_cmd("ingest", str(small_flight), "--archive", str(arc), "--fov", FOV, "--quiet",
                                           "--workers", "1"),
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(10)]
     results = [(p.wait(timeout=600), p.stdout.read(), p.stderr.read()) for p in procs]
@@ -113,18 +103,18 @@ def test_lock_heartbeat_keeps_the_lease(tmp_path):
         lock.release()
 
 
-def test_a_waiting_ingest_takes_over_from_a_killed_one(raw, tmp_path):
+def test_a_waiting_ingest_takes_over_from_a_killed_one(small_flight, tmp_path):
     """An ingest killed while holding the lock (its lock file and partial store left behind, its PID
     dead on this host): the next ingest takes the lock over and resumes."""
     arc = tmp_path / "arc"
-    first = subprocess.run(archive_cmd("ingest", str(raw), "--archive", str(arc), "--fov", FOV, "--quiet"),
+    first = subprocess.run(archive_cmd("ingest", str(small_flight), "--archive", str(arc), "--fov", FOV, "--quiet"),
                            capture_output=True, text=True)
     assert first.returncode == 0, first.stderr
     cid = first.stdout.split(":")[0]
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     _lock_file(arc / "collections" / f"{cid}.zarr.lock", host_name(), dead.pid)
-    again = subprocess.run(archive_cmd("ingest", str(raw), "--archive", str(arc), "--fov", FOV, "--quiet",
+    again = subprocess.run(archive_cmd("ingest", str(small_flight), "--archive", str(arc), "--fov", FOV, "--quiet",
                                        "--overwrite"), capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
     assert "waiting" not in again.stderr and not (arc / "collections" / f"{cid}.zarr.lock").exists()
@@ -133,27 +123,18 @@ def test_a_waiting_ingest_takes_over_from_a_killed_one(raw, tmp_path):
 # ---------------------------------------------------------------------------------------------
 # Batches: one per output folder; temporaries of other hosts
 # ---------------------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def ingested(raw, tmp_path_factory) -> tuple[Path, str]:
-    from archive.ingest.command import ingest
-
-    arc = tmp_path_factory.mktemp("ingested") / "arc"
-    (r,) = ingest([str(raw)], arc, float(FOV), progress=False)
-    return arc, r.cid
-
-
 def batch_cmd(arc: Path, out: Path, *extra: str) -> list[str]:
     return archive_cmd("render", "--archive", str(arc), "--query-bbox", "-180,-90,180,90", "--gsd", "0.2", "--out",
                        str(out), "--format", "tif", "--quiet", "--workers", "1", *extra)
 
 
-def test_a_second_batch_into_the_same_folder_says_who_holds_it(ingested, tmp_path):
+def test_a_second_batch_into_the_same_folder_says_who_holds_it(small_archive, tmp_path):
     """Two batches into one --out DIR: the second stops at once, naming the first (PID, host, since),
     and touches nothing; once the first is killed, a --resume takes the folder over and completes it.
     (Before: both ran, did the work twice, and the last report marked complete outputs failed.)"""
     import signal
 
-    arc, cid = ingested
+    arc, cid = small_archive
     out = tmp_path / "out"
     first = subprocess.Popen(batch_cmd(arc, out), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                              start_new_session=True, env={**os.environ, "ARCHIVE_TEST_HOLD_AFTER": "0"})
@@ -179,10 +160,10 @@ def test_a_second_batch_into_the_same_folder_says_who_holds_it(ingested, tmp_pat
     assert sorted(p.name for p in out.iterdir()) == sorted([f"{cid}.tif", f"{cid}.tif.json", "report.json"])
 
 
-def test_temporaries_of_other_hosts_are_left_alone(ingested, tmp_path):
+def test_temporaries_of_other_hosts_are_left_alone(small_archive, tmp_path):
     """A killed run's temporaries are removed only when made on THIS host by a dead process; another
     host's (its PID means nothing here; on a shared file system it may be writing them now) stay."""
-    arc, cid = ingested
+    arc, cid = small_archive
     out = tmp_path / "out"
     assert subprocess.run(batch_cmd(arc, out), capture_output=True, text=True, timeout=300).returncode == 0
     dead = subprocess.Popen([sys.executable, "-c", "pass"])

@@ -18,25 +18,6 @@ import pytest
 from archive.cli import main
 
 FOV = "47.5"
-SHAPE = dict(cubes=2, bands=4, samples=64, lines=100, cubes_per_pass=2)
-
-
-@pytest.fixture(scope="module")
-def raw(tmp_path_factory) -> Path:
-    from archive.simulator.command import simulate_flight
-
-    d = tmp_path_factory.mktemp("raw") / "flight"
-    simulate_flight(d, seed=0, **SHAPE)
-    return d
-
-
-@pytest.fixture(scope="module")
-def ingested(raw, tmp_path_factory) -> tuple[Path, str]:
-    from archive.ingest.command import ingest
-
-    arc = tmp_path_factory.mktemp("ingested") / "arc"
-    (r,) = ingest([str(raw)], arc, float(FOV), progress=False)
-    return arc, r.cid
 
 
 @pytest.fixture
@@ -89,10 +70,10 @@ def batch_args(arc: Path, out: Path, *extra: str) -> list[str]:
             "--format", "tif", "--quiet", "--workers", "1", *extra]
 
 
-def test_batch_into_a_full_disk(ingested, tmp_path, small_disk):
+def test_batch_into_a_full_disk(small_archive, tmp_path, small_disk):
     """--out DIR on a full disk: one line naming DIR and the cause, exit 2 (before: a traceback from
     writing report.json)."""
-    arc, _ = ingested
+    arc, _ = small_archive
     out = small_disk(tmp_path / "out", "64k")
     fill(out)
     done = cli(*batch_args(arc, out))
@@ -101,10 +82,10 @@ def test_batch_into_a_full_disk(ingested, tmp_path, small_disk):
     assert sorted(p.name for p in out.iterdir()) == ["filler"]
 
 
-def test_batch_outputs_on_a_small_disk(ingested, tmp_path, small_disk):
+def test_batch_outputs_on_a_small_disk(small_archive, tmp_path, small_disk):
     """Room for the report but not the outputs: each flight fails on its own with one line, the
     report says so, exit 1, no traceback; with room, --resume completes the batch."""
-    arc, cid = ingested
+    arc, cid = small_archive
     out = small_disk(tmp_path / "out", "48k")
     done = cli(*batch_args(arc, out))
     assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
@@ -118,7 +99,7 @@ def test_batch_outputs_on_a_small_disk(ingested, tmp_path, small_disk):
     assert json.loads((out / "report.json").read_text())["done"] == 1
 
 
-def test_ingest_into_a_full_disk(raw, tmp_path, small_disk):
+def test_ingest_into_a_full_disk(small_flight, tmp_path, small_disk):
     """The collection store's disk fills while ingesting: one line (the disk is full, rerun resumes),
     exit 2, no collection under its final name; with room, the same ingest completes and verifies."""
     from archive.catalog.root import create_archive
@@ -126,7 +107,7 @@ def test_ingest_into_a_full_disk(raw, tmp_path, small_disk):
     arc = tmp_path / "arc"
     create_archive(arc)
     collections = small_disk(arc / "collections", "96k")
-    args = ["ingest", str(raw), "--archive", str(arc), "--fov", FOV, "--quiet"]
+    args = ["ingest", str(small_flight), "--archive", str(arc), "--fov", FOV, "--quiet"]
     done = cli(*args)
     line = one_line(done.stderr)
     assert done.returncode == 2 and "the disk is full while ingesting" in line and "run the same ingest again" in line
@@ -137,7 +118,7 @@ def test_ingest_into_a_full_disk(raw, tmp_path, small_disk):
     assert main(["verify", "--archive", str(arc), "--quiet"]) == 0
 
 
-def test_ingest_with_a_full_catalog_disk(raw, tmp_path, small_disk):
+def test_ingest_with_a_full_catalog_disk(small_flight, tmp_path, small_disk):
     """The catalog's disk (Items, SQLite index) is full: one line, exit 2; with room, the rerun
     catalogs the flight it had stored."""
     from archive.catalog.root import create_archive
@@ -147,7 +128,7 @@ def test_ingest_with_a_full_catalog_disk(raw, tmp_path, small_disk):
     catalog = small_disk(arc / "catalog", "64k")
     (catalog / "items").mkdir()
     fill(catalog)
-    args = ["ingest", str(raw), "--archive", str(arc), "--fov", FOV, "--quiet"]
+    args = ["ingest", str(small_flight), "--archive", str(arc), "--fov", FOV, "--quiet"]
     done = cli(*args)
     line = one_line(done.stderr)
     assert done.returncode == 2 and "the disk is full while ingesting" in line, line
@@ -176,17 +157,17 @@ def preload(tmp_path: Path, once: bool) -> dict:
     return {"DASK_DISTRIBUTED__WORKER__PRELOAD": json.dumps([str(script)])}
 
 
-def test_a_worker_killed_while_the_cluster_starts_is_started_again(ingested, tmp_path):
-    arc, _ = ingested
+def test_a_worker_killed_while_the_cluster_starts_is_started_again(small_archive, tmp_path):
+    arc, _ = small_archive
     out = tmp_path / "out"
     done = cli(*batch_args(arc, out), env=preload(tmp_path, once=True))
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "killed-once").exists() and json.loads((out / "report.json").read_text())["done"] == 1
 
 
-def test_workers_that_always_die_at_start_are_one_line(ingested, tmp_path):
+def test_workers_that_always_die_at_start_are_one_line(small_archive, tmp_path):
     """(Before: Dask's ~56-line traceback, 'Nanny failed to start'.)"""
-    arc, cid = ingested
+    arc, cid = small_archive
     out = tmp_path / "out"
     done = cli(*batch_args(arc, out), env=preload(tmp_path, once=False))
     line = one_line(done.stderr)
