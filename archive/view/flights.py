@@ -43,7 +43,7 @@ from archive.view.planes import BandPlanes
 from archive.view.query import ViewQuery
 from archive.view.tiles import MERCATOR_EPSG, bbox_grid, encode_png, transparent_png
 
-__all__ = ["DEFAULT_RGB_NM", "Flight"]
+__all__ = ["DEFAULT_RGB_NM", "Flight", "overview_level"]
 
 #: Wavelengths of the default (true colour) channels, nm.
 DEFAULT_RGB_NM = (640.0, 550.0, 460.0)
@@ -57,6 +57,15 @@ MAX_MIP = 8
 AHEAD_TILES = 2
 #: Rows of a cube's mesh kept in its outline (footprint drawn by the page).
 OUTLINE_ROWS = 64
+
+
+def overview_level(gsd: float, flight_gsd: float | None) -> int:
+    """The block side (1, 2, 4 .. MAX_MIP flight pixels, lines x samples) averaged for an output pixel
+    of ``gsd`` (m of EPSG:3857) over a flight of nominal pixel ``flight_gsd`` (m; None: unknown, 1):
+    the power of two nearest their ratio (:meth:`Flight.band_values`, the ingest previews)."""
+    if not flight_gsd:
+        return 1
+    return int(min(MAX_MIP, 2 ** max(0, round(math.log2(gsd / flight_gsd)))))
 
 
 class Flight:
@@ -305,9 +314,7 @@ class Flight:
             return None
         side = grid.width // scale
         gsd = grid.gsd * scale
-        level = 1
-        if flight_gsd:
-            level = int(min(MAX_MIP, 2 ** max(0, round(math.log2(gsd / flight_gsd)))))
+        level = overview_level(gsd, flight_gsd)
         self._level = level
         coarse = Grid(grid.epsg, gsd, grid.x0, grid.y0, side, side)
         values, key = self.render_keyed(coarse, bands, mode, cubes, geometry, check, query.overlap, level)

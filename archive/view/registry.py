@@ -154,6 +154,28 @@ class FlightRegistry:
         return {"type": "FeatureCollection", "features": features, "numberMatched": len(features),
                 "damaged": damaged}
 
+    # ---- overview previews (made at ingest) ----------------------------------------------
+    def previews(self, cid: str):
+        """The current :class:`~archive.previews.Previews` of a checked catalog flight, None for a raw
+        flight or a collection without current ones (then tiles are drawn from the DN). Kept in the
+        bands cache, charged their bytes, and read again when the collection or its previews change
+        (their ``zarr.json``). Any thread (no OpenGL)."""
+        if cid in self.raw or self.archive is None:
+            return None
+        from archive.previews import GROUP, read_previews
+
+        store = self.archive.store(cid)
+        stamp = []
+        for meta in (store / "zarr.json", store / GROUP / "zarr.json"):
+            try:
+                stamp.append(meta.stat().st_mtime_ns)
+            except OSError:
+                stamp.append(None)
+        if stamp[1] is None:
+            return None
+        return self.bands_cache.get_or_make(
+            (cid, "previews", *stamp), lambda: _sized(read_previews(store)))
+
     # ---- opened flights ------------------------------------------------------------------
     def flight(self, cid: str) -> Flight:
         """The opened :class:`Flight` of a checked id (render thread only)."""
@@ -183,6 +205,11 @@ class FlightRegistry:
     def close(self) -> None:
         """Stop the band workers (after what they are making)."""
         self.workers.shutdown(wait=True, cancel_futures=True)
+
+
+def _sized(previews) -> tuple:
+    """(previews, the bytes a cache charges them)."""
+    return previews, 64 if previews is None else previews.nbytes
 
 
 def _feature_of_item(item: dict) -> dict:

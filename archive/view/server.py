@@ -54,6 +54,7 @@ from pathlib import Path
 from archive.catalog.api import stac_routes
 from archive.catalog.root import ArchiveRoot
 from archive.errors import ArchiveError, InputError, MissingInputError, RenderError
+from archive.grid import Grid
 from archive.view.cache import ByteLRU
 from archive.view.registry import FlightRegistry
 from archive.view.query import Stretch, parse_bbox, parse_number, parse_query
@@ -97,11 +98,12 @@ class Viewer:
         self.tiles = ByteLRU(tile_cache_bytes)
         self.started = time.time()
         self.cancelled = 0
+        self.from_previews = 0   # band-value tiles answered from the ingest previews
 
     def status(self) -> dict:
         return {
             "uptime_s": round(time.time() - self.started, 3), "render": dict(self.render.counts),
-            "queued": self.render.queued, "abandoned": self.cancelled,
+            "queued": self.render.queued, "abandoned": self.cancelled, "from_previews": self.from_previews,
             "caches": {"tiles": self.tiles.stats().as_dict(), "bands": self.registry.bands_cache.stats().as_dict(),
                        "lookups": self.registry.lookup_cache.stats().as_dict()},
             "rss_bytes": resident_bytes(),
@@ -179,6 +181,19 @@ def values_window(planes) -> tuple[int, int, int, int]:
     if not rows.size:
         return 0, 0, 1, 1
     return int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)
+
+
+def values_response(planes, key, headers: dict, window: tuple[int, int, int, int] | None):
+    """The response of a band-value tile: (k, n, n) ``planes`` and the (n, n) ``key`` (or None), only
+    their ``window`` (column, row, width, height; None: the whole tile, no X-Window header)."""
+    from starlette.responses import Response
+
+    if window is not None:
+        c0, r0, w, h = window
+        planes = planes[:, r0:r0 + h, c0:c0 + w]
+        key = None if key is None else key[r0:r0 + h, c0:c0 + w]
+        headers = {**headers, "X-Window": ",".join(map(str, window))}
+    return Response(encode_values(planes, key), media_type="application/octet-stream", headers=headers)
 
 
 def registry_gsd(registry: FlightRegistry, cid: str) -> float:
@@ -286,6 +301,20 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
         scale = int(scale)
         common = dataclasses.replace(query, bands=None, stretch=Stretch())
         keyed = query.overlap == "nadir"
+        headers = {"Cache-Control": "private, max-age=600", "X-Bands": ",".join(map(str, query.bands)),
+                   "X-Side": str(TILE // scale), "X-Key": "view_zenith" if keyed else ""}
+        window = request.query_params.get("window") == "1"
+        if not keyed and query.cubes is None and query.ground_height is None and query.sync_offset is None:
+            # the flight as ingested, zoomed out: its overview previews, without the DN (issue 36)
+            previews = await run_in_threadpool(registry.previews, cid)
+            if previews is not None and previews.serves(query.bands, query.mode, z - scale.bit_length() + 1):
+                coarse = Grid(grid.epsg, grid.gsd * scale, grid.x0, grid.y0, TILE // scale, TILE // scale)
+                planes = await run_in_threadpool(previews.values, coarse, query.bands)
+                headers["X-Source"] = "previews"
+                viewer.from_previews += 1
+                if planes is None:
+                    return Response(status_code=204, headers=headers)
+                return values_response(planes, None, headers, values_window(planes) if window else None)
         wanted = list(query.bands) + (["key"] if keyed else [])
         keys = {b: (cid, z, x, y, b, common, scale) for b in wanted}
         found = {b: viewer.tiles.get(k) for b, k in keys.items()}
@@ -305,13 +334,11 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
                 if keyed:
                     found["key"] = key
                     viewer.tiles.put(keys["key"], key, key.nbytes)
-        headers = {"Cache-Control": "private, max-age=600", "X-Bands": ",".join(map(str, query.bands)),
-                   "X-Side": str(TILE // scale), "X-Key": "view_zenith" if keyed else ""}
         if empty:
             return Response(status_code=204, headers=headers)
         planes = np.stack([found[b] for b in query.bands])
         key = found["key"] if keyed else None
-        if request.query_params.get("window") == "1":
+        if window:
             # one window per tile and parameters, whichever bands ask: the page keeps the planes
             # of a tile together (a window differing from the one it has drops those, after an eviction)
             window_key = (cid, z, x, y, "window", common, scale)
@@ -319,11 +346,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
             if window is None:
                 window = values_window(planes)
                 viewer.tiles.put(window_key, window, 64)
-            c0, r0, w, h = window
-            planes = planes[:, r0:r0 + h, c0:c0 + w]
-            key = None if key is None else key[r0:r0 + h, c0:c0 + w]
-            headers["X-Window"] = ",".join(map(str, window))
-        return Response(encode_values(planes, key), media_type="application/octet-stream", headers=headers)
+        return values_response(planes, key, headers, window or None)
 
     async def outline(request):
         cid = cid_of(request)
@@ -354,6 +377,13 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
             raise InputError("percentiles", f"expected LOW,HIGH percentiles, got {pct[:40]!r}") from None
         if not 0 <= lo < hi <= 100:
             raise InputError("percentiles", f"expected 0 <= low < high <= 100, got {pct!r}")
+        if box is None and query.bands is not None and query.cubes is None:
+            # the whole flight's statistics of the previews' bands were computed at ingest
+            previews = await run_in_threadpool(registry.previews, cid)
+            found = None if previews is None else previews.flight_stats(query.bands, query.mode or previews.mode,
+                                                                        (lo, hi))
+            if found is not None:
+                return JSONResponse(found)
         return JSONResponse(await drawn(request, _stats_job, registry, cid, box, query, (lo, hi)))
 
     async def status(request):
