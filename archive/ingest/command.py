@@ -30,7 +30,6 @@ from pathlib import Path
 import numpy as np
 
 import archive
-from archive import storage
 from archive.catalog.root import ArchiveRoot, check_collection_id, create_archive, open_root
 from archive.errors import ArchiveError, InputError
 from archive.collection import (FORMAT, FORMAT_VERSION, NAV_COLUMNS, StorePlan, chunk_tasks, finish_store,
@@ -332,11 +331,8 @@ def _same_sources(attrs: dict, plan: StorePlan) -> bool:
 
 
 def _cataloged(root: ArchiveRoot, cid: str) -> bool:
-    from archive.catalog.index import ensure_index, search
+    from archive.catalog.index import search
 
-    if root.is_url:   # the index is a local cache, rebuilt from the Items when stale
-        return storage.exists(root.item_path(cid)) and storage.exists(root.catalog_path) \
-            and bool(search(ensure_index(root), ids=[cid]))
     if not root.item_path(cid).exists() or not root.index_path.exists() or not root.catalog_path.exists():
         return False  # (an archive made before the root catalog.json existed gets one)
     return bool(search(root.index_path, ids=[cid]))
@@ -405,10 +401,7 @@ def _distinct_flights(directories: list[str], plans: list[StorePlan]) -> list[tu
 
 def _create_archive(archive_path: str | os.PathLike) -> ArchiveRoot:
     """:func:`create_archive`, tolerating another process creating the same new archive right now
-    (its folders exist for a moment before its ``archive.json``; in object storage the marker is a
-    conditional PUT, so both succeed)."""
-    if storage.is_url(archive_path):
-        return create_archive(archive_path)
+    (its folders exist for a moment before its ``archive.json``)."""
     deadline = time.monotonic() + 10.0
     while True:
         try:
@@ -428,8 +421,7 @@ def _ingest_one(root: ArchiveRoot, plan: StorePlan, directory: str, overwrite: b
     from archive.catalog.describe import catalog_collection
 
     final = root.store(plan.cid)
-    # in object storage an incomplete store under the final prefix is a killed run's: resumed below
-    if (is_complete(final) if root.is_url else final.exists()) and not overwrite:
+    if final.exists() and not overwrite:
         _check_ingested(root, plan, directory)
         if not _cataloged(root, plan.cid):
             with _disk_full_is_an_error(root, plan.cid):
@@ -470,7 +462,7 @@ def _already_ingested(root: ArchiveRoot, plan: StorePlan, directory: str) -> boo
     rerun after success writes nothing, not even a lock file); False when in any doubt (the locked
     path then decides, and says why)."""
     try:
-        if not (is_complete(root.store(plan.cid)) if root.is_url else root.store(plan.cid).exists()):
+        if not root.store(plan.cid).exists():
             return False
         _check_ingested(root, plan, directory)
         return _cataloged(root, plan.cid)
