@@ -37,7 +37,6 @@ from __future__ import annotations
 import math
 import os
 import sys
-import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -255,7 +254,12 @@ def add_previews(root, cids: Iterable[str], warn: Callable[[str], None] | None =
         (warn or (lambda text: print(text, file=sys.stderr)))(line)
 
     made = []
-    for cid in dict.fromkeys(cids):
+    cids = list(dict.fromkeys(cids))
+    if cids and getattr(root, "is_url", False):
+        say(f"archive ingest: no overview previews for collections in object storage yet ({root.path}); "
+            "'archive view' draws them from their DN")
+        return made
+    for cid in cids:
         store = root.store(cid)
         if is_current(store):
             continue
@@ -322,21 +326,28 @@ class Previews:
         g = zoom_gsd(use)
         c0 = round((grid.x0 + HALF_WORLD) / g)
         r0 = round((HALF_WORLD - grid.y0) / g)
-        width, height = grid.width * f, grid.height * f
+        width, height = grid.width * f, grid.height * f   # the grid in the level's pixels
         # the part of the level under the grid, in the level's pixels
         a0, a1 = max(c0, level.column), min(c0 + width, level.column + level.width)
         b0, b1 = max(r0, level.row), min(r0 + height, level.row + level.height)
         if a0 >= a1 or b0 >= b1:
             return None
         index = [self.bands.index(int(b)) for b in bands]
-        out = np.full((len(index), height, width), np.nan, np.float32)
-        out[:, b0 - r0:b1 - r0, a0 - c0:a1 - c0] = stored[index, b0 - level.row:b1 - level.row,
-                                                          a0 - level.column:a1 - level.column]
-        if f > 1:
-            blocks = out.reshape(len(index), grid.height, f, grid.width, f)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)   # all-NaN blocks: NaN
-                out = np.nanmean(blocks, axis=(2, 4)).astype(np.float32)
+        part = stored[index, b0 - level.row:b1 - level.row, a0 - level.column:a1 - level.column]
+        out = np.full((len(index), grid.height, grid.width), np.nan, np.float32)
+        if f == 1:
+            out[:, b0 - r0:b1 - r0, a0 - c0:a1 - c0] = part
+        else:   # each grid pixel the mean of the finite values of the level's f x f pixels in it
+            rows = (np.arange(b0, b1) - r0) // f
+            cols = (np.arange(a0, a1) - c0) // f
+            cell = (rows[:, None] * grid.width + cols[None, :]).ravel()
+            for i, plane in enumerate(part):
+                v = plane.ravel()
+                ok = np.isfinite(v)
+                count = np.bincount(cell[ok], minlength=grid.width * grid.height)
+                total = np.bincount(cell[ok], weights=v[ok], minlength=grid.width * grid.height)
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    out[i] = np.where(count > 0, total / np.maximum(count, 1), np.nan).reshape(grid.shape)
         if not np.isfinite(out).any():
             return None
         return out

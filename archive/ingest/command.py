@@ -38,7 +38,7 @@ from archive.collection import (FORMAT, FORMAT_VERSION, NAV_COLUMNS, StorePlan, 
 from archive.formats.icp import response as exposure_response
 from archive.formats.lcf import gps_seconds_to_datetime
 from archive.params import NavigationParams
-from archive.previews import add_previews
+from archive.previews import add_previews, verify_previews
 from archive.sources.ground import auto_ground_height, camera_altitudes, check_ground_height
 from archive.sources.raw import RawFlightSource
 
@@ -530,7 +530,7 @@ def run_verify(args: argparse.Namespace) -> int:
         print(f"{root.path}: no collections")
         return 1 if bad else 0
     for cid in ids:
-        problems = verify_store(root.store(cid), progress=not args.quiet)
+        problems = verify_store(root.store(cid), progress=not args.quiet) + verify_previews(root.store(cid))
         if problems:
             bad += 1
             print(f"{cid}: CORRUPT ({len(problems)} problems)")
