@@ -30,7 +30,8 @@ def make_flights_archive(workdir: Path, args: argparse.Namespace) -> tuple[Path,
     """An archive of ``args.flights`` simulated flights (``archive simulate`` --cubes/--bands/
     --samples/--lines, seeds 0..N-1, a day apart) on a 5-column grid ARCHIVE_STEP degrees apart near
     the simulator's site, every ARCHIVE_PAIR-th overlapping its western neighbour, ingested at --fov
-    47.5; reused while its marker file exists (the raw flights are deleted). (archive, ids)."""
+    47.5 (ingest makes each flight's overview previews); reused while its marker file exists (the raw
+    flights are deleted; previews are added to a reused archive that lacks them). (archive, ids)."""
     archive = workdir / "archive"
     marker = workdir / f".bench-view-flights-{ARCHIVE_STEP[0]}-{ARCHIVE_STEP[1]}-{args.flights}-{args.cubes}-{args.bands}-{args.samples}-{args.lines}"
     if not marker.exists():
@@ -53,6 +54,11 @@ def make_flights_archive(workdir: Path, args: argparse.Namespace) -> tuple[Path,
             ingest([raw], archive, FOV, progress=False)
             shutil.rmtree(raw)
         marker.touch()
+    from archive.catalog.root import open_root
+    from archive.previews import add_previews
+
+    root = open_root(archive)
+    add_previews(root, root.collection_ids())   # an archive made before ingest made previews gets them (issue 36)
     items = [json.loads(p.read_text()) for p in (archive / "catalog" / "items").glob("*.json")]
     return archive, sorted(item["id"] for item in items)
 
