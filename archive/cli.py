@@ -153,6 +153,16 @@ def _add_simulate(sub) -> None:
                    help="true camera mounting angles, degrees, aerospace signs (default 0,0,0)")
     r.add_argument("--lever-arm", type=numbers(3), metavar="X,Y,Z",
                    help="true camera position from the INS in the body frame, metres (default 0,0,0)")
+    r.add_argument("--gnss-bias", type=numbers(3), metavar="DE,DN,DU",
+                   help="the .lcf records every position this far off the truth, metres (grid east, north, up): "
+                        "the GNSS bias of a kit without RTK (default 0,0,0)")
+    p.add_argument("--scene-from", metavar="FLIGHT_DIR",
+                   help="fly over exactly the ground of an earlier simulated flight (its truth's scene), whatever "
+                        "this flight's heading or shape")
+    p.add_argument("--ground-changes", type=float, default=0.0, metavar="F",
+                   help="paint this fraction (0..0.9) of the ground with new material patches (default 0)")
+    p.add_argument("--heading", type=float, metavar="DEG",
+                   help="grid heading of the even passes, degrees clockwise from grid north (default 20)")
     p.add_argument("--terrain", choices=["hills", "ridge"],
                    help="terrain instead of flat ground: 'hills' (>= 10 m relief) or 'ridge' (with ground hidden "
                         "from some lines); writes dem.tif (ellipsoidal heights) beside the flight")
@@ -400,25 +410,40 @@ def _add_view(sub) -> None:
 
 
 def _add_calibrate(sub) -> None:
-    p = _command(sub, "calibrate", "estimate boresight, sync offset and ground height from a flight's own overlaps", (
+    p = _command(sub, "calibrate", "estimate boresight, sync offset and ground height from a flight's own overlaps, "
+                 "or co-register flights to a reference flight", (
         "Render every pair of overlapping passes onto a common grid, measure their misregistration "
         "(sub-pixel, on textured windows) and solve by least squares for the boresight (roll, pitch, "
         "yaw), the camera-to-navigation sync offset (searched over +-1 s) and the flat ground height "
         "(or, with --dem, the DEM's vertical offset). Prints the estimates with 1-sigma uncertainties, "
         "what the flight cannot separate, the misregistration before and after, and the render/ingest "
-        "flags; starts from the parameters the flight records (a collection's as ingested)."))
-    _add_sources(p, "+", "several: one camera, one estimate")
+        "flags; starts from the parameters the flight records (a collection's as ingested). With --reference REF "
+        "the overlaps with REF (held fixed) also constrain the flight, and its position offset is estimated: "
+        "the flights line up without ground control."))
+    _add_sources(p, "*", "several: one camera, one estimate; with --reference each on its own")
     _add_fov(p, "required for raw sources; 47.5 for a Pika L")
     p.add_argument("--ground-height", type=float, metavar="M",
-                   help="start ground height, metres above the ellipsoid (default: as ingested, else the headers')")
+                   help="start ground height, metres above the ellipsoid (default: as ingested, else the headers'; "
+                        "with --reference: the reference's)")
     _add_dem(p, "estimate its vertical offset instead of a flat ground height; exclusive with --ground-height")
-    p.add_argument("--estimate", default="boresight,sync,ground", metavar="LIST",
-                   help="parameters to estimate, comma-separated: boresight (or roll, pitch, yaw), sync, ground "
-                        "(default boresight,sync,ground)")
+    p.add_argument("--estimate", default=None, metavar="LIST",
+                   help="parameters to estimate, comma-separated: boresight (or roll, pitch, yaw), sync, ground, "
+                        "position (or east, north, up; with --reference) (default boresight,sync,ground; with "
+                        "--reference position,sync,boresight)")
+    c = p.add_argument_group("co-registration to a reference flight (no ground control)")
+    c.add_argument("--reference", metavar="REF",
+                   help="a collection id of --archive (or a raw flight directory) flown over the same ground, held "
+                        "fixed: estimate each flight's position offset (dE, dN, dU m: a GNSS bias), sync offset "
+                        "and boresight relative to it from where they overlap; --apply records them")
+    c.add_argument("--query-bbox", metavar="W,S,E,N",
+                   help="with --reference: co-register every flight of --archive whose footprint meets this lon/lat box")
+    c.add_argument("--query-datetime", metavar="A/B", help="with --reference: ... flown in this ISO 8601 range")
+    c.add_argument("--query-wavelength", type=float, metavar="NM", help="with --reference: ... whose bands cover this")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--apply", action="store_true",
-                   help="record the estimates: a collection's navigation parameters (renders default to them), "
-                        "a raw flight's navigation_params.json sidecar")
+                   help="record the estimates: a collection's navigation parameters (renders, stacks and the viewer "
+                        "default to them; with --reference its STAC Item says it is co-registered), a raw flight's "
+                        "navigation_params.json sidecar")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 

@@ -240,6 +240,22 @@ def track_from_lcf(lcf: LcfData, frame: LocalFrame) -> Track:
     return Track(time=time, position=position, attitude=Rotation.from_euler("ZYX", euler))
 
 
+def offset_track(track: Track, offset_m: Sequence[float] | None) -> Track:
+    """``track`` with a constant position offset ``offset_m`` = (dE, dN, dU) metres (grid east,
+    north of the frame's UTM zone, up) added to every INS position (DESIGN 11: a GNSS bias found by
+    ``archive calibrate --reference``; added before the lever arm). The same track when it is None
+    or zero."""
+    if offset_m is None:
+        return track
+    d = np.asarray(offset_m, float)
+    if d.shape != (3,) or not np.all(np.isfinite(d)):
+        raise InputError(None, f"position offset must be 3 finite numbers (dE, dN, dU metres), got {offset_m!r}")
+    if not np.any(d):
+        return track
+    ned = np.array([d[1], d[0], -d[2]])
+    return Track(time=track.time, position=np.asarray(track.position, float) + ned, attitude=track.attitude)
+
+
 @dataclass(frozen=True, eq=False)
 class Poses:
     """Camera poses at each line's exposure START.

@@ -20,19 +20,24 @@ class NavigationParams:
     boresight_deg: camera -> body rotation as (roll, pitch, yaw) degrees, aerospace sign, applied
         intrinsically Z-Y-X like the body attitude.
     lever_arm_m: camera position in the body frame (x forward, y right, z down), metres.
-    None (sync_offset, boresight_deg, lever_arm_m): not given: what the source recorded, else 0
-    (see :meth:`resolved`; sources resolve their parameters when opened).
+    position_offset_m: (dE, dN, dU) metres added to every INS position of the flight before the
+        lever arm: grid east and north of the flight's UTM zone, and up (ellipsoidal); what
+        ``archive calibrate --reference`` estimates (a GNSS bias relative to another flight, DESIGN 11).
+    None (sync_offset, boresight_deg, lever_arm_m, position_offset_m): not given: what the source
+    recorded, else 0 (see :meth:`resolved`; sources resolve their parameters when opened).
     """
 
     fov_deg: float
     sync_offset: float | None = 0.0
     boresight_deg: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
     lever_arm_m: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
+    position_offset_m: tuple[float, float, float] | None = None
 
     def resolved(self, recorded: dict | None = None) -> NavigationParams:
         """These parameters with every None (not given) replaced by the value a source ``recorded``
         (a collection records what it was ingested with: keys 'sync_offset', 'boresight_deg',
-        'lever_arm_m'), else 0."""
+        'lever_arm_m', and after a co-registration 'position_offset_m': see
+        :func:`recorded_navigation`), else 0."""
         recorded = recorded or {}
 
         def pick(value, key, default):
@@ -46,7 +51,26 @@ class NavigationParams:
             fov_deg=self.fov_deg,
             sync_offset=float(pick(self.sync_offset, "sync_offset", 0.0)),
             boresight_deg=tuple(float(v) for v in pick(self.boresight_deg, "boresight_deg", (0.0, 0.0, 0.0))),
-            lever_arm_m=tuple(float(v) for v in pick(self.lever_arm_m, "lever_arm_m", (0.0, 0.0, 0.0))))
+            lever_arm_m=tuple(float(v) for v in pick(self.lever_arm_m, "lever_arm_m", (0.0, 0.0, 0.0))),
+            position_offset_m=tuple(float(v) for v in pick(self.position_offset_m, "position_offset_m",
+                                                           (0.0, 0.0, 0.0))))
+
+    @property
+    def position_offset(self) -> tuple[float, float, float]:
+        """(dE, dN, dU) metres, 0 where not given."""
+        return (0.0, 0.0, 0.0) if self.position_offset_m is None else tuple(float(v) for v in self.position_offset_m)
+
+
+def recorded_navigation(attrs: dict) -> dict:
+    """The navigation parameters a collection records (its group attributes ``attrs``):
+    ``navigation_params`` (what ingest and ``calibrate --apply`` write), plus the position offset of
+    a co-registration (``archive calibrate --reference``), which is kept in the calibration note
+    ``navigation_calibration`` ('position_offset_m', 'relative_to')."""
+    out = dict(attrs.get("navigation_params") or {})
+    note = attrs.get("navigation_calibration") or {}
+    if isinstance(note, dict) and note.get("position_offset_m") is not None:
+        out["position_offset_m"] = [float(v) for v in note["position_offset_m"]]
+    return out
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,12 @@
 
 Parameters the calibration held (not separable) are recorded at the value it held them at (their
 start value); the lever arm is kept.
+
+A co-registration (``--reference``) also records the flight's position offset (dE, dN, dU m, DESIGN
+11) and the flight it is relative to: a collection keeps them in its calibration note
+(``navigation_calibration``: 'position_offset_m', 'relative_to', read back by
+:func:`archive.params.recorded_navigation`) and its STAC Item says so (:func:`item_properties`);
+a raw flight in its sidecar. Every cube's navigation moves by the offset.
 """
 
 from __future__ import annotations
@@ -24,14 +30,37 @@ import numpy as np
 
 from archive.params import NavigationParams
 
-__all__ = ["apply"]
+__all__ = ["apply", "item_properties"]
 
 
-def _note(result) -> dict:
-    return {"by": "archive calibrate", "estimated": list(result.estimated),
+def _note(result, previous: dict | None = None) -> dict:
+    note = {"by": "archive calibrate", "estimated": list(result.estimated),
             "sigma": {k: v for k, v in result.sigma.items()}, "observable": result.observable,
             "residual_px_after": result.residual_after,
             "date": _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()}
+    offset = [float(v) for v in result.params.position_offset]
+    if result.reference is not None:
+        note.update(position_offset_m=offset, relative_to=result.reference,
+                    residual_px_between={"before": result.between_before, "after": result.between_after},
+                    windows_between=result.windows)
+    elif any(offset):   # a flight calibrated again on its own keeps its co-registration
+        note.update(position_offset_m=offset, relative_to=(previous or {}).get("relative_to"))
+    return note
+
+
+def item_properties(attrs: dict) -> dict:
+    """STAC Item properties of a collection's recorded co-registration (its group attributes
+    ``attrs``): ``archive:coregistration`` = {'relative_to', 'position_offset_m', 'sigma',
+    'residual_px_between', 'date'}; {} when it was never co-registered."""
+    note = attrs.get("navigation_calibration") or {}
+    if not isinstance(note, dict) or note.get("position_offset_m") is None:
+        return {}
+    params = attrs.get("navigation_params") or {}
+    return {"archive:coregistration": {
+        "relative_to": note.get("relative_to"), "position_offset_m": note["position_offset_m"],
+        "sync_offset_s": params.get("sync_offset"), "boresight_deg": params.get("boresight_deg"),
+        "sigma": note.get("sigma"), "residual_px_between": note.get("residual_px_between"),
+        "date": note.get("date")}}
 
 
 def apply(sources, result, archive=None) -> list[Path]:
@@ -41,10 +70,13 @@ def apply(sources, result, archive=None) -> list[Path]:
     for source in sources:
         params = {"sync_offset": float(result.params.sync),
                   "boresight_deg": [float(v) for v in result.params.boresight_deg],
-                  "lever_arm_m": [float(v) for v in source.params.lever_arm_m]}
+                  "lever_arm_m": [float(v) for v in source.params.lever_arm_m],
+                  "position_offset_m": [float(v) for v in result.params.position_offset]}
         ground = None if result.dem is not None else float(result.params.ground)
         if hasattr(source, "store"):
-            written.append(_apply_collection(source, params, ground, _note(result), archive))
+            previous = getattr(source, "info", None)
+            previous = (previous.attrs.get("navigation_calibration") if previous is not None else None) or {}
+            written.append(_apply_collection(source, params, ground, _note(result, previous), archive))
         else:
             written.append(_apply_raw(source, params, ground, result))
     return written
@@ -55,8 +87,13 @@ def _apply_raw(source, params: dict, ground, result) -> Path:
     from archive.sources.raw import NAVIGATION_SIDECAR
 
     path = Path(source.directory) / NAVIGATION_SIDECAR
-    record = {**params, "ground_height": ground, "fov_deg": float(source.params.fov_deg),
-              "calibration": _note(result)}
+    from archive.sources.raw import read_navigation_sidecar
+
+    previous = read_navigation_sidecar(source.directory).get("calibration") or {}
+    note = _note(result, previous)
+    record = {**params, "ground_height": ground, "fov_deg": float(source.params.fov_deg), "calibration": note}
+    if note.get("relative_to") is not None:
+        record["relative_to"] = note["relative_to"]
     if result.dem is not None:
         record["dem"] = result.dem
         record["dem_offset_m"] = float(result.params.ground)
@@ -69,7 +106,8 @@ def _apply_collection(source, params: dict, ground, note: dict, archive) -> Path
     from archive.sources.collection import CollectionSource
 
     nav = NavigationParams(fov_deg=source.params.fov_deg, sync_offset=params["sync_offset"],
-                           boresight_deg=tuple(params["boresight_deg"]), lever_arm_m=tuple(params["lever_arm_m"]))
+                           boresight_deg=tuple(params["boresight_deg"]), lever_arm_m=tuple(params["lever_arm_m"]),
+                           position_offset_m=tuple(params["position_offset_m"]))
     fresh = CollectionSource(source.store, source.id, nav)
     n = len(fresh.cubes)
     poses = [fresh.poses(i) for i in range(n)]

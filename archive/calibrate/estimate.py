@@ -41,7 +41,8 @@ __all__ = ["Calibration", "calibrate", "PARAMETER_GROUPS", "SEPARABLE", "DEGENER
 
 #: --estimate groups -> parameters.
 PARAMETER_GROUPS = {"boresight": ("roll", "pitch", "yaw"), "roll": ("roll",), "pitch": ("pitch",),
-                    "yaw": ("yaw",), "sync": ("sync",), "ground": ("ground",)}
+                    "yaw": ("yaw",), "sync": ("sync",), "ground": ("ground",),
+                    "position": ("east", "north", "up"), "east": ("east",), "north": ("north",), "up": ("up",)}
 #: |correlation| above which two parameters are reported as not separable.
 SEPARABLE = 0.99
 #: |correlation| above which the flight cannot tell two parameters apart at all: one is held.
@@ -49,10 +50,11 @@ DEGENERATE = 0.9999
 #: A held parameter is reported with the parameters it correlates with beyond this.
 PARTNER = 0.9
 #: Which parameter of a degenerate pair keeps its start value (first in this order).
-HOLD_ORDER = ("pitch", "yaw", "roll", "ground", "sync")
-#: How far from the start the estimates may go: boresight deg, sync offset s, ground m (a mounting
-#: is off by a degree or two, not ten: a solution beyond these is a false match, not a camera).
-LIMITS = np.array([5.0, 5.0, 5.0, 1.5, 50.0])
+HOLD_ORDER = ("pitch", "yaw", "roll", "ground", "sync", "up", "east", "north")
+#: How far from the start the estimates may go: boresight deg, sync offset s, ground m, position
+#: offset m (a mounting is off by a degree or two, not ten, a GNSS without RTK by metres: a solution
+#: beyond these is a false match, not a camera).
+LIMITS = np.array([5.0, 5.0, 5.0, 1.5, 50.0, 15.0, 15.0, 10.0])
 #: Misregistration left (median, px) above which the calibration says it did not converge.
 CONVERGED_PX = 0.3
 #: Sync offsets searched about the start value, s.
@@ -70,7 +72,7 @@ WINDOW = 24
 MIN_WINDOW = 16     # tried where no WINDOW-sized window fits in an overlap
 #: Outer iterations (measure, solve) at most; stop when every parameter moves less than STOP.
 ITERATIONS = 6
-STOP = np.array([0.001, 0.001, 0.003, 0.0002, 0.005])   # a tenth of the accuracy goals
+STOP = np.array([0.001, 0.001, 0.003, 0.0002, 0.005, 0.005, 0.005, 0.005])   # a tenth of the accuracy goals
 #: Bands averaged into the matched image: up to this many around the middle of the spectrum.
 BANDS = 4
 #: Shortest overlap (along track, m) worth measuring: a few windows.
@@ -99,6 +101,15 @@ class Calibration:
     dem: str | None = None
     notes: list = field(default_factory=list)
     held: dict = field(default_factory=dict)
+    #: co-registration (``--reference``): the reference flight, the misregistration between the two
+    #: flights before/after (px of the nominal GSD), the pass pairs between them, the windows
+    #: (tried, textured, matched, unmatched, outliers) and the overlap area (m2)
+    reference: str | None = None
+    between_before: dict | None = None
+    between_after: dict | None = None
+    between_pairs: list = field(default_factory=list)
+    windows: dict = field(default_factory=dict)
+    overlap_m2: float | None = None
 
     def flags(self) -> str:
         """The render/ingest options that apply the estimates."""
@@ -110,7 +121,8 @@ class Calibration:
 
     def to_json(self) -> dict:
         names = {"roll": "roll_deg", "pitch": "pitch_deg", "yaw": "yaw_deg", "sync": "sync_offset_s",
-                 "ground": "dem_offset_m" if self.dem else "ground_height_m"}
+                 "ground": "dem_offset_m" if self.dem else "ground_height_m", "east": "east_m", "north": "north_m",
+                 "up": "up_m"}
         out = {
             "boresight_deg": [round(v, 6) for v in self.params.boresight_deg],
             "sync_offset_s": round(self.params.sync, 6),
@@ -131,14 +143,23 @@ class Calibration:
         if self.dem:
             out["dem_offset_m"] = round(self.params.ground, 4)
             out["dem"] = self.dem
+        if self.reference is not None or any(self.params.position_offset):
+            out["position_offset_m"] = [round(v, 5) for v in self.params.position_offset]
+            out["start"]["position_offset_m"] = list(self.start.position_offset)
+        if self.reference is not None:
+            out["reference"] = self.reference
+            out["residual_between_px"] = {"before": self.between_before, "after": self.between_after}
+            out["overlap_between"] = {"pairs": self.between_pairs, "area_m2": self.overlap_m2,
+                                      "windows": self.windows}
         return out
 
 
-def parse_estimate(text: str | Sequence[str] | None) -> tuple[str, ...]:
-    """'boresight,sync,ground' (any of boresight, roll, pitch, yaw, sync, ground) -> parameter
-    names in model order."""
+def parse_estimate(text: str | Sequence[str] | None, default: Sequence[str] | None = None) -> tuple[str, ...]:
+    """'boresight,sync,ground' (any of :data:`PARAMETER_GROUPS`: boresight, roll, pitch, yaw, sync,
+    ground, position, east, north, up) -> parameter names in model order; None: ``default``
+    (boresight, sync, ground)."""
     items = text if not isinstance(text, str) else [t for t in text.replace(" ", "").split(",") if t]
-    items = list(items) if items is not None else ["boresight", "sync", "ground"]
+    items = list(items) if items is not None else list(default or ("boresight", "sync", "ground"))
     names: set[str] = set()
     for item in items:
         if item not in PARAMETER_GROUPS:
@@ -250,7 +271,7 @@ def calibrate(sources: Sequence, fov_deg: float, ground: float, *, dem=None, dem
     little texture, a flight too short)."""
     estimate = tuple(n for n in PARAM_NAMES if n in set(estimate))
     first = sources[0].params
-    start = Params(*first.boresight_deg, float(first.sync_offset), float(ground))
+    start = Params(*first.boresight_deg, float(first.sync_offset), float(ground), *first.position_offset)
     flights = []
     for s in sources:
         surface = None if dem is None else _surface(dem, s, fov_deg)
@@ -315,15 +336,16 @@ def _check_converged(result: Fit, start: Params, after: dict, flights) -> None:
                          "the overlaps may hold too few distinct features")
 
 
-def _surface(dem, source, fov_deg: float, margin: float = 40.0):
-    """heights(n, e) of ``dem`` at local N, E points of ``source``'s frame, m above the ellipsoid:
-    the DEM read once under the flight (its camera track grown by the swath and ``margin`` m),
-    bilinear between nodes."""
-    frame = source.frame
+def _surface(dem, source, fov_deg: float, margin: float = 40.0, frame=None):
+    """heights(n, e) of ``dem`` at local N, E points of ``frame`` (default ``source``'s frame), m
+    above the ellipsoid: the DEM read once under the flight (its camera track grown by the swath
+    and ``margin`` m), bilinear between nodes."""
+    own = source.frame
+    frame = own if frame is None else frame
     pos = np.asarray(source.navigation.track.position)
-    alt = frame.origin_alt - pos[:, 2]
+    alt = own.origin_alt - pos[:, 2]
     reach = float(np.max(alt) - dem.typical_height()) * math.tan(math.radians(min(fov_deg / 2 + 15.0, 80.0))) + margin
-    e, n = pos[:, 1] + frame.origin_e, pos[:, 0] + frame.origin_n
+    e, n = pos[:, 1] + own.origin_e, pos[:, 0] + own.origin_n
     surface = dem.surface(frame.epsg, (float(e.min() - reach), float(n.min() - reach), float(e.max() + reach),
                                        float(n.max() + reach)))
 
@@ -499,5 +521,5 @@ def _report(result: Fit, start: Params, estimate, held: dict, before: dict, afte
 def _fmt(name: str, value: float | None) -> str:
     if value is None:
         return "?"
-    unit = {"roll": "deg", "pitch": "deg", "yaw": "deg", "sync": "s", "ground": "m"}[name]
+    unit = {"roll": "deg", "pitch": "deg", "yaw": "deg", "sync": "s"}.get(name, "m")
     return f"{value:.3g} {unit}"

@@ -55,15 +55,19 @@ class PairGrid:
 
 
 def pair_grid(model: FlightModel, a: Pass, b: Pass, params: Params, spacing: float,
-              grow: float = 8.0, inner: float = 1.0) -> PairGrid | None:
+              grow: float = 8.0, inner: float = 1.0, model_b: FlightModel | None = None,
+              params_b: Params | None = None) -> PairGrid | None:
     """The common grid of passes ``a`` and ``b`` under ``params``, None when they do not overlap.
+    ``model_b`` / ``params_b``: pass ``b`` belongs to another flight (a reference, its model in
+    ``model``'s frame) seen under its own parameters (default: ``model`` / ``params``).
 
     The grid covers their overlap grown by ``grow`` metres (pass B's content may lie that far from
     where the start parameters put it); ``inside`` marks the overlap grown by ``inner`` metres:
     where pass A's windows are taken."""
     import shapely
 
-    fa, fb = model.footprint(a, params), model.footprint(b, params)
+    fa = model.footprint(a, params)
+    fb = (model_b or model).footprint(b, params if params_b is None else params_b)
     if fa is None or fb is None:
         return None
     overlap = fa.intersection(fb)
@@ -203,15 +207,17 @@ class Tie:
 
 
 def measure_pair(model: FlightModel, grid: PairGrid, image_a: np.ndarray, image_b: np.ndarray,
-                 params: Params, window: int = 24, prior: np.ndarray | None = None) -> tuple[list[Tie], dict]:
+                 params: Params, window: int = 24, prior: np.ndarray | None = None,
+                 model_b: FlightModel | None = None, params_b: Params | None = None) -> tuple[list[Tie], dict]:
     """Tie windows between the passes of ``grid`` under ``params``.
 
     image_a/b: (lines, samples) float images of the passes. window: side (grid pixels) of the
     square windows (every fully covered textured one, half overlapping). prior: an expected shift
-    (rows, cols) grid pixels, or None: a coarse masked NCC over SEARCH_M finds it. Returns the ties
-    and counts (overlap pixels, windows tried, textured, matched)."""
+    (rows, cols) grid pixels, or None: a coarse masked NCC over SEARCH_M finds it. model_b /
+    params_b: pass B's flight and parameters when it is another flight's (see :func:`pair_grid`).
+    Returns the ties and counts (overlap pixels, windows tried, textured, matched)."""
     ra = render_pass(model, grid.a, image_a, grid, params)
-    rb = render_pass(model, grid.b, image_b, grid, params)
+    rb = render_pass(model_b or model, grid.b, image_b, grid, params if params_b is None else params_b)
     ra[~grid.inside] = np.nan      # A's windows: in the overlap; B: all it sees around it
     stats = {"overlap_px": int(np.count_nonzero(np.isfinite(ra) & np.isfinite(rb))), "windows": 0,
              "textured": 0, "matched": 0}

@@ -1,6 +1,6 @@
 """The exact geometric model the calibration solves with: camera rays of a flight's passes under trial
-parameters (boresight, sync offset, ground height), forward (image -> ground) and inverse
-(ground -> image).
+parameters (boresight, sync offset, ground height, position offset), forward (image -> ground) and
+inverse (ground -> image).
 
 Conventions are the renderer's (DESIGN 2 and 3, :mod:`archive.render.mesh`): a line's content sits
 at its MID-exposure pose (exposure start + shutter / 2); line L (fractional, 0-based within a pass)
@@ -9,7 +9,11 @@ is linear in time between its neighbours; the focal-plane coordinate u of a ray 
 centre at k, t = tan(fov / 2)). Poses come from the flight's merged INS track (position linear in
 time, attitude by slerp), lever arm fixed, then the trial boresight (camera -> body).
 
-Coordinates: the source's local NED frame (metres N, E, D); heights above the ellipsoid (m).
+Coordinates: the source's local NED frame (metres N, E, D), or another flight's frame of the same
+UTM zone (``frame=``: a reference flight's rays in the frame of the flight registered to it);
+heights above the ellipsoid (m). The position offset (DESIGN 11) is added to the INS track: the
+model starts from the track WITHOUT the offset the source records, so that trial parameters are
+absolute (a recorded offset is the start value).
 """
 
 from __future__ import annotations
@@ -21,29 +25,40 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Slerp
 
+from archive.errors import InputError
 from archive.navigation import boresight_rotation, frame_interval, joined
 from archive.sources.navigation import NAV_GAP
 
 __all__ = ["Params", "Pass", "FlightModel", "PARAM_NAMES"]
 
 #: Order of the parameter vector: roll, pitch, yaw (deg), sync offset (s), ground height or DEM
-#: vertical offset (m).
-PARAM_NAMES = ("roll", "pitch", "yaw", "sync", "ground")
+#: vertical offset (m), position offset east, north, up (m).
+PARAM_NAMES = ("roll", "pitch", "yaw", "sync", "ground", "east", "north", "up")
 
 
 @dataclass(frozen=True)
 class Params:
     """Trial parameters: boresight (roll, pitch, yaw) degrees, sync offset s, ground (m): the flat
-    ground height above the ellipsoid, or with a DEM its vertical offset."""
+    ground height above the ellipsoid, or with a DEM its vertical offset; position offset (east,
+    north, up) m added to every INS position (DESIGN 11)."""
 
     roll: float = 0.0
     pitch: float = 0.0
     yaw: float = 0.0
     sync: float = 0.0
     ground: float = 0.0
+    east: float = 0.0
+    north: float = 0.0
+    up: float = 0.0
 
     def vector(self) -> np.ndarray:
-        return np.array([self.roll, self.pitch, self.yaw, self.sync, self.ground], float)
+        return np.array([self.roll, self.pitch, self.yaw, self.sync, self.ground, self.east, self.north,
+                         self.up], float)
+
+    @property
+    def position_offset(self) -> tuple[float, float, float]:
+        """(dE, dN, dU) metres."""
+        return (self.east, self.north, self.up)
 
     @classmethod
     def from_vector(cls, x: Sequence[float]) -> Params:
@@ -52,6 +67,12 @@ class Params:
     @property
     def boresight_deg(self) -> tuple[float, float, float]:
         return (self.roll, self.pitch, self.yaw)
+
+
+def _ned(offset) -> np.ndarray:
+    """(dE, dN, dU) metres -> the N, E, D vector."""
+    e, n, u = (float(v) for v in offset)
+    return np.array([n, e, -u])
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,13 +99,19 @@ class FlightModel:
 
     source: a source with ``navigation`` (:class:`~archive.sources.navigation.FlightNavigation`);
     fov_deg: field of view; surface: None for flat ground, else ``height(n, e)`` -> ellipsoid
-    heights (m) of the terrain at local N, E points (the trial ``ground`` adds to it).
+    heights (m) of the terrain at local N, E points (the trial ``ground`` adds to it); frame: the
+    local frame to work in (default the source's; another one must be of the same UTM zone).
     """
 
-    def __init__(self, source, fov_deg: float, surface=None):
+    def __init__(self, source, fov_deg: float, surface=None, frame=None):
         nav = source.navigation
         self.source = source
-        self.frame = nav.frame
+        own = nav.frame
+        self.frame = own if frame is None else frame
+        if self.frame.epsg != own.epsg:
+            raise InputError(getattr(source, "label", None), f"its navigation is in EPSG:{own.epsg}, the flight it "
+                             f"is compared with in EPSG:{self.frame.epsg}",
+                             "co-register flights of one UTM zone")
         self.fov_deg = float(fov_deg)
         self.t_half = math.tan(math.radians(self.fov_deg) / 2.0)
         self.surface = surface
@@ -94,7 +121,11 @@ class FlightModel:
         track = nav.track
         self._t0 = float(track.time[0])
         self._time = np.asarray(track.time, float) - self._t0
-        self._pos = np.asarray(track.position, float)
+        recorded = np.asarray(getattr(nav.params, "position_offset", (0.0, 0.0, 0.0)), float)
+        shift = np.array([own.origin_n - self.frame.origin_n, own.origin_e - self.frame.origin_e,
+                          self.frame.origin_alt - own.origin_alt])
+        #: the INS track in ``frame`` without any position offset (the trial one is added in poses)
+        self._pos = np.asarray(track.position, float) - _ned(recorded) + shift
         self._slerp = Slerp(self._time, track.attitude)
         cuts = np.flatnonzero(np.diff(self._time) > NAV_GAP) + 1
         self._seg_start = self._time[np.r_[0, cuts]]
@@ -144,6 +175,8 @@ class FlightModel:
         seg = np.argmin(outside, axis=1)
         tc = np.clip(tc, self._seg_start[seg], self._seg_end[seg])
         pos = np.stack([np.interp(tc, self._time, self._pos[:, i]) for i in range(3)], axis=1)
+        if params.east or params.north or params.up:
+            pos = pos + _ned(params.position_offset)
         body = self._slerp(tc)
         if np.any(self.lever != 0.0):
             pos = pos + body.apply(self.lever)

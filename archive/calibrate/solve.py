@@ -18,11 +18,11 @@ from scipy.optimize import least_squares
 
 from archive.calibrate.model import PARAM_NAMES, FlightModel, Params
 
-__all__ = ["Observations", "Fit", "observations", "fit", "residuals", "stacked", "SCALE"]
+__all__ = ["Anchored", "Observations", "Fit", "anchored", "observations", "fit", "residuals", "stacked", "SCALE"]
 
-#: Typical size of each parameter's correction (deg, deg, deg, s, m): the optimiser's scale and
+#: Typical size of each parameter's correction (deg, deg, deg, s, m, m, m, m): the optimiser's scale and
 #: finite-difference steps are relative to it.
-SCALE = np.array([0.05, 0.05, 0.05, 0.01, 0.5])
+SCALE = np.array([0.05, 0.05, 0.05, 0.01, 0.5, 0.5, 0.5, 0.5])
 #: Soft-L1 scale of the robust loss, pixels.
 F_SCALE = 0.3
 #: Residual charged for a tie whose ray loses its navigation under a trial (a sync offset moving its
@@ -75,9 +75,55 @@ def observations(model: FlightModel, grids: dict, ties: list, params: Params) ->
     return obs.subset(ok)
 
 
-def residuals(model: FlightModel, obs: Observations, params: Params, pixel: float) -> np.ndarray:
-    """(n, 2) ground distance N, E between the two rays of every tie under ``params``, pixels."""
+@dataclass(frozen=True, eq=False)
+class Anchored:
+    """Tie rays of a flight against fixed ground points (a reference flight held fixed, DESIGN 11):
+    the flight's pass indices (n,), lines (n,) and focal-plane u (n,), and where the reference sees
+    the same ground, ``target`` (n, 2) N, E metres in the flight's frame."""
+
+    pass_a: np.ndarray
+    line_a: np.ndarray
+    u_a: np.ndarray
+    target: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.pass_a.size)
+
+    def subset(self, keep: np.ndarray) -> Anchored:
+        return Anchored(self.pass_a[keep], self.line_a[keep], self.u_a[keep], self.target[keep])
+
+
+def anchored(model: FlightModel, grids: dict, ties: list, params: Params) -> Anchored:
+    """Rays of the flight side of ``ties`` (measured under ``params`` on ``grids[(a, b)]``: pass a
+    of the flight, pass b of the reference, rendered under its own fixed parameters) and the ground
+    points where the reference sees them (the window centre + the measured shift)."""
+    parts = []
+    by_pair: dict = {}
+    for t in ties:
+        by_pair.setdefault((t.a, t.b), []).append(t)
+    for (a, b), group in by_pair.items():
+        grid = grids[(a, b)]
+        centre = np.array([t.centre for t in group])
+        target = grid.points(*(centre + np.array([t.shift for t in group])).T)
+        ne = grid.points(centre[:, 0], centre[:, 1])
+        down = model.frame.origin_alt - model.ground_height_at(ne[:, 0], ne[:, 1], params)
+        line, u = model.inverse(grid.a, np.column_stack([ne, down]), params)
+        parts.append((np.full(len(group), grid.a.index), line, u, target))
+    if not parts:
+        return Anchored(np.zeros(0, int), np.zeros(0), np.zeros(0), np.zeros((0, 2)))
+    obs = Anchored(*(np.concatenate([p[k] for p in parts]) for k in range(4)))
+    return obs.subset(np.isfinite(obs.line_a) & np.isfinite(obs.u_a))
+
+
+def residuals(model: FlightModel, obs: Observations | Anchored, params: Params, pixel: float) -> np.ndarray:
+    """(n, 2) ground distance N, E between the two rays of every tie under ``params`` (an
+    :class:`Anchored` tie: between the flight's ray and the reference's fixed point), pixels."""
     out = np.full((len(obs), 2), np.nan)
+    if isinstance(obs, Anchored):
+        for k in np.unique(obs.pass_a):
+            sel = obs.pass_a == k
+            out[sel] = model.forward(model.passes[int(k)], obs.line_a[sel], obs.u_a[sel], params, strict=False)
+        return (out - obs.target) / pixel
     for side in ("a", "b"):
         passes = getattr(obs, f"pass_{side}")
         for k in np.unique(passes):

@@ -39,7 +39,7 @@ from archive.simulator.terrain import TERRAINS, Terrain, make_terrain, write_dem
 from archive.simulator.trajectory import (FRAMERATE, INS_RATE, Trajectory, convergence,
                                           Wobble, default_wobble, to_lonlat, to_utm, utm_epsg)
 from archive.simulator.turns import RAMP_S, banked_turn
-from archive.simulator.truth import CubeTruth, Truth, save_truth
+from archive.simulator.truth import CubeTruth, Truth, load_truth, save_truth
 from archive.simulator.writer import BilWriter, header_text, size_on_disk
 
 __all__ = ["simulate_flight", "run", "T_START_GPS", "CAMERA_CLOCK_START", "SEED_START_STEP_S", "start_gps"]
@@ -222,16 +222,17 @@ def _plan(cubes: int, lines: int, cubes_per_pass: int, traj: Trajectory,
     return plans
 
 
-def _lcf(traj: Trajectory, plan: _CubePlan, path: Path) -> None:
+def _lcf(traj: Trajectory, plan: _CubePlan, path: Path, bias=(0.0, 0.0, 0.0)) -> None:
     """The INS (body) samples at 200 Hz from the cube's first .lcf row to 2 frames past its last line,
-    on the .lcf scale (no sync offset) and in true time (with it), whichever is later."""
+    on the .lcf scale (no sync offset) and in true time (with it), whichever is later; positions
+    recorded ``bias`` (dE, dN, dU metres) off the truth (a GNSS bias)."""
     t0 = plan.lcf_t0
     last = plan.line_time[-1]
     if t0 != plan.line_time[0]:
         last = max(last, t0 + (plan.line_time[-1] - plan.line_time[0]))
     rows = int(math.ceil((last + 2.0 / FRAMERATE - t0) * INS_RATE)) + 1
     t = t0 + np.arange(rows) / INS_RATE
-    pos = traj.position(t)
+    pos = traj.position(t) + np.asarray(bias, float)[None, :]
     yaw, pitch, roll = traj.euler(t)
     lon, lat = to_lonlat(pos[:, 0], pos[:, 1], traj.epsg)
     yaw_true = yaw - convergence(lon, lat, traj.epsg)
@@ -309,7 +310,9 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                     pause_cube: int = 0, boresight_deg: Sequence[float] = (0.0, 0.0, 0.0),
                     lever_arm_m: Sequence[float] = (0.0, 0.0, 0.0), terrain: str | None = None,
                     heading_deg: float = HEADING_DEG, wobble: bool = True, start=None,
-                    scene_seed: int | None = None, clouds: bool = False, cloud_colour: float = 0.0) -> Truth:
+                    scene_seed: int | None = None, clouds: bool = False, cloud_colour: float = 0.0,
+                    gnss_bias_m: Sequence[float] = (0.0, 0.0, 0.0), scene_from: str | os.PathLike | None = None,
+                    ground_changes: float = 0.0) -> Truth:
     """Write a simulated flight into ``directory`` and return its :class:`Truth`.
 
     ``cubes`` cubes of ``lines`` lines x ``samples`` samples x ``bands`` bands (400-1000 nm,
@@ -363,6 +366,17 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
     noise and (by default) start: the same field flown again on another day. A flight whose
     ``scene_seed`` equals its ``seed`` is the flight of that seed, byte for byte.
 
+    ``gnss_bias_m`` (dE, dN, dU metres, each within +-20): the ``.lcf`` records every position this
+    far off the truth (a GNSS bias of a kit without RTK, constant over the flight); the truth keeps
+    the true poses and the bias.
+
+    ``scene_from``: a flight directory written by this simulator (or its ``truth`` folder): fly over
+    exactly its ground (its scene: texture, targets, spectra), whatever this flight's heading, cubes
+    or seed (``scene_seed`` gives the same ground only to flights of the same shape). Its bands must
+    match. ``ground_changes`` (0..0.9): then paint this fraction of the ground under the flight
+    with new homogeneous material patches (1.5-5 m rectangles, drawn from ``seed``): what changes
+    between two days (new material, moved objects).
+
     ``clouds``: the sky's brightness drifts 30 % within cubes (:mod:`archive.simulator.clouds`); the
     directory gets the kit's downwelling spectra (one per cube) and ``downwelling.dcp``, the truth
     ``clouds.json``. ``cloud_colour``: the sky's spectrum also changes shape (every other spectrum
@@ -376,6 +390,17 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
         raise InputError("simulate", f"terrain {terrain!r}, expected one of {', '.join(TERRAINS)}")
     recorder = _recorder(cubes, lines, dropped_frames, shutters, gains, shutter_steps, sync_offset,
                          bank_deg, record_turns, pause_s, pause_cube, boresight_deg, lever_arm_m)
+    bias = _triple("GNSS bias", gnss_bias_m)
+    if max(abs(v) for v in bias) > 20.0:
+        raise InputError("simulate", f"GNSS bias {bias} m, expected components within +-20")
+    if not (math.isfinite(ground_changes) and 0.0 <= ground_changes <= 0.9):
+        raise InputError("simulate", f"ground changes {ground_changes}, expected a fraction 0..0.9")
+    base_scene = None
+    if scene_from is not None:
+        base_scene = load_truth(scene_from).scene
+        if base_scene.wavelengths.size != bands:
+            raise InputError(scene_from, f"its scene has {base_scene.wavelengths.size} bands, this flight {bands}",
+                             "simulate with the same --bands")
     directory = Path(directory)
     if (directory.exists() and not (directory.is_dir() and not any(directory.iterdir()))) \
             and not overwrite:
@@ -422,6 +447,10 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
     spectra = material_spectra(wavelengths)
     scene = Scene(e0, n0, ground_seed, 1.2, random_waves(rng), tuple(layout(traj, spans, rng)),
                   wavelengths, spectra)
+    if base_scene is not None:
+        scene = base_scene
+    if ground_changes:
+        scene = changed_ground(scene, traj, spans, fov_deg, ground_changes, np.random.default_rng([int(seed), 33]))
     radiometry = make_radiometry(spectra[MATERIALS.index("white")], wavelengths, samples,
                                  [(p.shutter_ms, p.gain_db) for p in plans], rng)
 
@@ -450,7 +479,7 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                         out.write(dn)
                         bar.update(dn.shape[1])
                 write_times(tmp / f"{plan.base}.bil.times", plan.camera_time)
-                _lcf(traj, plan, tmp / f"{plan.base}.lcf")
+                _lcf(traj, plan, tmp / f"{plan.base}.lcf", bias)
                 position, attitude = camera(plan.line_time)
                 cube_truths.append(CubeTruth(plan.base, plan.line_time, position, attitude,
                                              plan.shutter_ms, plan.gain_db, FRAMERATE))
@@ -464,7 +493,8 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
                       dropped_frames=recorder.dropped_frames,
                       pause_cube=None if pause is None else pause[0],
                       pause_line=None if pause is None else pause[1],
-                      pause_s=recorder.pause_s, record_turns=bool(into_turn), terrain=relief)
+                      pause_s=recorder.pause_s, record_turns=bool(into_turn), terrain=relief,
+                      gnss_bias_m=bias, ground_changes=float(ground_changes))
         save_truth(truth, tmp / "truth")
         if sky is not None:
             write_downwelling(tmp, [p.base for p in plans], sky)
@@ -475,6 +505,33 @@ def simulate_flight(directory: str | os.PathLike, cubes: int = 4, bands: int = 8
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return truth
+
+
+def changed_ground(scene: Scene, traj: Trajectory, spans, fov_deg: float, fraction: float,
+                   rng: np.random.Generator) -> Scene:
+    """``scene`` with about ``fraction`` of the ground under the passes (their ``spans`` of GPS
+    times, swath of ``fov_deg`` at :data:`HEIGHT`) covered by new homogeneous patches: rectangles
+    of 1.5-5 m sides, materials drawn from the scene's (glint excluded), painted over everything."""
+    half = HEIGHT * math.tan(math.radians(fov_deg) / 2.0) + 2.0
+    pts = []
+    for t0, t1 in spans:
+        e, n = traj.position(np.linspace(t0, t1, 64))[:, :2].T
+        pts.append(np.column_stack([e, n]))
+    pts = np.concatenate(pts)
+    w, s = pts.min(axis=0) - half
+    e, n = pts.max(axis=0) + half
+    sides = rng.uniform(1.5, 5.0, size=(100000, 2))
+    mean_area = float(np.mean(sides[:, 0] * sides[:, 1]))
+    count = int(math.ceil(-math.log(1.0 - fraction) * (e - w) * (n - s) / mean_area))
+    choices = [k for k, name in enumerate(scene.materials) if name != "glint"]
+    shapes = []
+    for k in range(count):
+        we, hn = rng.uniform(1.5, 5.0, size=2)
+        ce, cn = rng.uniform(w, e), rng.uniform(s, n)
+        shapes.append({"kind": "rect", "name": f"change{k}", "material": int(rng.choice(choices)),
+                       "bounds": [ce - we / 2, cn - hn / 2, ce + we / 2, cn + hn / 2], "changed": True})
+    return Scene(scene.origin_e, scene.origin_n, scene.seed, scene.cell, scene.waves, tuple(scene.shapes) + tuple(shapes),
+                 scene.wavelengths, scene.spectra, scene.materials)
 
 
 def dem_bounds(truth: Truth, margin: float = DEM_MARGIN) -> tuple[float, float, float, float]:
@@ -521,6 +578,11 @@ def _recorder_summary(truth: Truth) -> list[str]:
     if truth.pause_cube is not None:
         out.append(f"  pause: {truth.pause_s:g} s before line {truth.pause_line} of cube "
                    f"{truth.cubes[truth.pause_cube].base}")
+    if any(truth.gnss_bias_m):
+        out.append("  GNSS bias (true, recorded - true): {} m (dE, dN, dU)".format(
+            ",".join(f"{v:g}" for v in truth.gnss_bias_m)))
+    if truth.ground_changes:
+        out.append(f"  ground changed: {truth.ground_changes:.0%} painted with new patches")
     if not truth.mount.identity:
         out.append("  boresight (roll, pitch, yaw) {} deg, lever arm (x, y, z) {} m".format(
             ",".join(f"{v:g}" for v in truth.boresight_deg), ",".join(f"{v:g}" for v in truth.lever_arm_m)))
@@ -545,6 +607,8 @@ def run(args: argparse.Namespace) -> int:
                             boresight_deg=opt("boresight", (0.0, 0.0, 0.0)),
                             lever_arm_m=opt("lever_arm", (0.0, 0.0, 0.0)), terrain=opt("terrain", None),
                             start=opt("start", None), scene_seed=opt("scene_seed", None),
-                            clouds=bool(opt("clouds", False)))
+                            clouds=bool(opt("clouds", False)), gnss_bias_m=opt("gnss_bias", (0.0, 0.0, 0.0)),
+                            scene_from=opt("scene_from", None), ground_changes=opt("ground_changes", 0.0),
+                            heading_deg=opt("heading", HEADING_DEG))
     print(summary(truth))
     return 0

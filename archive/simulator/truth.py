@@ -90,7 +90,11 @@ class Truth:
     ``pause_line`` / ``pause_s``: the recorder stopped ``pause_s`` s before line ``pause_line`` of cube
     ``pause_cube`` (None / None / 0: no pause); ``record_turns``: the end of each pass's recording is
     flown in the turn (``bank_deg``: the sustained bank of the turns, 0 for flat half circles).
-    ``terrain``: the analytic height field the rays were traced to (None: flat ground at
+    ``gnss_bias_m``: (dE, dN, dU) metres the recorded ``.lcf`` positions are off the truth (recorded =
+    true + bias: the GNSS error of a kit without RTK); the correction ``archive calibrate --reference``
+    estimates against an unbiased reference is its negative. ``ground_changes``: the fraction of
+    the ground painted with new material patches after the scene was drawn (a field that changed
+    since an earlier flight). ``terrain``: the analytic height field the rays were traced to (None: flat ground at
     ``ground_height``); the footprint then follows it and :meth:`visible` says which ground a line sees."""
 
     directory: Path
@@ -112,6 +116,8 @@ class Truth:
     pause_s: float = 0.0
     record_turns: bool = False
     terrain: Terrain | None = None
+    gnss_bias_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    ground_changes: float = 0.0
 
     # --- recorder options -----------------------------------------------------------------------
     @property
@@ -410,6 +416,12 @@ def save_truth(truth: Truth, folder: str | os.PathLike) -> None:
         meta["record_turns"] = True
     if truth.terrain is not None:
         meta["terrain"] = truth.terrain.to_dict()
+    if any(truth.gnss_bias_m):
+        meta["gnss_bias_m"] = [float(v) for v in truth.gnss_bias_m]
+        meta["notes_gnss_bias"] = ("the .lcf positions are the true INS positions + gnss_bias_m (dE, dN, dU metres, "
+                                   "grid east/north of epsg, up); poses in this truth are TRUE")
+    if truth.ground_changes:
+        meta["ground_changes"] = float(truth.ground_changes)
     np.savez(folder / "truth.npz", **arrays)
     (folder / "truth.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
 
@@ -449,4 +461,6 @@ def load_truth(directory: str | os.PathLike) -> Truth:
                  pause_line=None if pause is None else int(pause["line"]),
                  pause_s=0.0 if pause is None else float(pause["seconds"]),
                  record_turns=bool(meta.get("record_turns", False)),
-                 terrain=None if meta.get("terrain") is None else Terrain.from_dict(meta["terrain"]))
+                 terrain=None if meta.get("terrain") is None else Terrain.from_dict(meta["terrain"]),
+                 gnss_bias_m=tuple(float(v) for v in meta.get("gnss_bias_m", (0.0, 0.0, 0.0))),
+                 ground_changes=float(meta.get("ground_changes", 0.0)))

@@ -11,7 +11,7 @@ import numpy as np
 from archive.collection import CheckedDn, StoredCalibration, read_downwelling, read_info
 from archive.errors import InputError
 from archive.formats.envi import EnviHeader
-from archive.params import NavigationParams
+from archive.params import NavigationParams, recorded_navigation
 from archive.sources.base import CubeInfo, Radiometry, band_list, check_mode, radiometry_for
 from archive.sources.irradiance import CubeIrradiance, SkyIrradiance
 from archive.sources.navigation import CubeNavigation, FlightNavigation, NavigatedSource
@@ -36,7 +36,7 @@ class CollectionSource(NavigatedSource):
         self.store = Path(store)
         self.label = str(self.store)
         self.id = id
-        params = params.resolved(info.attrs.get("navigation_params"))  # the mounting given at ingest
+        params = params.resolved(recorded_navigation(info.attrs))  # the mounting given at ingest / calibrate
         self.params = params
         self.white_reference = None if white_reference is None else np.asarray(white_reference, float)
         self.info = info

@@ -39,7 +39,7 @@ from scipy.spatial.transform import Rotation
 from archive.errors import InputError, NavigationError
 from archive.formats.lcf import LcfData
 from archive.navigation import (LocalFrame, Poses, Track, boresight_rotation, interpolate_poses, line_times,
-                                span_text, track_from_lcf)
+                                offset_track, span_text, track_from_lcf)
 from archive.params import NavigationParams
 from archive.sources.base import check_cube
 
@@ -107,7 +107,7 @@ class FlightNavigation:
         self.sync = float(params.sync_offset)
         if not np.isfinite(self.sync):
             raise InputError("--sync-offset", f"must be a finite number of seconds, got {params.sync_offset!r}")
-        self._tracks = [track_from_lcf(c.lcf, frame) for c in self.cubes]
+        self._tracks = [offset_track(track_from_lcf(c.lcf, frame), params.position_offset_m) for c in self.cubes]
         self.track = merge_tracks(self._tracks, [c.where for c in self.cubes])
         t = self.track.time
         cuts = np.flatnonzero(np.diff(t) > NAV_GAP) + 1
