@@ -333,6 +333,56 @@ def test_byte_lru_keeps_its_limit():
     assert cache.get("huge") is None and cache.stats().bytes <= 100 and cache.stats().evictions == 8
 
 
+def test_server_memory_stays_within_cache_mb(demo):
+    """--cache-mb bounds every cache the server keeps, the open flights included (issue 36): many
+    tiles at several zooms and ground heights through a server of 2 MiB of cache; after each, every
+XX; the open flight is
+    charged the arrays its meshes hold (counted here independently); too small a share for a flight
+    reopens it instead of keeping it."""
+    from archive.view.server import CACHE_SHARES, cache_bytes
+
+    arc, cid, item = demo
+    limits = cache_bytes(2)
+    assert sum(limits.values()) <= 2 << 20 and set(limits) == set(CACHE_SHARES)
+    registry = FlightRegistry(arc, bands_cache=ByteLRU(limits["bands"]), lookup_cache=ByteLRU(limits["lookups"]),
+                              flights_cache=ByteLRU(limits["flights"]))
+    with _client(create_app(registry, tile_cache_bytes=limits["tiles"])) as c:
+        asked = 0
+        for z in (Z - 3, Z - 1, Z):
+            for ground in ("", "&ground_height=80", "&ground_height=95"):
+                for x, y in _tiles_over(item["bbox"], z)[:12]:
+                    r = c.get(f"/api/collections/{cid}/values/{z}/{x}/{y}?bands=0,3,5&cubes=0-3{ground}")
+                    assert r.status_code in (200, 204) and "x-source" not in r.headers   # drawn from the DN
+                    asked += 1
+                    caches = c.get("/api/status").json()["caches"]
+                    for name, limit in limits.items():
+                        assert caches[name]["bytes"] <= caches[name]["limit"] == limit, (name, caches[name])
+                    assert sum(v["bytes"] for v in caches.values()) <= 2 << 20
+        assert asked >= 30
+        evicted = {name: v["evictions"] for name, v in caches.items()}
+        assert evicted["tiles"] > 0 and evicted["bands"] > 0 and evicted["lookups"] > 0, evicted
+    registry.close()
+    # an open flight's charge: the arrays of its meshes (3 ground heights, UTM and EPSG:3857) and little more
+    registry = FlightRegistry(arc)
+    flight = registry.flight(cid)
+    for ground in (None, 80.0, 95.0):
+        flight.geometry(ground, None)
+    registry.settle()
+    meshes = sum(a.nbytes for g in flight._geometries.values() for m in (*g.utm, *g.mercator)
+                 for a in (m.ground, m.depth, m.line) if a is not None)
+    assert len(flight._geometries) == 3 and meshes > 20_000
+    charged = registry.flights_cache.stats().bytes
+    assert meshes < charged == flight.nbytes() < meshes + (2 << 20)
+    # a flights share smaller than a flight: not kept (reopened per job), the accounting still holds
+    tight = FlightRegistry(arc, flights_cache=ByteLRU(64 << 10))
+    first = tight.flight(cid)
+    first.geometry(None, None)
+    tight.settle()
+    assert tight.flights_cache.stats().bytes == 0 and tight.flight(cid) is not first
+    tight.close()
+    registry.close()
+
+
 @pytest.fixture
 def live(demo):
     """A real uvicorn server on a free loopback port, in a thread; yields (base URL, Viewer)."""

@@ -1,7 +1,9 @@
-"""A least-recently-used cache bounded by the bytes of what it holds (thread-safe).
+"""A least-recently-used cache bounded by the bytes of what it holds (thread-safe), and
+:func:`held_bytes`, what an object's arrays weigh.
 
-The viewer keeps three of them: encoded tiles (PNG bytes), cube bands (DN arrays read from the
-store) and flight geometries (meshes). Each entry is charged the size its caller gives; the oldest
+The viewer keeps four of them: tiles (PNG bytes, band-value planes), band planes (and the ingest
+previews), lookups, and the opened flights (their sources, poses and meshes, charged
+:func:`held_bytes` after each job). Each entry is charged the size its caller gives; the oldest
 entries go when the total passes ``max_bytes``. An entry larger than the whole limit is not kept.
 """
 
@@ -13,7 +15,7 @@ from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["ByteLRU", "CacheStats"]
+__all__ = ["ByteLRU", "CacheStats", "held_bytes"]
 
 
 @dataclass(frozen=True)
@@ -82,6 +84,14 @@ class ByteLRU:
             self.put(key, value, nbytes)
         return value
 
+    def pop_oldest(self) -> None:
+        """Forget the least recently used entry (counted as an eviction); nothing when empty."""
+        with self._lock:
+            if self._items:
+                _, (_, size) = self._items.popitem(last=False)
+                self._bytes -= size
+                self._evictions += 1
+
     def __contains__(self, key: Hashable) -> bool:
         """Whether ``key`` is held (neither a use nor a hit or miss)."""
         with self._lock:
@@ -100,3 +110,45 @@ class ByteLRU:
         with self._lock:
             return CacheStats(len(self._items), self._bytes, self.max_bytes, self._hits, self._misses,
                               self._evictions)
+
+
+def held_bytes(*roots, depth: int = 5) -> int:
+    """Bytes of the numpy arrays reachable from ``roots`` through the attributes of this package's
+    objects, dicts, lists, tuples and sets, ``depth`` levels deep; each array counted once (a view
+    by its base), a scipy ``Rotation`` as its quaternions. What an opened flight holds beyond the
+    Python objects themselves (its sources' per-line arrays, poses, meshes)."""
+    import numpy as np
+
+    seen: set[int] = set()
+    total = 0
+    stack = [(r, depth) for r in roots]
+    while stack:
+        obj, left = stack.pop()
+        if obj is None or isinstance(obj, (str, bytes, int, float, bool)) or id(obj) in seen:
+            continue
+        seen.add(id(obj))
+        if isinstance(obj, np.ndarray):
+            base = obj
+            while isinstance(base.base, np.ndarray):
+                base = base.base
+            if base is obj or id(base) not in seen:
+                seen.add(id(base))
+                total += base.nbytes
+            continue
+        if hasattr(obj, "as_quat") and hasattr(obj, "single"):   # scipy Rotation
+            total += 32 * (1 if obj.single else len(obj))
+            continue
+        if left <= 0:
+            continue
+        if isinstance(obj, dict):
+            children = list(obj.values())
+        elif isinstance(obj, (list, tuple, set, frozenset)):
+            children = list(obj)
+        elif type(obj).__module__.startswith("archive.") and hasattr(obj, "__dict__"):
+            children = list(vars(obj).values())
+        elif type(obj).__module__.startswith("archive.") and hasattr(obj, "__slots__"):
+            children = [getattr(obj, n, None) for n in obj.__slots__]
+        else:
+            continue
+        stack.extend((c, left - 1) for c in children)
+    return total

@@ -98,6 +98,15 @@ class Flight:
         self.has_calibration = first.has_calibration
         self.planes = BandPlanes(cid, lambda: self.source(None), self.cubes, bands_cache, workers)
 
+    def nbytes(self) -> int:
+        """The bytes of the arrays this flight holds besides the shared caches: its opened sources,
+        poses, meshes, radiometric terms and statistics (:func:`~archive.view.cache.held_bytes`),
+        plus 64 KiB for its Python objects. What the viewer charges an open flight."""
+        from archive.view.cache import held_bytes
+
+        return held_bytes(self._sources, self._geometries, self._posed, self._ranges,
+                          self.planes._radiometry) + (64 << 10)
+
     # ---- sources and geometry ------------------------------------------------------------
     @staticmethod
     def _keep(cache: OrderedDict, key, value, limit: int):

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import OrderedDict
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -19,9 +18,10 @@ from archive.view.flights import Flight
 
 __all__ = ["BAND_WORKERS", "FLIGHTS_KEPT", "IDS_TTL_S", "FlightRegistry", "UnknownFlight"]
 
-#: Flights kept open: more than an archive's screen of flights (20 at the zoom that fits them all),
-#: or every change of that screen reopens some (~0.04 s each: source and meshes). A flight's meshes
-#: are ~0.3 KB a line.
+#: Flights kept open at most: more than an archive's screen of flights (20 at the zoom that fits them
+#: all), or every change of that screen reopens some (~0.04 s each: source and meshes); fewer when
+#: their arrays pass the flights cache's bytes (a flight's meshes are ~0.3 KB a line per ground
+#: height kept).
 FLIGHTS_KEPT = 32
 #: Threads making band planes (:meth:`Flight.prepare`): the VM's cores.
 BAND_WORKERS = 2
@@ -48,17 +48,20 @@ class FlightRegistry:
     """
 
     def __init__(self, archive=None, directories: Sequence = (), fov: float | None = None,
-                 bands_cache: ByteLRU | None = None, lookup_cache: ByteLRU | None = None):
+                 bands_cache: ByteLRU | None = None, lookup_cache: ByteLRU | None = None,
+                 flights_cache: ByteLRU | None = None):
         from archive.api import open_archive
 
         self.archive = None if archive is None else open_archive(archive)
         self.fov = fov
         self.bands_cache = bands_cache if bands_cache is not None else ByteLRU(256 << 20)
         self.lookup_cache = lookup_cache if lookup_cache is not None else ByteLRU(64 << 20)
+        #: the opened flights, each charged :meth:`Flight.nbytes` (:meth:`settle`)
+        self.flights_cache = flights_cache if flights_cache is not None else ByteLRU(64 << 20)
         self._lock = threading.Lock()
         self._ids: tuple[float, frozenset] | None = None
         self._items: dict[str, tuple[int, dict]] = {}
-        self._flights: OrderedDict[str, Flight] = OrderedDict()
+        self._used: dict[str, Flight] = {}   # flights used since the last settle()
         self.workers = ThreadPoolExecutor(max_workers=BAND_WORKERS, thread_name_prefix="archive-view-bands")
         self.raw: dict[str, tuple[Path, dict]] = {}
         if directories and fov is None:
@@ -178,29 +181,37 @@ class FlightRegistry:
 
     # ---- opened flights ------------------------------------------------------------------
     def flight(self, cid: str) -> Flight:
-        """The opened :class:`Flight` of a checked id (render thread only)."""
+        """The opened :class:`Flight` of a checked id (render thread only). Kept in the flights cache
+        (at most FLIGHTS_KEPT, and their bytes within its limit); :meth:`settle` charges it what it
+        holds after the job that used it."""
         self.check(cid)
-        found = self._flights.get(cid)
-        if found is not None:
-            self._flights.move_to_end(cid)
-            return found
-        from archive.sources import open_source
+        found = self._used.get(cid) or self.flights_cache.get(cid)
+        if found is None:
+            from archive.sources import open_source
 
-        if cid in self.raw:
-            directory = self.raw[cid][0]
+            if cid in self.raw:
+                directory = self.raw[cid][0]
 
-            def opener(params):
-                return open_source(directory, params)
-        else:
-            archive = self.archive.path
+                def opener(params):
+                    return open_source(directory, params)
+            else:
+                archive = self.archive.path
 
-            def opener(params):
-                return open_source(cid, params, archive=archive)
-        found = Flight(cid, opener, self.fov, self.bands_cache, self.lookup_cache, self.workers)
-        self._flights[cid] = found
-        while len(self._flights) > FLIGHTS_KEPT:
-            self._flights.popitem(last=False)
+                def opener(params):
+                    return open_source(cid, params, archive=archive)
+            found = Flight(cid, opener, self.fov, self.bands_cache, self.lookup_cache, self.workers)
+        self._used[cid] = found
         return found
+
+    def settle(self) -> None:
+        """Charge the flights used since the last call what they hold now (:meth:`Flight.nbytes`;
+        the least recently used go beyond the cache's bytes or FLIGHTS_KEPT). The render thread
+        calls it after each job."""
+        used, self._used = self._used, {}
+        for cid, flight in used.items():
+            self.flights_cache.put(cid, flight, flight.nbytes())
+        while len(self.flights_cache) > FLIGHTS_KEPT:
+            self.flights_cache.pop_oldest()
 
     def close(self) -> None:
         """Stop the band workers (after what they are making)."""

@@ -61,12 +61,24 @@ from archive.view.query import Stretch, parse_bbox, parse_number, parse_query
 from archive.view.tiles import MAX_ZOOM, TILE, encode_values, mercator_box, tile_grid
 from archive.view.worker import Cancelled, RenderThread
 
-__all__ = ["check_host", "create_app", "is_loopback", "run", "serve", "view_generation"]
+__all__ = ["CACHE_SHARES", "OVERHEAD_MB", "cache_bytes", "check_host", "create_app", "is_loopback", "run", "serve", "view_generation"]
 
 log = logging.getLogger("archive.view")
 
-#: Default memory for the caches (tiles, cube bands, lookups), MiB.
+#: Default memory for the caches (tiles, band planes and previews, lookups, open flights), MiB.
 DEFAULT_CACHE_MB = 512
+#: How --cache-mb is shared: tiles (PNG and band values), band planes (and the ingest previews),
+#: lookups (pass 1 of the renderer per cube and tile), open flights (sources, poses, meshes).
+CACHE_SHARES = {"tiles": 0.25, "bands": 0.375, "lookups": 0.25, "flights": 0.125}
+#: What the server needs beyond --cache-mb, MiB: Python and its libraries (~95 MB), the software
+#: OpenGL renderer (~60 MB), the renderer's first use (~30 MB) and requests in flight (measured:
+#: bench/RESULTS.md, "Viewer server memory").
+OVERHEAD_MB = 250
+
+
+def cache_bytes(cache_mb: int) -> dict[str, int]:
+    """The byte limit of each of the viewer's caches (CACHE_SHARES of ``cache_mb`` MiB)."""
+    return {name: int((int(cache_mb) << 20) * share) for name, share in CACHE_SHARES.items()}
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
 
 
@@ -105,7 +117,8 @@ class Viewer:
             "uptime_s": round(time.time() - self.started, 3), "render": dict(self.render.counts),
             "queued": self.render.queued, "abandoned": self.cancelled, "from_previews": self.from_previews,
             "caches": {"tiles": self.tiles.stats().as_dict(), "bands": self.registry.bands_cache.stats().as_dict(),
-                       "lookups": self.registry.lookup_cache.stats().as_dict()},
+                       "lookups": self.registry.lookup_cache.stats().as_dict(),
+                       "flights": self.registry.flights_cache.stats().as_dict()},
             "rss_bytes": resident_bytes(),
         }
 
@@ -122,6 +135,15 @@ def resident_bytes() -> int | None:
 
 
 # ---- jobs run on the render thread -------------------------------------------------------------
+def _settled(fn, registry, *args, check):
+    """``fn(registry, *args, check)``, then the flights it used charged what they hold now
+    (:meth:`FlightRegistry.settle`): the open flights stay within their share of --cache-mb."""
+    try:
+        return fn(registry, *args, check)
+    finally:
+        registry.settle()
+
+
 def _tile_job(registry, cid, grid, query, check):
     return registry.flight(cid).tile(grid, query, check)
 
@@ -205,7 +227,7 @@ def registry_gsd(registry: FlightRegistry, cid: str) -> float:
 
 
 # ---- the app ----------------------------------------------------------------------------------
-def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CACHE_MB << 20) // 4,
+def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT_CACHE_MB << 20) * CACHE_SHARES["tiles"]),
                allowed_hosts: tuple[str, ...] | None = None, stacks: dict | None = None):
     """The Starlette application serving ``registry``'s flights. allowed_hosts: Host header names
     accepted (None: any), e.g. the loopback names when bound to loopback; stacks: the time stacks
@@ -247,7 +269,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = (DEFAULT_CAC
     async def drawn(request, fn, *args):
         if await request.is_disconnected():
             raise Cancelled()
-        return await viewer.render.run(fn, *args, abandoned=request.is_disconnected,
+        return await viewer.render.run(_settled, fn, *args, abandoned=request.is_disconnected,
                                        priority=view_generation(request.headers.get("x-generation")))
 
     def cid_of(request) -> str:
@@ -516,7 +538,7 @@ def serve(registry: FlightRegistry, host: str = "127.0.0.1", port: int = 8000, *
     check_host(host, allow_remote)
     sock = _bind(host, int(port))
     allowed = (*LOOPBACK_NAMES, host) if is_loopback(host) else None
-    app = create_app(registry, tile_cache_bytes=(cache_mb << 20) // 4, allowed_hosts=allowed, stacks=stacks)
+    app = create_app(registry, tile_cache_bytes=cache_bytes(cache_mb)["tiles"], allowed_hosts=allowed, stacks=stacks)
     config = uvicorn.Config(app, log_level="warning", access_log=False, lifespan="on",
                             timeout_graceful_shutdown=3)
     server = uvicorn.Server(config)
@@ -537,9 +559,9 @@ def run(args: argparse.Namespace) -> int:
               "can read the archive's flights", file=sys.stderr)
     if args.cache_mb <= 0:
         raise InputError("--cache-mb", f"must be a positive number of MiB, got {args.cache_mb}")
-    cache = int(args.cache_mb) << 20
-    registry = FlightRegistry(args.archive, args.directories, args.fov, bands_cache=ByteLRU(cache // 2),
-                              lookup_cache=ByteLRU(cache // 4))
+    limits = cache_bytes(args.cache_mb)
+    registry = FlightRegistry(args.archive, args.directories, args.fov, bands_cache=ByteLRU(limits["bands"]),
+                              lookup_cache=ByteLRU(limits["lookups"]), flights_cache=ByteLRU(limits["flights"]))
     count = len(registry.catalog_ids()) + len(registry.raw)
     from archive.view.stacks import open_stacks
 
