@@ -402,7 +402,8 @@ def _add_view(sub) -> None:
     p.add_argument("--allow-remote", action="store_true",
                    help="allow a --host that is not loopback (anyone who can reach it can read the flights)")
     p.add_argument("--cache-mb", type=int, default=512, metavar="MIB",
-                   help="memory for the tile, band and lookup caches, MiB (default 512)")
+                   help="memory for the caches (tiles, band planes and previews, lookups, open flights), MiB "
+                        "(default 512); the server needs about 250 MB more (Python, its libraries, software OpenGL)")
     p.add_argument("--stack", action="append", metavar="X.zarr",
                    help="also serve this time stack (archive render --stack; with --archive): the page shows one "
                         "time step at a time, a slider steps through its flights, values read from the Zarr "
