@@ -46,6 +46,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from archive import storage
 from archive.errors import ArchiveError, InputError
 from archive.files import FileLock, path_exists, remove_path, test_hold, write_atomic
 
@@ -254,7 +255,7 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
     if format not in FORMATS:
         raise InputError("--format", f"unknown output format {format!r}", f"use {', '.join(FORMATS)}")
     directory = _directory(out)
-    if options.archive is not None:   # recipes independent of the working directory
+    if options.archive is not None and not storage.is_url(options.archive):   # recipes independent of the cwd
         options = dataclasses.replace(options, archive=os.fspath(Path(options.archive).absolute()))
     tell = tell or (lambda line: None)
     made = not directory.exists()

@@ -59,9 +59,10 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec
 
+from archive import storage
 from archive.codecs import numcodecs_blosc
 from archive.errors import FormatError, InputError, MissingInputError
-from archive.files import FileLock, replace_path, test_hold_calls, write_atomic
+from archive.files import FileLock, remove_path, replace_path, test_hold_calls, write_atomic
 from archive.formats.envi import EnviCube, EnviHeader, header_from_metadata
 from archive.formats.lcf import LcfData
 from archive.navigation import LocalFrame
@@ -79,10 +80,25 @@ def _blosc(spec: dict) -> BloscCodec:
     return BloscCodec(cname=spec["cname"], clevel=spec["clevel"], shuffle=spec["shuffle"])
 
 
+def _loc(store: str | os.PathLike):
+    """A store location as a path object: :class:`pathlib.Path`, or a UPath for an ``s3://`` URL."""
+    return storage.location(store) if storage.is_url(store) else Path(store)
+
+
+def _zarr(store, read_only: bool = True):
+    """What zarr opens for the store ``store`` (the path itself, or an obstore ObjectStore for a URL)."""
+    return storage.zarr_store(store, read_only=read_only) if storage.is_url(store) else store
+
+
+def _zarr_json(store) -> dict:
+    """The parsed root ``zarr.json`` of a store (OSError / ValueError when absent or unreadable)."""
+    return json.loads(storage.read_bytes(_loc(store) / "zarr.json"))
+
+
 def is_complete(store: str | os.PathLike) -> bool:
     """Whether ``store`` is a collection whose completion marker was written (reads only zarr.json)."""
     try:
-        meta = json.loads((Path(store) / "zarr.json").read_text())
+        meta = _zarr_json(store)
     except (OSError, ValueError):
         return False
     return isinstance(meta, dict) and (meta.get("attributes") or {}).get(COMPLETE) is True
@@ -143,8 +159,8 @@ def chunk_tasks(data_files: Sequence[str], cube_lines: Sequence[int], bands: int
 
 
 def chunk_path(store: Path, band: int, chunk: int) -> Path:
-    """File of dn chunk (band, chunk) in a local Zarr v3 store (default '/' chunk key encoding)."""
-    return store / "dn" / "c" / str(band) / str(chunk) / "0"
+    """File (or object, for a URL) of dn chunk (band, chunk) in a Zarr v3 store (default '/' chunk key encoding)."""
+    return _loc(store) / "dn" / "c" / str(band) / str(chunk) / "0"
 
 
 @lru_cache(maxsize=64)
@@ -175,10 +191,11 @@ def write_chunk(store: str, task: ChunkTask, chunk_lines: int, resume: bool) -> 
     data = np.ascontiguousarray(data, dtype=data.dtype.newbyteorder("<"))
     digest = chunk_digest(data)
     codec = numcodecs_blosc(DN_CODEC["cname"], DN_CODEC["clevel"], DN_CODEC["shuffle"])
-    target = chunk_path(Path(store), task.band, task.chunk)
-    if resume and target.is_file():
+    target = chunk_path(_loc(store), task.band, task.chunk)
+    url = storage.is_url(store)
+    if resume and (url or target.is_file()):
         try:
-            old = np.frombuffer(codec.decode(target.read_bytes()), data.dtype)
+            old = np.frombuffer(codec.decode(storage.read_bytes(target)), data.dtype)
             if chunk_digest(old[: data.size]) == digest:
                 return task.band, task.chunk, digest.hex()
         except Exception:  # noqa: BLE001 - a damaged chunk from a killed run is simply rewritten
@@ -187,6 +204,9 @@ def write_chunk(store: str, task: ChunkTask, chunk_lines: int, resume: bool) -> 
         padded = np.zeros((chunk_lines, data.shape[1]), data.dtype)
         padded[: data.shape[0]] = data
         data = padded
+    if url:   # one PUT, straight from this worker (no staging): atomic per object
+        storage.write_bytes(target, codec.encode(data))
+        return task.band, task.chunk, digest.hex()
     target.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(target, codec.encode(data))
     return task.band, task.chunk, digest.hex()
@@ -235,7 +255,7 @@ class StorePlan:
 
 
 def _create_arrays(store: Path, plan: StorePlan) -> None:
-    group = zarr.open_group(store, mode="w", zarr_format=3)
+    group = zarr.open_group(_zarr(store, read_only=False), mode="w", zarr_format=3)
     total = sum(plan.cube_lines)
     group.create_array(
         "dn", shape=(plan.bands, total, plan.samples), chunks=(1, plan.chunk_lines, plan.samples),
@@ -257,21 +277,29 @@ def _clean_stray_temporaries(store: Path) -> None:
 
 def open_partial(partial: Path, plan: StorePlan) -> bool:
     """Prepare ``partial`` for writing ``plan``: reuse it when an earlier run of the same plan left
-    it (returns True: resume), else create it afresh (returns False)."""
+    it (returns True: resume), else create it afresh (returns False). For a URL, ``partial`` is the
+    store's final prefix (S3 has no rename): its ``zarr.json`` says complete only once finished."""
     token = plan.token()
+    url = storage.is_url(partial)
     if partial.exists():
         try:
-            attrs = json.loads((partial / "zarr.json").read_text()).get("attributes", {})
+            attrs = _zarr_json(partial).get("attributes", {})
         except (OSError, ValueError):
             attrs = {}
-        if attrs.get("archive:plan") == token:
-            _clean_stray_temporaries(partial)
+        if attrs.get("archive:plan") == token and not (url and attrs.get(COMPLETE) is True):
+            if not url:
+                _clean_stray_temporaries(partial)
             return True
-        shutil.rmtree(partial)
-    partial.parent.mkdir(parents=True, exist_ok=True)
+        if url:
+            storage.delete(partial / "zarr.json")   # first: the old store stops being complete
+            storage.delete_prefix(partial)
+        else:
+            shutil.rmtree(partial)
+    if not url:
+        partial.parent.mkdir(parents=True, exist_ok=True)
     _create_arrays(partial, plan)
     # Written after every array exists: a partial store carrying this token is fully laid out.
-    group = zarr.open_group(partial, mode="r+")
+    group = zarr.open_group(_zarr(partial, read_only=False), mode="r+")
     group.attrs.put({"archive:plan": token})
     return False
 
@@ -283,7 +311,7 @@ def finish_store(partial: Path, plan: StorePlan, chunk_digests: dict[tuple[int, 
     table = np.zeros((plan.bands, nchunks, 32), np.uint8)
     for (b, k), hexd in chunk_digests.items():
         table[b, k] = np.frombuffer(bytes.fromhex(hexd), np.uint8)
-    group = zarr.open_group(partial, mode="r+")
+    group = zarr.open_group(_zarr(partial, read_only=False), mode="r+")
     a = group.create_array("dn_sha256", shape=table.shape, chunks=table.shape, dtype=np.uint8,
                            compressors=[_blosc(SMALL_CODEC)], fill_value=0, overwrite=True,
                            dimension_names=("band", "chunk", "byte"), config={"write_empty_chunks": True})
@@ -307,7 +335,7 @@ def record_navigation(store: str | os.PathLike, navigation_params: dict, arrays:
     completion marker is taken off first and put back last (an interrupted update leaves an
     incomplete store, never a silently inconsistent one); the arrays' checksums follow them. Holds
     the collection's lock (:func:`store_lock`; waits for an ingest of it to finish)."""
-    store = Path(store)
+    store = _loc(store)
     lock = store_lock(store, f"navigation update of {store.name.removesuffix('.zarr')}")
     lock.acquire(wait=float("inf"))
     try:
@@ -318,7 +346,7 @@ def record_navigation(store: str | os.PathLike, navigation_params: dict, arrays:
 
 def _record_navigation(store: Path, navigation_params: dict, arrays: dict[str, np.ndarray],
                        ground_height: float | None, note: dict | None) -> None:
-    group = zarr.open_group(store, mode="r+")
+    group = zarr.open_group(_zarr(store, read_only=False), mode="r+")
     attrs = dict(group.attrs)
     if attrs.get(COMPLETE) is not True:
         raise InputError(store, "is not a complete collection", "re-ingest it")
@@ -350,14 +378,19 @@ def store_lock(store: str | os.PathLike, purpose: str) -> FileLock:
     whoever writes the store (an ingest, its partial store included; ``calibrate --apply``) holds it,
     so that two writers of one id, in two processes or on two hosts, never share a partial store.
     ``purpose`` says what the holder does (shown to whoever waits)."""
-    store = Path(store)
+    store = _loc(store)
     cid = store.name.removesuffix(".zarr")
     return FileLock(store.with_name(store.name + ".lock"), purpose, what=f"collection {cid}",
                     fix="wait for it to finish")
 
 
 def publish(partial: Path, final: Path) -> None:
-    """Rename the finished partial store to its final name (replacing an older store)."""
+    """Rename the finished partial store to its final name (replacing an older store). In object
+    storage the partial store IS the final one (its completion marker, written last, published it)."""
+    if storage.is_url(final):
+        if str(partial) != str(final):
+            raise ValueError(f"{partial}: an object store's partial store must be its final prefix {final}")
+        return
     replace_path(partial, final)
 
 
@@ -370,10 +403,10 @@ def verify_store(store: str | os.PathLike, progress: bool = False) -> list[str]:
     ones. Returns the problems found (empty: OK)."""
     from tqdm import tqdm
 
-    store = Path(store)
+    store = _loc(store)
     if not is_complete(store):
         return [f"{store}: incomplete collection (no completion marker)"]
-    group = zarr.open_group(store, mode="r")
+    group = zarr.open_group(_zarr(store), mode="r")
     attrs = dict(group.attrs)
     problems = []
     for name, expected in sorted(attrs.get("array_sha256", {}).items()):
@@ -393,7 +426,7 @@ def verify_store(store: str | os.PathLike, progress: bool = False) -> list[str]:
         for b in range(bands):
             for k in range(nchunks):
                 where = f"dn chunk (band {b}, lines {k * chunk}-{min((k + 1) * chunk, total) - 1})"
-                if not chunk_path(store, b, k).is_file():
+                if not storage.exists(chunk_path(store, b, k)):
                     problems.append(f"{where}: missing")
                 else:
                     try:
@@ -466,10 +499,10 @@ class CollectionInfo:
 def read_attrs(store: str | os.PathLike) -> dict:
     """Group attributes of a collection store; FormatError unless it is a complete collection this
     software can read."""
-    store = Path(store)
-    if not (store / "zarr.json").is_file():
+    store = _loc(store)
+    if not storage.exists(store / "zarr.json"):
         raise MissingInputError(store, "collection store")
-    attrs = dict(zarr.open_group(store, mode="r").attrs)
+    attrs = dict(zarr.open_group(_zarr(store), mode="r").attrs)
     if attrs.get("archive:format") != FORMAT or int(attrs.get("archive:format_version", 0)) > FORMAT_VERSION:
         raise FormatError(store, "not a collection store this software can read",
                           "re-ingest the flight or upgrade archive")
@@ -488,7 +521,7 @@ def content_version(store: str | os.PathLike) -> dict | None:
     the same way gives the same (stores are byte-identical). None when it is not a complete
     collection."""
     try:
-        meta = json.loads((Path(store) / "zarr.json").read_text())
+        meta = _zarr_json(store)
     except (OSError, ValueError):
         return None
     attrs = meta.get("attributes") if isinstance(meta, dict) else None
@@ -504,9 +537,9 @@ def content_version(store: str | os.PathLike) -> dict | None:
 def read_info(store: str | os.PathLike, navigation: bool = True) -> CollectionInfo:
     """The recorded description of a collection (see :class:`CollectionInfo`); with ``navigation``
     also every cube's camera clock and raw navigation."""
-    store = Path(store)
+    store = _loc(store)
     attrs = read_attrs(store)
-    group = zarr.open_group(store, mode="r")
+    group = zarr.open_group(_zarr(store), mode="r")
     nav = group["navigation"][...] if navigation else None
     offsets = group["navigation_offset"][...] if navigation else None
     camera_time = group["camera_time"][...] if navigation else None
@@ -560,7 +593,7 @@ def read_poses(store: str | os.PathLike) -> StoredPoses:
     """The stored per-line times and poses, the dn shape, the wavelengths and fwhm (no DN read)."""
     from scipy.spatial.transform import Rotation
 
-    group = zarr.open_group(store, mode="r")
+    group = zarr.open_group(_zarr(store), mode="r")
     return StoredPoses(group["time"][...], group["position"][...], Rotation.from_quat(group["attitude"][...]),
                        tuple(int(v) for v in group["dn"].shape), _band_values(group, "wavelength"),
                        _band_values(group, "fwhm"))
@@ -568,7 +601,7 @@ def read_poses(store: str | os.PathLike) -> StoredPoses:
 
 def read_downwelling(store: str | os.PathLike) -> np.ndarray | None:
     """(cubes, bands) stored downwelling X (microflicks) of a collection, None when it has none."""
-    group = zarr.open_group(store, mode="r")
+    group = zarr.open_group(_zarr(store), mode="r")
     if "downwelling" not in group:
         return None
     x = np.asarray(group["downwelling"][...], np.float64)
@@ -585,7 +618,7 @@ class StoredCalibration:
     needs (opening the group costs more than reading a row: a reader of many cubes keeps one)."""
 
     def __init__(self, store: str | os.PathLike):
-        group = zarr.open_group(store, mode="r")
+        group = zarr.open_group(_zarr(store), mode="r")
         self.dark, self.gain = group["dark"], group["gain"]
         self.gain_index = np.asarray(group["gain_index"][...])
 
@@ -598,7 +631,7 @@ class StoredCalibration:
 
 def open_dn(store: str | os.PathLike):
     """The stored ``dn`` array (band, line, sample), read-only, unchecked (:class:`CheckedDn` checks)."""
-    return zarr.open_array(store, path="dn", mode="r")
+    return zarr.open_array(_zarr(store), path="dn", mode="r")
 
 
 class CorruptChunkError(FormatError):
@@ -613,8 +646,8 @@ class CheckedDn:
     :func:`archive.mosaic`, the viewer) goes through this (via the collection source)."""
 
     def __init__(self, store: str | os.PathLike):
-        self.store = Path(store)
-        group = zarr.open_group(self.store, mode="r")
+        self.store = _loc(store)
+        group = zarr.open_group(_zarr(self.store), mode="r")
         self.array = group["dn"]
         if "dn_sha256" not in group:
             raise CorruptChunkError(self.store, "collection has no dn chunk checksums (dn_sha256)",
@@ -637,14 +670,23 @@ class CheckedDn:
         """(line1 - line0, samples) DN of ``band``, lines [line0, line1), every chunk they touch checked."""
         total, c = int(self.array.shape[1]), self.chunk
         out = np.empty((line1 - line0, int(self.array.shape[2])), self.dtype)
-        for k in range(line0 // c, -(-line1 // c)):
+        k0, k1 = line0 // c, -(-line1 // c)
+        whole = None
+        if storage.is_url(self.store) and k1 - k0 > 1:
+            # object storage: every chunk of the range in one zarr call (its requests run
+            # concurrently), then each chunk checked; a failure re-reads chunk by chunk to name it
+            try:
+                whole = self.array[band, k0 * c:min(k1 * c, total)]
+            except Exception:  # noqa: BLE001 - found again, by chunk, below
+                whole = None
+        for k in range(k0, k1):
             a, b = k * c, min((k + 1) * c, total)
             try:
-                values = self.array[band, a:b]
+                values = self.array[band, a:b] if whole is None else whole[a - k0 * c:b - k0 * c]
             except Exception as exc:  # noqa: BLE001 - any decoding failure of the stored bytes
                 raise self._fail(band, a, b, f"chunk cannot be decoded ({type(exc).__name__}: {exc})") from None
             if chunk_digest(values) != self.digests[band, k].tobytes():
-                missing = not chunk_path(self.store, band, k).is_file()
+                missing = not storage.exists(chunk_path(self.store, band, k))
                 raise self._fail(band, a, b, "chunk file is missing" if missing else
                                  "chunk does not match its recorded sha256 (the stored bytes changed)")
             lo, hi = max(a, line0), min(b, line1)

@@ -6,6 +6,11 @@ output writers, the COG spool and the catalog all write through :func:`write_ato
 :func:`atomic_path`; outputs are moved into place (a folder replacing a folder included) by
 :func:`replace_path`. :class:`FileLock` makes a job exclusive across processes and hosts (an
 ingest of one collection id, a batch into one output folder).
+
+Object storage (``s3://`` locations, :mod:`archive.storage`): one PUT is atomic, so
+:func:`write_atomic` is one PUT and :func:`atomic_path` writes a local temporary then uploads it
+once; :class:`FileLock` on a URL is a lock object created with a conditional PUT (``If-None-Match: *``),
+its heartbeat a re-PUT by its owner, its lease read from the object's LastModified.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
+from archive import storage
 from archive.errors import ArchiveError
 
 __all__ = ["FileLock", "LockHeldError", "LockOwner", "atomic_path", "host_name", "path_exists", "pid_alive",
@@ -76,7 +82,11 @@ def _temporary(path: str) -> str:
 
 
 def remove_path(path: str | os.PathLike) -> None:
-    """Delete a file, link or directory tree; silent when absent."""
+    """Delete a file, link or directory tree (an object, or every object under a prefix); silent when absent."""
+    if storage.is_url(path):
+        storage.delete(path)
+        storage.delete_prefix(path)
+        return
     path = Path(path)
     if path.is_dir() and not path.is_symlink():
         shutil.rmtree(path, ignore_errors=True)
@@ -88,7 +98,9 @@ def remove_path(path: str | os.PathLike) -> None:
 
 
 def path_exists(path: str | os.PathLike) -> bool:
-    """True when ``path`` exists (a dangling link counts)."""
+    """True when ``path`` exists (a dangling link counts; for a URL: an object or a prefix)."""
+    if storage.is_url(path):
+        return storage.exists(path) or next(storage.list_names(path), None) is not None
     path = Path(path)
     return path.exists() or path.is_symlink()
 
@@ -98,7 +110,19 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """A temporary path beside ``path`` to write (a file, by any writer: zip, numpy, text); renamed
     over ``path`` when the block completes. On any error the temporary is removed and ``path`` is
     left as it was. Nested blocks rename innermost first (write a data file inside its header's
-    block: the header lands last)."""
+    block: the header lands last). For a URL: a local temporary, uploaded in one PUT at the end."""
+    if storage.is_url(path):
+        import tempfile
+
+        fd, tmp = tempfile.mkstemp(suffix=".partial", prefix="archive-upload-")
+        os.close(fd)
+        try:
+            yield Path(tmp)
+            with open(tmp, "rb") as f:
+                storage.write_bytes(path, f.read())
+        finally:
+            remove_path(tmp)
+        return
     path = os.fspath(path)
     tmp = _temporary(path)
     try:
@@ -114,6 +138,9 @@ def write_atomic(path: str | os.PathLike, parts: Iterable[bytes | memoryview] | 
     :func:`atomic_path`."""
     if isinstance(parts, str):
         parts = parts.encode("utf-8")
+    if storage.is_url(path):   # one PUT: atomic by itself
+        storage.write_bytes(path, parts if isinstance(parts, (bytes, bytearray, memoryview)) else b"".join(parts))
+        return
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         if isinstance(parts, (bytes, bytearray, memoryview)):
             f.write(parts)
@@ -227,7 +254,8 @@ class FileLock:
     def __init__(self, path: str | os.PathLike, purpose: str, *, what: str | None = None,
                  fix: str = "wait for it to finish", lease: float = LOCK_LEASE_SECONDS,
                  heartbeat: float = LOCK_HEARTBEAT_SECONDS):
-        self.path = Path(path)
+        self.url = storage.is_url(path)
+        self.path = storage.location(path) if self.url else Path(path)
         self.purpose, self.what, self.fix = purpose, what or str(self.path), fix
         self.lease, self.heartbeat = float(lease), float(heartbeat)
         self._stop: threading.Event | None = None
@@ -238,6 +266,15 @@ class FileLock:
     def owner(self) -> tuple[LockOwner | None, bytes | None, float | None]:
         """(owner, the file's bytes, its mtime) of the current lock file; (None, None, None) when there
         is none, (None, bytes, mtime) when it cannot be read as an owner."""
+        if self.url:   # the object's bytes and its LastModified (the server's clock)
+            meta = storage.head(self.path)
+            try:
+                raw = storage.read_bytes(self.path) if meta is not None else None
+            except FileNotFoundError:
+                raw = None
+            if raw is None:
+                return None, None, None
+            return self._parse(raw), raw, meta["last_modified"].timestamp()
         try:
             with open(self.path, "rb") as f:
                 raw = f.read()
@@ -246,13 +283,17 @@ class FileLock:
             return None, None, None
         except OSError:
             return None, b"", time.time()
+        return self._parse(raw), raw, mtime
+
+    @staticmethod
+    def _parse(raw: bytes) -> LockOwner | None:
         try:
             d = json.loads(raw)
             owner = LockOwner(str(d["host"]), int(d["pid"]), d.get("process_start"), str(d["since"]),
                               str(d.get("purpose", "")))
         except (ValueError, KeyError, TypeError):
             owner = None
-        return owner, raw, mtime
+        return owner
 
     def _alive(self, owner: LockOwner | None, mtime: float) -> bool:
         if owner is not None and owner.host == host_name():
@@ -265,6 +306,11 @@ class FileLock:
         me = LockOwner(host_name(), os.getpid(), _process_start(os.getpid()),
                        datetime.now(UTC).isoformat(timespec="seconds"), self.purpose)
         raw = (json.dumps(dataclasses.asdict(me)) + "\n").encode()
+        if self.url:   # conditional PUT: exactly one of two racing creators succeeds
+            if not storage.put_if_absent(self.path, raw):
+                return False
+            self._mine = raw
+            return True
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(_temporary(os.fspath(self.path)))
         try:
@@ -290,6 +336,20 @@ class FileLock:
 
     def _break(self, seen: bytes | None) -> None:
         """Remove the lock file if it still holds ``seen`` (a dead owner's), exclusively."""
+        if self.url:   # the breaker is itself a lock object (conditional PUT); stale after 60 s
+            breaker = storage.location(str(self.path) + ".break")
+            meta = storage.head(breaker)
+            if meta is not None and time.time() - meta["last_modified"].timestamp() > 60:
+                storage.delete(breaker)
+            if not storage.put_if_absent(breaker, b"break"):
+                return
+            try:
+                _, now, _ = self.owner()
+                if now == seen:
+                    storage.delete(self.path)
+            finally:
+                storage.delete(breaker)
+            return
         breaker = self.path.with_name(self.path.name + ".break")
         try:
             if time.time() - breaker.stat().st_mtime > 60:   # a breaker killed while breaking
@@ -347,7 +407,12 @@ class FileLock:
         def beat(stop: threading.Event = self._stop) -> None:
             while not stop.wait(self.heartbeat):
                 try:
-                    os.utime(self.path)
+                    if self.url:   # re-PUT the same bytes (new LastModified) while it is still ours
+                        _, raw, _ = self.owner()
+                        if raw == self._mine and raw is not None:
+                            storage.write_bytes(self.path, raw)
+                    else:
+                        os.utime(self.path)
                 except OSError:
                     pass
 
@@ -362,7 +427,10 @@ class FileLock:
         if self._mine is not None:
             _, raw, _ = self.owner()
             if raw == self._mine:
-                remove_path(self.path)
+                if self.url:
+                    storage.delete(self.path)
+                else:
+                    remove_path(self.path)
             self._mine = None
 
     @property

@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from archive import storage
 from archive.cluster import active_client, check_gpu_workers, execute, start_cluster, task_budget
 from archive.errors import InputError
 from archive.files import wait_while_exists
@@ -120,7 +121,8 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
 
     grid = grid_request(options)   # --like read once, before the sources
     # absolute paths: workers (maybe on another machine sharing the file system) open them again
-    archive = None if options.archive is None else Path(options.archive).absolute()
+    archive = None if options.archive is None else \
+        (options.archive if storage.is_url(options.archive) else Path(options.archive).absolute())
 
     def opened(src, white=None):
         return open_source(Path(src).absolute() if Path(src).is_dir() else src, nav, calibration=options.calibration,
@@ -333,7 +335,7 @@ def input_versions(options, source: str) -> list[dict]:
         entries.append({"source": str(Path(source).absolute()), "navigation_params": nav,
                         "version": hashlib.sha256(json.dumps(stamps).encode()).hexdigest()})
     elif options.archive is not None:
-        store = Path(options.archive) / "collections" / f"{source}.zarr"
+        store = storage.location(options.archive) / "collections" / f"{source}.zarr"
         entries.append({"source": str(source), **(content_version(store) or {"version": None})})
     for name in ("calibration", "white_reference", "dem", "irradiance_calibration", "panels"):
         value = getattr(options, name, None)
@@ -457,9 +459,19 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
     started = time.perf_counter()
     say = progress_lines(quiet)
     check_gsd(options.gsd)
-    output = Output(Path(out).absolute(), overwrite=bool(overwrite), zarr_format=options.zarr_format,
-                    quicklook=None if not quicklook else Path(quicklook).absolute(),
-                    provenance=options.provenance)
+    remote = None
+    if storage.is_url(out):   # rendered in a local staging folder, uploaded once, its Item last
+        from archive.outputs.publish import RemoteOutput
+
+        remote = RemoteOutput(str(out), overwrite=bool(overwrite), zarr_format=options.zarr_format,
+                              quicklook=None if not quicklook else str(Path(quicklook).absolute()),
+                              provenance=options.provenance)
+        remote.check()
+        output = remote.local
+    else:
+        output = Output(Path(out).absolute(), overwrite=bool(overwrite), zarr_format=options.zarr_format,
+                        quicklook=None if not quicklook else Path(quicklook).absolute(),
+                        provenance=options.provenance)
     output.check()
     outputs = [output]
     nav = options.check()
@@ -482,6 +494,8 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
         for job in jobs:
             job.renderers = renderers
             publish(job)
+        if remote is not None:
+            remote.upload()
     finally:
         if client is not None:
             client.close()
@@ -489,6 +503,8 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
             cluster.close()  # stops the worker processes, with any task still writing
         for output in outputs:
             output.cleanup()
+        if remote is not None:
+            remote.cleanup()
     seconds = time.perf_counter() - started
     summaries = []
     for job in jobs:

@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import posixpath
 import re
 import sqlite3
 import threading
@@ -384,7 +385,11 @@ class StacApi:
         for key, asset in (item.get("assets") or {}).items():
             href = str(asset.get("href", ""))
             if "://" not in href and not href.startswith("/"):
-                asset["href"] = os.path.normpath(item_dir / href)
+                if self.root.is_url:   # an absolute s3:// URL, '..' resolved
+                    scheme, rest = str(item_dir).split("://", 1)
+                    asset["href"] = f"{scheme}://{posixpath.normpath(f'{rest}/{href}')}"
+                else:
+                    asset["href"] = os.path.normpath(item_dir / href)
             if key == "data" and asset.get("type") == ZARR_MEDIA_TYPE and "xarray:open_kwargs" not in asset \
                     and href.rstrip("/").endswith(".zarr") and "collections/" in href:
                 asset.update(store_asset_fields())  # an Item written before the store said how to open it

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from archive import storage
 from archive.catalog.root import ArchiveRoot
 from archive.errors import FormatError, InputError
 
@@ -276,6 +277,9 @@ class Damaged:
 
 def item_names(root: ArchiveRoot) -> list[str]:
     """Ids of the Item files ``catalog/items/<id>.json`` (sorted; temporaries left out)."""
+    if root.is_url:
+        return sorted(name[:-5] for name, is_dir, _ in storage.list_names(root.items)
+                      if not is_dir and name.endswith(".json") and not name.startswith("."))
     try:
         return sorted(e.name[:-5] for e in os.scandir(root.items)
                       if e.name.endswith(".json") and not e.name.startswith("."))
@@ -284,12 +288,24 @@ def item_names(root: ArchiveRoot) -> list[str]:
 
 
 def store_names(root: ArchiveRoot) -> list[str]:
-    """Ids of the collection stores ``collections/<id>.zarr`` on disk (sorted; partial ones left out)."""
+    """Ids of the collection stores ``collections/<id>.zarr`` on disk (sorted; partial ones left out;
+    in object storage every ``<id>.zarr/`` prefix: complete or not, as on disk)."""
+    if root.is_url:
+        return sorted(name[:-5] for name, is_dir, _ in storage.list_names(root.collections)
+                      if is_dir and name.endswith(".zarr") and not name.startswith("."))
     try:
         return sorted(e.name[:-5] for e in os.scandir(root.collections)
                       if e.name.endswith(".zarr") and not e.name.startswith(".") and e.is_dir())
     except FileNotFoundError:
         return []
+
+
+def item_etags(root: ArchiveRoot) -> dict[str, str]:
+    """{id: ETag} of the Item objects of an archive in object storage, from one LIST: what the
+    local index cache of such an archive records, so that an Item rewritten elsewhere (same name,
+    new content) makes the cache stale."""
+    return {name[:-5]: str((meta or {}).get("e_tag")) for name, is_dir, meta in storage.list_names(root.items)
+            if not is_dir and name.endswith(".json") and not name.startswith(".")}
 
 
 def scan_catalog(root: ArchiveRoot) -> tuple[list[IndexRow], list[Damaged], list[str], list[str]]:
@@ -332,10 +348,13 @@ def rebuild_index(root: ArchiveRoot, dest: str | os.PathLike | None = None) -> i
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(f"{dest.name}.tmp-{os.getpid()}")
     tmp.unlink(missing_ok=True)
+    etags = item_etags(root) if root.is_url else None   # before the scan: a later change shows as stale
     rows, damaged, items, stores = scan_catalog(root)
     try:
         add_rows(tmp, rows)
         with closing(connect(tmp)) as con, con:
+            if etags is not None:
+                _set_meta_json(con, "item_etags", etags)
             _set_meta_json(con, "items", items)
             _set_meta_json(con, "stores", stores)
             _set_meta_json(con, "damaged", {d.id: [d.reason, d.fix, d.kind] for d in damaged})
@@ -378,13 +397,17 @@ def index_problem(path: str | os.PathLike, root: ArchiveRoot) -> str | None:
                 return f"damaged ({check[0] if check else 'no answer'})"
             seen_items, seen_stores = _meta_json(con, "items"), _meta_json(con, "stores")
             damaged = _meta_json(con, "damaged") or {}
+            etags = _meta_json(con, "item_etags") if root.is_url else None
             count = con.execute("SELECT count(*) FROM items").fetchone()[0]
             bbox_count = con.execute("SELECT count(*) FROM items_bbox").fetchone()[0]
     except (sqlite3.DatabaseError, ValueError, TypeError) as exc:
         return f"damaged ({_one_line(exc)})"
     if seen_items is None or seen_stores is None:
         return "built by an older version (no record of the Items it holds)"
-    if seen_items != item_names(root):
+    if root.is_url:   # the local cache of an archive in object storage: the Items' ETags, one LIST
+        if etags != item_etags(root):
+            return "out of date: the Item objects have changed since it was built"
+    elif seen_items != item_names(root):
         return "out of date: the Item files have changed since it was built"
     if seen_stores != store_names(root):
         return "out of date: the collection stores have changed since it was built"
@@ -400,9 +423,10 @@ def cache_index_path(root: ArchiveRoot) -> Path:
     import hashlib
 
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    where = str(Path(root.path).absolute())
+    where = str(root.path) if root.is_url else str(Path(root.path).absolute())
     digest = hashlib.sha256(where.encode("utf-8", "surrogateescape")).hexdigest()[:16]
-    name = "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(where).name)[:40] or "archive"
+    name = "".join(c if c.isalnum() or c in "-_." else "_" for c in where.rstrip("/").rsplit("/", 1)[-1])[:40] \
+        or "archive"
     return Path(base) / "archive" / "catalog" / f"{name}-{digest}" / "index.sqlite"
 
 

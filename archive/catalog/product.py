@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from archive import storage
 from archive.catalog.stac import (EO_EXTENSION, PROCESSING_EXTENSION, PROJECTION_EXTENSION, RASTER_EXTENSION,
                                   STAC_VERSION, ZARR_MEDIA_TYPE, eo_bands, rfc3339, software_version, write_item)
 from archive.errors import InputError, MissingInputError
@@ -329,7 +330,10 @@ def render_command(request, out: str | os.PathLike, *, quicklook: str | os.PathL
     if not dataclasses.is_dataclass(request) or isinstance(request, type):
         raise InputError("request", f"expected render options (RenderOptions), got {type(request).__name__}")
     words = ["archive", "render"]
-    options: list[str] = ["--out", os.path.abspath(out)]
+    def absolute(p) -> str:   # a URL (s3://) stays as it is
+        return str(p) if storage.is_url(p) else os.path.abspath(p)
+
+    options: list[str] = ["--out", absolute(out)]
     for f in dataclasses.fields(request):
         value = getattr(request, f.name)
         if f.name == "sources":
@@ -343,11 +347,11 @@ def render_command(request, out: str | os.PathLike, *, quicklook: str | os.PathL
             if value:
                 options.append(flag)
             continue
-        text = os.path.abspath(value) if f.name in _PATH_FIELDS else _cli_value(f.name, value)
+        text = absolute(value) if f.name in _PATH_FIELDS else _cli_value(f.name, value)
         # '--boresight=-0.5,1,0': a value starting with '-' would read as an option
         options += [f"{flag}={text}"] if text.startswith("-") else [flag, text]
     if quicklook is not None:
-        options += ["--quicklook", os.path.abspath(quicklook)]
+        options += ["--quicklook", absolute(quicklook)]
     if provenance and "--provenance" not in options:
         options.append("--provenance")
     if overwrite:

@@ -9,6 +9,11 @@ Layout::
     <ARCHIVE>/catalog/collection.json        STAC Collection of the archive (links to every Item)
     <ARCHIVE>/catalog/items/<id>.json        one STAC Item per completed collection
     <ARCHIVE>/catalog/index.sqlite           the query index, rebuildable from the Items
+
+An archive may also be an ``s3://bucket/prefix`` URL (:mod:`archive.storage`): the same layout as
+objects, except that a store is written under its final prefix (no ``.partial``: S3 has no rename;
+its ``zarr.json`` says complete only at the end) and the SQLite index is a local cache
+(:func:`archive.catalog.index.cache_index_path`), rebuilt from the Items when it is missing or stale.
 """
 
 from __future__ import annotations
@@ -21,9 +26,10 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+from archive import storage
 from archive.collection import is_complete
 from archive.errors import InputError, MissingInputError
-from archive.files import write_atomic
+from archive.files import FileLock, write_atomic
 
 MARKER = "archive.json"
 FORMAT = "archive"
@@ -43,9 +49,15 @@ def check_collection_id(cid: str) -> str:
 
 @dataclass(frozen=True)
 class ArchiveRoot:
-    """Paths inside one archive directory (no I/O in the constructor)."""
+    """Paths inside one archive directory (no I/O in the constructor); ``path`` is a UPath for an
+    archive in object storage (:attr:`is_url`)."""
 
     path: Path
+
+    @property
+    def is_url(self) -> bool:
+        """Whether the archive is in object storage (``s3://``)."""
+        return storage.is_url(self.path)
 
     @property
     def collections(self) -> Path:
@@ -57,6 +69,12 @@ class ArchiveRoot:
 
     @property
     def index_path(self) -> Path:
+        """The SQLite index: ``catalog/index.sqlite`` on disk; for an archive in object storage a
+        local cache file (SQLite needs a local file; see :func:`archive.catalog.index.cache_index_path`)."""
+        if self.is_url:
+            from archive.catalog.index import cache_index_path
+
+            return cache_index_path(self)
         return self.path / "catalog" / "index.sqlite"
 
     @property
@@ -74,7 +92,10 @@ class ArchiveRoot:
         return self.collections / f"{check_collection_id(cid)}.zarr"
 
     def partial(self, cid: str) -> Path:
-        """Path of the store while it is being written (renamed to :meth:`store` when complete)."""
+        """Path of the store while it is being written (renamed to :meth:`store` when complete; in
+        object storage the store itself, which its completion marker publishes)."""
+        if self.is_url:
+            return self.store(cid)
         return self.collections / f"{check_collection_id(cid)}.zarr.partial"
 
     def item_path(self, cid: str) -> Path:
@@ -82,6 +103,10 @@ class ArchiveRoot:
 
     def collection_ids(self) -> list[str]:
         """Ids of the completed stores on disk (a ``.zarr`` directory whose group says complete)."""
+        if self.is_url:
+            ids = [name[: -len(".zarr")] for name, is_dir, _ in storage.list_names(self.collections)
+                   if is_dir and name.endswith(".zarr")]
+            return sorted(cid for cid in ids if is_complete(self.collections / f"{cid}.zarr"))
         if not self.collections.is_dir():
             return []
         ids = [p.name[: -len(".zarr")] for p in self.collections.iterdir()
@@ -102,15 +127,20 @@ class ArchiveRoot:
 def open_root(path: str | os.PathLike) -> ArchiveRoot:
     """Open an existing archive; MissingInputError if ``path`` does not exist, InputError if it is
     not an archive (no readable ``archive.json``) or has a newer format version."""
-    root = Path(path)
-    if not root.exists():
+    root = storage.location(path)
+    url = storage.is_url(root)
+    if not url and not root.exists():
         raise MissingInputError(root, "archive directory", "create one with 'archive ingest RAW_DIR --archive PATH'")
     marker = root / MARKER
-    if not marker.is_file():
+    if not storage.exists(marker):
+        if url:
+            raise MissingInputError(marker, "archive marker",
+                                    "check the URL, AWS_ENDPOINT_URL and the credentials, or create the archive "
+                                    "with 'archive ingest RAW_DIR --archive URL'")
         raise InputError(root, f"not an archive (no {MARKER})",
                          "point --archive at a directory made by 'archive ingest'")
     try:
-        info = json.loads(marker.read_text())
+        info = json.loads(storage.read_bytes(marker))
     except (OSError, ValueError) as exc:
         raise InputError(marker, f"unreadable archive marker: {exc}", "restore it: {\"format\": \"archive\", \"version\": 1}") from exc
     if not isinstance(info, dict) or info.get("format") != FORMAT:
@@ -125,8 +155,19 @@ def open_root(path: str | os.PathLike) -> ArchiveRoot:
 def create_archive(path: str | os.PathLike) -> ArchiveRoot:
     """Open the archive at ``path``, creating it (directories and ``archive.json``) when ``path``
     does not exist or is an empty directory. A non-empty directory that is not an archive is
-    refused, so that an ingest never scatters files into an unrelated folder."""
-    root = Path(path)
+    refused, so that an ingest never scatters files into an unrelated folder. In object storage,
+    likewise: a prefix that holds objects but no ``archive.json`` is refused; the marker is created with
+    a conditional PUT (two ingests creating one archive both succeed)."""
+    root = storage.location(path)
+    if storage.is_url(root):
+        if storage.exists(root / MARKER):
+            return open_root(root)
+        if any(True for _ in storage.list_names(root)):
+            raise InputError(root, f"holds objects but no {MARKER}, so it is not an archive",
+                             "choose a new or empty prefix for --archive")
+        storage.put_if_absent(root / MARKER, (json.dumps({"format": FORMAT, "version": VERSION}, indent=2)
+                                              + "\n").encode())
+        return open_root(root)
     if (root / MARKER).exists():
         return open_root(root)
     if root.exists():
@@ -159,9 +200,19 @@ def locked(root: ArchiveRoot):
     held = getattr(_HELD, "paths", None)
     if held is None:
         held = _HELD.paths = set()
-    key = str(Path(root.path).absolute())
+    key = str(root.path) if root.is_url else str(Path(root.path).absolute())
     if key in held:
         yield
+        return
+    if root.is_url:   # a lock object (conditional PUT), see archive.files.FileLock
+        lock = FileLock(root.path / "catalog" / ".catalog.lock", "catalog update", what=f"the catalog of {root.path}")
+        lock.acquire(wait=float("inf"))
+        held.add(key)
+        try:
+            yield
+        finally:
+            held.discard(key)
+            lock.release()
         return
     root.collection_path.parent.mkdir(parents=True, exist_ok=True)
     with open(root.collection_path.parent / ".catalog.lock", "a") as f:

@@ -27,6 +27,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from archive import storage
 from archive.errors import FormatError
 from archive.files import write_atomic
 
@@ -150,8 +151,11 @@ def make_item(cid: str, geometry: dict, bbox: list[float], start: datetime, end:
 
 def write_item(path: str | os.PathLike, item: dict) -> Path:
     """Write an Item as JSON (temporary name, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if storage.is_url(path):   # one PUT (atomic); no folders in object storage
+        path = storage.location(path)
+    else:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(path, (json.dumps(item, indent=1) + "\n").encode())
     return path
 

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 import archive
+from archive import storage
 from archive.catalog.root import ArchiveRoot, check_collection_id, create_archive, open_root
 from archive.errors import ArchiveError, InputError
 from archive.collection import (FORMAT, FORMAT_VERSION, NAV_COLUMNS, StorePlan, chunk_tasks, finish_store,
@@ -331,8 +332,11 @@ def _same_sources(attrs: dict, plan: StorePlan) -> bool:
 
 
 def _cataloged(root: ArchiveRoot, cid: str) -> bool:
-    from archive.catalog.index import search
+    from archive.catalog.index import ensure_index, search
 
+    if root.is_url:   # the index is a local cache, rebuilt from the Items when stale
+        return storage.exists(root.item_path(cid)) and storage.exists(root.catalog_path) \
+            and bool(search(ensure_index(root), ids=[cid]))
     if not root.item_path(cid).exists() or not root.index_path.exists() or not root.catalog_path.exists():
         return False  # (an archive made before the root catalog.json existed gets one)
     return bool(search(root.index_path, ids=[cid]))
@@ -379,7 +383,8 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
             results.append(_ingest_one(root, plan, directory, overwrite, workers, progress))
         finally:
             lock.release()
-    add_previews(root, [r.cid for r in results])   # the viewer's overviews (issue 36); after every lock is released
+    if not root.is_url:   # archive/previews.py reads local stores only: an archive in object storage has none yet
+        add_previews(root, [r.cid for r in results])   # the viewer's overviews (issue 36); after every lock is released
     return results
 
 
@@ -401,7 +406,10 @@ def _distinct_flights(directories: list[str], plans: list[StorePlan]) -> list[tu
 
 def _create_archive(archive_path: str | os.PathLike) -> ArchiveRoot:
     """:func:`create_archive`, tolerating another process creating the same new archive right now
-    (its folders exist for a moment before its ``archive.json``)."""
+    (its folders exist for a moment before its ``archive.json``; in object storage the marker is a
+    conditional PUT, so both succeed)."""
+    if storage.is_url(archive_path):
+        return create_archive(archive_path)
     deadline = time.monotonic() + 10.0
     while True:
         try:
@@ -421,7 +429,8 @@ def _ingest_one(root: ArchiveRoot, plan: StorePlan, directory: str, overwrite: b
     from archive.catalog.describe import catalog_collection
 
     final = root.store(plan.cid)
-    if final.exists() and not overwrite:
+    # in object storage an incomplete store under the final prefix is a killed run's: resumed below
+    if (is_complete(final) if root.is_url else final.exists()) and not overwrite:
         _check_ingested(root, plan, directory)
         if not _cataloged(root, plan.cid):
             with _disk_full_is_an_error(root, plan.cid):
@@ -462,7 +471,7 @@ def _already_ingested(root: ArchiveRoot, plan: StorePlan, directory: str) -> boo
     rerun after success writes nothing, not even a lock file); False when in any doubt (the locked
     path then decides, and says why)."""
     try:
-        if not root.store(plan.cid).exists():
+        if not (is_complete(root.store(plan.cid)) if root.is_url else root.store(plan.cid).exists()):
             return False
         _check_ingested(root, plan, directory)
         return _cataloged(root, plan.cid)
@@ -530,7 +539,8 @@ def run_verify(args: argparse.Namespace) -> int:
         print(f"{root.path}: no collections")
         return 1 if bad else 0
     for cid in ids:
-        problems = verify_store(root.store(cid), progress=not args.quiet) + verify_previews(root.store(cid))
+        problems = verify_store(root.store(cid), progress=not args.quiet) + \
+            ([] if root.is_url else verify_previews(root.store(cid)))   # previews: local archives only (yet)
         if problems:
             bad += 1
             print(f"{cid}: CORRUPT ({len(problems)} problems)")

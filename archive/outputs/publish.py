@@ -13,6 +13,11 @@ kill at any moment leaves either the old output with its Item, or data without a
 again by ``--resume``), never new data beside the old Item. Two processes publishing the same
 output take turns (a lock, ``.<name>.publish.lock``, from :meth:`Output.finalize` until
 :meth:`Output.cleanup`, so the Item written after the rename is part of the turn).
+
+An output at an ``s3://`` URL (:class:`RemoteOutput`) is assembled locally by the same
+:class:`Output` in a staging folder, then uploaded once: its old Item deleted first, its old
+objects next, then every file of the new output (a Zarr store's metadata files last, the data
+files in parallel), then its Item, last (S3 has no rename: the Item is what publishes it).
 """
 
 from __future__ import annotations
@@ -23,13 +28,14 @@ import signal
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from archive import storage
 from archive.errors import InputError, OutputExistsError
 from archive.files import FileLock, host_name, path_exists, pid_alive, remove_path, replace_path
 from archive.outputs.base import OutputMeta
 from archive.outputs.quicklook import quicklook_png
 from archive.outputs.registry import output_format, writer
 
-__all__ = ["Output", "unwritable_output"]
+__all__ = ["Output", "RemoteOutput", "unwritable_output"]
 
 
 #: Test-only: ``ARCHIVE_TEST_KILL_AT=after-data`` makes the process SIGKILL itself once an output's
@@ -245,3 +251,100 @@ def _check_writable(folder: Path) -> None:
     existing = next((d for d in (folder, *folder.parents) if d.exists()), None)
     if existing is not None and existing.is_dir() and not os.access(existing, os.W_OK | os.X_OK):
         raise InputError(existing, "is not writable", "choose an output folder you can write to")
+
+
+#: Zarr metadata file names: uploaded after the data files of a store.
+_ZARR_METADATA = {"zarr.json", ".zgroup", ".zattrs", ".zarray", ".zmetadata"}
+
+
+class RemoteOutput:
+    """An output at an ``s3://`` URL: ``local`` (an :class:`Output` in a staging folder of this
+    machine, ``$TMPDIR``) is rendered and published there as usual, then :meth:`upload` puts it in
+    the bucket, its Item last. Local disk needed: one copy of the output (the staging copy is
+    removed by :meth:`cleanup`).
+
+    Use: ``remote = RemoteOutput(url, overwrite, ...)``; ``remote.check()``; render into
+    ``remote.local`` (an :class:`Output`); publish it; ``remote.upload()``; always ``remote.cleanup()``.
+    """
+
+    def __init__(self, url: str, overwrite: bool = False, quicklook: str | None = None, **output_options):
+        import tempfile
+
+        self.url = storage.location(url)
+        self.overwrite = bool(overwrite)
+        if quicklook is not None and storage.is_url(quicklook):
+            raise InputError(quicklook, "a quicklook cannot be written to object storage",
+                             "give a local --quicklook path, or none")
+        self.staging = Path(tempfile.mkdtemp(prefix="archive-staging-"))
+        self.local = Output(self.staging / self.url.name, overwrite=True, quicklook=quicklook, **output_options)
+        self._publishing: FileLock | None = None
+
+    def _remote(self, local: Path):
+        """The URL of a local final path of :attr:`local` (same name beside :attr:`url`)."""
+        return self.url.with_name(local.name)
+
+    @property
+    def item_url(self):
+        """The output's STAC Item in the bucket, ``<out>.json``."""
+        return self._remote(self.local.item_path)
+
+    def check(self) -> None:
+        """OutputExistsError if the output (an object or a prefix) or its Item is in the bucket and
+        overwrite is off."""
+        if self.overwrite:
+            return
+        for local in [*self.local.writer.files(self.local.path), self.local.item_path]:
+            url = self._remote(local)
+            if path_exists(url):
+                raise OutputExistsError(url)
+
+    def upload(self) -> None:
+        """Put the published staging output in the bucket: old Item deleted, old objects deleted,
+        new files uploaded (metadata of a Zarr store last), Item last. Holds the output's publish
+        lock object (``.<name>.publish.lock``) meanwhile: two publishers of one URL take turns."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._publishing = FileLock(self.url.with_name(f".{self.url.name}.publish.lock"), f"publishing {self.url}",
+                                    what=f"output {self.url}")
+        self._publishing.acquire(wait=float("inf"))
+        try:
+            self.check()   # something may have appeared meanwhile
+            storage.delete(self.item_url)   # the old output is no longer complete from here on
+            files = [f for f in self.local.writer.files(self.local.path)]
+            sibling = self.local.provenance_path
+            if sibling is not None:
+                files += self.local.writer.files(sibling)
+            for local in files:
+                remove_path(self._remote(local))
+            puts: list[tuple[Path, object]] = []
+            for local in files:
+                if local.is_dir():
+                    for p in sorted(q for q in local.rglob("*") if q.is_file()):
+                        puts.append((p, self._remote(local) / p.relative_to(local).as_posix()))
+                elif local.is_file():
+                    puts.append((local, self._remote(local)))
+            data = [(p, u) for p, u in puts if p.name not in _ZARR_METADATA]
+            meta = [(p, u) for p, u in puts if p.name in _ZARR_METADATA]
+
+            def put(pair) -> None:
+                storage.write_bytes(pair[1], pair[0].read_bytes())
+
+            with ThreadPoolExecutor(8) as pool:
+                list(pool.map(put, data))
+                list(pool.map(put, meta))
+            text = self.local.item_path.read_text()
+            text = text.replace(str(self.local.path), str(self.url))   # the recipe's --out names the URL
+            storage.write_bytes(self.item_url, text.encode())   # last: the output is complete from here on
+        finally:
+            self._publishing.release()
+            self._publishing = None
+
+    def cleanup(self) -> None:
+        """Remove the staging folder (and the local output's temporaries)."""
+        import shutil
+
+        self.local.cleanup()
+        if self._publishing is not None:
+            self._publishing.release()
+            self._publishing = None
+        shutil.rmtree(self.staging, ignore_errors=True)

@@ -33,7 +33,7 @@ class CollectionSource(NavigatedSource):
     def __init__(self, store: str | os.PathLike, id: str, params: NavigationParams,
                  white_reference: np.ndarray | None = None):
         info = read_info(store)
-        self.store = Path(store)
+        self.store = info.store   # a Path, or a UPath for a collection in object storage
         self.label = str(self.store)
         self.id = id
         params = params.resolved(recorded_navigation(info.attrs))  # the mounting given at ingest / calibrate
