@@ -43,6 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
+from archive.errors import FormatError
+
 __all__ = ["GROUP", "PreviewLevel", "Previews", "add_previews", "make_previews", "plan_levels", "read_previews",
            "verify_previews"]
 
@@ -287,18 +289,21 @@ def add_previews(root, cids: Iterable[str], warn: Callable[[str], None] | None =
 # ---- reading ----------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class Previews:
-    """A collection's previews in memory: the attribute's fields and {zoom: (level, (bands, height,
-    width) float32)}."""
+    """A collection's previews: the attribute's fields, its levels by zoom, and ``load(zoom)`` ->
+    that level's (bands, height, width) float32 values (read when first needed: a zoomed-out screen
+    reads one level of each flight)."""
 
     mode: str
     bands: tuple[int, ...]
     flight_gsd: float
     levels: dict
     stats: dict
+    load: Callable[[int], np.ndarray]
 
     @property
     def nbytes(self) -> int:
-        return sum(v.nbytes for _, v in self.levels.values()) + 4096
+        """What the description holds (the levels' values are loaded apart), bytes."""
+        return 4096 + 256 * len(self.levels)
 
     @property
     def finest(self) -> int:
@@ -321,7 +326,8 @@ class Previews:
 
         zoom = round(math.log2(2 * HALF_WORLD / 256 / grid.gsd))
         use = zoom if zoom in self.levels else min(self.levels)
-        level, stored = self.levels[use]
+        level = self.levels[use]
+        stored = self.load(use)
         f = 1 << (use - zoom) if zoom < use else 1
         g = zoom_gsd(use)
         c0 = round((grid.x0 + HALF_WORLD) / g)
@@ -378,18 +384,27 @@ def read_previews(store: str | os.PathLike) -> Previews | None:
         return None
     attrs = _attrs(store)
     try:
-        group = zarr.open_group(store / GROUP, mode="r")
-        levels = {}
+        levels, digests = {}, {}
         for rec in attrs["levels"]:
             level = PreviewLevel(int(rec["zoom"]), int(rec["column"]), int(rec["row"]), int(rec["width"]),
                                  int(rec["height"]))
-            values = np.asarray(group[level.name][...], np.float32)
-            if values.shape[1:] != (level.height, level.width):
-                return None
-            levels[level.zoom] = (level, values)
+            levels[level.zoom] = level
+            digests[level.zoom] = rec["sha256"]
+
+        def load(zoom: int) -> np.ndarray:
+            """A level's values, checked against their recorded sha256 (FormatError if not them)."""
+            from archive.collection import array_digest
+
+            path = store / GROUP / levels[zoom].name
+            values = np.asarray(zarr.open_array(path, mode="r")[...], np.float32)
+            if array_digest(values) != digests[zoom]:
+                raise FormatError(path, "overview preview level does not match its recorded sha256",
+                                  "run 'archive verify'; ingest the flight again to remake its previews")
+            return values
+
         return Previews(str(attrs["mode"]), tuple(int(b) for b in attrs["bands"]), float(attrs["flight_gsd"]),
-                        levels, dict(attrs.get("stats") or {}))
-    except (KeyError, TypeError, ValueError, OSError):
+                        levels, dict(attrs.get("stats") or {}), load)
+    except (KeyError, TypeError, ValueError):
         return None
 
 

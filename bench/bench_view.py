@@ -138,7 +138,8 @@ def render_counts(port: int) -> dict:
     """The server's render-thread counters (``/api/status``'s ``render``: drawn, dropped, overtaken...)."""
     conn = http.client.HTTPConnection("127.0.0.1", port, timeout=60)
     try:
-        return json.loads(get(conn, "/api/status")[1])["render"]
+        status = json.loads(get(conn, "/api/status")[1])
+        return {**status["render"], "from_previews": status.get("from_previews", 0)}
     finally:
         conn.close()
 
@@ -387,6 +388,9 @@ def main(argv=None) -> int:
                     help="--browser: an archive of this many flights (each --cubes x --lines x --samples x --bands) "
                          "opened at the zoom that fits them all, instead of one flight's changes")
     ap.add_argument("--cold", type=int, default=3, help="--browser --flights: page loads on a new server each")
+    ap.add_argument("--no-previews", action="store_true",
+                    help="--browser --flights: take the ingest's overview previews out of the archive (in --workdir): "
+                         "every tile drawn from the DN, the baseline they are measured against")
     args = ap.parse_args(argv)
     if args.server_steps:
         archive, cid, _ = make_archive(args.workdir, args)

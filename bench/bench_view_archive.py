@@ -33,9 +33,10 @@ def make_flights_archive(workdir: Path, args: argparse.Namespace) -> tuple[Path,
     47.5 (ingest makes each flight's overview previews); reused while its marker file exists (the raw
     flights are deleted; previews are added to a reused archive that lacks them). (archive, ids)."""
     archive = workdir / "archive"
+    import shutil
+
     marker = workdir / f".bench-view-flights-{ARCHIVE_STEP[0]}-{ARCHIVE_STEP[1]}-{args.flights}-{args.cubes}-{args.bands}-{args.samples}-{args.lines}"
     if not marker.exists():
-        import shutil
         from datetime import datetime, timedelta, timezone
 
         from archive.ingest.command import ingest
@@ -58,7 +59,13 @@ def make_flights_archive(workdir: Path, args: argparse.Namespace) -> tuple[Path,
     from archive.previews import add_previews
 
     root = open_root(archive)
-    add_previews(root, root.collection_ids())   # an archive made before ingest made previews gets them (issue 36)
+    if getattr(args, "no_previews", False):   # the baseline: every tile from the DN
+        from archive.previews import GROUP
+
+        for cid in root.collection_ids():
+            shutil.rmtree(root.store(cid) / GROUP, ignore_errors=True)
+    else:
+        add_previews(root, root.collection_ids())   # an archive made before ingest made previews gets them (issue 36)
     items = [json.loads(p.read_text()) for p in (archive / "catalog" / "items").glob("*.json")]
     return archive, sorted(item["id"] for item in items)
 
@@ -161,7 +168,8 @@ def archive_main(args: argparse.Namespace) -> str:
         "",
         f"A page load: {out['requests']} band-value requests ({out['empty']} empty), values from {out['with_values']} "
         f"of the {len(ids)} flights; the warm server's render jobs: {out['render']['done']} drawn, "
-        f"{out['render']['skipped'] + out['render']['stopped']} dropped.",
+        f"{out['render']['skipped'] + out['render']['stopped']} dropped; band-value tiles answered from the ingest "
+        f"previews: {out['render']['from_previews']} (overview previews {'taken out (--no-previews)' if args.no_previews else 'in the archive'}).",
         "",
     ]
     if args.json:

@@ -64,12 +64,11 @@ def test_previews_are_the_viewers_tiles_without_the_dn(small_archive):
         assert list(previews.bands) == info["default_bands"]
         bands = ",".join(map(str, info["default_bands"]))
         everything = f"0-{len(info['cubes']) - 1}"   # the same drawing, asked so that the DN path draws it
-        rendered = [z for z in zooms if previews.levels[z][0].zoom == z
-                    and registry_level_rendered(arc, cid, z)]
+        rendered = [z for z in zooms if registry_level_rendered(arc, cid, z)]
         assert rendered and rendered[-1] == zooms[-1]
         covered = 0
         for z in rendered:
-            for x, y in _level_tiles(previews.levels[z][0]):
+            for x, y in _level_tiles(previews.levels[z]):
                 fast, from_previews = _tile(client, cid, z, x, y, bands)
                 slow, from_dn = _tile(client, cid, z, x, y, bands, cubes=everything)
                 assert from_previews and not from_dn
@@ -82,8 +81,8 @@ def test_previews_are_the_viewers_tiles_without_the_dn(small_archive):
         # a pyramid level: the mean of the finite values of each 2 x 2 block of the level below
         coarse = [z for z in zooms if z not in rendered]
         for z in coarse[:1]:
-            level, stored = previews.levels[z]
-            finer, below = previews.levels[z + 1]
+            level, stored = previews.levels[z], previews.load(z)
+            finer, below = previews.levels[z + 1], previews.load(z + 1)
             grid = np.full((3, 2 * level.height, 2 * level.width), np.nan, np.float32)
             r, c = finer.row - 2 * level.row, finer.column - 2 * level.column
             grid[:, r:r + finer.height, c:c + finer.width] = below
@@ -93,7 +92,7 @@ def test_previews_are_the_viewers_tiles_without_the_dn(small_archive):
             assert np.allclose(stored, mean, rtol=1e-6, equal_nan=True) and np.isfinite(stored).sum() > 3
         # deeper than the finest level: from the DN; another band, mode or rule too
         z = zooms[-1] + 1
-        x, y = _level_tiles(previews.levels[zooms[-1]][0])[0]
+        x, y = _level_tiles(previews.levels[zooms[-1]])[0]
         assert not _tile(client, cid, z, 2 * x, 2 * y, bands)[1]
         other = ",".join(str(b) for b in range(info["bands"]) if b not in previews.bands)
         assert not _tile(client, cid, zooms[-1], x, y, other)[1]
@@ -135,6 +134,17 @@ def test_verify_checks_the_previews(archive_copy, capsys):
     assert main(["verify", cid, "--archive", str(arc), "--quiet"]) == 1
     out = capsys.readouterr().out
     assert f"previews/{name}: checksum mismatch" in out and "CORRUPT" in out
+    # the viewer checks a level when it reads it: that one is drawn from the DN instead
+    previews = read_previews(store)
+    zoom = int(name[1:])
+    x, y = _level_tiles(previews.levels[zoom])[0]
+    with _client(create_app(FlightRegistry(arc))) as client:
+        r = client.get(f"/api/collections/{cid}/values/{zoom}/{x}/{y}",
+                       params={"bands": ",".join(map(str, previews.bands))})
+        assert r.status_code in (200, 204) and "x-source" not in r.headers
+        healthy = next(z for z in previews.levels if z != zoom)
+        x, y = _level_tiles(previews.levels[healthy])[0]
+        assert _tile(client, cid, healthy, x, y, ",".join(map(str, previews.bands)))[1]
 
 
 def test_stale_or_missing_previews_fall_back_and_ingest_adds_them(archive_copy, small_flight):
@@ -145,7 +155,7 @@ def test_stale_or_missing_previews_fall_back_and_ingest_adds_them(archive_copy, 
     store = open_root(arc).store(cid)
     previews = read_previews(store)
     z = max(previews.levels)
-    x, y = _level_tiles(previews.levels[z][0])[0]
+    x, y = _level_tiles(previews.levels[z])[0]
     registry = FlightRegistry(arc)
     with _client(create_app(registry)) as client:
         bands = ",".join(map(str, previews.bands))
@@ -166,5 +176,5 @@ def test_stale_or_missing_previews_fall_back_and_ingest_adds_them(archive_copy, 
     assert result.status == "already ingested"
     again = read_previews(store)
     assert again is not None and sorted(again.levels) == sorted(previews.levels)
-    for zoom, (_, values) in previews.levels.items():
-        assert np.array_equal(again.levels[zoom][1], values, equal_nan=True)   # the same values: deterministic
+    for zoom in previews.levels:
+        assert np.array_equal(again.load(zoom), previews.load(zoom), equal_nan=True)   # the same values: deterministic

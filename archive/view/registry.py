@@ -3,6 +3,7 @@ command line (ids checked before anything opens a store), as GeoJSON; opened fli
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Sequence
@@ -176,8 +177,14 @@ class FlightRegistry:
                 stamp.append(None)
         if stamp[1] is None:
             return None
-        return self.bands_cache.get_or_make(
-            (cid, "previews", *stamp), lambda: _sized(read_previews(store)))
+        key = (cid, "previews", *stamp)
+        found = self.bands_cache.get_or_make(key, lambda: _sized(read_previews(store)))
+        if found is None:
+            return None
+
+        def load(zoom: int):   # a level's values, kept in the bands cache too
+            return self.bands_cache.get_or_make((*key, zoom), lambda: _sized_array(found.load(zoom)))
+        return dataclasses.replace(found, load=load)
 
     # ---- opened flights ------------------------------------------------------------------
     def flight(self, cid: str) -> Flight:
@@ -221,6 +228,10 @@ class FlightRegistry:
 def _sized(previews) -> tuple:
     """(previews, the bytes a cache charges them)."""
     return previews, 64 if previews is None else previews.nbytes
+
+
+def _sized_array(values) -> tuple:
+    return values, values.nbytes
 
 
 def _feature_of_item(item: dict) -> dict:

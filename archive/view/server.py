@@ -17,7 +17,9 @@ trace):
   little-endian; then the view-zenith plane with ``overlap=nadir``), stretched and composed by the
   page; 204 where no line covers the tile; ``scale`` > 1: a coarse (side 256 / scale) preview;
   ``window=1``: only the rows and columns of the tile that hold a value (header ``X-Window: column,row,
-  width,height``; a flight a few pixels wide at an overview zoom sends kilobytes, not 0.8 MB);
+  width,height``; a flight a few pixels wide at an overview zoom sends kilobytes, not 0.8 MB); the
+  flight as ingested at a zoom at or above its ingest previews' finest (:mod:`archive.previews`):
+  from them, without the render thread, header ``X-Source: previews``;
 - ``GET /api/collections/{id}/outline?ground_height=&sync_offset=&cubes=`` GeoJSON MultiPolygon of
   the cubes' ground meshes (the footprint as drawn now);
 - ``GET /api/collections/{id}/point?lon=&lat=&gsd=&mode=...`` the full spectrum of the output pixel
@@ -331,12 +333,16 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
             previews = await run_in_threadpool(registry.previews, cid)
             if previews is not None and previews.serves(query.bands, query.mode, z - scale.bit_length() + 1):
                 coarse = Grid(grid.epsg, grid.gsd * scale, grid.x0, grid.y0, TILE // scale, TILE // scale)
-                planes = await run_in_threadpool(previews.values, coarse, query.bands)
-                headers["X-Source"] = "previews"
-                viewer.from_previews += 1
-                if planes is None:
-                    return Response(status_code=204, headers=headers)
-                return values_response(planes, None, headers, values_window(planes) if window else None)
+                try:
+                    planes = await run_in_threadpool(previews.values, coarse, query.bands)
+                except (ArchiveError, OSError, ValueError) as exc:   # a damaged level: drawn from the DN
+                    log.warning("archive view: %s: overview previews unreadable (%s); drawing from the DN", cid, exc)
+                else:
+                    headers["X-Source"] = "previews"
+                    viewer.from_previews += 1
+                    if planes is None:
+                        return Response(status_code=204, headers=headers)
+                    return values_response(planes, None, headers, values_window(planes) if window else None)
         wanted = list(query.bands) + (["key"] if keyed else [])
         keys = {b: (cid, z, x, y, b, common, scale) for b in wanted}
         found = {b: viewer.tiles.get(k) for b, k in keys.items()}
