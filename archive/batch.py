@@ -82,16 +82,24 @@ class Flight:
     futures: list = field(default_factory=list)
     left: int = 0
     started: float = 0.0
+    remote: object = None   #: its :class:`~archive.outputs.publish.RemoteOutput` when --out is an s3:// folder
     inputs: list | None = None   #: :func:`archive.pipeline.recipe_inputs` when the batch was decided (the Item records it)
     note: str | None = None   #: why a complete output of the same request is rendered again
     properties: dict | None = None   #: more properties of its Item (a tile's ``archive:tile``)
 
     def entry(self) -> dict:
-        return {"id": self.name, "status": self.status, "path": str(self.output.path), "error": self.error,
+        path = str(self.output.path) if self.remote is None else str(self.remote.url)
+        return {"id": self.name, "status": self.status, "path": path, "error": self.error,
                 "seconds": None if self.seconds is None else round(self.seconds, 3)}
 
 
 def _directory(out) -> Path:
+    if storage.is_url(out):   # an s3:// folder: each output staged locally, uploaded once, its Item last
+        directory = storage.location(out)
+        if directory.suffix.lower() in (".zarr", ".tif", ".tiff", ".hdr"):
+            raise InputError(directory, "looks like one output, but a batch job writes one output per flight",
+                             "give --out s3://BUCKET/FOLDER (outputs FOLDER/<id>.<format>), or add --mosaic")
+        return directory
     directory = Path(out).absolute()
     if directory.exists() and not directory.is_dir():
         raise InputError(directory, "is a file, but a batch job writes one output per flight into a directory",
@@ -152,11 +160,15 @@ def _decide(flight: Flight, resume: bool, overwrite: bool) -> None:
     render it (its Output replaces what is there when it may). InputError when its output exists and
     may not be replaced, or (with ``resume``) was made with another recipe and ``overwrite`` is off."""
     output = flight.output
-    item = output.item_path
-    data = [p for p in output.finals if p not in (item, output.quicklook)]
+    remote = flight.remote   # an s3:// output: the bucket's objects decide, the local staging output is new
+    if remote is None:
+        item, finals = output.item_path, output.finals
+    else:
+        item, finals = remote.item_url, [*remote.data_urls(), remote.item_url]
+    data = [p for p in finals if p not in (item, output.quicklook)]
     complete = path_exists(item) and all(path_exists(p) for p in data)
-    present = [p for p in output.finals if path_exists(p)]
-    if resume:
+    present = [p for p in finals if path_exists(p)]
+    if resume and remote is None:
         _remove_leftovers(output)
     if complete and resume:
         try:
@@ -173,8 +185,8 @@ def _decide(flight: Flight, resume: bool, overwrite: bool) -> None:
             # same request, other inputs (re-ingested, calibrated; or an Item that does not record
             # them): the output is stale and rendered again; its old Item goes first (publish.Output)
             flight.note = f"its inputs changed since it was rendered ({_input_changes(stored_inputs, flight.inputs)})"
-            output.overwrite = True
-            output.check()
+            (remote or output).overwrite = True
+            (remote or output).check()
             return
         if not overwrite:
             what = "an unreadable recipe" if stored is None else f"another recipe ({_differences(stored, wanted)})"
@@ -185,10 +197,10 @@ def _decide(flight: Flight, resume: bool, overwrite: bool) -> None:
                          "pass --resume to skip complete outputs of the same request, or --overwrite to "
                          "replace them")
     if present:
-        output.overwrite = True
+        (remote or output).overwrite = True
         if not complete:
             remove_path(item)   # an Item without its data, or of an output about to be replaced
-    output.check()
+    (remote or output).check()
 
 
 def _reason(exc: BaseException) -> str:
@@ -213,7 +225,7 @@ class _Report:
     def __init__(self, directory: Path, flights: list[Flight], warn: Callable[[str], None] | None = None):
         self.path, self.flights = directory / REPORT, flights
         self.warn, self.error = warn or (lambda line: None), None
-        for tmp in directory.glob(f"{REPORT}.*.partial"):   # a killed run's report being rewritten
+        for tmp in ([] if storage.is_url(directory) else directory.glob(f"{REPORT}.*.partial")):   # a killed run's report being rewritten
             remove_path(tmp)
 
     def write(self, complete: bool = False) -> bool:
@@ -221,7 +233,8 @@ class _Report:
         doc = {"outputs": [f.entry() for f in self.flights], "flights": len(self.flights), **counts,
                "complete": complete}
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+            if not storage.is_url(self.path):
+                self.path.parent.mkdir(parents=True, exist_ok=True)
             write_atomic(self.path, json.dumps(doc, indent=1) + "\n")
         except OSError as exc:
             if self.error is None:
@@ -258,7 +271,7 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
     if options.archive is not None and not storage.is_url(options.archive):   # recipes independent of the cwd
         options = dataclasses.replace(options, archive=os.fspath(Path(options.archive).absolute()))
     tell = tell or (lambda line: None)
-    made = not directory.exists()
+    made = not storage.is_url(directory) and not directory.exists()
     lock = _lock_directory(directory)
     try:
         flights = []
@@ -266,10 +279,20 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
             units = [(Path(src).name if Path(src).is_dir() else str(src), options.with_sources([src]), None)
                      for src in dict.fromkeys(options.sources)]
         for name, recipe, properties in units:
-            output = Output(directory / f"{name}.{format}", overwrite=bool(overwrite),
-                            provenance=options.provenance, zarr_format=options.zarr_format)
+            remote = None
+            if storage.is_url(directory):
+                from archive.outputs.publish import RemoteOutput
+
+                remote = RemoteOutput(str(directory / f"{name}.{format}"), overwrite=bool(overwrite),
+                                      provenance=options.provenance, zarr_format=options.zarr_format,
+                                      compression=options.compression)
+                output = remote.local
+            else:
+                output = Output(directory / f"{name}.{format}", overwrite=bool(overwrite),
+                                provenance=options.provenance, zarr_format=options.zarr_format,
+                                compression=options.compression)
             flights.append(Flight(",".join(recipe.sources), name, output, recipe, inputs=recipe_inputs(recipe),
-                                  properties=properties))
+                                  properties=properties, remote=remote))
         for flight in flights:
             _decide(flight, resume, overwrite)
         report = _Report(directory, flights, warn=lambda line: print(f"archive render: {line}", file=sys.stderr))
@@ -279,7 +302,7 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
         _test_hold(flights)
         for flight in flights:
             if flight.status == "skipped":
-                tell(f"skipped {flight.name}: {flight.output.path} is complete (same recipe)")
+                tell(f"skipped {flight.name}: {flight.entry()['path']} is complete (same recipe)")
             elif flight.note:
                 tell(f"stale {flight.name}: {flight.note}; rendering it again")
         todo = [f for f in flights if f.status == "pending"]
@@ -300,6 +323,7 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
                              "free some space, then run the same command with --resume to write it")
     except BaseException:
         lock.release()
+        _remove_staging(flights)
         if made:
             try:
                 directory.rmdir()   # a refused batch leaves no empty folder behind
@@ -307,9 +331,10 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
                 pass
         raise
     lock.release()
+    _remove_staging(flights)
     outputs = []
     for f in flights:
-        outputs.append({**(f.summary or {}), **f.entry(), "out": str(f.output.path)})
+        outputs.append({**(f.summary or {}), **f.entry(), "out": f.entry()["path"]})
     counts = {s: sum(f.status == s for f in flights) for s in ("done", "skipped", "failed")}
     return {"outputs": outputs, **counts, "seconds": time.perf_counter() - started,
             "graph_seconds": state["graph_seconds"], "submit_seconds": state["submit_seconds"],
@@ -330,6 +355,13 @@ def _test_hold(flights: list[Flight]) -> None:
     test_hold(TEST_HOLD_AFTER, sum(f.status == "done" for f in flights))
 
 
+def _remove_staging(flights: list[Flight]) -> None:
+    """Remove the local staging folders of a batch into an s3:// folder."""
+    for flight in flights:
+        if flight.remote is not None:
+            flight.remote.cleanup()
+
+
 def _counts_text(flights: list[Flight]) -> str:
     return ", ".join(f"{sum(f.status == s for f in flights)} {s}" for s in ("done", "skipped", "failed"))
 
@@ -340,7 +372,8 @@ def _lock_directory(directory: Path) -> FileLock:
     from archive.outputs.publish import unwritable_output
 
     try:
-        directory.mkdir(parents=True, exist_ok=True)
+        if not storage.is_url(directory):   # a lock object in a bucket needs no folder
+            directory.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(directory, f"cannot create the output folder ({exc.strerror or exc})",
                          "choose an output folder you can write to") from None
@@ -401,7 +434,7 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
             else:
                 s = flight.summary
                 tell(f"done {flight.name}: {s['width']} x {s['height']} px, {s['bands']} bands -> "
-                     f"{flight.output.path} ({flight.seconds:.1f} s)")
+                     f"{flight.entry()['path']} ({flight.seconds:.1f} s)")
             flight.futures, flight.job = [], None
             if flight in active:
                 active.remove(flight)
@@ -503,8 +536,12 @@ def _publish(flight: Flight, client) -> None:
     job.renderers = worker_renderers(client)   # [] when a worker cannot say: a record, never a failure
     try:
         publish(job, flight.inputs, flight.properties)
+        if flight.remote is not None:   # an s3:// folder: uploaded once, its Item last
+            flight.remote.upload()
     finally:
         job.output.cleanup()   # its turn to publish ends with the Item
+        if flight.remote is not None:
+            flight.remote.cleanup()
 
 
 def _timed_prepare(flight: Flight, budget: int, say) -> tuple[_FlightJob, object, float]:

@@ -126,7 +126,8 @@ class RenderOptions:
     heights' vertical datum when its CRS does not declare one ('ellipsoid' | 'egm96' | 'egm2008');
     provenance: also write the per-pixel provenance layers (:mod:`archive.provenance`; written
     outputs only); zarr_format: 2 (default: what GDAL 3.10, hence QGIS 3.40 and rasterio, opens) or 3,
-    the Zarr version of a .zarr output.
+    the Zarr version of a .zarr output; compression: how Zarr chunks and COG tiles are compressed, a
+    name of :data:`archive.codecs.COMPRESSIONS` ('fast', the default; 'small'; 'none').
 
     Build one with :meth:`create`, which normalises what callers give (a single source, CLI text
     such as ``'550,650'``, paths); checks that need files are :meth:`check`'s.
@@ -154,6 +155,7 @@ class RenderOptions:
     dem_datum: str | None = None
     provenance: bool = False
     zarr_format: int = 2
+    compression: str = "fast"
     bounds: tuple[float, float, float, float] | None = None
     align: bool = False
     like: str | None = None
@@ -164,7 +166,7 @@ class RenderOptions:
                panels=None, sync_offset=None,
                boresight=None, lever_arm=None, overlap="last", crs=None,
                max_view_angle=DEFAULT_MAX_VIEW_ANGLE, dem=None, dem_datum=None, provenance=False,
-               zarr_format=2, bounds=None, align=False, like=None) -> RenderOptions:
+               zarr_format=2, compression=None, bounds=None, align=False, like=None) -> RenderOptions:
         """A request from API keywords (or CLI values); InputError for malformed values. With
         ``like`` and no ``gsd``, the GSD is the one of that output (read here, metadata only)."""
         if isinstance(sources, (str, os.PathLike)):
@@ -190,7 +192,8 @@ class RenderOptions:
             overlap=overlap, crs=None if crs is None else str(crs),
             max_view_angle=_number(max_view_angle, "--max-view-angle", "degrees"),
             dem=fspath(dem), dem_datum=None if dem_datum is None else str(dem_datum), provenance=bool(provenance),
-            zarr_format=_zarr_format(zarr_format), bounds=parse_bounds(bounds), align=bool(align), like=like)
+            zarr_format=_zarr_format(zarr_format), compression=_compression(compression),
+            bounds=parse_bounds(bounds), align=bool(align), like=like)
 
     def with_sources(self, sources: Sequence[str]) -> RenderOptions:
         """This request for other sources."""
@@ -279,6 +282,13 @@ def _check_dem(options: RenderOptions) -> None:
     from archive.dem import open_dem
 
     open_dem(options.dem, options.dem_datum)
+
+
+def _compression(value) -> str:
+    """--compression: a name of :data:`archive.codecs.COMPRESSIONS` (None: the default)."""
+    from archive.codecs import compression
+
+    return compression(value).name
 
 
 def _zarr_format(value) -> int:

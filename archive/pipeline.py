@@ -276,7 +276,7 @@ def build_output(output: OutputPlan, target: Output):
     p, plan = output.params, output.plan
     meta = OutputMeta(plan.grid, tuple(plan.bands[0]), None if output.wavelengths is None else tuple(output.wavelengths),
                       output.variable, output.attrs, fwhm=None if output.fwhm is None else tuple(output.fwhm),
-                      zarr_format=target.zarr_format)
+                      zarr_format=target.zarr_format, compression=target.compression)
     sink = target.sink(meta)
     layers = layers_sink = None
     if target.provenance or rule_key(p.overlap) is not None:
@@ -464,12 +464,14 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
         from archive.outputs.publish import RemoteOutput
 
         remote = RemoteOutput(str(out), overwrite=bool(overwrite), zarr_format=options.zarr_format,
+                              compression=options.compression,
                               quicklook=None if not quicklook else str(Path(quicklook).absolute()),
                               provenance=options.provenance)
         remote.check()
         output = remote.local
     else:
         output = Output(Path(out).absolute(), overwrite=bool(overwrite), zarr_format=options.zarr_format,
+                        compression=options.compression,
                         quicklook=None if not quicklook else Path(quicklook).absolute(),
                         provenance=options.provenance)
     output.check()

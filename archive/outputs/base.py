@@ -148,6 +148,7 @@ class OutputMeta:
     attrs: dict | None = field(default=None, compare=False)
     fwhm: tuple[float, ...] | None = None
     zarr_format: int = 2   #: the Zarr version of a .zarr output (other formats ignore it)
+    compression: str = "fast"   #: :data:`archive.codecs.COMPRESSIONS` name (Zarr chunks, COG tiles; not ENVI)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "band_indices", tuple(int(i) for i in self.band_indices))

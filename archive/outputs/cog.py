@@ -12,6 +12,7 @@ of the registry (:mod:`archive.outputs.registry`); provenance layers go to a sib
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -43,12 +44,15 @@ class CogSink(Sink):
     height: int
     width: int
     nearest: bool = False   #: overviews by nearest neighbour (top-left of each 2 x 2) instead of averages
+    compression: str = "fast"   #: how tiles are encoded: a name of :data:`archive.codecs.COMPRESSIONS`
 
     @classmethod
     def create(cls, spool: str | os.PathLike, nbands: int, height: int, width: int,
-               nearest: bool = False) -> CogSink:
+               nearest: bool = False, compression: str | None = None) -> CogSink:
+        from archive.codecs import compression as named
+
         os.mkdir(spool)
-        sink = cls(os.fspath(spool), nbands, height, width, nearest)
+        sink = cls(os.fspath(spool), nbands, height, width, nearest, named(compression).name)
         open(sink.data_path, "wb").close()
         return sink
 
@@ -79,6 +83,19 @@ class CogSink(Sink):
         for path in spools.values():
             os.remove(path)
         return part.end
+
+    def encode(self, tile: np.ndarray) -> bytes:
+        """One (TILE, TILE) float32 tile compressed as :attr:`compression` says
+        (:func:`archive.outputs.tiff.encode_tile`)."""
+        from archive.codecs import compression
+        from archive.outputs.tiff import encode_tile
+
+        c = compression(self.compression)
+        return encode_tile(tile, c.cog_zstd, c.cog_predictor)
+
+    def nan_tile(self) -> bytes:
+        """The encoded all-NaN tile (computed once per process and compression)."""
+        return _nan_tile(self.compression)
 
     def downsample(self, block: np.ndarray) -> np.ndarray:
         """One overview step of ``block`` (..., h, w) -> (..., ceil(h/2), ceil(w/2)) float32: the
@@ -128,7 +145,7 @@ class CogSink(Sink):
         <= TILE/2), in :meth:`children` order; None: all NaN or beyond the edge). Returns this
         tile's quarter of the next level (its 2 x 2 average) when there is one and some value is
         finite, else None: only quarter-size blocks travel between tasks."""
-        from archive.outputs.tiff import TILE, encode_tile, write_spool
+        from archive.outputs.tiff import TILE, write_spool
 
         h, w = self.levels[level]
         h, w = min(TILE, h - r * TILE), min(TILE, w - c * TILE)
@@ -139,7 +156,7 @@ class CogSink(Sink):
         encoded = []
         for b in range(nbands):
             if not present:
-                encoded.append([_nan_tile()])
+                encoded.append([self.nan_tile()])
                 continue
             tile[...] = np.nan
             half = TILE // 2
@@ -147,21 +164,21 @@ class CogSink(Sink):
                 i, j = divmod(k, 2)
                 ch, cw = child.shape[1:]
                 tile[i * half:i * half + ch, j * half:j * half + cw] = child[b]
-            encoded.append([encode_tile(tile)])
+            encoded.append([self.encode(tile)])
             if quarter is not None:
                 quarter[b] = self.downsample(tile[:h, :w])
         write_spool(self.spool_path(level, r, c, band0), encoded)
         return quarter if quarter is not None and np.isfinite(quarter).any() else None
 
 
-def _nan_tile() -> bytes:
-    """The compressed all-NaN COG tile (computed once per process)."""
-    data = getattr(_nan_tile, "value", None)
-    if data is None:
-        from archive.outputs.tiff import TILE, encode_tile
+@functools.lru_cache(maxsize=8)
+def _nan_tile(compression: str) -> bytes:
+    """The all-NaN COG tile encoded with ``compression`` (computed once per process)."""
+    from archive.codecs import compression as named
+    from archive.outputs.tiff import TILE, encode_tile
 
-        data = _nan_tile.value = encode_tile(np.full((TILE, TILE), np.nan, np.float32))
-    return data
+    c = named(compression)
+    return encode_tile(np.full((TILE, TILE), np.nan, np.float32), c.cog_zstd, c.cog_predictor)
 
 
 class _CogTileWriter(TileWriter):
@@ -184,17 +201,18 @@ class _CogTileWriter(TileWriter):
         self.finite = False
 
     def write(self, b: int, chunk: np.ndarray) -> None:
-        from archive.outputs.tiff import TILE, encode_tile
+        from archive.outputs.tiff import TILE
 
         if all_nan(chunk):
-            self.encoded[b] = [_nan_tile()] * (self.rows * self.cols)
-            self.first[b] = _nan_tile()
+            nan = self.sink.nan_tile()
+            self.encoded[b] = [nan] * (self.rows * self.cols)
+            self.first[b] = nan
             return
-        self.encoded[b] = [encode_tile(chunk[i * TILE:(i + 1) * TILE, j * TILE:(j + 1) * TILE])
+        self.encoded[b] = [self.sink.encode(chunk[i * TILE:(i + 1) * TILE, j * TILE:(j + 1) * TILE])
                            for i in range(self.rows) for j in range(self.cols)]
         if self.levels >= 1:
             down = self.sink.downsample(chunk)  # (TILE, TILE): NaN beyond the grid, as the chunk
-            self.first[b] = encode_tile(down)
+            self.first[b] = self.sink.encode(down)
             if self.block is not None:
                 self.block[b] = self.sink.downsample(down[:self.oh, :self.ow])
                 self.finite = True
@@ -268,14 +286,17 @@ def assemble_cog(sink: CogSink, path: str | os.PathLike, grid: Grid, nbands: int
     graph laid it out (:meth:`CogSink.lay_out`; ``insert``: put the rest in front of it without
     copying it, where the file system can), else from the spool files. RenderError when a tile is
     missing."""
+    from archive.codecs import compression
     from archive.outputs.tiff import assemble
 
     spools, parts = _spools(sink)
+    c = compression(sink.compression)
     try:
         return assemble(path, spools, height=grid.height, width=grid.width, nbands=nbands, epsg=grid.epsg,
                         transform=grid.transform, metadata=metadata,
                         area_tiles=[CHUNK // 512] + [1] * sink.overview_levels,
-                        level0=(sink.data_path, parts) if parts else None, insert=insert)
+                        level0=(sink.data_path, parts) if parts else None, insert=insert,
+                        compression=c.cog_tag, predictor=c.cog_predictor)
     except ValueError as exc:
         raise RenderError(f"{path}: {exc}") from exc
 
@@ -307,12 +328,13 @@ class CogWriter:
 
     @staticmethod
     def create(temp, path: Path, meta: OutputMeta) -> CogSink:
-        return CogSink.create(temp(path, ".tiles"), meta.nbands, meta.grid.height, meta.grid.width)
+        return CogSink.create(temp(path, ".tiles"), meta.nbands, meta.grid.height, meta.grid.width,
+                              compression=meta.compression)
 
     @staticmethod
     def create_layers(temp, path: Path, sink, meta: OutputMeta, spec) -> CogSink:
         return CogSink.create(temp(CogWriter.sibling(path), ".tiles"), len(spec.names), meta.grid.height,
-                              meta.grid.width, nearest=True)
+                              meta.grid.width, nearest=True, compression=meta.compression)
 
     @staticmethod
     def finish(temp, path: Path, sink: CogSink, meta: OutputMeta):

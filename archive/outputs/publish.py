@@ -95,6 +95,7 @@ class Output:
     quicklook: Path | None = None
     provenance: bool = False   #: provenance layers: sibling file (COG, ENVI) or store variables (Zarr)
     zarr_format: int = 2   #: Zarr version of a .zarr output (2: GDAL >= 3.10 opens it; 3)
+    compression: str = "fast"   #: :data:`archive.codecs.COMPRESSIONS` name of a .zarr or .tif output
     _temps: list[Path] = field(default_factory=list, repr=False)
     _made_dirs: list[Path] = field(default_factory=list, repr=False)
 
@@ -283,6 +284,14 @@ class RemoteOutput:
         """The URL of a local final path of :attr:`local` (same name beside :attr:`url`)."""
         return self.url.with_name(local.name)
 
+    def data_urls(self) -> list:
+        """The URLs of the output's data (ENVI: data and header; a provenance sibling too)."""
+        files = list(self.local.writer.files(self.local.path))
+        sibling = self.local.provenance_path
+        if sibling is not None:
+            files += self.local.writer.files(sibling)
+        return [self._remote(p) for p in files]
+
     @property
     def item_url(self):
         """The output's STAC Item in the bucket, ``<out>.json``."""
@@ -293,8 +302,7 @@ class RemoteOutput:
         overwrite is off."""
         if self.overwrite:
             return
-        for local in [*self.local.writer.files(self.local.path), self.local.item_path]:
-            url = self._remote(local)
+        for url in [*self.data_urls(), self.item_url]:
             if path_exists(url):
                 raise OutputExistsError(url)
 

@@ -66,32 +66,41 @@ _SPOOL_MAGIC = b"ASPL"
 # ---------------------------------------------------------------------------------------------
 # Tiles
 # ---------------------------------------------------------------------------------------------
-def _codec():
+def _codec(level: int = ZSTD_LEVEL):
     import numcodecs
 
-    return numcodecs.Zstd(level=ZSTD_LEVEL)
+    return numcodecs.Zstd(level=level)
 
 
-def encode_tile(tile: np.ndarray) -> bytes:
-    """One (TILE, TILE) float32 tile as TIFF stores it: floating-point predictor, then Zstandard.
+def encode_tile(tile: np.ndarray, level: int | None = ZSTD_LEVEL, predictor: int = PREDICTOR) -> bytes:
+    """One (TILE, TILE) float32 tile as TIFF stores it: with ``predictor`` 3 the floating-point
+    predictor, then Zstandard at ``level`` (None: stored uncompressed; predictor 1: none).
 
     The predictor (libtiff's ``fpDiff``) puts each row's bytes in planes, most significant byte
     first, then replaces each byte by its difference with the previous one along the row.
     """
-    h, w = tile.shape
-    planes = np.ascontiguousarray(tile, dtype="<f4").view(np.uint8).reshape(h, w, 4)[:, :, ::-1]
-    rows = planes.transpose(0, 2, 1).reshape(h, 4 * w)
-    diff = np.empty_like(rows)
-    diff[:, 0] = rows[:, 0]
-    np.subtract(rows[:, 1:], rows[:, :-1], out=diff[:, 1:])
-    return bytes(_codec().encode(diff))
+    if predictor == 3:
+        h, w = tile.shape
+        planes = np.ascontiguousarray(tile, dtype="<f4").view(np.uint8).reshape(h, w, 4)[:, :, ::-1]
+        rows = planes.transpose(0, 2, 1).reshape(h, 4 * w)
+        data = np.empty_like(rows)
+        data[:, 0] = rows[:, 0]
+        np.subtract(rows[:, 1:], rows[:, :-1], out=data[:, 1:])
+    elif predictor == 1:
+        data = np.ascontiguousarray(tile, dtype="<f4")
+    else:
+        raise ValueError(f"TIFF predictor {predictor!r}: 1 (none) or 3 (floating point)")
+    return data.tobytes() if level is None else bytes(_codec(level).encode(data))
 
 
-def decode_tile(data: bytes, shape: tuple[int, int] = (TILE, TILE)) -> np.ndarray:
+def decode_tile(data: bytes, shape: tuple[int, int] = (TILE, TILE), compressed: bool = True,
+                predictor: int = PREDICTOR) -> np.ndarray:
     """Inverse of :func:`encode_tile` (for checks)."""
     h, w = shape
-    diff = np.frombuffer(_codec().decode(data), np.uint8).reshape(h, 4 * w)
-    rows = np.cumsum(diff, axis=1, dtype=np.uint8)
+    raw = np.frombuffer(_codec().decode(data) if compressed else data, np.uint8)
+    if predictor == 1:
+        return raw.view("<f4").reshape(h, w).copy()
+    rows = np.cumsum(raw.reshape(h, 4 * w), axis=1, dtype=np.uint8)
     return rows.reshape(h, 4, w).transpose(0, 2, 1)[:, :, ::-1].copy().view("<f4").reshape(h, w)
 
 
@@ -114,12 +123,12 @@ def downsample2(block: np.ndarray) -> np.ndarray:
         padded = np.full((*lead, h + h % 2, w + w % 2), np.nan, np.float32)
         padded[..., :h, :w] = block
         block = padded
-    finite = np.isfinite(block)
-    if finite.all():   # most tiles: the sums alone (x * 0.25 is x / 4, bit for bit)
-        total = block[..., 0::2, :] + block[..., 1::2, :]
-        total = total[..., 0::2] + total[..., 1::2]
-        total *= np.float32(0.25)
+    total = block[..., 0::2, :] + block[..., 1::2, :]
+    total = total[..., 0::2] + total[..., 1::2]
+    if np.isfinite(total).all():   # most tiles: no NaN among the inputs (x * 0.25 is x / 4, bit for bit)
+        total *= np.float32(0.25)  # (a NaN or infinite input makes its window's sum non-finite)
         return total
+    finite = np.isfinite(block)
     zeroed = block.copy()
     np.copyto(zeroed, np.float32(0), where=~finite)
     total = zeroed[..., 0::2, :] + zeroed[..., 1::2, :]
@@ -368,14 +377,15 @@ def read_part_index(path: str | os.PathLike) -> LevelPart:
 def assemble(dest: str | os.PathLike, spools: dict[tuple[int, int, int, int], str], *, height: int, width: int,
              nbands: int, epsg: int, transform, metadata: str, area_tiles: Sequence[int],
              threads: int = 4, level0: tuple[str, Sequence[LevelPart]] | None = None,
-             insert: bool = True) -> int:
+             insert: bool = True, compression: int = COMPRESSION, predictor: int = PREDICTOR) -> int:
     """Write the COG at ``dest`` from spool files; returns its size in bytes.
 
     spools: (level, area row, area col, first band) -> spool path; an area of level L spans
     ``area_tiles[L]`` x ``area_tiles[L]`` tiles (its spool holds them row-major, per band, for its
     bands). Every tile of every band of every level must be in some spool (ValueError otherwise).
     transform: the affine (gsd, 0, x0, 0, -gsd, y0) of the full resolution; metadata: GDAL_METADATA
-    XML (:func:`gdal_metadata`).
+    XML (:func:`gdal_metadata`); compression, predictor: the TIFF tags of how the tiles were
+    encoded (:func:`encode_tile`: 50000 Zstandard or 1 none; 3 floating point or 1 none).
 
     level0: (data file, its parts) when the full resolution was laid out already
     (:func:`write_level_part`; level 0's spools are then not used): the header, the IFDs and the
@@ -412,8 +422,8 @@ def assemble(dest: str | os.PathLike, spools: dict[tuple[int, int, int, int], st
         wide = _LONG8 if bigtiff else _LONG
         out = [_entry(254, _LONG, [0 if li == 0 else 1]), _entry(256, _LONG, [lv.width]),
                _entry(257, _LONG, [lv.height]), _entry(258, _SHORT, [32] * nbands),
-               _entry(259, _SHORT, [COMPRESSION]), _entry(262, _SHORT, [1]), _entry(277, _SHORT, [nbands]),
-               _entry(284, _SHORT, [2]), _entry(317, _SHORT, [PREDICTOR]), _entry(322, _SHORT, [TILE]),
+               _entry(259, _SHORT, [compression]), _entry(262, _SHORT, [1]), _entry(277, _SHORT, [nbands]),
+               _entry(284, _SHORT, [2]), _entry(317, _SHORT, [predictor]), _entry(322, _SHORT, [TILE]),
                _entry(323, _SHORT, [TILE]), _entry(324, wide, offs.ravel()), _entry(325, wide, cnts.ravel()),
                _entry(339, _SHORT, [3] * nbands), _entry(42113, _ASCII, "nan")]
         if nbands > 1:

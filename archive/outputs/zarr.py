@@ -20,6 +20,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from archive.codecs import compression as compression_named
 from archive.codecs import numcodecs_blosc
 from archive.files import write_atomic
 from archive.grid import Grid
@@ -33,10 +34,19 @@ __all__ = ["ChunkWriter", "LayersStore", "MosaicStore", "ZarrWriter", "add_zarr_
 _GRID_ATTR = "archive_grid"
 
 
+class _Uncompressed:
+    """The "codec" of chunks stored as they are (``--compression none``): the little-endian C-order bytes."""
+
+    @staticmethod
+    def encode(chunk: np.ndarray) -> bytes:
+        return np.ascontiguousarray(chunk, dtype="<f4").tobytes()
+
+
 def _direct_codec(array, directory: str):
-    """The numcodecs Blosc that encodes a chunk of ``array`` exactly as zarr does, or None when
-    ``array`` is not the layout :class:`ChunkWriter` writes directly: a local Zarr v3 float32 array
-    with NaN fill, (1, CHUNK, CHUNK) chunks and the codecs little-endian bytes + Blosc, on a
+    """The numcodecs Blosc that encodes a chunk of ``array`` exactly as zarr does (or
+    :class:`_Uncompressed` for an array without compressor), or None when ``array`` is not the
+    layout :class:`ChunkWriter` writes directly: a local Zarr v2 or v3 float32 array with NaN fill,
+    (1, CHUNK, CHUNK) chunks and the codecs little-endian bytes + Blosc (or no compressor), on a
     little-endian machine.
 
     Built from the codec's public description (``BloscCodec.to_dict()``, the same configuration
@@ -51,22 +61,27 @@ def _direct_codec(array, directory: str):
     meta = array.metadata
     if meta.zarr_format == 2:   # v2: the compressor alone, on the little-endian C-order bytes
         compressor = getattr(meta, "compressor", None)
-        ok = (sys.byteorder == "little" and isinstance(compressor, numcodecs.Blosc) and not meta.filters
+        ok = (sys.byteorder == "little" and (compressor is None or isinstance(compressor, numcodecs.Blosc))
+              and not meta.filters
               and array.dtype == np.float32 and getattr(meta.dtype, "endianness", "little") == "little"
               and meta.order == "C" and tuple(array.chunks) == (1, CHUNK, CHUNK)
               and np.isnan(array.fill_value) and isinstance(array.store, zarr.storage.LocalStore)
               and os.path.isdir(directory)
               and "typesize" in inspect.signature(numcodecs.Blosc).parameters)
-        return compressor if ok else None
+        return (_Uncompressed() if compressor is None else compressor) if ok else None
     codecs = tuple(getattr(meta, "codecs", ()))
-    if not (meta.zarr_format == 3 and sys.byteorder == "little" and len(codecs) == 2
-            and isinstance(codecs[0], BytesCodec) and isinstance(codecs[1], BloscCodec)
+    if not (meta.zarr_format == 3 and sys.byteorder == "little" and len(codecs) in (1, 2)
+            and isinstance(codecs[0], BytesCodec) and (len(codecs) == 1 or isinstance(codecs[1], BloscCodec))
             and array.dtype == np.float32 and tuple(array.chunks) == (1, CHUNK, CHUNK)
             and np.isnan(array.fill_value) and isinstance(array.store, zarr.storage.LocalStore)
             and os.path.isdir(directory)):
         return None
     endian = codecs[0].to_dict().get("configuration", {}).get("endian", "little")
-    if endian != "little" or "typesize" not in inspect.signature(numcodecs.Blosc).parameters:
+    if endian != "little":
+        return None
+    if len(codecs) == 1:
+        return _Uncompressed()
+    if "typesize" not in inspect.signature(numcodecs.Blosc).parameters:
         return None  # numcodecs < 0.16: zarr compresses with typesize 1 there; let zarr write
     config = codecs[1].to_dict()["configuration"]
     return numcodecs_blosc(config["cname"], config["clevel"], config["shuffle"], config["blocksize"],
@@ -251,12 +266,13 @@ def _spatial_ref_attrs(grid: Grid) -> dict:
 
 
 def store_layout(grid: Grid, band_indices: Sequence[int], wavelengths: Sequence[float] | None,
-                 fwhm: Sequence[float] | None, variable: str, attrs: dict | None = None
-                 ) -> tuple[dict, list[ArraySpec]]:
+                 fwhm: Sequence[float] | None, variable: str, attrs: dict | None = None,
+                 compression: str | None = None) -> tuple[dict, list[ArraySpec]]:
     """(root attributes, arrays) of the Zarr output: what ``to_zarr`` of :func:`mosaic_dataset`
     writes (its CF encoding: ``coordinates`` and ``grid_mapping`` on the data variables), values
     (band, y, x) float32 chunked (1, CHUNK, CHUNK) and saturation (y, x) uint8 chunked (CHUNK,
-    CHUNK) without data, the coordinates with theirs; ``attrs`` at the root, then the grid's."""
+    CHUNK) without data, the coordinates with theirs; ``attrs`` at the root, then the grid's;
+    ``compression``: the values' :data:`archive.codecs.COMPRESSIONS` name (None: the default)."""
     nb = len(band_indices)
     x, y = grid.xy_centres()
     extra = sorted(name for name, v in (("wavelength", wavelengths), ("fwhm", fwhm)) if v is not None)
@@ -265,7 +281,8 @@ def store_layout(grid: Grid, band_indices: Sequence[int], wavelengths: Sequence[
     saturated_attrs = {**_SATURATED_ATTRS, **geozarr_attrs(grid), "grid_mapping": "spatial_ref"}
     arrays = [
         ArraySpec(variable, np.dtype(np.float32), (nb, grid.height, grid.width), (1, CHUNK, CHUNK), ("band", "y", "x"),
-                  values_attrs, fill=float("nan"), values_codec=True),
+                  values_attrs, fill=float("nan"), values_codec=True,
+                  values_blosc=compression_named(compression).zarr_blosc),
         ArraySpec("saturated", np.dtype(np.uint8), grid.shape, (CHUNK, CHUNK), ("y", "x"), saturated_attrs),
         ArraySpec("band", np.dtype(np.int32), (nb,), (nb,), ("band",), dict(_BAND_ATTRS),
                   data=np.asarray(band_indices, np.int32)),
@@ -318,19 +335,21 @@ class MosaicStore(Sink):
         attrs: dict | None = None,
         fwhm: Sequence[float] | None = None,
         zarr_format: int = 2,
+        compression: str | None = None,
     ) -> MosaicStore:
         """Write the store's metadata and coordinates (no chunk data: unwritten chunks read as NaN).
 
         wavelengths: nm per output band (or None); band_indices: the source band index of each output band;
         fwhm: spectral full width at half maximum per output band, nm (or None); zarr_format: 2
-        (GDAL >= 3.10 opens it) or 3.
+        (GDAL >= 3.10 opens it) or 3; compression: the values' :data:`archive.codecs.COMPRESSIONS`
+        name (None: the default).
         """
         nb = len(band_indices)
         if wavelengths is not None and len(wavelengths) != nb:
             raise ValueError(f"{len(wavelengths)} wavelengths for {nb} bands")
         if fwhm is not None and len(fwhm) != nb:
             raise ValueError(f"{len(fwhm)} fwhm values for {nb} bands")
-        root, arrays = store_layout(grid, band_indices, wavelengths, fwhm, variable, attrs)
+        root, arrays = store_layout(grid, band_indices, wavelengths, fwhm, variable, attrs, compression)
         write_store(path, root, arrays, zarr_format)
         return cls(os.fspath(path), variable)
 
@@ -451,7 +470,8 @@ class ZarrWriter:
     @staticmethod
     def create(temp, path: Path, meta: OutputMeta) -> MosaicStore:
         return MosaicStore.create(temp(path), meta.grid, meta.wavelengths, meta.band_indices, meta.variable,
-                                  meta.attrs, fwhm=meta.fwhm, zarr_format=meta.zarr_format)
+                                  meta.attrs, fwhm=meta.fwhm, zarr_format=meta.zarr_format,
+                                  compression=meta.compression)
 
     @staticmethod
     def create_layers(temp, path: Path, sink: MosaicStore, meta: OutputMeta, spec) -> LayersStore:

@@ -41,7 +41,8 @@ class ArraySpec:
     """One array of a store: ``name``, numpy ``dtype``, ``shape`` and ``chunks`` (in ``dims`` order),
     its attributes (CF: long_name, units...), ``fill``: the CF ``_FillValue`` (NaN for the values
     and provenance layers; None: no missing values, e.g. coordinates), ``values_codec``: compressed
-    with the values' Blosc (else zarr's default codecs of its version), ``data``: the array's
+    with ``values_blosc`` ((cname, clevel, shuffle), default :data:`VALUES_BLOSC`; None: stored
+    uncompressed) (else zarr's default codecs of its version), ``data``: the array's
     values (coordinates, written as one chunk) or None (no chunk written: reads as the fill value)."""
 
     name: str
@@ -53,6 +54,7 @@ class ArraySpec:
     fill: float | None = None
     values_codec: bool = False
     data: np.ndarray | None = None
+    values_blosc: tuple[str, int, str] | None = VALUES_BLOSC
 
 
 def _fill_attr(fill: float) -> str:
@@ -72,28 +74,30 @@ def _metadata(spec: ArraySpec, zarr_format: int):
     """zarr's metadata object of ``spec`` (what xarray's ``to_zarr`` makes for the variable)."""
     dtype = np.dtype(spec.dtype)
     attrs = dict(spec.attrs)
+    blosc = spec.values_blosc if spec.values_codec else VALUES_BLOSC
     if zarr_format == 2:
         from zarr.core.metadata.v2 import ArrayV2Metadata
 
         attrs["_ARRAY_DIMENSIONS"] = list(spec.dims)
         return ArrayV2Metadata(shape=spec.shape, dtype=_zdtype(dtype, 2), chunks=spec.chunks,
                                fill_value=spec.fill, order="C", dimension_separator=".",
-                               compressor=numcodecs_blosc(*VALUES_BLOSC), filters=None, attributes=attrs)
+                               compressor=None if blosc is None else numcodecs_blosc(*blosc), filters=None,
+                               attributes=attrs)
     from zarr.codecs import BloscCodec, BytesCodec, ZstdCodec
     from zarr.core.metadata.v3 import ArrayV3Metadata
 
     if spec.fill is not None:
         attrs["_FillValue"] = _fill_attr(spec.fill)
-    compressor = (BloscCodec(typesize=dtype.itemsize, cname=VALUES_BLOSC[0], clevel=VALUES_BLOSC[1],
-                             shuffle=VALUES_BLOSC[2]) if spec.values_codec
-                  else ZstdCodec(level=0, checksum=False))
+    compressor = (BloscCodec(typesize=dtype.itemsize, cname=blosc[0], clevel=blosc[1], shuffle=blosc[2])
+                  if spec.values_codec and blosc is not None
+                  else None if spec.values_codec else ZstdCodec(level=0, checksum=False))
     # xarray gives no fill value for coordinates: zarr's default, NaN for floats and 0 for integers
     fill = spec.fill if spec.fill is not None else (np.nan if dtype.kind == "f" else 0)
     return ArrayV3Metadata(shape=spec.shape, data_type=_zdtype(dtype, 3),
                            chunk_grid={"name": "regular", "configuration": {"chunk_shape": list(spec.chunks)}},
                            chunk_key_encoding={"name": "default", "configuration": {"separator": "/"}},
                            fill_value=fill, codecs=[BytesCodec(endian=None if dtype.itemsize == 1 else "little"),
-                                                    compressor],
+                                                    *([] if compressor is None else [compressor])],
                            attributes=attrs, dimension_names=list(spec.dims) or None, storage_transformers=None)
 
 
@@ -102,8 +106,11 @@ def _encode_chunk(spec: ArraySpec, zarr_format: int) -> bytes:
     data = np.ascontiguousarray(spec.data, dtype=np.dtype(spec.dtype).newbyteorder("<"))
     if tuple(data.shape) != tuple(spec.chunks):
         raise ValueError(f"{spec.name}: data of shape {data.shape} is not one chunk {spec.chunks}")
+    blosc = spec.values_blosc if spec.values_codec else VALUES_BLOSC
+    if (zarr_format == 2 or spec.values_codec) and blosc is None:
+        return data.tobytes()
     if zarr_format == 2 or spec.values_codec:
-        return bytes(numcodecs_blosc(*VALUES_BLOSC, typesize=data.dtype.itemsize).encode(data))
+        return bytes(numcodecs_blosc(*blosc, typesize=data.dtype.itemsize).encode(data))
     import numcodecs
 
     return bytes(numcodecs.Zstd(level=0, checksum=False).encode(data.tobytes()))
