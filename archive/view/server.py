@@ -329,12 +329,14 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
                    "X-Side": str(TILE // scale), "X-Key": "view_zenith" if keyed else ""}
         window = request.query_params.get("window") == "1"
         if not keyed and query.cubes is None and query.ground_height is None and query.sync_offset is None:
-            # the flight as ingested, zoomed out: its overview previews, without the DN (issue 36)
-            previews = await run_in_threadpool(registry.previews, cid)
+            # the flight as ingested, zoomed out: its overview previews, without the DN (issue 36).
+            # On the event loop: two stat() calls, then slices of arrays of a few KB (a level is read
+            # once, ~1 ms); a thread hand-off per request cost more than that on loaded cores
+            previews = registry.previews(cid)
             if previews is not None and previews.serves(query.bands, query.mode, z - scale.bit_length() + 1):
                 coarse = Grid(grid.epsg, grid.gsd * scale, grid.x0, grid.y0, TILE // scale, TILE // scale)
                 try:
-                    planes = await run_in_threadpool(previews.values, coarse, query.bands)
+                    planes = previews.values(coarse, query.bands)
                 except (ArchiveError, OSError, ValueError) as exc:   # a damaged level: drawn from the DN
                     log.warning("archive view: %s: overview previews unreadable (%s); drawing from the DN", cid, exc)
                 else:
