@@ -115,7 +115,8 @@ def _options(sources, options: dict):
     from archive.options import RenderOptions
 
     if isinstance(options.get("archive"), ArchiveRoot):
-        options = {**options, "archive": options["archive"].path}
+        path = options["archive"].path
+        options = {**options, "archive": str(path) if options["archive"].is_url else path}   # s3://: the URL
     return RenderOptions.create(sources, **options)
 
 

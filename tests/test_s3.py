@@ -356,3 +356,61 @@ def test_stac_api_and_viewer_over_an_s3_archive(s3_archive, small_archive):
     np.testing.assert_array_equal(rgba, local_rgba)
     assert item["bbox"] == local_item["bbox"]
     assert item["assets"]["data"]["href"] == f"{url}/collections/{cid}.zarr"   # workers read it from the bucket
+
+
+def test_killed_batch_into_s3_is_resumed(s3_bucket, tmp_path):
+    """A batch of two flights from an s3 archive into an ``s3://`` folder, killed once the first
+    output is uploaded (its Item last): the rerun with --resume skips it (same recipe, its Item
+    untouched) and renders the other; the report in the bucket says so; no staging folder is left."""
+    import tempfile
+
+    from archive import storage
+    from archive.ingest.command import ingest
+    from archive.simulator.command import simulate_flight
+
+    url = f"s3://{s3_bucket}/batch-arc-{uuid.uuid4().hex[:6]}"
+    for seed in (1, 2):
+        simulate_flight(tmp_path / f"f{seed}", cubes=2, bands=2, samples=24, lines=40, cubes_per_pass=2, seed=seed)
+    ids = sorted(r.cid for r in ingest([str(tmp_path / "f1"), str(tmp_path / "f2")], url, FOV, progress=False))
+    assert len(ids) == 2
+    out = f"{s3_bucket}/batch-out-{uuid.uuid4().hex[:6]}"
+    args = ["render", "--archive", url, "--query-bbox", "-180,-90,180,90", "--gsd", "0.5", "--out", f"s3://{out}",
+            "--format", "tif", "--quiet"]
+    staging_before = {p.name for p in Path(tempfile.gettempdir()).glob("archive-staging-*")}
+    p = subprocess.Popen([sys.executable, "-m", "archive", *args], env={**os.environ, "ARCHIVE_TEST_HOLD_AFTER": "1"},
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    report = f"s3://{out}/report.json"
+    deadline = time.monotonic() + 240
+    while True:
+        assert p.poll() is None, p.communicate()
+        assert time.monotonic() < deadline
+        if storage.exists(report) and json.loads(storage.read_bytes(report))["done"] == 1:
+            break
+        time.sleep(0.3)
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    doc = json.loads(storage.read_bytes(report))
+    done = [o["id"] for o in doc["outputs"] if o["status"] == "done"]
+    assert len(done) == 1 and not doc["complete"]
+    first = f"s3://{out}/{done[0]}.tif"
+    assert storage.exists(first) and storage.exists(first + ".json")
+    etag = storage.head(first + ".json")["e_tag"]
+    (other,) = [i for i in ids if i != done[0]]
+    assert not storage.exists(f"s3://{out}/{other}.tif.json")
+    r = _cli(*args, "--resume")
+    assert r.returncode == 0, r.stderr
+    assert f"skipped {done[0]}" in r.stdout + r.stderr and f"done {other}" in r.stdout + r.stderr
+    assert storage.head(first + ".json")["e_tag"] == etag   # untouched
+    for cid in ids:
+        item = json.loads(storage.read_bytes(f"s3://{out}/{cid}.tif.json"))
+        assert item["assets"]["data"]["href"] == f"./{cid}.tif"
+    import rasterio
+
+    with rasterio.MemoryFile(storage.read_bytes(f"s3://{out}/{other}.tif")) as mem, mem.open() as src:
+        assert src.count == 2 and np.isfinite(src.read()).mean() > 0.1   # a diagonal strip
+    final = json.loads(storage.read_bytes(report))
+    assert final["complete"] and final["done"] == 1 and final["skipped"] == 1
+    assert not storage.exists(f"s3://{out}/.archive-batch.lock")
+    # the resumed run removed its own staging folders (the killed run's stays in $TMPDIR)
+    left = {p.name for p in Path(tempfile.gettempdir()).glob("archive-staging-*")} - staging_before
+    assert len(left) <= 2
