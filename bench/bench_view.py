@@ -391,7 +391,15 @@ def main(argv=None) -> int:
     ap.add_argument("--no-previews", action="store_true",
                     help="--browser --flights: take the ingest's overview previews out of the archive (in --workdir): "
                          "every tile drawn from the DN, the baseline they are measured against")
+    ap.add_argument("--memory", action="store_true",
+                    help="with --flights: the server's resident memory and cache accounting while it draws many "
+                         "tiles from the DN at --cache-mb (issue 36)")
     args = ap.parse_args(argv)
+    if args.memory:
+        from bench_view_archive import memory_main
+
+        print(memory_main(args))
+        return 0
     if args.server_steps:
         archive, cid, _ = make_archive(args.workdir, args)
         load = os.getloadavg()

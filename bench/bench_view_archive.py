@@ -17,7 +17,7 @@ import numpy as np
 
 from bench_view import _ACTION_JS, DEFAULT_WORKDIR, FOV, Server, cpu_seconds, machine, percentile, render_counts
 
-__all__ = ["archive_bench", "archive_main", "make_flights_archive"]
+__all__ = ["archive_bench", "archive_main", "make_flights_archive", "memory_main"]
 
 #: The archive bench's layout: flights on a grid this many degrees apart (lon, lat; ~100 x 90 m at
 #: 35 N, each flight ~75 x 65 m at the simulator's 40 m altitude: they tile the map, 20 over ~0.5 x
@@ -176,3 +176,60 @@ def archive_main(args: argparse.Namespace) -> str:
         args.json.write_text(json.dumps({"load_before": load_before, "load_after": load_after, "machine": m, **out},
                                         indent=1, default=str))
     return "\n".join(lines)
+
+
+def memory_bench(archive: Path, ids: list[str], cache_mb: int) -> list[dict]:
+    """The server's resident memory while it draws from the DN (issue 36): ``archive view --cache-mb``
+    in a subprocess; the tiles over 40 flights at zooms 15-17 and 20 flights at 18-19, each at the
+    recorded ground height and another (two geometries), ``cubes=0-LAST`` so that the previews do not
+    answer; after each zoom: VmRSS, its peak so far, and each cache's bytes and limit
+    (``/api/status``)."""
+    import http.client
+
+    from bench_view import tiles_over
+
+    server = Server(archive, cache_mb)
+    rows = []
+    try:
+        conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=120)
+
+        def get(path):
+            conn.request("GET", path)
+            r = conn.getresponse()
+            return r.status, r.read()
+        features = json.loads(get("/api/collections")[1])["features"]
+        rows.append({"step": "idle", "requests": 0, "rss": server.rss(), "peak": server.peak, "caches": {}})
+        n = 0
+        for z in (15, 16, 17, 18, 19):
+            for f in features[:40 if z < 18 else 20]:
+                last = f["properties"]["cubes"] - 1
+                for _, x, y in tiles_over(f["bbox"], z):
+                    for extra in ("", f"&ground_height={z * 3}"):
+                        get(f"/api/collections/{f['id']}/values/{z}/{x}/{y}?bands=0,3,6&cubes=0-{last}{extra}&window=1")
+                        n += 1
+            caches = json.loads(get("/api/status")[1])["caches"]
+            rows.append({"step": f"zoom {z}", "requests": n, "rss": server.rss(), "peak": server.peak,
+                         "caches": {k: (v["bytes"], v["limit"]) for k, v in caches.items()}})
+    finally:
+        server.stop()
+    return rows
+
+
+def memory_main(args: argparse.Namespace) -> str:
+    """``--memory --flights N [--cache-mb M]``: :func:`memory_bench` as a Markdown section."""
+    workdir = args.workdir if args.workdir != DEFAULT_WORKDIR else Path("/tmp/archive-bench-view-flights")
+    archive, ids = make_flights_archive(workdir, args)
+    load = os.getloadavg()
+    rows = memory_bench(archive, ids, args.cache_mb)
+    mb = 1 << 20
+    lines = [f"`archive view --cache-mb {args.cache_mb}` on the {len(ids)}-flight archive (load average before "
+             f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, after {os.getloadavg()[0]:.2f}):", "",
+             "| step | requests | RSS MiB | peak MiB | cached MiB (tiles, bands, lookups, flights) | cached / limit MiB |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        held = sum(b for b, _ in r["caches"].values())
+        limit = sum(lim for _, lim in r["caches"].values())
+        parts = ", ".join(f"{b / mb:.1f}" for b, _ in r["caches"].values())
+        lines.append(f"| {r['step']} | {r['requests']} | {r['rss'] / mb:.0f} | {r['peak'] / mb:.0f} | {parts or '-'} | "
+                     f"{held / mb:.0f} / {limit / mb:.0f} |")
+    return "\n".join(lines) + "\n"
