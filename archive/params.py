@@ -90,3 +90,18 @@ class RenderParams:
     bands: tuple[int, ...] | None = None
     overlap: str = "last"
     navigation: NavigationParams = field(default_factory=lambda: NavigationParams(fov_deg=47.5))
+
+
+def coregistration_properties(attrs: dict) -> dict:
+    """STAC Item properties of a collection's recorded co-registration (its group attributes
+    ``attrs``): ``archive:coregistration`` = {'relative_to', 'position_offset_m', 'sigma',
+    'residual_px_between', 'date'}; {} when it was never co-registered."""
+    note = attrs.get("navigation_calibration") or {}
+    if not isinstance(note, dict) or note.get("position_offset_m") is None:
+        return {}
+    params = attrs.get("navigation_params") or {}
+    return {"archive:coregistration": {
+        "relative_to": note.get("relative_to"), "position_offset_m": note["position_offset_m"],
+        "sync_offset_s": params.get("sync_offset"), "boresight_deg": params.get("boresight_deg"),
+        "sigma": note.get("sigma"), "residual_px_between": note.get("residual_px_between"),
+        "date": note.get("date")}}

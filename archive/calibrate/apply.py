@@ -16,7 +16,8 @@ start value); the lever arm is kept.
 A co-registration (``--reference``) also records the flight's position offset (dE, dN, dU m, DESIGN
 11) and the flight it is relative to: a collection keeps them in its calibration note
 (``navigation_calibration``: 'position_offset_m', 'relative_to', read back by
-:func:`archive.params.recorded_navigation`) and its STAC Item says so (:func:`item_properties`);
+:func:`archive.params.recorded_navigation`) and its STAC Item says so
+(:func:`archive.params.coregistration_properties`);
 a raw flight in its sidecar. Every cube's navigation moves by the offset.
 """
 
@@ -30,7 +31,7 @@ import numpy as np
 
 from archive.params import NavigationParams
 
-__all__ = ["apply", "item_properties"]
+__all__ = ["apply"]
 
 
 def _note(result, previous: dict | None = None) -> dict:
@@ -46,21 +47,6 @@ def _note(result, previous: dict | None = None) -> dict:
     elif any(offset):   # a flight calibrated again on its own keeps its co-registration
         note.update(position_offset_m=offset, relative_to=(previous or {}).get("relative_to"))
     return note
-
-
-def item_properties(attrs: dict) -> dict:
-    """STAC Item properties of a collection's recorded co-registration (its group attributes
-    ``attrs``): ``archive:coregistration`` = {'relative_to', 'position_offset_m', 'sigma',
-    'residual_px_between', 'date'}; {} when it was never co-registered."""
-    note = attrs.get("navigation_calibration") or {}
-    if not isinstance(note, dict) or note.get("position_offset_m") is None:
-        return {}
-    params = attrs.get("navigation_params") or {}
-    return {"archive:coregistration": {
-        "relative_to": note.get("relative_to"), "position_offset_m": note["position_offset_m"],
-        "sync_offset_s": params.get("sync_offset"), "boresight_deg": params.get("boresight_deg"),
-        "sigma": note.get("sigma"), "residual_px_between": note.get("residual_px_between"),
-        "date": note.get("date")}}
 
 
 def apply(sources, result, archive=None) -> list[Path]:

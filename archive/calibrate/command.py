@@ -103,16 +103,14 @@ def run_reference(args: argparse.Namespace) -> int:
 
     estimate = parse_estimate(args.estimate, default=COREGISTER_ESTIMATE)
     names = list(args.sources or [])
-    if any(getattr(args, k, None) is not None for k in ("query_bbox", "query_datetime", "query_wavelength")):
-        from archive.render_command import _query_ids
-
-        names += [i for i in _query_ids(args) if i not in names]
+    names += [i for i in query_ids(args) if i not in names]
     (reference,), fov = open_calibration_sources([args.reference], args.archive, args.fov)
-    ref_id = str(getattr(reference, "id", None) or reference.label)
+    ref_id = str(reference.id) if hasattr(reference, "store") else str(reference.label)
     names = [n for n in names if n not in (args.reference, ref_id)]
     if not names:
         raise InputError("calibrate", f"no flight to co-register to {ref_id}",
-                         "name flights (SOURCE...) or select them with --query-bbox/--query-datetime/--query-wavelength")
+                         "name flights (SOURCE...) or select them with --query-bbox, --query-datetime or "
+                         "--query-wavelength")
     dem, dem_label, ground = _ground(args, [reference])
     quiet = args.json or args.quiet
     batch = len(names) > 1
@@ -152,17 +150,36 @@ def run_reference(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def query_ids(args: argparse.Namespace) -> list[str]:
+    """Collection ids of ``--archive`` matching the ``--query-*`` filters ([] when none is given)."""
+    bbox, when, wavelength = args.query_bbox, args.query_datetime, args.query_wavelength
+    if bbox is None and when is None and wavelength is None:
+        return []
+    if not args.archive:
+        raise InputError("--query-*", "a catalog query needs the archive to search", "pass --archive ARCHIVE")
+    from archive.api import open_archive
+
+    ids = open_archive(args.archive).search(bbox=bbox, datetime=when, wavelength=wavelength)
+    if not ids:
+        asked = ", ".join(f"{k} {v}" for k, v in (("--query-bbox", bbox), ("--query-datetime", when),
+                                                   ("--query-wavelength", wavelength)) if v is not None)
+        raise InputError(args.archive, f"no flight in the catalog matches {asked}",
+                         "check the filters with 'archive catalog search'")
+    return list(ids)
+
+
 def summary_line(name: str, result) -> str:
     """One line per flight of a co-registration batch."""
     p, s = result.params, result.sigma
     b, a = result.between_before, result.between_after
+    rejected = result.windows.get("unmatched", 0) + result.windows.get("outliers", 0)
 
     def sig(k, digits):
         return "" if s.get(k) is None else f"+-{s[k]:.{digits}f}"
     return (f"{name}: co-registered to {result.reference}: position offset {p.east:+.3f}{sig('east', 3)}, "
             f"{p.north:+.3f}{sig('north', 3)}, {p.up:+.3f}{sig('up', 3)} m, sync {p.sync:+.4f}{sig('sync', 4)} s; "
             f"between flights median {_num(b['median'])} -> {_num(a['median'])} px, p95 {_num(b['p95'])} -> "
-            f"{_num(a['p95'])} px ({a['windows']} windows, {result.windows.get('unmatched', 0) + result.windows.get('outliers', 0)} rejected)")
+            f"{_num(a['p95'])} px ({a['windows']} windows, {rejected} rejected)")
 
 
 def describe(result) -> str:
@@ -212,6 +229,9 @@ def describe(result) -> str:
         rows.append("correlations: " + ", ".join(f"{k} {v:+.3f}" for k, v in result.correlations.items()))
     rows += [f"note: {n}" for n in result.notes]
     rows.append(f"render / ingest with: {result.flags()}")
+    if result.reference is not None:
+        rows.append("the position offset has no render flag: --apply records it (renders, stacks and the viewer "
+                    "then use it)")
     return "\n".join(rows)
 
 

@@ -33,9 +33,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from archive.calibrate.estimate import (ITERATIONS, MIN_OVERLAP_WINDOWS, MIN_WINDOW, SPACING, STOP, SWATH_PIXELS,
-                                        WINDOW, Calibration, _check_converged, _describe, _Flight, _fit_separable,
-                                        _measure, _nominal_pixel, _pass_images, _prefiltered, _report, _search_sync,
-                                        _sides, _stats, _surface)
+                                        WINDOW, Calibration, FlightImages, check_converged, dem_surface,
+                                        describe_params, fit_separable, make_report, measure_passes, nominal_pixel,
+                                        pass_images, prefiltered, rect_sides, search_sync, tie_stats)
 from archive.calibrate.match import measure_pair, pair_grid
 from archive.calibrate.model import PARAM_NAMES, FlightModel, Params
 from archive.calibrate.solve import anchored
@@ -54,7 +54,8 @@ OUTLIER_PX = 1.0
 
 
 def _label(source) -> str:
-    return str(getattr(source, "id", None) or source.label)
+    """A collection's id, a raw flight's directory."""
+    return str(source.id) if hasattr(source, "store") else str(source.label)
 
 
 def coregister(source, reference, fov_deg: float, ground: float, *, dem=None, dem_label: str | None = None,
@@ -80,13 +81,13 @@ def coregister(source, reference, fov_deg: float, ground: float, *, dem=None, de
     first, rp = source.params, reference.params
     start = Params(*first.boresight_deg, float(first.sync_offset), float(ground), *first.position_offset)
     ref_params = Params(*rp.boresight_deg, float(rp.sync_offset), float(ground), *rp.position_offset)
-    fmodel = FlightModel(source, fov_deg, None if dem is None else _surface(dem, source, fov_deg))
-    rmodel = FlightModel(reference, fov_deg, None if dem is None else _surface(dem, reference, fov_deg,
+    fmodel = FlightModel(source, fov_deg, None if dem is None else dem_surface(dem, source, fov_deg))
+    rmodel = FlightModel(reference, fov_deg, None if dem is None else dem_surface(dem, reference, fov_deg,
                                                                                  frame=fmodel.frame),
                          frame=fmodel.frame)
-    flight, ref = _Flight(source, fmodel, ()), _Flight(reference, rmodel, ())
+    flight, ref = FlightImages(source, fmodel, ()), FlightImages(reference, rmodel, ())
     ground_for_pixel = ground if dem is None else float(np.median(dem.typical_height())) + ground
-    pixel = _nominal_pixel([flight], ground_for_pixel, dem)
+    pixel = nominal_pixel([flight], ground_for_pixel, dem)
     samples = float(np.median([c.samples for c in source.cubes]))
     spacing = max(SPACING * pixel, pixel * samples / SWATH_PIXELS)
     area, longest = _cross_overlap(flight, ref, start, ref_params)
@@ -99,27 +100,28 @@ def coregister(source, reference, fov_deg: float, ground: float, *, dem=None, de
         raise InputError(name, f"overlaps the reference {ref_name} over only {area:.0f} m2 ({longest:.1f} m "
                          f"across), co-registration needs at least {need:.1f} m ({MIN_OVERLAP_WINDOWS} windows)",
                          "choose a reference that covers more of this flight")
-    flight = _Flight(source, fmodel, _prefiltered(flight, _pass_images(source, fmodel), spacing, pixel))
-    ref = _Flight(reference, rmodel, _prefiltered(ref, _pass_images(reference, rmodel), spacing, pixel))
+    flight = FlightImages(source, fmodel, prefiltered(flight, pass_images(source, fmodel), spacing, pixel))
+    ref = FlightImages(reference, rmodel, prefiltered(ref, pass_images(reference, rmodel), spacing, pixel))
 
     say(f"measuring {name} against {ref_name} under the start parameters ({_text(start, dem)})")
-    sets, cross_pairs, cross_ties, own_ties = _measure_both(flight, ref, start, ref_params, spacing, window, say)
-    before, own_before = _stats(cross_ties, spacing, pixel), _stats(own_ties, spacing, pixel)
+    sets, cross_pairs, cross_ties, own_ties = _measure_both(flight, ref, start, ref_params, spacing, window, say,
+                                                            solved=False)
+    before, own_before = tie_stats(cross_ties, spacing, pixel), tie_stats(own_ties, spacing, pixel)
     _check_cross(cross_ties, cross_pairs, estimate, name, ref_name, first=True)
     params = start
     held: dict = {}
     if any(n in estimate for n in ("east", "north", "up")):   # the bias first: it dominates the shifts
         offset = [n for n in estimate if n in ("east", "north", "up")]
-        params = _fit_separable(sets, params, start, offset, {}, pixel, say).params
+        params = fit_separable(sets, params, start, offset, {}, pixel, say).params
     if "sync" in estimate:
-        params = _search_sync(sets, params, estimate, pixel, say)
-    result = _fit_separable(sets, params, start, list(estimate), held, pixel, say)
+        params = search_sync(sets, params, estimate, pixel, say)
+    result = fit_separable(sets, params, start, list(estimate), held, pixel, say)
     params = result.params
     for it in range(ITERATIONS):
         say(f"iteration {it + 1}: {_text(params, dem)}")
         sets, cross_pairs, cross_ties, own_ties = _measure_both(flight, ref, params, ref_params, spacing, window, say)
         _check_cross(cross_ties, cross_pairs, estimate, name, ref_name)
-        result = _fit_separable(sets, params, start, [n for n in estimate if n not in held], held, pixel, say)
+        result = fit_separable(sets, params, start, [n for n in estimate if n not in held], held, pixel, say)
         moved = np.abs(result.params.vector() - params.vector())
         params = result.params
         if np.all(moved <= STOP):
@@ -128,14 +130,14 @@ def coregister(source, reference, fov_deg: float, ground: float, *, dem=None, de
     _, cross_pairs, cross_after, own_after = _measure_both(flight, ref, params, ref_params, spacing, window,
                                                            lambda text: None)
     inlying = [t for t in cross_after if math.hypot(*t.shift) * spacing / pixel <= OUTLIER_PX]
-    after = _stats(inlying, spacing, pixel)
-    own = _stats(own_after, spacing, pixel)
+    after = tie_stats(inlying, spacing, pixel)
+    own = tie_stats(own_after, spacing, pixel)
     try:
-        _check_converged(result, start, after, [flight])
+        check_converged(result, start, after, [flight])
     except InputError as exc:
         raise InputError(name, f"co-registration to {ref_name} did not converge: "
                          f"{exc.problem.removeprefix('calibration did not converge: ')}", exc.fix) from None
-    report = _report(result, start, estimate, held, own_before, own,
+    report = make_report(result, start, estimate, held, own_before, own,
                      [{k: v for k, v in p.items() if k != "own"} for p in cross_pairs if p.get("own")], pixel,
                      dem_label)
     tried = sum(p["tried"] for p in cross_pairs if not p.get("own"))
@@ -159,10 +161,10 @@ def coregister(source, reference, fov_deg: float, ground: float, *, dem=None, de
 
 
 def _text(p: Params, dem) -> str:
-    return (f"{_describe(p, dem is not None)}, position offset {p.east:+.3f},{p.north:+.3f},{p.up:+.3f} m")
+    return (f"{describe_params(p, dem is not None)}, position offset {p.east:+.3f},{p.north:+.3f},{p.up:+.3f} m")
 
 
-def _footprints(f: _Flight, params: Params):
+def _footprints(f: FlightImages, params: Params):
     from shapely.ops import unary_union
 
     prints = [f.model.footprint(p, params) for p in f.model.passes]
@@ -170,7 +172,7 @@ def _footprints(f: _Flight, params: Params):
     return unary_union(prints) if prints else None
 
 
-def _cross_overlap(flight: _Flight, ref: _Flight, params: Params, ref_params: Params) -> tuple[float, float]:
+def _cross_overlap(flight: FlightImages, ref: FlightImages, params: Params, ref_params: Params) -> tuple[float, float]:
     """Area (m2) of the overlap of the two flights' footprints, and the longest side (m) of the
     largest overlapping piece's minimum rotated rectangle."""
     a, b = _footprints(flight, params), _footprints(ref, ref_params)
@@ -180,20 +182,22 @@ def _cross_overlap(flight: _Flight, ref: _Flight, params: Params, ref_params: Pa
     if inter.is_empty or inter.area <= 0:
         return 0.0, 0.0
     pieces = getattr(inter, "geoms", [inter])
-    longest = max((max(_sides(g.minimum_rotated_rectangle)) for g in pieces if g.area > 0), default=0.0)
+    longest = max((max(rect_sides(g.minimum_rotated_rectangle)) for g in pieces if g.area > 0), default=0.0)
     return float(inter.area), float(longest)
 
 
-def _distance(flight: _Flight, ref: _Flight, params: Params, ref_params: Params) -> float:
+def _distance(flight: FlightImages, ref: FlightImages, params: Params, ref_params: Params) -> float:
     a, b = _footprints(flight, params), _footprints(ref, ref_params)
     return float("nan") if a is None or b is None else float(a.distance(b))
 
 
-def _measure_both(flight: _Flight, ref: _Flight, params: Params, ref_params: Params, spacing: float, window: int,
-                  say) -> tuple[list, list, list, list]:
+def _measure_both(flight: FlightImages, ref: FlightImages, params: Params, ref_params: Params, spacing: float,
+                  window: int, say, solved: bool = True) -> tuple[list, list, list, list]:
     """(sets for the solver: the flight's own pass pairs and its anchored ties to the reference;
-    the pairs measured (own pairs flagged 'own'); the ties between the flights; the own ties)."""
-    own_sets, own_pairs, own_ties = _measure([flight], params, spacing, window, say)
+    the pairs measured (own pairs flagged 'own'); the ties between the flights; the own ties).
+    solved: ``params`` come from a solution, so a pair whose coarse search finds no clear
+    correlation (much changed ground) is searched about no shift instead of left out."""
+    own_sets, own_pairs, own_ties = measure_passes([flight], params, spacing, window, say)
     grids: dict = {}
     ties: list = []
     pairs = [{**p, "own": True} for p in own_pairs]
@@ -202,7 +206,7 @@ def _measure_both(flight: _Flight, ref: _Flight, params: Params, ref_params: Par
             grid = pair_grid(flight.model, pa, pb, params, spacing, model_b=ref.model, params_b=ref_params)
             if grid is None:
                 continue
-            kw = {"model_b": ref.model, "params_b": ref_params}
+            kw = {"model_b": ref.model, "params_b": ref_params, "fallback": np.zeros(2) if solved else None}
             found, stats = measure_pair(flight.model, grid, flight.images[i], ref.images[j], params, window, **kw)
             if stats["windows"] == 0 and window > MIN_WINDOW:
                 found, stats = measure_pair(flight.model, grid, flight.images[i], ref.images[j], params,

@@ -172,13 +172,13 @@ def parse_estimate(text: str | Sequence[str] | None, default: Sequence[str] | No
 
 
 @dataclass(frozen=True, eq=False)
-class _Flight:
+class FlightImages:
     source: object
     model: FlightModel
     images: tuple[np.ndarray, ...]   # per pass: (lines, samples) float32
 
 
-def _pass_images(source, model: FlightModel) -> tuple[np.ndarray, ...]:
+def pass_images(source, model: FlightModel) -> tuple[np.ndarray, ...]:
     """Per pass, the mean of up to BANDS middle bands (relative radiometry: DN per exposure, so
     that cubes of one pass with different shutters meet without a step), (lines, samples)."""
     nb = source.cubes[0].bands
@@ -196,7 +196,7 @@ def _pass_images(source, model: FlightModel) -> tuple[np.ndarray, ...]:
     return tuple(out)
 
 
-def _prefiltered(flight, images, spacing: float, pixel: float) -> tuple[np.ndarray, ...]:
+def prefiltered(flight, images, spacing: float, pixel: float) -> tuple[np.ndarray, ...]:
     """Pass images low-passed (Gaussian) along lines and samples where the measurement grid samples
     them more coarsely than 1.5 raw pixels (no aliasing in the point-sampled grid)."""
     from scipy import ndimage
@@ -211,7 +211,7 @@ def _prefiltered(flight, images, spacing: float, pixel: float) -> tuple[np.ndarr
     return tuple(out)
 
 
-def _nominal_pixel(flights, ground: float, dem_surface) -> float:
+def nominal_pixel(flights, ground: float, dem) -> float:
     """Across-track sample spacing at nadir at the median camera height above the ground, m."""
     heights, samples, fov = [], [], flights[0].model.fov_deg
     for f in flights:
@@ -222,7 +222,7 @@ def _nominal_pixel(flights, ground: float, dem_surface) -> float:
     return 2.0 * h * math.tan(math.radians(fov) / 2.0) / float(np.median(samples))
 
 
-def _stats(ties: Sequence[Tie], spacing: float, pixel: float) -> dict:
+def tie_stats(ties: Sequence[Tie], spacing: float, pixel: float) -> dict:
     if not ties:
         return {"median": None, "p95": None, "windows": 0}
     d = np.array([math.hypot(*t.shift) for t in ties]) * spacing / pixel
@@ -230,7 +230,7 @@ def _stats(ties: Sequence[Tie], spacing: float, pixel: float) -> dict:
             "windows": len(ties)}
 
 
-def _measure(flights, params: Params, spacing: float, window: int, progress) -> tuple[list, dict, list]:
+def measure_passes(flights, params: Params, spacing: float, window: int, progress) -> tuple[list, dict, list]:
     """Ties, grids and per-pair overlap of every overlapping pass pair of every flight."""
     sets, pairs, all_ties = [], [], []
     for fi, f in enumerate(flights):
@@ -274,9 +274,9 @@ def calibrate(sources: Sequence, fov_deg: float, ground: float, *, dem=None, dem
     start = Params(*first.boresight_deg, float(first.sync_offset), float(ground), *first.position_offset)
     flights = []
     for s in sources:
-        surface = None if dem is None else _surface(dem, s, fov_deg)
+        surface = None if dem is None else dem_surface(dem, s, fov_deg)
         model = FlightModel(s, fov_deg, surface)
-        flights.append(_Flight(s, model, ()))
+        flights.append(FlightImages(s, model, ()))
     passes = sum(len(f.model.passes) for f in flights)
     if all(len(f.model.passes) < 2 for f in flights):
         names = ", ".join(str(f.source.label) for f in flights)
@@ -284,45 +284,45 @@ def calibrate(sources: Sequence, fov_deg: float, ground: float, *, dem=None, dem
                          "itself", "calibrate needs two or more overlapping passes (neighbouring lines, "
                          "crossing lines)")
     ground_for_pixel = ground if dem is None else float(np.median(dem.typical_height())) + ground
-    pixel = _nominal_pixel(flights, ground_for_pixel, dem)
+    pixel = nominal_pixel(flights, ground_for_pixel, dem)
     samples = float(np.median([c.samples for f in flights for c in f.source.cubes]))
     spacing = max(SPACING * pixel, pixel * samples / SWATH_PIXELS)
-    flights = [_Flight(f.source, f.model, _prefiltered(f, _pass_images(f.source, f.model), spacing, pixel))
+    flights = [FlightImages(f.source, f.model, prefiltered(f, pass_images(f.source, f.model), spacing, pixel))
                for f in flights]
     _check_overlap(flights, start, spacing, window)
 
     say = progress or (lambda text: None)
-    say(f"measuring under the start parameters ({_describe(start, dem is not None)})")
-    sets, pairs, ties = _measure(flights, start, spacing, window, say)
+    say(f"measuring under the start parameters ({describe_params(start, dem is not None)})")
+    sets, pairs, ties = measure_passes(flights, start, spacing, window, say)
     ties_before = ties
     _check_ties(ties, pairs, estimate, flights, first=True)
     params = start
     if "sync" in estimate:
-        params = _search_sync(sets, start, estimate, pixel, say)
+        params = search_sync(sets, start, estimate, pixel, say)
     held: dict = {}
-    result = _fit_separable(sets, params, start, list(estimate), held, pixel, say)
+    result = fit_separable(sets, params, start, list(estimate), held, pixel, say)
     params = result.params
     for it in range(ITERATIONS):
-        say(f"iteration {it + 1}: {_describe(params, dem is not None)}")
-        sets, pairs, ties = _measure(flights, params, spacing, window, say)
+        say(f"iteration {it + 1}: {describe_params(params, dem is not None)}")
+        sets, pairs, ties = measure_passes(flights, params, spacing, window, say)
         _check_ties(ties, pairs, estimate, flights)
-        result = _fit_separable(sets, params, start, [n for n in estimate if n not in held], held, pixel, say)
+        result = fit_separable(sets, params, start, [n for n in estimate if n not in held], held, pixel, say)
         moved = np.abs(result.params.vector() - params.vector())
         params = result.params
         if np.all(moved <= STOP):
             break
-    say(f"final: {_describe(params, dem is not None)}")
-    sets_after, pairs, ties_after = _measure(flights, params, spacing, window, lambda text: None)
+    say(f"final: {describe_params(params, dem is not None)}")
+    sets_after, pairs, ties_after = measure_passes(flights, params, spacing, window, lambda text: None)
     final_ground = params.ground if dem is None else float(np.median(dem.typical_height())) + params.ground
-    pixel_after = _nominal_pixel(flights, final_ground, dem)     # the unit: the flight's nominal GSD
-    before = _stats(ties_before, spacing, pixel_after)
-    after = _stats(ties_after, spacing, pixel_after)
+    pixel_after = nominal_pixel(flights, final_ground, dem)     # the unit: the flight's nominal GSD
+    before = tie_stats(ties_before, spacing, pixel_after)
+    after = tie_stats(ties_after, spacing, pixel_after)
     pixel = pixel_after
-    _check_converged(result, start, after, flights)
-    return _report(result, start, estimate, held, before, after, pairs, pixel, dem_label)
+    check_converged(result, start, after, flights)
+    return make_report(result, start, estimate, held, before, after, pairs, pixel, dem_label)
 
 
-def _check_converged(result: Fit, start: Params, after: dict, flights) -> None:
+def check_converged(result: Fit, start: Params, after: dict, flights) -> None:
     """InputError when the solution leaves the passes misregistered (median above CONVERGED_PX) or
     sits on a limit (LIMITS): false matches, not a camera."""
     labels = ", ".join(str(f.source.label) for f in flights)
@@ -336,7 +336,7 @@ def _check_converged(result: Fit, start: Params, after: dict, flights) -> None:
                          "the overlaps may hold too few distinct features")
 
 
-def _surface(dem, source, fov_deg: float, margin: float = 40.0, frame=None):
+def dem_surface(dem, source, fov_deg: float, margin: float = 40.0, frame=None):
     """heights(n, e) of ``dem`` at local N, E points of ``frame`` (default ``source``'s frame), m
     above the ellipsoid: the DEM read once under the flight (its camera track grown by the swath
     and ``margin`` m), bilinear between nodes."""
@@ -356,7 +356,7 @@ def _surface(dem, source, fov_deg: float, margin: float = 40.0, frame=None):
     return height
 
 
-def _describe(p: Params, dem: bool) -> str:
+def describe_params(p: Params, dem: bool) -> str:
     g = f"DEM offset {p.ground:+.3f} m" if dem else f"ground {p.ground:.3f} m"
     return f"boresight {p.roll:.4f},{p.pitch:.4f},{p.yaw:.4f} deg, sync {p.sync:+.4f} s, {g}"
 
@@ -373,7 +373,7 @@ def _check_overlap(flights, params: Params, spacing: float, window: int) -> None
                     continue
                 inter = prints[i].intersection(prints[j])
                 if not inter.is_empty and inter.area > 0:
-                    longest = max(longest, max(_sides(inter.minimum_rotated_rectangle)))
+                    longest = max(longest, max(rect_sides(inter.minimum_rotated_rectangle)))
     need = MIN_OVERLAP_WINDOWS * window * spacing
     if longest <= 0.0:
         labels = ", ".join(str(f.source.label) for f in flights)
@@ -386,7 +386,7 @@ def _check_overlap(flights, params: Params, spacing: float, window: int) -> None
                          "calibrate a longer flight (passes of a few seconds at least)")
 
 
-def _sides(rect) -> list[float]:
+def rect_sides(rect) -> list[float]:
     xy = np.asarray(rect.exterior.coords)
     return [float(np.hypot(*(xy[k + 1] - xy[k]))) for k in range(len(xy) - 1)]
 
@@ -412,7 +412,7 @@ def _check_ties(ties, pairs, estimate, flights, first: bool = False) -> None:
                      "check --fov and the start parameters (--ground-height, the ingested mounting)")
 
 
-def _search_sync(sets, start: Params, estimate, pixel: float, say) -> Params:
+def search_sync(sets, start: Params, estimate, pixel: float, say) -> Params:
     """The sync offset within +-1 s of the start minimising the robust cost, the other estimated
     parameters fitted at each step."""
     others = tuple(n for n in estimate if n != "sync")
@@ -428,7 +428,7 @@ def _search_sync(sets, start: Params, estimate, pixel: float, say) -> Params:
     return best.params
 
 
-def _fit_separable(sets, params: Params, start: Params, free: list, held: dict, pixel: float, say) -> Fit:
+def fit_separable(sets, params: Params, start: Params, free: list, held: dict, pixel: float, say) -> Fit:
     """Fit ``free`` from ``params``; while two free parameters are degenerate (|correlation| above
     DEGENERATE: the flight cannot tell them apart at all), hold one (HOLD_ORDER) at its ``start``
     value, record it in ``held`` and fit again."""
@@ -470,7 +470,7 @@ def _degenerate(result: Fit) -> tuple[str, ...] | None:
     return tuple(n for i, n in enumerate(result.free) if weight[i] >= 0.2)
 
 
-def _report(result: Fit, start: Params, estimate, held: dict, before: dict, after: dict, pairs: list,
+def make_report(result: Fit, start: Params, estimate, held: dict, before: dict, after: dict, pairs: list,
             pixel: float, dem_label) -> Calibration:
     sigma = {n: None for n in estimate}
     sigma.update(result.sigma())

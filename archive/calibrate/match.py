@@ -208,13 +208,16 @@ class Tie:
 
 def measure_pair(model: FlightModel, grid: PairGrid, image_a: np.ndarray, image_b: np.ndarray,
                  params: Params, window: int = 24, prior: np.ndarray | None = None,
-                 model_b: FlightModel | None = None, params_b: Params | None = None) -> tuple[list[Tie], dict]:
+                 model_b: FlightModel | None = None, params_b: Params | None = None,
+                 fallback: np.ndarray | None = None) -> tuple[list[Tie], dict]:
     """Tie windows between the passes of ``grid`` under ``params``.
 
     image_a/b: (lines, samples) float images of the passes. window: side (grid pixels) of the
     square windows (every fully covered textured one, half overlapping). prior: an expected shift
     (rows, cols) grid pixels, or None: a coarse masked NCC over SEARCH_M finds it. model_b /
     params_b: pass B's flight and parameters when it is another flight's (see :func:`pair_grid`).
+    fallback: the shift (rows, cols) to assume where no block of the coarse search correlates
+    clearly (ground that changed between two flights), or None: then nothing is measured.
     Returns the ties and counts (overlap pixels, windows tried, textured, matched)."""
     ra = render_pass(model, grid.a, image_a, grid, params)
     rb = render_pass(model_b or model, grid.b, image_b, grid, params if params_b is None else params_b)
@@ -239,6 +242,8 @@ def measure_pair(model: FlightModel, grid: PairGrid, image_a: np.ndarray, image_
         shift, score = _peak(ncc)
         if score >= 0.5:
             blocks.append((b0 * COARSE, b1 * COARSE, shift * COARSE, score))
+    if not blocks and fallback is not None:
+        blocks = [(0, ca.shape[0] * COARSE, np.asarray(fallback, float), 0.0)]
     if not blocks:
         return [], stats
     shifts = np.array([b[2] for b in blocks])

@@ -46,8 +46,8 @@ def item_for_collection(root: ArchiveRoot, cid: str) -> dict:
         "archive:strips": len(fp.strips_utm),
         "archive:software": attrs.get("archive:software"),
     }
-    from archive.calibrate.apply import item_properties   # co-registered to a reference (calibrate --reference)
-    extra.update(item_properties(attrs))
+    from archive.params import coregistration_properties   # co-registered to a reference (calibrate --reference)
+    extra.update(coregistration_properties(attrs))
     if terrain:
         extra["archive:dem"] = terrain.get("dem")
         extra["archive:dem_datum"] = terrain.get("datum")

@@ -530,8 +530,8 @@ def changed_ground(scene: Scene, traj: Trajectory, spans, fov_deg: float, fracti
         ce, cn = rng.uniform(w, e), rng.uniform(s, n)
         shapes.append({"kind": "rect", "name": f"change{k}", "material": int(rng.choice(choices)),
                        "bounds": [ce - we / 2, cn - hn / 2, ce + we / 2, cn + hn / 2], "changed": True})
-    return Scene(scene.origin_e, scene.origin_n, scene.seed, scene.cell, scene.waves, tuple(scene.shapes) + tuple(shapes),
-                 scene.wavelengths, scene.spectra, scene.materials)
+    return Scene(scene.origin_e, scene.origin_n, scene.seed, scene.cell, scene.waves,
+                 tuple(scene.shapes) + tuple(shapes), scene.wavelengths, scene.spectra, scene.materials)
 
 
 def dem_bounds(truth: Truth, margin: float = DEM_MARGIN) -> tuple[float, float, float, float]:
