@@ -26,8 +26,8 @@ the inverse renderer, then the band planes of ``archive render``'s calibration b
 the pixel's footprint): bit for bit the band-value tile the viewer draws from the DN at that zoom.
 Coarser levels are the means of the finite values of 2 x 2 pixels of the level above (a mipmap).
 
-Previews are made after the collection is published and cataloged (:func:`add_previews`, the hook
-of ``archive ingest``), under the collection's lock, into a temporary group renamed into place:
+This module owns the layout (written, read, verified); they are made after the collection is
+published and cataloged (:func:`archive.ingest.previews.add_previews`, the hook of ``archive ingest``), under the collection's lock, into a temporary group renamed into place:
 a collection without them (ingested before, or where no OpenGL is available) is complete and
 viewed from its DN; ingesting it again adds them.
 """
@@ -36,8 +36,7 @@ from __future__ import annotations
 
 import math
 import os
-import sys
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,8 +44,8 @@ import numpy as np
 
 from archive.errors import FormatError
 
-__all__ = ["GROUP", "PreviewLevel", "Previews", "add_previews", "make_previews", "plan_levels", "read_previews",
-           "verify_previews"]
+__all__ = ["GROUP", "PreviewLevel", "Previews", "is_current", "plan_levels", "read_previews", "rendered",
+           "verify_previews", "write_previews"]
 
 #: The group of a collection store holding its previews.
 GROUP = "previews"
@@ -125,7 +124,7 @@ def plan_levels(bounds: Sequence[float], flight_gsd: float) -> list[PreviewLevel
     return levels
 
 
-def _rendered(level: PreviewLevel, flight_gsd: float) -> bool:
+def rendered(level: PreviewLevel, flight_gsd: float) -> bool:
     """Whether the viewer's renderer draws this level (its pixel spans at most MAX_MIP flight
     pixels), rather than the mean of the level above."""
     from archive.view.flights import MAX_MIP
@@ -134,7 +133,7 @@ def _rendered(level: PreviewLevel, flight_gsd: float) -> bool:
     return 2 ** max(0, round(math.log2(zoom_gsd(level.zoom) / flight_gsd))) <= MAX_MIP
 
 
-def _halve(values: np.ndarray, level: PreviewLevel, parent: PreviewLevel) -> np.ndarray:
+def halve(values: np.ndarray, level: PreviewLevel, parent: PreviewLevel) -> np.ndarray:
     """(bands, parent.height, parent.width): the mean of the finite values of each 2 x 2 block of
     ``values`` ((bands, level.height, level.width) on ``level``), NaN where none is."""
     k = values.shape[0]
@@ -149,56 +148,7 @@ def _halve(values: np.ndarray, level: PreviewLevel, parent: PreviewLevel) -> np.
         return np.where(count > 0, total / count, np.nan).astype(np.float32)
 
 
-# ---- making and writing -------------------------------------------------------------------------
-def make_previews(archive_path: str | os.PathLike, cid: str) -> tuple[dict, dict[str, np.ndarray]]:
-    """(the ``archive:previews`` attribute, {level name: (bands, height, width) float32}) of the
-    collection ``cid`` of the archive at ``archive_path``, drawn with the viewer's renderer (OpenGL: pass 1) from a
-    flight opened as ``archive view`` opens it."""
-    from archive.collection import array_digest, content_version
-    from archive.view.cache import ByteLRU
-    from archive.view.flights import overview_level
-    from archive.view.registry import FlightRegistry
-
-    registry = FlightRegistry(archive_path, bands_cache=ByteLRU(256 << 20), lookup_cache=ByteLRU(64 << 20))
-    try:
-        flight = registry.flight(cid)
-        flight_gsd = float(registry.feature(cid)["properties"]["gsd"])
-        geometry = flight.geometry(None, None)
-        cubes = range(len(flight.cubes))
-        bounds = geometry.union(cubes)
-        if bounds is None:
-            raise ValueError(f"{cid}: no cube has a drawable mesh")
-        bands = flight.default_bands()
-        mode = "radiance" if flight.has_calibration else "raw"
-        arrays: dict[str, np.ndarray] = {}
-        records = []
-        above = None
-        for level in plan_levels(bounds, flight_gsd):
-            if above is None or _rendered(level, flight_gsd):
-                grid = level.grid()
-                values, _ = flight.render_keyed(grid, bands, mode, cubes, geometry, overlap="last",
-                                                level=overview_level(grid.gsd, flight_gsd))
-                made = "rendered"
-            else:
-                values = _halve(arrays[above[0].name], above[0], level)
-                made = f"mean of 2 x 2 pixels of z{above[0].zoom}"
-            values = np.ascontiguousarray(values, np.float32)
-            arrays[level.name] = values
-            records.append({"zoom": level.zoom, "column": level.column, "row": level.row, "width": level.width,
-                            "height": level.height, "made": made, "sha256": array_digest(values)})
-            above = (level,)
-        stats = flight.stats(None, bands, mode, cubes, None, PERCENTILES)
-    finally:
-        registry.close()
-    from archive.catalog.root import open_root
-
-    version = content_version(open_root(archive_path).store(cid))
-    attrs = {"format_version": FORMAT_VERSION, "version": version["version"],
-             "mode": mode, "bands": [int(b) for b in bands], "wavelength": flight.wavelengths_of(bands),
-             "flight_gsd": flight_gsd, "levels": records, "stats": stats}
-    return attrs, arrays
-
-
+# ---- writing ----------------------------------------------------------------------------------
 def write_previews(store: str | os.PathLike, attrs: dict, arrays: dict[str, np.ndarray]) -> None:
     """Write previews into the collection ``store``: a temporary group, its attribute last, renamed
     to ``previews`` (replacing older ones). Call it holding the collection's lock."""
@@ -242,48 +192,6 @@ def is_current(store: str | os.PathLike) -> bool:
     version = content_version(store)
     return attrs is not None and version is not None and attrs.get("version") == version["version"] \
         and attrs.get("format_version") == FORMAT_VERSION
-
-
-def add_previews(root, cids: Iterable[str], warn: Callable[[str], None] | None = None) -> list[str]:
-    """Give the collections ``cids`` of the archive ``root`` (an :class:`~archive.catalog.root.ArchiveRoot`)
-    current previews (``archive ingest``'s hook): those that have them are left alone (nothing is
-    written); the others get them under their collection's lock. A flight whose previews cannot be
-    made (no OpenGL here, a full disk) is told to ``warn`` (default: a line on stderr) and stays as
-    it is: complete, viewed from its DN. Returns the ids given previews."""
-    from archive.collection import store_lock
-
-    def say(line: str) -> None:
-        (warn or (lambda text: print(text, file=sys.stderr)))(line)
-
-    made = []
-    cids = list(dict.fromkeys(cids))
-    if cids and getattr(root, "is_url", False):
-        say(f"archive ingest: no overview previews for collections in object storage yet ({root.path}); "
-            "'archive view' draws them from their DN")
-        return made
-    for cid in cids:
-        store = root.store(cid)
-        if is_current(store):
-            continue
-        lock = store_lock(store, f"overview previews of {cid}")
-        try:
-            lock.acquire(wait=math.inf)
-        except OSError as exc:
-            say(f"archive ingest: {cid}: no overview previews (cannot lock the collection: {exc.strerror or exc})")
-            continue
-        try:
-            if is_current(store):
-                continue
-            attrs, arrays = make_previews(root.path, cid)
-            write_previews(store, attrs, arrays)
-            made.append(cid)
-        except Exception as exc:  # noqa: BLE001 - the collection is complete without them: say why, go on
-            reason = " ".join(str(exc).split())[:200]
-            say(f"archive ingest: {cid}: no overview previews ({type(exc).__name__}: {reason}); 'archive view' "
-                "draws it from its DN; ingest it again to add them")
-        finally:
-            lock.release()
-    return made
 
 
 # ---- reading ----------------------------------------------------------------------------------

@@ -265,7 +265,7 @@ LAYERS = [
     ("commands", ("archive.options", "archive.cluster", "archive.pipeline", "archive.api", "archive.render_command",
                   "archive.api_errors",
                   "archive.ingest", "archive.simulator", "archive.view", "archive.calibrate", "archive.batch", "archive.stacks",
-                  "archive.tiles",
+                  "archive.tiles", "archive.previews",
                   "archive.doctor")),
     ("entry", ("archive.cli", "archive.__main__")),
 ]

@@ -38,8 +38,9 @@ from archive.collection import (FORMAT, FORMAT_VERSION, NAV_COLUMNS, StorePlan, 
                                 sha256_file, store_lock, verify_store, write_chunk)
 from archive.formats.icp import response as exposure_response
 from archive.formats.lcf import gps_seconds_to_datetime
+from archive.ingest.previews import add_previews
 from archive.params import NavigationParams
-from archive.previews import add_previews, verify_previews
+from archive.previews import verify_previews
 from archive.sources.ground import auto_ground_height, camera_altitudes, check_ground_height
 from archive.sources.raw import RawFlightSource
 

@@ -105,7 +105,7 @@ class Flight:
         from archive.view.cache import held_bytes
 
         return held_bytes(self._sources, self._geometries, self._posed, self._ranges,
-                          self.planes._radiometry) + (64 << 10)
+                          self.planes.radiometry_kept) + (64 << 10)
 
     # ---- sources and geometry ------------------------------------------------------------
     @staticmethod

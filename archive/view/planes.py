@@ -42,6 +42,12 @@ class BandPlanes:
         self._lock = threading.RLock()   # a future done already runs its callback (_forget) at once, here
         self._making: dict[tuple, Future] = {}   # (cube, band, mode, size) -> a plane being made
 
+    @property
+    def radiometry_kept(self) -> dict:
+        """The radiometric terms kept (:meth:`radiometry`), by (cube, bands, mode): what a flight is
+        charged for them."""
+        return dict(self._radiometry)
+
     def radiometry(self, cube: int, bands: Sequence[int], mode: str):
         """The source's radiometric terms of ``bands`` of ``cube`` in ``mode`` (None: raw DN), kept."""
         key = (cube, tuple(bands), mode)
