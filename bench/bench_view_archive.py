@@ -56,7 +56,7 @@ def make_flights_archive(workdir: Path, args: argparse.Namespace) -> tuple[Path,
             shutil.rmtree(raw)
         marker.touch()
     from archive.catalog.root import open_root
-    from archive.previews import add_previews
+    from archive.ingest.previews import add_previews
 
     root = open_root(archive)
     if getattr(args, "no_previews", False):   # the baseline: every tile from the DN
