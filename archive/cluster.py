@@ -23,7 +23,7 @@ import numpy as np
 
 from archive.errors import ArchiveError, InputError, RenderError
 
-__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "SlurmJobs", "active_client", "check_gpu_workers", "execute",
+__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "ClusterStart", "SlurmJobs", "active_client", "check_gpu_workers", "execute",
            "flight_slots", "start_cluster", "start_slurm", "task_budget", "wait_for_writers"]
 
 
@@ -60,10 +60,57 @@ def positive(value, option: str, what: str) -> int | None:
 START_ATTEMPTS = 2
 
 
+class ClusterStart:
+    """A cluster being started in a thread while the command goes on (imports, opening and planning
+    its inputs: serial phases otherwise, issue 37): :func:`start_cluster` of the same arguments.
+    Pass it as ``scheduler`` to :func:`start_cluster` (hence to :func:`archive.georectify`), which
+    then waits for it; :meth:`close` closes a cluster that was started but never taken (the command
+    failed before it needed one) and is a no-op otherwise."""
+
+    def __init__(self, scheduler, workers: int | None, say, threads: int | None = None):
+        import threading
+
+        self._result: tuple | None = None
+        self._error: BaseException | None = None
+        self._taken = False
+        self._thread = threading.Thread(target=self._run, args=(scheduler, workers, say, threads),
+                                        name="archive-cluster-start", daemon=True)
+        self._thread.start()
+
+    def _run(self, scheduler, workers, say, threads) -> None:
+        try:
+            self._result = start_cluster(scheduler, workers, say, threads)
+        except BaseException as exc:   # raised again where the cluster is taken
+            self._error = exc
+
+    def result(self) -> tuple:
+        """(client, cluster or None) once started; raises what starting raised."""
+        self._thread.join()
+        self._taken = True
+        if self._error is not None:
+            raise self._error
+        return self._result
+
+    def close(self) -> None:
+        """Close the cluster unless it was taken (waits for its start to end)."""
+        if self._taken:
+            return
+        self._taken = True
+        self._thread.join()
+        if self._result is not None:
+            client, cluster = self._result
+            client.close()
+            if cluster is not None:
+                cluster.close()
+
+
 def start_cluster(scheduler, workers: int | None, say, threads: int | None = None):
     """(client, cluster or None) of :func:`_start_cluster`; a local cluster whose start fails (a
     worker process died while starting) is started again, up to :data:`START_ATTEMPTS` times, then
-    a one-line :class:`~archive.errors.RenderError` says why (never Dask's traceback)."""
+    a one-line :class:`~archive.errors.RenderError` says why (never Dask's traceback).
+    ``scheduler`` a :class:`ClusterStart`: its result (started already, or being started)."""
+    if isinstance(scheduler, ClusterStart):
+        return scheduler.result()
     attempts = 1 if scheduler else START_ATTEMPTS
     for attempt in range(1, attempts + 1):
         try:

@@ -9,9 +9,7 @@ import argparse
 import math
 import sys
 
-from archive.api import georectify, open_archive
 from archive.errors import InputError
-from archive.options import KEYWORDS
 
 __all__ = ["render_keywords", "run"]
 
@@ -26,6 +24,8 @@ def _query_ids(args: argparse.Namespace) -> list[str] | None:
         raise InputError("--query-*", "a catalog query needs the archive to search", "pass --archive ARCHIVE")
     if wavelength is not None and not (math.isfinite(wavelength) and wavelength > 0):
         raise InputError("--query-wavelength", f"{wavelength} is not a positive wavelength in nm")
+    from archive.api import open_archive
+
     ids = open_archive(args.archive).search(bbox=bbox, datetime=when, wavelength=wavelength)
     if not ids:
         asked = ", ".join(f"{k} {v}" for k, v in (("--query-bbox", bbox), ("--query-datetime", when),
@@ -62,13 +62,17 @@ def _where(args: argparse.Namespace):
     return SlurmJobs(**given)
 
 
-def render_keywords(args: argparse.Namespace) -> dict:
+def render_keywords(args: argparse.Namespace, scheduler=None) -> dict:
     """The :func:`archive.georectify` keywords of parsed ``archive render`` options: every render
     option (:data:`archive.options.KEYWORDS`, the parser's destinations of the same names) and how
     to run; catalog queries resolved (matching ids added to the sources; one output per flight
-    unless ``--mosaic``)."""
+    unless ``--mosaic``). ``scheduler``: where to run instead of the options' (a
+    :class:`~archive.cluster.ClusterStart` already under way)."""
+    from archive.options import KEYWORDS
+
     keywords = {"sources": list(args.sources or []), "out": args.out,
-                **{name: getattr(args, name) for name in KEYWORDS + RUN_KEYWORDS}, "scheduler": _where(args)}
+                **{name: getattr(args, name) for name in KEYWORDS + RUN_KEYWORDS},
+                "scheduler": _where(args) if scheduler is None else scheduler}
     ids = _query_ids(args)
     if ids is not None:
         keywords["sources"] += [i for i in ids if i not in keywords["sources"]]
@@ -97,6 +101,34 @@ def run(args: argparse.Namespace) -> int:
     """``archive render``: :func:`archive.georectify` with the parsed options; prints a one-paragraph
     summary (batch mode: one line per flight as it finishes, done / skipped / failed with its reason,
     then the totals; exit code 1 when a flight failed)."""
+    from archive.cluster import ClusterStart, SlurmJobs
+
+    # The workers (or the connection to --scheduler) start now, while this process imports the
+    # pipeline and opens and plans the inputs: those phases leave the other cores idle otherwise.
+    # Slurm jobs are submitted where the command always did (after its checks of the options).
+    where = _where(args)
+    starting = None if isinstance(where, SlurmJobs) else ClusterStart(where, args.workers, _say(args), args.threads)
+    try:
+        return _run(args, starting)
+    finally:
+        if starting is not None:
+            starting.close()   # only one nobody took (the command failed before it needed workers)
+
+
+def _say(args: argparse.Namespace):
+    """The progress-line ``say`` of :func:`archive.pipeline.progress_lines` (stderr through
+    ``tqdm.write``; nothing with --quiet), without importing the pipeline."""
+    def say(text: str) -> None:
+        if not args.quiet:
+            from tqdm import tqdm
+
+            tqdm.write(text, file=sys.stderr)
+
+    return say
+
+
+def _run(args: argparse.Namespace, starting) -> int:
+    from archive.api import georectify
     from archive.pipeline import describe
 
     from tqdm import tqdm
@@ -106,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         with tqdm.external_write_mode(file=sys.stdout):
             print(f"archive render: {line}", flush=True)
 
-    s = georectify(**render_keywords(args), tell=tell)
+    s = georectify(**render_keywords(args, starting), tell=tell)
     if "added" in s:
         n = len(s["flights"])
         print(f"archive render: stack {s['out']}: {n} flight{'s' if n != 1 else ''} on {s['width']} x {s['height']} px "

@@ -1,31 +1,39 @@
-"""Benchmark of the output writers (issues 10 and 20): `archive render` to Zarr, COG and ENVI against the
-I/O floor and GDAL's geolocation warp, on a real flight's shape, in one run.
+"""Benchmark of the output writers (issues 10, 20 and 37): `archive render` to Zarr, COG and ENVI against
+the I/O floor and GDAL's geolocation warp, on a real flight's shape, in one run.
 
-    python bench/bench_outputs.py [--cubes 8] [--bands 300] [--samples 900] [--lines 1000] [--gsd 0.04]
-                                  [--scaling 8x4,16x4,32x4] [--scaling-bands 32] [--scaling-formats hdr,zarr,tif]
-                                  [--formats zarr,tif,hdr] [--workdir DIR] [--no-gdal] [--json FILE]
+    python bench/bench_outputs.py [--shape heldout|sidelap|tilted] [--cubes 8] [--bands 300] [--samples 900]
+                                  [--lines 1000] [--gsd 0.04] [--formats hdr,zarr,tif] [--compression NAME]
+                                  [--no-stages] [--codec-table] [--scaling 8x4,16x4,32x4] [--scaling-bands 32]
+                                  [--scaling-formats hdr,zarr,tif] [--workdir DIR] [--no-gdal] [--json FILE]
 
-Default flight (issue 20): the paper's cubes (900 samples x 1000 lines x 300 bands) in a lawn-mower
-pattern, 2 cubes per pass, so 8 cubes = 4 passes; passes 25 m apart at 40 m above ground with a
-47.5 deg field of view: swath 2 x 40 x tan(23.75 deg) = 35.2 m, sidelap 1 - 25 / 35.2 = 29 %
-(printed from the simulator's constants). Simulated once into --workdir and reused while its
+Flight (``--shape``, :data:`SHAPES`): the paper's cubes (900 samples x 1000 lines x 300 bands) in a
+lawn-mower pattern, 2 cubes per pass, so 8 cubes = 4 passes, 40 m above ground with a 47.5 deg field
+of view (swath 35.2 m). ``heldout`` (default since issue 37): passes along grid north 25 m apart
+(29 % sidelap), as the held-out flight of issue 37: the grid is the footprint's box, 2897 x 2071 px
+at 4 cm (7.2 GB with 300 bands), nearly all covered. ``sidelap``: passes 20 m apart (43 %).
+``tilted``: the default before issue 37, passes at 20 deg: the grid is the tilted footprint's box
+(3282 x 2795 px, 11.0 GB), a third of it NaN, which ENVI writes in full while Zarr skips and the
+COG compresses to nothing: it flattered Zarr and COG against ENVI (and every format against the
+floor, whose write counts the NaN bytes). Simulated once into --workdir and reused while its
 marker file exists. After reading the input once (warm page cache), one run measures:
 
 1. the I/O floor: read every input .bil once + write the mosaic's float32 byte count once, fsync'ed
    (``bench_render.io_floor``);
 2. GDAL's direct method: ``rasterio.warp.reproject`` with geolocation arrays, all bands per call, 2
    threads, per cube (``bench_render.gdal_direct``);
-3. per format, ``archive render FLIGHT --out X.{zarr,tif,hdr} ...`` through ``bench/stage_profile.py``
-   (the command's own code, ``archive.cli.main``, on a local cluster started exactly as the command
-   starts it, with the task stream recorded and stage timers in the workers): wall (process start
-   to exit, Python imports and cluster start-up included), then ``sync`` (wall + sync compares with
-   the floor's fsync'ed write), peak RSS of the whole process tree (polled every 0.1 s), CPU-seconds
-   of the tree, **cores busy** = CPU-s / wall / cores and, from the task stream, task-seconds /
-   (graph seconds x worker threads), **CPU-seconds per cube per stage** (GL lookup, band passes or
-   CPU gather, DN reads, mosaic, NaN checks, compression, overviews, writes, the command's own
-   process), output size; ratios to the floor and to GDAL from this same run;
+3. per format, ``python -m archive render FLIGHT --out X.{zarr,tif,hdr} ...`` as a user runs it
+   (:func:`render_plain`): wall from process start to exit, then ``sync`` (wall + sync compares
+   with the floor's fsync'ed write), CPU-seconds of the whole process tree (the command, its
+   scheduler, its workers: ``getrusage`` of the reaped children), **cores busy** = that CPU / wall
+   / cores, peak RSS of the tree (polled every 0.1 s), output size; ratios to the floor and to
+   GDAL from this same run. Then (unless ``--no-stages``) the same render again through
+   ``bench/stage_profile.py`` (its cluster started apart, the task stream recorded, stage timers in
+   the workers): **CPU-seconds per cube per stage** (GL lookup, band passes or CPU gather, DN reads,
+   mosaic, NaN checks, compression, overviews, writes, the command's own process) and threads busy;
 4. a 512 x 512 window of the COG read with rasterio for 3 bands and for all bands;
-5. memory against flight length: ``--scaling`` flights ``NxP`` (N cubes over P passes of the same
+5. ``--codec-table``: every Zarr and COG codec of :data:`ZARR_CODECS` / :data:`COG_CODECS` on the
+   ENVI render's tiles (:func:`codec_table`): CPU-seconds per cube against bytes on disk;
+6. memory against flight length: ``--scaling`` flights ``NxP`` (N cubes over P passes of the same
    paper-size cubes with ``--scaling-bands`` bands: a render holds one band group, as with 300
    bands) rendered to ``--scaling-formats``: peak process-tree RSS. The paper's flight is 40x5.
 
@@ -89,6 +97,38 @@ def render_cli(flight: Path, out: Path, gsd: float, ground: float, extra=(), wor
             "profile": prof, "load": [load0, br.load()]}
 
 
+def render_plain(flight: Path, out: Path, gsd: float, ground: float, extra=()) -> dict:
+    """``python -m archive render`` as a user runs it, from process start to exit: wall, wall +
+    sync, CPU-seconds of the whole process tree (``getrusage(RUSAGE_CHILDREN)`` before and after:
+    the command, its scheduler and its worker processes, all reaped), **cores busy** = that CPU /
+    wall / cores, peak tree RSS (polled every 0.1 s), output bytes."""
+    import resource
+
+    cmd = [sys.executable, "-m", "archive", "render", str(flight), "--fov", str(br.FOV), "--gsd", str(gsd),
+           "--ground-height", str(ground), "--mode", br.MODE, "--bands", "all", "--out", str(out), "--overwrite",
+           "--quiet", *extra]
+    load0 = br.load()
+    ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    with br.MemoryPoll(proc.pid) as poll:
+        stdout, stderr = proc.communicate()
+    wall = time.perf_counter() - t
+    ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}): {stderr[-3000:]}")
+    os.sync()
+    synced = time.perf_counter() - t
+    files = [out] if out.is_file() else [f for f in out.rglob("*") if f.is_file()]
+    if out.suffix == ".hdr":
+        files.append(out.with_suffix(""))
+    cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
+    return {"cmd": "archive render " + " ".join(cmd[4:]), "wall_s": wall, "wall_sync_s": synced, "tree_cpu_s": cpu,
+            "busy_tree": cpu / wall / (os.cpu_count() or 1), "peak_tree_rss": poll.peak_rss,
+            "peak_tree_anon": poll.peak_anon, "out_mb": sum(f.stat().st_size for f in files) / br.MB,
+            "load": [load0, br.load()]}
+
+
 def _rchar() -> int:
     for line in Path("/proc/self/io").read_text().splitlines():
         if line.startswith("rchar:"):
@@ -117,31 +157,34 @@ def cog_window_reads(path: Path) -> dict:
     return out
 
 
-def scaling_flight(workdir: Path, cubes: int, passes: int, bands: int, samples: int, lines: int) -> Path:
+def scaling_flight(workdir: Path, cubes: int, passes: int, bands: int, samples: int, lines: int,
+                   heading: float, spacing: float) -> Path:
     """``cubes`` paper-size cubes over ``passes`` lawn-mower passes (simulated once, reused)."""
-    per_pass = -(-cubes // passes)
-    d = workdir / f"scaling_c{cubes}_p{passes}_b{bands}_s{samples}_l{lines}"
-    if (d / ".bench-complete").exists():
-        return d
-    from archive.simulator.command import simulate_flight
+    import types
 
-    if d.exists():
-        shutil.rmtree(d)
-    t = time.perf_counter()
-    simulate_flight(d, cubes=cubes, bands=bands, samples=samples, lines=lines, cubes_per_pass=per_pass, seed=1,
-                    progress=False)
-    (d / ".bench-complete").write_text(f"{time.perf_counter() - t:.1f} s\n")
-    return d
+    args = types.SimpleNamespace(workdir=str(workdir), cubes=cubes, bands=bands, samples=samples, lines=lines,
+                                 heading=heading, spacing=spacing, cubes_per_pass=-(-cubes // passes))
+    return br.flight_dir(args, prefix=f"scaling_p{passes}_")
 
 
-def sidelap() -> dict:
-    """Swath, pass spacing and sidelap of the simulated flights (the simulator's constants)."""
+#: Flight shapes (``--shape``): grid heading of the passes (degrees) and metres between them. All
+#: fly the paper's cubes 40 m above flat ground with a 47.5 deg field of view (swath 35.2 m).
+#: ``heldout``: passes along grid north, as the held-out flight of issue 37 (the mosaic's grid is the
+#: footprint's box: 2819 x 2100 px at 4 cm for 8 cubes, 7.1 GB with 300 bands, nearly all of it
+#: covered); ``sidelap``: the same with passes 20 m apart (43 % sidelap: more renders per output
+#: pixel); ``tilted``: the bench's flight before issue 37 (heading 20 deg: the grid is the tilted
+#: footprint's box, 11.0 GB of which a third is NaN that Zarr and the COG do not compress).
+SHAPES = {"heldout": (0.0, 25.0), "sidelap": (0.0, 20.0), "tilted": (20.0, 25.0)}
+
+
+def sidelap(spacing: float) -> dict:
+    """Swath, pass spacing and sidelap of a simulated flight with passes ``spacing`` m apart."""
     import math
 
-    from archive.simulator.command import HEIGHT, SPACING
+    from archive.simulator.command import HEIGHT
 
     swath = 2 * HEIGHT * math.tan(math.radians(br.FOV / 2))
-    return {"height_m": HEIGHT, "spacing_m": SPACING, "swath_m": swath, "sidelap": 1 - SPACING / swath}
+    return {"height_m": HEIGHT, "spacing_m": spacing, "swath_m": swath, "sidelap": 1 - spacing / swath}
 
 
 STAGES = ("GL lookup", "GL band passes", "CPU band gather", "lookup unpack", "lookup decode", "read DN", "radiometry terms",
@@ -170,6 +213,118 @@ def stage_table(R: dict) -> list[str]:
     return rows
 
 
+#: Zarr chunk codecs measured by :func:`codec_table`: (label, Blosc (cname, clevel, shuffle) or None
+#: for no compression, chunk edge px).
+ZARR_CODECS = [("none", None, 1024),
+               ("blosc lz4 1 shuffle", ("lz4", 1, "shuffle"), 1024),
+               ("blosc lz4 5 shuffle", ("lz4", 5, "shuffle"), 1024),
+               ("blosc lz4 9 shuffle", ("lz4", 9, "shuffle"), 1024),
+               ("blosc lz4 5 bitshuffle", ("lz4", 5, "bitshuffle"), 1024),
+               ("blosc lz4 5 noshuffle", ("lz4", 5, "noshuffle"), 1024),
+               ("blosc lz4hc 5 shuffle", ("lz4hc", 5, "shuffle"), 1024),
+               ("blosc blosclz 5 shuffle", ("blosclz", 5, "shuffle"), 1024),
+               ("blosc zstd 1 shuffle", ("zstd", 1, "shuffle"), 1024),
+               ("blosc zstd 3 shuffle", ("zstd", 3, "shuffle"), 1024),
+               ("blosc zstd 1 bitshuffle", ("zstd", 1, "bitshuffle"), 1024),
+               ("blosc lz4 5 shuffle, 512 px chunks", ("lz4", 5, "shuffle"), 512)]
+#: COG tile codecs: (label, zstd level or None (no compression), predictor 3 or 1 (none)).
+COG_CODECS = [("none", None, 1), ("zstd -5 + predictor", -5, 3), ("zstd -3 + predictor", -3, 3),
+              ("zstd -1 + predictor", -1, 3), ("zstd 1 + predictor", 1, 3), ("zstd 3 + predictor", 3, 3),
+              ("zstd -3, no predictor", -3, 1), ("zstd 1, no predictor", 1, 1)]
+
+
+def codec_table(envi: Path, cubes: int, bands_full: int = 300, spool: Path | None = None) -> dict:
+    """CPU-seconds per cube (scaled to ``bands_full`` bands) and bytes of every codec of
+    :data:`ZARR_CODECS` and :data:`COG_CODECS` on the tiles of a rendered ENVI mosaic ``envi`` (.hdr):
+    one thread, ``time.thread_time`` around each encode (and, for Zarr, each chunk file's atomic
+    write into ``spool``: a temporary file renamed, as :class:`archive.outputs.zarr.ChunkWriter`
+    writes it); all-NaN Zarr chunks are skipped as the writer skips them. Overviews: the 2 x 2
+    NaN-mean and nearest neighbour over the full resolution (each further level adds a quarter)."""
+    import tempfile
+
+    from archive.codecs import numcodecs_blosc
+    from archive.files import write_atomic
+    from archive.outputs.tiff import TILE, downsample2, encode_tile
+
+    import numcodecs.blosc
+    import rasterio
+
+    numcodecs.blosc.use_threads = False   # as in the render's task threads (Blosc's threads only serve the main thread)
+    with rasterio.open(envi.with_suffix("")) as ds:
+        nb, h, w = ds.count, ds.height, ds.width
+    data = np.memmap(envi.with_suffix(""), np.float32, "r", shape=(nb, h, w))
+    raw = bands_full * h * w * 4
+    bands = range(0, nb, max(1, nb // 10))   # about 10 bands spread over the spectrum
+    scale = bands_full / len(bands) / cubes
+
+    def chunks(edge: int):
+        buf = np.empty((edge, edge), np.float32)
+        for b in bands:
+            for r in range(0, h, edge):
+                for c in range(0, w, edge):
+                    buf[...] = np.nan
+                    part = data[b, r:r + edge, c:c + edge]
+                    buf[:part.shape[0], :part.shape[1]] = part
+                    yield buf
+
+    out: dict = {"raw_mb": raw / br.MB, "bands": len(bands), "cubes": cubes, "zarr": {}, "cog": {}}
+    spool = Path(tempfile.mkdtemp(dir=spool))
+    try:
+        for label, blosc, edge in ZARR_CODECS:
+            codec = None if blosc is None else numcodecs_blosc(*blosc)
+            enc = wr = 0.0
+            size = 0
+            for k, buf in enumerate(chunks(edge)):
+                if np.isnan(buf).all():
+                    continue
+                t = time.thread_time()
+                encoded = buf.tobytes() if codec is None else codec.encode(buf)
+                t1 = time.thread_time()
+                write_atomic(str(spool / f"c{k % 64}"), encoded)
+                wr += time.thread_time() - t1
+                enc += t1 - t
+                size += len(encoded)
+            out["zarr"][label] = {"encode_s": enc * scale, "write_s": wr * scale, "mb": size * bands_full / len(bands) / br.MB,
+                                  "ratio": raw / max(size * bands_full / len(bands), 1)}
+        for label, level, predictor in COG_CODECS:
+            enc = 0.0
+            size = 0
+            for buf in chunks(TILE):
+                t = time.thread_time()
+                if level is None:
+                    encoded = buf.tobytes()
+                else:
+                    encoded = encode_tile(buf, level=level, predictor=predictor)
+                enc += time.thread_time() - t
+                size += len(encoded)
+            out["cog"][label] = {"encode_s": enc * scale, "mb": size * bands_full / len(bands) / br.MB,
+                                 "ratio": raw / max(size * bands_full / len(bands), 1)}
+        for label, down in (("overviews: 2 x 2 NaN-mean", downsample2), ("overviews: nearest", lambda x: np.array(x[::2, ::2]))):
+            spent = 0.0
+            for buf in chunks(1024):
+                t = time.thread_time()
+                down(buf)
+                spent += time.thread_time() - t
+            out["cog"][label] = {"encode_s": spent * scale * 4 / 3}
+    finally:
+        shutil.rmtree(spool, ignore_errors=True)
+    return out
+
+
+def codec_rows(T: dict) -> list[str]:
+    """Markdown tables of :func:`codec_table`'s result."""
+    rows = [f"Zarr chunk codecs ({T['bands']}-band mosaic of {T['cubes']} cubes, scaled to 300 bands; raw float32 "
+            f"{T['raw_mb']:.0f} MB):", "",
+            "| codec | encode CPU-s per cube | chunk-file write CPU-s per cube | MB on disk | ratio |", "|---|---|---|---|---|"]
+    rows += [f"| {k} | {v['encode_s']:.2f} | {v['write_s']:.2f} | {v['mb']:.0f} | {v['ratio']:.2f} |"
+             for k, v in T["zarr"].items()]
+    rows += ["", "COG tile codecs (512 px tiles, full resolution; overview levels add about a third):", "",
+             "| codec | CPU-s per cube | MB on disk (full resolution) | ratio |", "|---|---|---|---|"]
+    rows += [f"| {k} | {v['encode_s']:.2f} | {v.get('mb', 0):.0f} | {v.get('ratio', 0):.2f} |" if "mb" in v
+             else f"| {k} | {v['encode_s']:.2f} | - | - |" for k, v in T["cog"].items()]
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     br.add_flight_arguments(ap, bands=300, workdir="/tmp/archive-bench-outputs", cubes=8)
@@ -178,13 +333,22 @@ def main(argv=None) -> int:
     ap.add_argument("--scaling-bands", type=int, default=32)
     ap.add_argument("--scaling-formats", default=",".join(FORMATS))
     ap.add_argument("--formats", default=",".join(FORMATS))
+    ap.add_argument("--shape", choices=sorted(SHAPES), default="heldout",
+                    help="flight shape: heldout (default: passes along grid north, 29 %% sidelap), sidelap "
+                         "(43 %%), tilted (the pre-issue-37 default: passes at 20 deg, a third of the grid NaN)")
+    ap.add_argument("--no-stages", action="store_true",
+                    help="skip the second, stage-profiled run of each format (bench/stage_profile.py)")
+    ap.add_argument("--codec-table", action="store_true",
+                    help="measure every Zarr and COG codec on the ENVI render's tiles (needs hdr in --formats)")
+    ap.add_argument("--compression", help="archive render --compression for every format (default: the command's)")
     ap.add_argument("--no-gdal", action="store_true")
     ap.add_argument("--json", metavar="FILE")
     args = ap.parse_args(argv)
+    args.heading, args.spacing = SHAPES[args.shape]
     work = Path(args.workdir)
     work.mkdir(parents=True, exist_ok=True)
     formats = [f for f in args.formats.split(",") if f]
-    R: dict = {"machine": br.machine(), "args": vars(args), "load_start": br.load(), "sidelap": sidelap()}
+    R: dict = {"machine": br.machine(), "args": vars(args), "load_start": br.load(), "sidelap": sidelap(args.spacing)}
     try:
         from archive.render.context import gl_info
 
@@ -193,7 +357,7 @@ def main(argv=None) -> int:
         R["gl"] = repr(exc)
     _say(f"machine {R['machine']}, GL {R['gl']}")
     sl = R["sidelap"]
-    _say(f"passes {sl['spacing_m']:.0f} m apart at {sl['height_m']:.0f} m: swath {sl['swath_m']:.1f} m, "
+    _say(f"shape {args.shape}: heading {args.heading:g} deg, passes {sl['spacing_m']:.0f} m apart at {sl['height_m']:.0f} m: swath {sl['swath_m']:.1f} m, "
          f"sidelap {100 * sl['sidelap']:.0f} %")
 
     flight = br.flight_dir(args)
@@ -224,13 +388,22 @@ def main(argv=None) -> int:
         _say(f"GDAL warp: {R['gdal']['wall_s']:.1f} s, peak {br.fmt_gb(R['gdal']['peak_rss'])}")
 
     R["render"] = {}
+    compression = ["--compression", args.compression] if args.compression else []
     for fmt in formats:
         out = work / f"mosaic.{fmt}"
-        r = render_cli(flight, out, args.gsd, ground, work=work)
-        R["render"][fmt] = r
+        r = R["render"][fmt] = render_plain(flight, out, args.gsd, ground, extra=compression)
         _say(f"archive render -> .{fmt}: {r['wall_s']:.1f} s (+sync {r['wall_sync_s']:.1f}), "
-             f"{r['cpu_s']:.1f} CPU-s, cores busy {100 * r['busy_cpu']:.0f} % (tasks {100 * r['busy_tasks']:.0f} %), "
+             f"{r['tree_cpu_s']:.1f} CPU-s (tree, start to exit), cores busy {100 * r['busy_tree']:.0f} %, "
              f"tree RSS {br.fmt_gb(r['peak_tree_rss'])}, {r['out_mb']:.0f} MB")
+        if fmt == "hdr" and args.codec_table:
+            R["codecs"] = codec_table(out, len(plan.jobs), plan.nbands, spool=work)
+            print("\n".join(codec_rows(R["codecs"])), flush=True)
+        if not args.no_stages:   # the same render again, through stage_profile.py: CPU-s per stage
+            p = render_cli(flight, out, args.gsd, ground, work=work, extra=compression)
+            r["profiled"] = {k: v for k, v in p.items() if k != "profile"}
+            r["profile"] = p["profile"]
+            _say(f"  profiled: {p['cpu_s']:.1f} CPU-s of the render (cluster start-up excluded), threads busy "
+                 f"{100 * p['busy_tasks']:.0f} % (task stream)")
         if fmt == "tif":
             R["cog_reads"] = cog_window_reads(out)
             from archive.outputs.cog_check import check_cog
@@ -242,13 +415,12 @@ def main(argv=None) -> int:
     R["scaling"] = {}
     for spec in [v for v in args.scaling.split(",") if v]:
         n, p = (int(x) for x in spec.split("x"))
-        small = scaling_flight(work, n, p, args.scaling_bands, args.samples, args.lines)
+        small = scaling_flight(work, n, p, args.scaling_bands, args.samples, args.lines, args.heading, args.spacing)
         br.warm(small)
         for fmt in [f for f in args.scaling_formats.split(",") if f]:
             out = work / f"scaling{n}.{fmt}"
-            r = render_cli(small, out, args.gsd, ground, work=work)
+            r = render_plain(small, out, args.gsd, ground, extra=compression)
             _remove(out)
-            r.pop("profile")
             R["scaling"][f"{n}x{p}.{fmt}"] = r
             _say(f"scaling {n} cubes / {p} passes -> .{fmt}: {r['wall_s']:.1f} s, tree RSS {br.fmt_gb(r['peak_tree_rss'])}")
     R["load_end"] = br.load()
@@ -274,30 +446,31 @@ def report(R: dict) -> None:
           f"{R['grid']['bands']} bands ({R['grid']['mb']:.0f} MB float32), input {R['grid']['input_mb']:.0f} MB; "
           f"load {R['load_start']} -> {R['load_end']}")
     print()
-    print("| path | wall s | wall + sync s | ratio to floor | GDAL / it | CPU-s (tree, start-up incl.) | CPU-s per cube (render) | "
-          "cores busy (CPU/wall) | busy in graph (CPU/graph) | threads busy (task stream) | peak RSS GB (tree) | "
+    print("| path | wall s | wall + sync s | ratio to floor | GDAL / it | CPU-s (tree, start to exit) | CPU-s per cube (tree) | "
+          "cores busy (tree CPU / wall / cores) | threads busy (task stream, profiled run) | peak RSS GB (tree) | "
           "lines/s | load before -> after |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     print(f"| I/O floor (read input + write {R['grid']['mb']:.0f} MB, fsync) | {floor:.1f} | {floor:.1f} | 1.00 | "
-          "- | - | - | - | - | - | - | - | - |")
+          "- | - | - | - | - | - | - | - |")
     if "gdal" in R:
         gd = R["gdal"]
         print(f"| GDAL geolocation warp (all bands per call, 2 threads) | {gd['wall_s']:.1f} | - | "
-              f"{gd['wall_s'] / floor:.2f} | 1.00 | - | - | - | - | - | {br.fmt_gb(gd['peak_rss'])} | "
+              f"{gd['wall_s'] / floor:.2f} | 1.00 | - | - | - | - | {br.fmt_gb(gd['peak_rss'])} | "
               f"{R['lines'] / gd['wall_s']:.0f} | - |")
     for fmt, r in R["render"].items():
         gdal = f"{R['gdal']['wall_s'] / r['wall_sync_s']:.2f}" if "gdal" in R else "-"
         print(f"| `archive render` -> .{fmt} | {r['wall_s']:.1f} | {r['wall_sync_s']:.1f} | "
-              f"**{r['wall_sync_s'] / floor:.2f}** | {gdal} | {r['tree_cpu_s']:.1f} | {r['cpu_s'] / R['cubes']:.2f} | "
-              f"{100 * r['busy_cpu']:.0f} % | {100 * r['busy_graph_cpu']:.0f} % | {100 * r['busy_tasks']:.0f} % | "
+              f"**{r['wall_sync_s'] / floor:.2f}** | {gdal} | {r['tree_cpu_s']:.1f} | {r['tree_cpu_s'] / R['cubes']:.2f} | "
+              f"**{100 * r['busy_tree']:.0f} %** | "
+              f"{'-' if 'profiled' not in r else format(100 * r['profiled']['busy_tasks'], '.0f') + ' %'} | "
               f"{br.fmt_gb(r['peak_tree_rss'])} | {R['lines'] / r['wall_s']:.0f} | {r['load'][0]} -> {r['load'][1]} |")
-    if R["render"]:
+    if any("profile" in r for r in R["render"].values()):
         print()
         print("\n".join(stage_table(R)))
         print()
         print("Task stream (task-seconds by kind, count):")
         for fmt, r in R["render"].items():
-            tasks = r["profile"]["tasks"]
+            tasks = r.get("profile", {}).get("tasks", {})
             print(f"  .{fmt}: " + ", ".join(f"{k} {v['task_s']:.1f} s ({v['count']})" for k, v in
                                             sorted(tasks.items(), key=lambda kv: -kv[1]["task_s"]) if v["task_s"] > 0.05))
     if "cog_reads" in R:
@@ -306,12 +479,12 @@ def report(R: dict) -> None:
             print(f"COG 512 x 512 window, {name}: {v['bytes'] / 1e6:.2f} MB read in {v['s'] * 1000:.0f} ms")
     if R["scaling"]:
         print()
-        print("| flight | format | wall s | CPU-s (render) | peak RSS (tree) | load |")
+        print("| flight | format | wall s | CPU-s (tree) | peak RSS (tree) | load |")
         print("|---|---|---|---|---|---|")
         for key, r in R["scaling"].items():
             spec, fmt = key.split(".")
             n, p = spec.split("x")
-            print(f"| {n} cubes / {p} passes | .{fmt} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
+            print(f"| {n} cubes / {p} passes | .{fmt} | {r['wall_s']:.1f} | {r['tree_cpu_s']:.1f} | "
                   f"{br.fmt_gb(r['peak_tree_rss'])} | {r['load'][1]} |")
 
 

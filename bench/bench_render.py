@@ -142,21 +142,40 @@ def add_flight_arguments(ap: argparse.ArgumentParser, bands: int, workdir: str, 
     ap.add_argument("--workdir", default=workdir, help=f"where the flight and outputs go (default {workdir})")
 
 
-def flight_dir(args) -> Path:
-    """Simulate the flight into --workdir once; reuse it while its completion marker exists."""
-    d = Path(args.workdir) / f"flight_c{args.cubes}_b{args.bands}_s{args.samples}_l{args.lines}"
+def flight_dir(args, prefix: str = "flight_") -> Path:
+    """Simulate the flight into --workdir once; reuse it while its completion marker exists.
+
+    ``args.heading`` (degrees, grid heading of the passes) and ``args.spacing`` (metres between
+    passes) and ``args.cubes_per_pass`` (default 2), when the parser has them and they differ from the simulator's defaults, go into the
+    directory's name and the simulation (the spacing by the simulator's ``SPACING`` constant, set
+    only while this flight is simulated)."""
+    from archive.simulator import command
+
+    heading = getattr(args, "heading", None)
+    spacing = getattr(args, "spacing", None)
+    name = f"{prefix}c{args.cubes}_b{args.bands}_s{args.samples}_l{args.lines}"
+    if heading is not None and heading != command.HEADING_DEG:
+        name += f"_h{heading:g}"
+    if spacing is not None and spacing != command.SPACING:
+        name += f"_p{spacing:g}"
+    d = Path(args.workdir) / name
     marker = d / ".bench-complete"
     if marker.exists():
         print(f"reusing simulated flight {d} (marker {marker.name})", flush=True)
         return d
-    from archive.simulator.command import simulate_flight
-
     if d.exists():
         shutil.rmtree(d)
     print(f"simulating {args.cubes} cube(s) of {args.samples} x {args.lines} x {args.bands} into {d}", flush=True)
     t = time.perf_counter()
-    simulate_flight(d, cubes=args.cubes, bands=args.bands, samples=args.samples, lines=args.lines,
-                    cubes_per_pass=2, seed=1, progress=True)
+    default_spacing = command.SPACING
+    try:
+        if spacing is not None:
+            command.SPACING = float(spacing)
+        command.simulate_flight(d, cubes=args.cubes, bands=args.bands, samples=args.samples, lines=args.lines,
+                                cubes_per_pass=getattr(args, "cubes_per_pass", 2), seed=1, progress=True,
+                                heading_deg=command.HEADING_DEG if heading is None else float(heading))
+    finally:
+        command.SPACING = default_spacing
     marker.write_text(f"{time.perf_counter() - t:.1f} s\n")
     return d
 

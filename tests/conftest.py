@@ -6,6 +6,7 @@ import contextlib
 from pathlib import Path
 
 import pytest
+import rioxarray  # noqa: F401  (registers .rio for tests reading outputs; the render no longer imports it)
 
 RESONON_SAMPLES = Path(__file__).resolve().parents[1].parent / "shared" / "samples" / "resonon"
 

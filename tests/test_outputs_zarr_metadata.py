@@ -129,3 +129,17 @@ def test_store_opens_in_xarray_rioxarray_and_gdal(tmp_path, zarr_format):
             assert z.count == len(BANDS) and z.shape == GRID.shape and z.crs.to_epsg() == GRID.epsg
             assert z.transform.almost_equals(GRID.transform, precision=1e-9)
             assert np.isnan(z.read(1, window=((0, 4), (0, 4)))).all()
+
+
+@pytest.mark.parametrize("epsg", [32616, 32760, 3857, 25832, 2056])
+def test_crs_attributes_equal_rioxarrays_without_importing_it(epsg):
+    """The Zarr output's ``spatial_ref`` attributes are made without xarray/rioxarray (issue 37:
+    their import was a serial second of every Zarr render); they equal rioxarray's ``write_crs``,
+    key order included."""
+    import rioxarray  # noqa: F401  (registers .rio)
+    import xarray as xr
+
+    from archive.outputs.zarr import _crs_attrs
+
+    expected = list(xr.Dataset().rio.write_crs(epsg)["spatial_ref"].attrs.items())
+    assert list(_crs_attrs.__wrapped__(epsg)) == expected

@@ -250,10 +250,22 @@ def mosaic_dataset(grid: Grid, values, saturated, band_indices: Sequence[int],
 
 @functools.lru_cache(maxsize=16)
 def _crs_attrs(epsg: int) -> tuple:
-    import rioxarray  # noqa: F401  (registers .rio)
-    import xarray as xr
+    """rioxarray's ``write_crs`` attributes of EPSG:``epsg`` (its steps: pyproj's CF grid mapping of
+    the rasterio CRS, then ``spatial_ref`` and ``crs_wkt`` = rasterio's WKT), without importing
+    xarray and rioxarray into the command (a serial second of its start; issue 37);
+    tests/test_outputs_zarr_metadata.py compares them with rioxarray's."""
+    import pyproj
+    import rasterio.crs
 
-    return tuple(xr.Dataset().rio.write_crs(int(epsg))["spatial_ref"].attrs.items())
+    crs = rasterio.crs.CRS.from_user_input(int(epsg))
+    try:
+        attrs = pyproj.CRS.from_user_input(crs).to_cf()
+    except KeyError:
+        attrs = {}
+    wkt = crs.to_wkt()
+    attrs["spatial_ref"] = wkt
+    attrs["crs_wkt"] = wkt
+    return tuple(attrs.items())
 
 
 def _spatial_ref_attrs(grid: Grid) -> dict:
