@@ -693,6 +693,29 @@ class CheckedDn:
             out[lo - line0:hi - line0] = values[lo - a:hi - a]
         return out
 
+    def read_bands(self, bands: Sequence[int], line0: int, line1: int) -> np.ndarray:
+        """(len(bands), line1 - line0, samples) DN of ``bands``, lines [line0, line1), every chunk
+        checked as by :meth:`read`. In object storage every chunk of the block is fetched in one
+        zarr call (its requests run concurrently: one request's latency instead of one per band),
+        then each checked; on a local disk, :meth:`read` band by band (the same values)."""
+        bands = [int(b) for b in bands]
+        total, c = int(self.array.shape[1]), self.chunk
+        if storage.is_url(self.store) and len(bands) > 1:
+            k0, k1 = line0 // c, -(-line1 // c)
+            a0, a1 = k0 * c, min(k1 * c, total)
+            try:
+                block = self.array.get_orthogonal_selection((bands, slice(a0, a1), slice(None)))
+            except Exception:  # noqa: BLE001 - found again, and named, by read() below
+                block = None
+            if block is not None and all(
+                    chunk_digest(block[i, k * c - a0:min((k + 1) * c, total) - a0]) == self.digests[b, k].tobytes()
+                    for i, b in enumerate(bands) for k in range(k0, k1)):
+                return np.ascontiguousarray(block[:, line0 - a0:line1 - a0])
+        out = np.empty((len(bands), line1 - line0, int(self.array.shape[2])), self.dtype)
+        for i, b in enumerate(bands):
+            out[i] = self.read(b, line0, line1)
+        return out
+
 
 __all__ = ["COMPLETE", "CheckedDn", "CollectionInfo", "CorruptChunkError", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS",
            "StorePlan", "StoredCalibration", "StoredCube", "StoredPoses", "chunk_tasks", "content_version",

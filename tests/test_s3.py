@@ -414,3 +414,21 @@ def test_killed_batch_into_s3_is_resumed(s3_bucket, tmp_path):
     # the resumed run removed its own staging folders (the killed run's stays in $TMPDIR)
     left = {p.name for p in Path(tempfile.gettempdir()).glob("archive-staging-*")} - staging_before
     assert len(left) <= 2
+
+
+def test_python_api_over_an_s3_archive(s3_archive, small_archive):
+    """``archive.open_archive("s3://...")``: search, and a lazy mosaic computed in this process
+    (threads), equal bit for bit to the same mosaic from the local archive."""
+    import archive
+
+    url, cid, _ = s3_archive
+    arc = archive.open_archive(url)
+    assert arc.search(bbox=(-180, -90, 180, 90)) == [cid] and arc.search(wavelength=5000) == []
+    import dask
+
+    with dask.config.set(scheduler="threads"):
+        a = archive.mosaic([cid], archive=arc, gsd=0.5).compute()
+        b = archive.mosaic([cid], archive=archive.open_archive(small_archive[0]), gsd=0.5).compute()
+    name = list(a.data_vars)[0]
+    assert np.isfinite(a[name].values).mean() > 0.3
+    np.testing.assert_array_equal(a[name].values, b[name].values)

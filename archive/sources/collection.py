@@ -91,10 +91,7 @@ class CollectionSource(NavigatedSource):
         if self._dn is None:
             self._dn = CheckedDn(self.store)
         l0 = self._line_offset[cube]
-        out = np.empty((len(idx), self.cubes[cube].lines, self.cubes[cube].samples), self._dn.dtype)
-        for k, b in enumerate(idx):
-            out[k] = self._dn.read(b, l0, l0 + self.cubes[cube].lines)
-        return out
+        return self._dn.read_bands(idx, l0, l0 + self.cubes[cube].lines)   # object storage: chunks fetched at once
 
     def radiometry(self, cube: int, bands: Sequence[int], mode: str,
                    white_reference: np.ndarray | None = None) -> Radiometry:
