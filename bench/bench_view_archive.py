@@ -88,8 +88,20 @@ def archive_bench(archive: Path, reps: int, cold: int, cache_mb: int, width: int
 
     def load(browser, server, key):
         page = browser.new_page(viewport={"width": width, "height": height})
-        answers = []
-        page.on("response", lambda r: answers.append((r.url.split("/")[-5], r.status)) if "/values/" in r.url else None)
+        answers = []   # (flight id, status) of every band-value tile answered, batched or not
+
+        def answered(r):
+            if "/values/batch" in r.url:
+                from urllib.parse import parse_qs, urlsplit
+
+                parts = parse_qs(urlsplit(r.url).query).get("parts", [""])[0].split(";")
+                index = json.loads(r.headers.get("x-parts") or "[]")
+                answers.extend((p.split("/")[0], i[0]) for p, i in zip(parts, index, strict=False))
+                batches.append(len(parts))
+            elif "/values/" in r.url:
+                answers.append((r.url.split("/")[-5], r.status))
+        batches = []
+        page.on("response", answered)
 
         def go():
             page.goto(f"http://127.0.0.1:{server.port}/")
@@ -98,7 +110,7 @@ def archive_bench(archive: Path, reps: int, cold: int, cache_mb: int, width: int
                                    "viewer.map.getZoom() > 5 : viewer.booted)", timeout=180_000)
             return page.evaluate("viewer.settledAt") / 1000.0
         timed(key, server, go)
-        out.update(zoom_level=page.evaluate("viewer.map.getZoom()"), requests=len(answers),
+        out.update(zoom_level=page.evaluate("viewer.map.getZoom()"), requests=len(answers), batches=len(batches),
                    empty=sum(s == 204 for _, s in answers), with_values=len({i for i, s in answers if s == 200}))
         return page
 
@@ -166,7 +178,8 @@ def archive_main(args: argparse.Namespace) -> str:
         "|---|---|---|---|---|---|",
         *rows,
         "",
-        f"A page load: {out['requests']} band-value requests ({out['empty']} empty), values from {out['with_values']} "
+        f"A page load: {out['requests']} band-value tiles ({out['empty']} empty; {out.get('batches', 0)} requests of "
+        f"several flights' tiles), values from {out['with_values']} "
         f"of the {len(ids)} flights; the warm server's render jobs: {out['render']['done']} drawn, "
         f"{out['render']['skipped'] + out['render']['stopped']} dropped; band-value tiles answered from the ingest "
         f"previews: {out['render']['from_previews']} (overview previews {'taken out (--no-previews)' if args.no_previews else 'in the archive'}).",

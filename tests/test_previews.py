@@ -178,3 +178,35 @@ def test_stale_or_missing_previews_fall_back_and_ingest_adds_them(archive_copy, 
     assert again is not None and sorted(again.levels) == sorted(previews.levels)
     for zoom in previews.levels:
         assert np.array_equal(again.load(zoom), previews.load(zoom), equal_nan=True)   # the same values: deterministic
+
+
+def test_many_tiles_of_many_flights_in_one_request(small_archive):
+    """/api/values/batch answers several flights' tiles at once (what the page asks at archive scale):
+    each part's bytes, window and status are those of the one-tile request; a bad part costs only
+    itself."""
+    import json
+
+    arc, cid = small_archive
+    previews = read_previews(open_root(arc).store(cid))
+    z = max(previews.levels)
+    tiles = _level_tiles(previews.levels[z])
+    bands = ",".join(map(str, previews.bands))
+    with _client(create_app(FlightRegistry(arc))) as client:
+        asked = [(cid, z, x, y, bands) for x, y in tiles] + [(cid, z, tiles[0][0] + 50, tiles[0][1], "0"),
+                                                            ("no-such-flight", z, 0, 0, "0"), (cid, z, 0, 0, "999")]
+        parts = ";".join(f"{c}/{zz}/{x}/{y}/{b}" for c, zz, x, y, b in asked)
+        r = client.get("/api/values/batch", params={"parts": parts, "mode": "radiance", "overlap": "last", "window": "1"})
+        assert r.status_code == 200, r.text
+        index = json.loads(r.headers["x-parts"])
+        assert [p[0] for p in index[-3:]] == [204, 404, 400] and "999" in index[-1][5]
+        offset = 0
+        for (c, zz, x, y, b), (status, size, side, window, key, error) in zip(asked[:-2], index, strict=False):
+            one = client.get(f"/api/collections/{c}/values/{zz}/{x}/{y}",
+                             params={"bands": b, "mode": "radiance", "overlap": "last", "window": "1"})
+            assert status == one.status_code and error is None and not key
+            if status == 200:
+                assert r.content[offset:offset + size] == one.content and side == int(one.headers["x-side"])
+                assert window == [int(v) for v in one.headers["x-window"].split(",")]
+            offset += size
+        assert offset == len(r.content)
+        assert client.get("/api/values/batch", params={"parts": ""}).status_code == 400

@@ -386,6 +386,10 @@ def test_several_flights_on_one_map(server, browser, archive_of_flights):
         inside = binary_erosion(_footprint_mask(features[cid], drawn.shape, geo), iterations=2)
         assert inside.sum() > 50, cid
         assert drawn[inside].mean() > 0.8, f"{cid} shows no imagery at the zoom fitting the archive"
+    # flights drawn as ingested are asked several tiles per request (/api/values/batch, issue 36)
+    batched = [u for u in page.values_requests if "/values/batch?" in u]
+    assert batched and all(u.count("%3B") + 1 <= 24 for u in batched)
+    assert sum(u.count("%3B") + 1 for u in batched) >= FLIGHTS, "each flight's tiles in a batch"
     # flights 0 and 1 overlap: both drawn at once, and their order decides the overlap
     page.page.evaluate(f"() => {{ location.hash = 'flights={ids[1]},{ids[0]}'; }}")
     page.page.wait_for_function(f"() => window.viewer.hidden.size === {FLIGHTS - 2}")

@@ -20,6 +20,9 @@ trace):
   width,height``; a flight a few pixels wide at an overview zoom sends kilobytes, not 0.8 MB); the
   flight as ingested at a zoom at or above its ingest previews' finest (:mod:`archive.previews`):
   from them, without the render thread, header ``X-Source: previews``;
+- ``GET /api/values/batch?parts=ID/Z/X/Y/I,J,K;...&mode=&overlap=&window=1`` the band values of up to
+  MAX_PARTS tiles of any flights in one response (one after the other; header ``X-Parts``: each
+  part's status, bytes, side, window, key, error): what the page asks for flights drawn as ingested;
 - ``GET /api/collections/{id}/outline?ground_height=&sync_offset=&cubes=`` GeoJSON MultiPolygon of
   the cubes' ground meshes (the footprint as drawn now);
 - ``GET /api/collections/{id}/point?lon=&lat=&gsd=&mode=...`` the full spectrum of the output pixel
@@ -82,6 +85,8 @@ def cache_bytes(cache_mb: int) -> dict[str, int]:
     """The byte limit of each of the viewer's caches (CACHE_SHARES of ``cache_mb`` MiB)."""
     return {name: int((int(cache_mb) << 20) * share) for name, share in CACHE_SHARES.items()}
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
+#: Tiles asked at most in one request of ``/api/values/batch`` (the page asks up to BATCH of app.js).
+MAX_PARTS = 64
 
 
 def is_loopback(host: str) -> bool:
@@ -207,17 +212,15 @@ def values_window(planes) -> tuple[int, int, int, int]:
     return int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)
 
 
-def values_response(planes, key, headers: dict, window: tuple[int, int, int, int] | None):
-    """The response of a band-value tile: (k, n, n) ``planes`` and the (n, n) ``key`` (or None), only
-    their ``window`` (column, row, width, height; None: the whole tile, no X-Window header)."""
-    from starlette.responses import Response
-
+def values_body(planes, key, headers: dict, window: tuple[int, int, int, int] | None) -> tuple[dict, bytes]:
+    """(headers, body) of a band-value tile: (k, n, n) ``planes`` and the (n, n) ``key`` (or None),
+    only their ``window`` (column, row, width, height; None: the whole tile, no X-Window header)."""
     if window is not None:
         c0, r0, w, h = window
         planes = planes[:, r0:r0 + h, c0:c0 + w]
         key = None if key is None else key[r0:r0 + h, c0:c0 + w]
         headers = {**headers, "X-Window": ",".join(map(str, window))}
-    return Response(encode_values(planes, key), media_type="application/octet-stream", headers=headers)
+    return headers, encode_values(planes, key)
 
 
 def registry_gsd(registry: FlightRegistry, cid: str) -> float:
@@ -242,6 +245,8 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
     from starlette.responses import HTMLResponse, JSONResponse, Response
     from starlette.routing import Mount, Route
     from starlette.staticfiles import StaticFiles
+
+    from archive.view.residual import residual_routes
 
     viewer = Viewer(registry, tile_cache_bytes)
     static = files("archive.view") / "static"
@@ -309,25 +314,27 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
             viewer.tiles.put(key, png, len(png))
         return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=600"})
 
-    async def values(request):
-        """Band values of a tile (float32 planes; see :func:`archive.view.tiles.encode_values`),
-        cached per band; 204 where no line covers the tile."""
+    def values_scale(params) -> int:
+        scale = parse_number(params, "scale", 1, 16, 1)
+        if scale not in (1, 2, 4, 8, 16):
+            raise InputError("scale", f"expected 1, 2, 4, 8 or 16 (coarse previews), got {scale:g}")
+        return int(scale)
+
+    async def tile_values(request, cid, z, x, y, grid, query, scale: int, window: bool
+                          ) -> tuple[dict, bytes | None]:
+        """(headers, body) of the band values of one tile of one flight (float32 planes; see
+        :func:`archive.view.tiles.encode_values`), cached per band; body None where no line covers
+        the tile (204)."""
         import dataclasses
 
         import numpy as np
 
-        cid, z, x, y, grid, query = tile_request(request)
         if query.bands is None:
             raise InputError("bands", "give the 0-based band indices wanted, e.g. bands=3,5,7")
-        scale = parse_number(request.query_params, "scale", 1, 16, 1)
-        if scale not in (1, 2, 4, 8, 16):
-            raise InputError("scale", f"expected 1, 2, 4, 8 or 16 (coarse previews), got {scale:g}")
-        scale = int(scale)
         common = dataclasses.replace(query, bands=None, stretch=Stretch())
         keyed = query.overlap == "nadir"
         headers = {"Cache-Control": "private, max-age=600", "X-Bands": ",".join(map(str, query.bands)),
                    "X-Side": str(TILE // scale), "X-Key": "view_zenith" if keyed else ""}
-        window = request.query_params.get("window") == "1"
         if not keyed and query.cubes is None and query.ground_height is None and query.sync_offset is None:
             # the flight as ingested, zoomed out: its overview previews, without the DN (issue 36).
             # On the event loop: two stat() calls, then slices of arrays of a few KB (a level is read
@@ -343,8 +350,8 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
                     headers["X-Source"] = "previews"
                     viewer.from_previews += 1
                     if planes is None:
-                        return Response(status_code=204, headers=headers)
-                    return values_response(planes, None, headers, values_window(planes) if window else None)
+                        return headers, None
+                    return values_body(planes, None, headers, values_window(planes) if window else None)
         wanted = list(query.bands) + (["key"] if keyed else [])
         keys = {b: (cid, z, x, y, b, common, scale) for b in wanted}
         found = {b: viewer.tiles.get(k) for b, k in keys.items()}
@@ -365,18 +372,72 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
                     found["key"] = key
                     viewer.tiles.put(keys["key"], key, key.nbytes)
         if empty:
-            return Response(status_code=204, headers=headers)
+            return headers, None
         planes = np.stack([found[b] for b in query.bands])
         key = found["key"] if keyed else None
+        place = None
         if window:
             # one window per tile and parameters, whichever bands ask: the page keeps the planes
             # of a tile together (a window differing from the one it has drops those, after an eviction)
             window_key = (cid, z, x, y, "window", common, scale)
-            window = viewer.tiles.get(window_key)
-            if window is None:
-                window = values_window(planes)
-                viewer.tiles.put(window_key, window, 64)
-        return values_response(planes, key, headers, window or None)
+            place = viewer.tiles.get(window_key)
+            if place is None:
+                place = values_window(planes)
+                viewer.tiles.put(window_key, place, 64)
+        return values_body(planes, key, headers, place)
+
+    async def values(request):
+        """Band values of a tile (:func:`tile_values`); 204 where no line covers the tile."""
+        cid, z, x, y, grid, query = tile_request(request)
+        headers, body = await tile_values(request, cid, z, x, y, grid, query, values_scale(request.query_params),
+                                          request.query_params.get("window") == "1")
+        if body is None:
+            return Response(status_code=204, headers=headers)
+        return Response(body, media_type="application/octet-stream", headers=headers)
+
+    async def values_batch(request):
+        """Band values of several tiles of several flights in one response (the page asks this for
+        flights drawn as ingested: one request instead of one per flight and tile). ``parts=ID/Z/X/Y/
+        I,J,K;...`` (at most MAX_PARTS), the other parameters shared (``mode``, ``overlap``,
+        ``window``...); body: each part's planes one after the other; header ``X-Parts``: per part
+        ``[status, bytes, side, window or null, key, error or null]`` (status 200, 204, or the 4xx an
+        error of that part alone would have had)."""
+        import json
+
+        text = request.query_params.get("parts") or ""
+        if len(text) > 200 * MAX_PARTS:
+            raise InputError("parts", f"{len(text)} characters is too long")
+        parts = [p for p in text.split(";") if p]
+        if not 0 < len(parts) <= MAX_PARTS:
+            raise InputError("parts", f"give 1 to {MAX_PARTS} parts ID/Z/X/Y/BANDS separated by ';', got {len(parts)}")
+        shared = {k: v for k, v in request.query_params.items() if k not in ("parts", "bands")}
+        scale = values_scale(shared)
+        window = shared.get("window") == "1"
+        index, bodies = [], []
+        for part in parts:
+            try:
+                fields = part.split("/")
+                if len(fields) != 5:
+                    raise InputError("parts", f"expected ID/Z/X/Y/BANDS, got {part[:80]!r}")
+                try:
+                    z, x, y = (int(v) for v in fields[1:4])
+                except ValueError:
+                    raise InputError("parts", f"tile {'/'.join(fields[1:4])[:40]!r} is not Z/X/Y") from None
+                cid = registry.check(fields[0])
+                if z > MAX_ZOOM:
+                    raise InputError("z", f"zoom {z} is out of range 0..{MAX_ZOOM}", "request a shallower tile")
+                query = parse_query({**shared, "bands": fields[4]})
+                headers, body = await tile_values(request, cid, z, x, y, tile_grid(z, x, y), query, scale, window)
+            except ArchiveError as exc:
+                status = 404 if isinstance(exc, MissingInputError) else 500 if isinstance(exc, RenderError) else 400
+                index.append([status, 0, None, None, False, str(exc)])
+                continue
+            win = headers.get("X-Window")
+            index.append([200 if body is not None else 204, len(body or b""), int(headers["X-Side"]),
+                          [int(v) for v in win.split(",")] if win else None, bool(headers["X-Key"]), None])
+            bodies.append(body or b"")
+        return Response(b"".join(bodies), media_type="application/octet-stream",
+                        headers={"Cache-Control": "no-store", "X-Parts": json.dumps(index, separators=(",", ":"))})
 
     async def outline(request):
         cid = cid_of(request)
@@ -473,6 +534,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
         Route("/api/collections/{cid}", describe),
         Route("/api/collections/{cid}/tiles/{z:int}/{x:int}/{y:int}.png", tile),
         Route("/api/collections/{cid}/values/{z:int}/{x:int}/{y:int}", values),
+        Route("/api/values/batch", values_batch),
         Route("/api/collections/{cid}/outline", outline),
         Route("/api/collections/{cid}/point", point),
         Route("/api/collections/{cid}/stats", stats),
@@ -480,6 +542,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
         Route("/api/stacks/{name}/tiles/{z:int}/{x:int}/{y:int}.png", stack_tile),
         Route("/api/stacks/{name}/values/{z:int}/{x:int}/{y:int}", stack_values),
         Route("/api/stacks/{name}/point", stack_point),
+        *residual_routes(stack_of),   # /api/stacks/{name}/residual (archive.view.residual, issue 33)
         Mount("/static", StaticFiles(directory=str(static)), name="static"),
         *stac_routes(None if registry.archive is None else ArchiveRoot(registry.archive.path)),
     ]

@@ -11,6 +11,7 @@ const PALETTE = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf
 const MAX_PINS = PALETTE.length;
 const CACHE_BYTES = 384 << 20;      // band planes kept in the browser
 const PREVIEW_UP = 2;               // slider previews: the 256 px tiles 2 zooms up (64 px a shown tile, 1 request per 16)
+const BATCH = 24;                   // tiles of flights drawn as ingested asked in one request (/api/values/batch)
 
 const viewer = (window.viewer = {
   map: null, features: [], byId: new Map(), order: [], hidden: new Set(), open: null, info: null,
@@ -208,41 +209,57 @@ function entryReady(e, f, nadir) {
   return f.bands.every((b) => e.planes.has(b)) && (!nadir || e.key !== null);
 }
 
-function request(tile, f, spec) {
+// what a tile's entry still lacks: null when it is ready or already asked, else {ek, e, bands, rk}
+function missingOf(tile, f, spec) {
   const ek = entryKey(f, tile.coords);
   const e = entryOf(ek);
-  if (entryReady(e, f, spec.nadir)) return;
+  if (entryReady(e, f, spec.nadir)) return null;
   const missing = [...new Set(f.bands)].filter((b) => !e.planes.has(b));
   const bands = missing.length ? missing : f.bands.slice(0, 1);
   const rk = `${ek}|${spec.nadir}|${bands}`;
-  for (const [k, r] of inflight) if (r.entry === ek && bands.every((b) => r.bands.includes(b)) && r.nadir === spec.nadir) return;
-  if (inflight.has(rk)) return;
+  for (const [k, r] of inflight) if (r.entry === ek && bands.every((b) => r.bands.includes(b)) && r.nadir === spec.nadir) return null;
+  if (inflight.has(rk)) return null;
+  return { ek, e, bands, rk };
+}
+
+// keep the values of one answer (the window of the tile that holds values: column, row, width,
+// height of the side x side tile; bands, then the key plane, float32 from offset bytes of buffer)
+function keep(e, bands, buffer, offset, bytes, side, win, keyed) {
+  win = win || [0, 0, side, side];
+  if (e.win && (e.win.join() !== win.join() || e.side !== side)) { e.planes.clear(); e.key = null; }
+  const n = win[2] * win[3];
+  bands.forEach((b, i) => e.planes.set(b, new Float32Array(buffer, offset + i * n * 4, n)));
+  if (keyed) e.key = new Float32Array(buffer, offset + bands.length * n * 4, n);
+  e.side = side;
+  e.win = win;
+  e.bytes += bytes;
+  cacheBytes += bytes;
+  viewer.loads += 1;
+}
+
+async function refusal(response) {
+  let body = null;
+  try { body = await response.json(); } catch (err) { /* not JSON */ }
+  return Object.assign(new Error((body && body.error) || `${response.status} ${response.statusText}`), { http: response.status });
+}
+
+function request(tile, f, spec) {
+  const m = missingOf(tile, f, spec);
+  if (!m) return;
+  const { e, bands, rk } = m;
   const controller = new AbortController();
-  inflight.set(rk, { controller, entry: ek, bands, nadir: spec.nadir, tile });
+  inflight.set(rk, { controller, entry: m.ek, bands, nadir: spec.nadir, tile });
   const { z, x, y } = entryCoords(f, tile.coords);
   const url = `${idPath(f.id)}/values/${z}/${x}/${y}?bands=${bands.join(",")}&${f.params}&window=1`;
   viewer.requests += 1;
   busy();
   fetch(url, { signal: controller.signal, headers: generationHeaders() }).then(async (response) => {
     if (response.status === 204) { e.empty = true; return; }
-    if (!response.ok) {
-      let body = null;
-      try { body = await response.json(); } catch (err) { /* not JSON */ }
-      throw Object.assign(new Error((body && body.error) || `${response.status} ${response.statusText}`), { http: response.status });
-    }
+    if (!response.ok) throw await refusal(response);
     const buffer = await response.arrayBuffer();
     const side = Number(response.headers.get("X-Side")) || TILE;
-    // only the window of the tile that holds values (column, row, width, height of the side x side tile)
-    const win = (response.headers.get("X-Window") || `0,0,${side},${side}`).split(",").map(Number);
-    if (e.win && (e.win.join() !== win.join() || e.side !== side)) { e.planes.clear(); e.key = null; }
-    const n = win[2] * win[3];
-    bands.forEach((b, i) => e.planes.set(b, new Float32Array(buffer, i * n * 4, n)));
-    if (response.headers.get("X-Key")) e.key = new Float32Array(buffer, bands.length * n * 4, n);
-    e.side = side;
-    e.win = win;
-    e.bytes += buffer.byteLength;
-    cacheBytes += buffer.byteLength;
-    viewer.loads += 1;
+    const win = response.headers.get("X-Window");
+    keep(e, bands, buffer, 0, buffer.byteLength, side, win && win.split(",").map(Number), !!response.headers.get("X-Key"));
     trimCache();
   }).catch((err) => {
     if (err.name === "AbortError") return;
@@ -250,6 +267,52 @@ function request(tile, f, spec) {
     failed(err.message, f.id);
   }).finally(() => {
     inflight.delete(rk);
+    busy();
+    schedule();
+  });
+}
+
+// the flights drawn as ingested (no ground height, sync offset or cube range of their own, no
+// slider preview): their tiles go BATCH at a time in one request of /api/values/batch, which answers
+// them from the ingest's previews when zoomed out (issue 36: 100 flights, ~5 requests, not 110)
+const batchable = (f, spec) => !spec.nadir && !f.up && !viewer.params[f.id];
+function requestBatch(wanted, spec) {
+  const parts = [];
+  for (const [tile, f] of wanted) {
+    const m = missingOf(tile, f, spec);
+    if (!m || parts.some((p) => p.rk === m.rk)) continue;
+    parts.push({ ...m, f, tile });
+  }
+  for (let i = 0; i < parts.length; i += BATCH) sendBatch(parts.slice(i, i + BATCH), spec);
+}
+function sendBatch(parts, spec) {
+  if (parts.length === 1) { request(parts[0].tile, parts[0].f, spec); return; }
+  const controller = new AbortController();
+  for (const p of parts) inflight.set(p.rk, { controller, entry: p.ek, bands: p.bands, nadir: false, tile: p.tile, batch: parts });
+  const q = new URLSearchParams(parts[0].f.params);
+  q.set("parts", parts.map((p) => { const c = entryCoords(p.f, p.tile.coords); return `${p.f.id}/${c.z}/${c.x}/${c.y}/${p.bands.join(",")}`; }).join(";"));
+  q.set("window", "1");
+  viewer.requests += 1;
+  busy();
+  fetch(`/api/values/batch?${q}`, { signal: controller.signal, headers: generationHeaders() }).then(async (response) => {
+    if (!response.ok) throw await refusal(response);
+    const index = JSON.parse(response.headers.get("X-Parts") || "[]");
+    const buffer = await response.arrayBuffer();
+    let offset = 0;
+    index.forEach(([status, bytes, side, win, keyed, error], i) => {
+      const p = parts[i];
+      if (status === 204) p.e.empty = true;
+      else if (status === 200) keep(p.e, p.bands, buffer, offset, bytes, side, win, keyed);
+      else { viewer.tileErrors += 1; failed(error || `${status}`, p.f.id); }
+      offset += bytes;
+    });
+    trimCache();
+  }).catch((err) => {
+    if (err.name === "AbortError") return;
+    viewer.tileErrors += 1;
+    failed(err.message, parts[0].f.id);
+  }).finally(() => {
+    for (const p of parts) inflight.delete(p.rk);
     busy();
     schedule();
   });
@@ -292,7 +355,7 @@ layer.on("tileunload", (ev) => {
   const key = `${ev.coords.z}/${ev.coords.x}/${ev.coords.y}`;
   const tile = tiles.get(key);
   tiles.delete(key);
-  for (const [k, r] of inflight) if (r.tile === tile) { r.controller.abort(); inflight.delete(k); }
+  for (const [k, r] of inflight) if (r.tile === tile && !r.batch) { r.controller.abort(); inflight.delete(k); }
   busy();
 });
 layer.addTo(map);
@@ -324,6 +387,7 @@ function pump() {
   const live = liveTiles();
   let complete = true;
   const wanted = new Map();   // entry key -> the bands the current view needs of it
+  const batch = [];           // [tile, flight] asked together (requestBatch)
   for (const tile of live) {
     if (tile.shown === spec.id) continue;
     const tb = tileBounds(tile.coords.z, tile.coords.x, tile.coords.y);
@@ -335,16 +399,20 @@ function pump() {
       for (const b of f.bands) wanted.get(ek).add(b);
       if (!entryReady(cache.get(ek), f, spec.nadir)) {
         ready = false;
-        if (failedSpec !== spec.id) request(tile, f, spec);
+        if (failedSpec !== spec.id) {
+          if (batchable(f, spec)) batch.push([tile, f]); else request(tile, f, spec);
+        }
       }
     }
     if (ready && spec.ranges && tile.shown === null) draw(tile, spec);   // nothing to keep: show it now
     if (!ready) complete = false;
   }
-  // requests for a picture nobody waits for any more (an older ground height or band, a tile gone)
+  requestBatch(batch, spec);
+  // requests for a picture nobody waits for any more (an older ground height or band, a tile gone);
+  // a batch goes when none of its parts is waited for
+  const unwanted = (q) => { const w = wanted.get(q.entry || q.ek); return !w || !q.bands.some((b) => w.has(b)); };
   for (const [k, r] of inflight) {
-    const w = wanted.get(r.entry);
-    if (!w || !r.bands.some((b) => w.has(b))) { r.controller.abort(); inflight.delete(k); }
+    if (r.batch ? r.batch.every(unwanted) : unwanted(r)) { r.controller.abort(); inflight.delete(k); }
   }
   busy();
   if (complete && spec.ranges) {
