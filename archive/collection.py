@@ -684,6 +684,9 @@ class CheckedDn:
             try:
                 values = self.array[band, a:b] if whole is None else whole[a - k0 * c:b - k0 * c]
             except Exception as exc:  # noqa: BLE001 - any decoding failure of the stored bytes
+                why = storage.reason(exc)   # the bucket unreachable is not a damaged chunk
+                if why is not None:
+                    raise storage.StorageError(chunk_path(self.store, band, k), why) from None
                 raise self._fail(band, a, b, f"chunk cannot be decoded ({type(exc).__name__}: {exc})") from None
             if chunk_digest(values) != self.digests[band, k].tobytes():
                 missing = not storage.exists(chunk_path(self.store, band, k))

@@ -22,12 +22,16 @@ last (a collection's ``zarr.json`` with ``archive:complete``; an output's STAC I
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-__all__ = ["SCHEMES", "delete_prefix", "exists", "head", "is_url", "list_names", "location", "object_store",
+from archive.errors import InputError
+
+__all__ = ["SCHEMES", "StorageError", "reason", "delete_prefix", "exists", "head", "is_url", "list_names", "location", "object_store",
            "put_if_absent", "read_bytes", "split_url", "write_bytes", "zarr_store"]
 
 #: URL schemes of object storage this software reads and writes.
@@ -52,6 +56,56 @@ def location(loc: str | os.PathLike) -> Path | Any:
 
         return UPath(loc.rstrip("/"), use_listings_cache=False)
     return Path(loc)
+
+
+class StorageError(InputError):
+    """The object store cannot be reached or refused a request (no such bucket, access denied, no
+    connection): one line naming the URL, what the server said, and where the settings come from."""
+
+    def __init__(self, where: Any, why: str):
+        super().__init__(where, f"object storage: {why}",
+                         "check the URL, AWS_ENDPOINT_URL and the credentials (AWS_ACCESS_KEY_ID / AWS_PROFILE)")
+
+
+_CODE = re.compile(r"<Code>([A-Za-z]+)</Code>")
+
+
+def reason(exc: BaseException) -> str | None:
+    """One line saying why a request to object storage failed, when ``exc`` (or what it wraps) is an
+    error of the object-store clients (obstore, botocore); None for any other error."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        module = type(exc).__module__ or ""
+        if module.startswith(("obstore", "botocore", "aiobotocore", "s3fs")):
+            text = str(exc)
+            code = _CODE.search(text)
+            if code:
+                return {"NoSuchBucket": "the bucket does not exist", "AccessDenied": "access denied",
+                        "InvalidAccessKeyId": "the access key id is not known there",
+                        "SignatureDoesNotMatch": "the secret key does not match"}.get(code.group(1), code.group(1))
+            if "Connection refused" in text or "tcp connect error" in text or "ConnectError" in text:
+                return f"cannot connect to {_endpoint() or 'the AWS endpoint'} (connection refused)"
+            if "dns error" in text or "failed to lookup" in text:
+                return f"cannot resolve the endpoint {_endpoint() or 'of AWS'}"
+            first = next((line.strip() for line in text.splitlines() if line.strip()), type(exc).__name__)
+            return f"{type(exc).__name__}: {first[:200]}"
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+@contextmanager
+def storage_errors(where: Any) -> Iterator[None]:
+    """Turn an object-store client's error inside the block into a :class:`StorageError` naming ``where``."""
+    try:
+        yield
+    except (StorageError, FileNotFoundError):
+        raise
+    except Exception as exc:
+        why = reason(exc)
+        if why is None:
+            raise
+        raise StorageError(where, why) from None
 
 
 def split_url(loc: Any) -> tuple[str, str]:
@@ -110,10 +164,9 @@ def read_bytes(loc: Any) -> bytes:
 
     bucket, key = split_url(loc)
     try:
-        return bytes(obstore.get(object_store(bucket), key).bytes())
-    except NotFoundError:
-        raise FileNotFoundError(str(loc)) from None
-    except FileNotFoundError:
+        with storage_errors(loc):
+            return bytes(obstore.get(object_store(bucket), key).bytes())
+    except (NotFoundError, FileNotFoundError):
         raise FileNotFoundError(str(loc)) from None
 
 
@@ -122,7 +175,8 @@ def write_bytes(loc: Any, data: bytes | memoryview) -> None:
     import obstore
 
     bucket, key = split_url(loc)
-    obstore.put(object_store(bucket), key, bytes(data))
+    with storage_errors(loc):
+        obstore.put(object_store(bucket), key, bytes(data))
 
 
 def put_if_absent(loc: Any, data: bytes) -> bool:
@@ -132,9 +186,14 @@ def put_if_absent(loc: Any, data: bytes) -> bool:
 
     bucket, key = split_url(loc)
     try:
-        obstore.put(object_store(bucket), key, data, mode="create")
+        with storage_errors(loc):
+            obstore.put(object_store(bucket), key, data, mode="create")
     except (AlreadyExistsError, PreconditionError):
         return False
+    except StorageError as exc:   # an AlreadyExists wrapped by the client
+        if "AlreadyExists" in str(exc) or "PreconditionFailed" in str(exc):
+            return False
+        raise
     return True
 
 
@@ -145,7 +204,8 @@ def head(loc: Any) -> dict | None:
 
     bucket, key = split_url(loc)
     try:
-        return dict(obstore.head(object_store(bucket), key))
+        with storage_errors(loc):
+            return dict(obstore.head(object_store(bucket), key))
     except (NotFoundError, FileNotFoundError):
         return None
 
@@ -163,7 +223,8 @@ def delete(loc: Any) -> None:
 
     bucket, key = split_url(loc)
     try:
-        obstore.delete(object_store(bucket), key)
+        with storage_errors(loc):
+            obstore.delete(object_store(bucket), key)
     except FileNotFoundError:
         pass
 
@@ -182,7 +243,8 @@ def list_names(loc: Any) -> Iterator[tuple[str, bool, dict | None]]:
     import obstore
 
     bucket, key = split_url(loc)
-    result = obstore.list_with_delimiter(object_store(bucket), key + "/" if key else None)
+    with storage_errors(loc):
+        result = obstore.list_with_delimiter(object_store(bucket), key + "/" if key else None)
     for prefix in result["common_prefixes"]:
         yield prefix.rstrip("/").rsplit("/", 1)[-1], True, None
     for meta in result["objects"]:
@@ -195,8 +257,9 @@ def delete_prefix(loc: Any) -> int:
 
     bucket, key = split_url(loc)
     store = object_store(bucket)
-    paths = [m["path"] for batch in obstore.list(store, key.rstrip("/") + "/") for m in batch]
-    for i in range(0, len(paths), 1000):
-        obstore.delete(store, paths[i:i + 1000])
+    with storage_errors(loc):
+        paths = [m["path"] for batch in obstore.list(store, key.rstrip("/") + "/") for m in batch]
+        for i in range(0, len(paths), 1000):
+            obstore.delete(store, paths[i:i + 1000])
     return len(paths)
 

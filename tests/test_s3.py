@@ -432,3 +432,21 @@ def test_python_api_over_an_s3_archive(s3_archive, small_archive):
     name = list(a.data_vars)[0]
     assert np.isfinite(a[name].values).mean() > 0.3
     np.testing.assert_array_equal(a[name].values, b[name].values)
+
+
+def test_bad_bucket_or_endpoint_is_one_line(s3_bucket, small_flight):
+    """A missing bucket, a missing archive and an endpoint that refuses connections are each one
+    line naming the URL and what to check, exit 2, no traceback, no credential in it."""
+    cases = [
+        (["ingest", str(small_flight), "--archive", "s3://no-such-bucket-35/arc", "--fov", str(FOV), "--quiet"], {},
+         "s3://no-such-bucket-35/arc: object storage: the bucket does not exist"),
+        (["catalog", "search", "--archive", f"s3://{s3_bucket}/no-archive-here"], {},
+         f"s3://{s3_bucket}/no-archive-here/archive.json: archive marker not found"),
+        (["catalog", "search", "--archive", f"s3://{s3_bucket}/arc"], {"AWS_ENDPOINT_URL": "http://127.0.0.1:9"},
+         "cannot connect to http://127.0.0.1:9 (connection refused)"),
+    ]
+    for args, env, expected in cases:
+        r = _cli(*args, env=env)
+        lines = [line for line in r.stderr.splitlines() if line.strip()]
+        assert r.returncode == 2 and len(lines) == 1 and expected in lines[0], (args, r.stderr)
+        assert "AWS_ENDPOINT_URL" in lines[0] and SECRET not in r.stderr + r.stdout
