@@ -450,3 +450,28 @@ def test_bad_bucket_or_endpoint_is_one_line(s3_bucket, small_flight):
         lines = [line for line in r.stderr.splitlines() if line.strip()]
         assert r.returncode == 2 and len(lines) == 1 and expected in lines[0], (args, r.stderr)
         assert "AWS_ENDPOINT_URL" in lines[0] and SECRET not in r.stderr + r.stdout
+
+
+def test_two_concurrent_ingests_of_two_flights(s3_bucket, tmp_path):
+    """Two ingests of different flights into one new s3 archive at once: the archive marker (a
+    conditional PUT) made once, both collections complete, and the catalog (its updates take turns
+    on the catalog's lock object) lists both: the index and the STAC Collection's item links."""
+    from archive.catalog.index import ensure_index, search
+    from archive.catalog.root import open_root
+    from archive.simulator.command import simulate_flight
+    from archive import storage
+
+    url = f"s3://{s3_bucket}/pair-{uuid.uuid4().hex[:6]}"
+    for seed in (3, 4):
+        simulate_flight(tmp_path / f"f{seed}", cubes=2, bands=2, samples=24, lines=40, cubes_per_pass=2, seed=seed)
+    procs = [subprocess.Popen([sys.executable, "-m", "archive", "ingest", str(tmp_path / f"f{seed}"), "--archive", url,
+                               "--fov", str(FOV), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for seed in (3, 4)]
+    outs = [p.communicate(timeout=240) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outs
+    root = open_root(url)
+    ids = root.collection_ids()
+    assert len(ids) == 2 and all(": ingested (" in o[0] for o in outs), outs
+    assert sorted(r.id for r in search(ensure_index(root))) == ids
+    links = json.loads(storage.read_bytes(root.collection_path))["links"]
+    assert sorted(ln["href"].rsplit("/", 1)[-1][:-5] for ln in links if ln["rel"] == "item") == ids
