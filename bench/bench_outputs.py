@@ -68,7 +68,13 @@ def render_cli(flight: Path, out: Path, gsd: float, ground: float, extra=(), wor
     """``archive render`` through ``bench/stage_profile.py`` in a subprocess: wall, wall + sync, peak tree
     RSS, CPU of the tree, output bytes, the task stream's summary and CPU-seconds per stage."""
     profile = (work or out.parent) / f"{out.name}.profile.json"
-    cmd = [sys.executable, str(Path(__file__).resolve().parent / "stage_profile.py"), str(profile), "--",
+    extra, sizing = list(extra), []
+    for flag in ("--workers", "--threads"):   # they size stage_profile's own cluster
+        if flag in extra:
+            i = extra.index(flag)
+            sizing += extra[i:i + 2]
+            del extra[i:i + 2]
+    cmd = [sys.executable, str(Path(__file__).resolve().parent / "stage_profile.py"), str(profile), *sizing, "--",
            str(flight), "--fov", str(br.FOV), "--gsd", str(gsd), "--ground-height", str(ground), "--mode", br.MODE,
            "--bands", "all", "--out", str(out), "--overwrite", *extra]
     load0 = br.load()
@@ -89,7 +95,7 @@ def render_cli(flight: Path, out: Path, gsd: float, ground: float, extra=(), wor
     prof = json.loads(profile.read_text())
     cpu = prof["cpu"]["client"] + sum(prof["cpu"]["workers"].values())
     task_s = sum(v["task_s"] for v in prof["tasks"].values())
-    return {"cmd": "archive render " + " ".join(cmd[4:]), "wall_s": wall, "wall_sync_s": synced,
+    return {"cmd": "archive render " + " ".join(cmd[4 + len(sizing):]), "wall_s": wall, "wall_sync_s": synced,
             "peak_tree_rss": poll.peak_rss, "peak_tree_anon": poll.peak_anon, "out_mb": size / br.MB,
             "command_s": prof["wall_s"], "graph_s": prof["graph_s"], "cpu_s": cpu, "tree_cpu_s": tree,
             "busy_cpu": cpu / wall / prof["cores"], "busy_graph_cpu": cpu / max(prof["graph_s"], 1e-9) / prof["cores"],
@@ -340,6 +346,9 @@ def main(argv=None) -> int:
                     help="skip the second, stage-profiled run of each format (bench/stage_profile.py)")
     ap.add_argument("--codec-table", action="store_true",
                     help="measure every Zarr and COG codec on the ENVI render's tiles (needs hdr in --formats)")
+    ap.add_argument("--render-option", action="append", default=[], metavar="ARG",
+                    help="one more argument for every archive render (repeat it: --render-option=--threads "
+                         "--render-option=3)")
     ap.add_argument("--compression", help="archive render --compression for every format (default: the command's)")
     ap.add_argument("--no-gdal", action="store_true")
     ap.add_argument("--json", metavar="FILE")
@@ -388,7 +397,7 @@ def main(argv=None) -> int:
         _say(f"GDAL warp: {R['gdal']['wall_s']:.1f} s, peak {br.fmt_gb(R['gdal']['peak_rss'])}")
 
     R["render"] = {}
-    compression = ["--compression", args.compression] if args.compression else []
+    compression = (["--compression", args.compression] if args.compression else []) + list(args.render_option)
     for fmt in formats:
         out = work / f"mosaic.{fmt}"
         r = R["render"][fmt] = render_plain(flight, out, args.gsd, ground, extra=compression)
