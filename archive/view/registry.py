@@ -164,8 +164,8 @@ class FlightRegistry:
         flight or a collection without current ones (then tiles are drawn from the DN). Kept in the
         bands cache, charged their bytes, and read again when the collection or its previews change
         (their ``zarr.json``). Any thread (no OpenGL)."""
-        if cid in self.raw or self.archive is None:
-            return None
+        if cid in self.raw or self.archive is None or getattr(self.archive, "is_url", False):
+            return None   # (previews are made and read for local archives only, so far)
         from archive.previews import GROUP, read_previews
 
         store = self.archive.store(cid)
