@@ -252,7 +252,8 @@ def test_no_private_names_imported_across_modules():
 #: the stages the graph chains; the graph is driven by the commands (options -> pipeline -> cluster,
 #: the library API, ingest, the viewer), and those by the command line.
 LAYERS = [
-    ("foundation", ("archive.errors", "archive.files", "archive.codecs", "archive.params", "archive.grid")),
+    ("foundation", ("archive.errors", "archive.storage", "archive.files", "archive.codecs", "archive.params",
+                    "archive.grid")),   # storage: where archives live (local paths, s3:// URLs)
     ("formats", ("archive.formats",)),
     ("geometry", ("archive.navigation", "archive.provenance")),
     ("store", ("archive.collection",)),

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from archive import storage
-from archive.catalog.root import ArchiveRoot
+from archive.catalog.root import ArchiveRoot, cache_index_path  # cache_index_path: re-exported
 from archive.errors import FormatError, InputError
 
 SCHEMA_VERSION = "2"
@@ -415,19 +415,6 @@ def index_problem(path: str | os.PathLike, root: ArchiveRoot) -> str | None:
     if count != len(seen_items) - unreadable or bbox_count != count:
         return f"{count} rows for {len(seen_items) - unreadable} readable Items"
     return None
-
-
-def cache_index_path(root: ArchiveRoot) -> Path:
-    """Where the index of an archive that cannot be written lives: ``$XDG_CACHE_HOME`` (else
-    ``~/.cache``) ``/archive/catalog/<name>-<hash of the archive's absolute path>/index.sqlite``."""
-    import hashlib
-
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    where = str(root.path) if root.is_url else str(Path(root.path).absolute())
-    digest = hashlib.sha256(where.encode("utf-8", "surrogateescape")).hexdigest()[:16]
-    name = "".join(c if c.isalnum() or c in "-_." else "_" for c in where.rstrip("/").rsplit("/", 1)[-1])[:40] \
-        or "archive"
-    return Path(base) / "archive" / "catalog" / f"{name}-{digest}" / "index.sqlite"
 
 
 def unwritable(exc: BaseException) -> bool:

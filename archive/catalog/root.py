@@ -13,7 +13,7 @@ Layout::
 An archive may also be an ``s3://bucket/prefix`` URL (:mod:`archive.storage`): the same layout as
 objects, except that a store is written under its final prefix (no ``.partial``: S3 has no rename;
 its ``zarr.json`` says complete only at the end) and the SQLite index is a local cache
-(:func:`archive.catalog.index.cache_index_path`), rebuilt from the Items when it is missing or stale.
+(:func:`cache_index_path`), rebuilt from the Items when it is missing or stale.
 """
 
 from __future__ import annotations
@@ -70,10 +70,8 @@ class ArchiveRoot:
     @property
     def index_path(self) -> Path:
         """The SQLite index: ``catalog/index.sqlite`` on disk; for an archive in object storage a
-        local cache file (SQLite needs a local file; see :func:`archive.catalog.index.cache_index_path`)."""
+        local cache file (SQLite needs a local file; see :func:`cache_index_path`)."""
         if self.is_url:
-            from archive.catalog.index import cache_index_path
-
             return cache_index_path(self)
         return self.path / "catalog" / "index.sqlite"
 
@@ -122,6 +120,19 @@ class ArchiveRoot:
                 else "the archive holds no collection yet: run 'archive ingest'"
             raise MissingInputError(store, f"collection {cid!r}", hint)
         return store
+
+
+def cache_index_path(root: ArchiveRoot) -> Path:
+    """Where the index of an archive that cannot be written lives: ``$XDG_CACHE_HOME`` (else
+    ``~/.cache``) ``/archive/catalog/<name>-<hash of the archive's absolute path>/index.sqlite``."""
+    import hashlib
+
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    where = str(root.path) if root.is_url else str(Path(root.path).absolute())
+    digest = hashlib.sha256(where.encode("utf-8", "surrogateescape")).hexdigest()[:16]
+    name = "".join(c if c.isalnum() or c in "-_." else "_" for c in where.rstrip("/").rsplit("/", 1)[-1])[:40] \
+        or "archive"
+    return Path(base) / "archive" / "catalog" / f"{name}-{digest}" / "index.sqlite"
 
 
 def open_root(path: str | os.PathLike) -> ArchiveRoot:
