@@ -141,6 +141,28 @@ def test_query_batch_coregisters_records_and_renders(fields, tmp_path, capsys):
     nominal = _render_shifts(_raw(truth), truth, 80.0)
     assert not _passes_truth_test(nominal)
     assert _passes_truth_test(recorded), (np.median(np.hypot(*recorded.T)), len(recorded))
+    # the viewer's residual misregistration between the two time steps of a stack: good after, not before
+    after = _stack_residual(archive, tmp_path / "after.zarr", [ids["ref"], ids["biased"]])
+    before = _stack_residual(archive, tmp_path / "before.zarr", [ids["ref"], str(truth.directory)])
+    assert after["matched"] >= 8 and after["median"] <= 0.2 and after["p95"] <= 0.5, after
+    assert before["matched"] >= 8 and before["median"] >= 5.0, before    # ~3 m of GNSS bias at 28 cm
+
+
+def _stack_residual(archive, out, sources) -> dict:
+    """A stack of ``sources`` rendered at the nominal GSD and served by ``archive view``: its
+    /api/stacks/NAME/residual between time steps 0 and 1."""
+    import sys
+    import urllib.request
+    from pathlib import Path
+
+    from tests.conftest import archive_view
+
+    assert main(["render", *sources, "--archive", str(archive), "--fov", "47.5", "--stack", "--out", str(out),
+                 "--gsd", "0.28", "--bands", str(BANDS // 2), "--quiet"]) == 0
+    command = [sys.executable, "-m", "archive", "view", "--archive", str(archive), "--stack", str(out), "--port", "0"]
+    with archive_view(command, cwd=Path(__file__).resolve().parents[1]) as (url, _):
+        with urllib.request.urlopen(f"{url}api/stacks/{out.stem}/residual?a=0&b=1", timeout=120) as r:
+            return json.loads(r.read())
 
 
 def test_a_field_30_percent_changed_still_converges(fields):

@@ -125,13 +125,14 @@ def run_reference(args: argparse.Namespace) -> int:
                 from archive.calibrate.apply import apply
 
                 applied = [str(p) for p in apply([source], result, args.archive)]
-        except ArchiveError as exc:
+        except Exception as exc:  # noqa: BLE001 - in a batch a flight that fails costs only itself
             if not batch:
                 raise
             failed += 1
-            outputs.append({"id": name, "status": "failed", "error": str(exc)})
+            text = str(exc) if isinstance(exc, ArchiveError) else f"{type(exc).__name__}: {exc}"
+            outputs.append({"id": name, "status": "failed", "error": text})
             if not args.json:
-                print(f"{name}: failed: {exc}", flush=True)
+                print(f"{name}: failed: {text}", flush=True)
             continue
         out = {"id": name, "status": "done", **result.to_json()}
         if applied is not None:

@@ -41,13 +41,16 @@ from archive.calibrate.model import PARAM_NAMES, FlightModel, Params
 from archive.calibrate.solve import anchored
 from archive.errors import InputError
 
-__all__ = ["COREGISTER_ESTIMATE", "MIN_CROSS_TIES", "OUTLIER_PX", "coregister"]
+__all__ = ["COREGISTER_ESTIMATE", "MAX_PAIR_WINDOWS", "MIN_CROSS_TIES", "OUTLIER_PX", "coregister"]
 
 #: What ``--reference`` estimates unless ``--estimate`` says otherwise.
 COREGISTER_ESTIMATE = ("roll", "pitch", "yaw", "sync", "east", "north", "up")
 #: Fewest windows matched between the two flights (under the start parameters: MIN_FIRST_CROSS).
 MIN_CROSS_TIES = 30
 MIN_FIRST_CROSS = 12
+#: Windows measured at most per pair of passes between the flights (spread over the overlap): crossing
+#: passes overlap over their whole swath, thousands of windows; a few hundred fix the offset to mm.
+MAX_PAIR_WINDOWS = 200
 #: A window matched between the flights but still this far off after the solution (px of the
 #: nominal GSD) is counted as rejected (changed ground that happened to correlate).
 OUTLIER_PX = 1.0
@@ -137,19 +140,19 @@ def coregister(source, reference, fov_deg: float, ground: float, *, dem=None, de
     except InputError as exc:
         raise InputError(name, f"co-registration to {ref_name} did not converge: "
                          f"{exc.problem.removeprefix('calibration did not converge: ')}", exc.fix) from None
-    report = make_report(result, start, estimate, held, own_before, own,
-                     [{k: v for k, v in p.items() if k != "own"} for p in cross_pairs if p.get("own")], pixel,
-                     dem_label)
+    own_pairs = [{k: v for k, v in p.items() if k != "own"} for p in cross_pairs if p.get("own")]
+    report = make_report(result, start, estimate, held, own_before, own, own_pairs, pixel, dem_label)
     tried = sum(p["tried"] for p in cross_pairs if not p.get("own"))
     textured = sum(p["textured"] for p in cross_pairs if not p.get("own"))
     matched = len(cross_after)
     windows = {"tried": int(tried), "textured": int(textured), "matched": int(len(inlying)),
                "unmatched": int(textured - matched), "outliers": int(matched - len(inlying))}
     notes = list(report.notes)
-    if "ground" in asked or dem is None:
+    if "ground" in asked or "up" in estimate:
         notes.append(f"the ground is the reference's ({'DEM offset' if dem is not None else 'height'} "
-                     f"{ground:.3f} m): relative to a reference held fixed, a ground error of the flight "
-                     "and its vertical offset dU move its rays alike; dU is estimated")
+                     f"{ground:.3f} m, held): relative to a reference held fixed, a ground error of the flight "
+                     "and its vertical offset dU move its rays alike"
+                     + ("; dU is estimated" if "up" in estimate else ""))
     if windows["unmatched"] or windows["outliers"]:
         notes.append(f"{windows['unmatched'] + windows['outliers']} of {textured} textured windows between the "
                      f"flights were rejected ({windows['unmatched']} did not match, {windows['outliers']} "
@@ -206,7 +209,8 @@ def _measure_both(flight: FlightImages, ref: FlightImages, params: Params, ref_p
             grid = pair_grid(flight.model, pa, pb, params, spacing, model_b=ref.model, params_b=ref_params)
             if grid is None:
                 continue
-            kw = {"model_b": ref.model, "params_b": ref_params, "fallback": np.zeros(2) if solved else None}
+            kw = {"model_b": ref.model, "params_b": ref_params, "fallback": np.zeros(2) if solved else None,
+                  "max_windows": MAX_PAIR_WINDOWS}
             found, stats = measure_pair(flight.model, grid, flight.images[i], ref.images[j], params, window, **kw)
             if stats["windows"] == 0 and window > MIN_WINDOW:
                 found, stats = measure_pair(flight.model, grid, flight.images[i], ref.images[j], params,

@@ -209,7 +209,7 @@ class Tie:
 def measure_pair(model: FlightModel, grid: PairGrid, image_a: np.ndarray, image_b: np.ndarray,
                  params: Params, window: int = 24, prior: np.ndarray | None = None,
                  model_b: FlightModel | None = None, params_b: Params | None = None,
-                 fallback: np.ndarray | None = None) -> tuple[list[Tie], dict]:
+                 fallback: np.ndarray | None = None, max_windows: int | None = None) -> tuple[list[Tie], dict]:
     """Tie windows between the passes of ``grid`` under ``params``.
 
     image_a/b: (lines, samples) float images of the passes. window: side (grid pixels) of the
@@ -218,6 +218,7 @@ def measure_pair(model: FlightModel, grid: PairGrid, image_a: np.ndarray, image_
     params_b: pass B's flight and parameters when it is another flight's (see :func:`pair_grid`).
     fallback: the shift (rows, cols) to assume where no block of the coarse search correlates
     clearly (ground that changed between two flights), or None: then nothing is measured.
+    max_windows: measure at most this many windows (spread evenly over the overlap), None: all.
     Returns the ties and counts (overlap pixels, windows tried, textured, matched)."""
     ra = render_pass(model, grid.a, image_a, grid, params)
     rb = render_pass(model_b or model, grid.b, image_b, grid, params if params_b is None else params_b)
@@ -254,43 +255,46 @@ def measure_pair(model: FlightModel, grid: PairGrid, image_a: np.ndarray, image_
     ties = []
     h, w = grid.shape
     step = max(4, window // 2)
-    for r in range(0, h - window + 1, step):
-        for c in range(0, w - window + 1, step):
-            ref = ra[r:r + window, c:c + window]
-            if not np.isfinite(ref).all():
-                continue
-            stats["windows"] += 1
-            gy, gx = np.gradient(ref)
-            if np.sqrt(np.mean(gx ** 2 + gy ** 2)) < TEXTURE * abs(np.mean(ref)):
-                continue
-            stats["textured"] += 1
-            centre_row = r + window // 2
-            near = min(blocks, key=lambda b: 0 if b[0] <= centre_row < b[1] else min(abs(centre_row - b[0]),
-                                                                                      abs(centre_row - b[1])))
-            coarse, score = near[2], near[3]
-            local = _local_shift(ra, rb, r, c, window, coarse)
-            if local is None:
-                continue
-            offset = np.round(local).astype(int)
-            fine, ok, best = None, False, 0.0
-            for _ in range(3):
-                r0, c0 = r + offset[0], c + offset[1]
-                if r0 < 0 or c0 < 0 or r0 + window > h or c0 + window > w:
-                    break
-                img = rb[r0:r0 + window, c0:c0 + window]
-                if not np.isfinite(img).all():
-                    break
-                fine, ok = lucas_kanade(ref, img, start=local - offset)
-                if not ok or np.abs(fine).max() <= 0.6:
-                    break
-                offset = offset + np.round(fine).astype(int)   # re-centre the window and refine again
-                local = offset + (fine - np.round(fine))
-            if fine is None or not ok or np.abs(fine).max() > 0.6:
-                continue
-            total = offset + fine
-            ties.append(Tie(grid.a.index, grid.b.index, (r + (window - 1) / 2.0, c + (window - 1) / 2.0),
-                            (float(total[0]), float(total[1])), float(score)))
-            stats["matched"] += 1
+    # every fully covered window position of pass A; at most max_windows of them, spread evenly
+    covered = np.isfinite(ra)
+    places = [(r, c) for r in range(0, h - window + 1, step) for c in range(0, w - window + 1, step)
+              if covered[r:r + window, c:c + window].all()]
+    if max_windows is not None and len(places) > max_windows:
+        places = [places[int(k)] for k in np.linspace(0, len(places) - 1, max_windows)]
+    for r, c in places:
+        ref = ra[r:r + window, c:c + window]
+        stats["windows"] += 1
+        gy, gx = np.gradient(ref)
+        if np.sqrt(np.mean(gx ** 2 + gy ** 2)) < TEXTURE * abs(np.mean(ref)):
+            continue
+        stats["textured"] += 1
+        centre_row = r + window // 2
+        near = min(blocks, key=lambda b: 0 if b[0] <= centre_row < b[1] else min(abs(centre_row - b[0]),
+                                                                                  abs(centre_row - b[1])))
+        coarse, score = near[2], near[3]
+        local = _local_shift(ra, rb, r, c, window, coarse)
+        if local is None:
+            continue
+        offset = np.round(local).astype(int)
+        fine, ok, best = None, False, 0.0
+        for _ in range(3):
+            r0, c0 = r + offset[0], c + offset[1]
+            if r0 < 0 or c0 < 0 or r0 + window > h or c0 + window > w:
+                break
+            img = rb[r0:r0 + window, c0:c0 + window]
+            if not np.isfinite(img).all():
+                break
+            fine, ok = lucas_kanade(ref, img, start=local - offset)
+            if not ok or np.abs(fine).max() <= 0.6:
+                break
+            offset = offset + np.round(fine).astype(int)   # re-centre the window and refine again
+            local = offset + (fine - np.round(fine))
+        if fine is None or not ok or np.abs(fine).max() > 0.6:
+            continue
+        total = offset + fine
+        ties.append(Tie(grid.a.index, grid.b.index, (r + (window - 1) / 2.0, c + (window - 1) / 2.0),
+                        (float(total[0]), float(total[1])), float(score)))
+        stats["matched"] += 1
     return ties, stats
 
 

@@ -246,6 +246,8 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
     from starlette.routing import Mount, Route
     from starlette.staticfiles import StaticFiles
 
+    from archive.view.residual import residual_routes
+
     viewer = Viewer(registry, tile_cache_bytes)
     static = files("archive.view") / "static"
 
@@ -540,6 +542,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
         Route("/api/stacks/{name}/tiles/{z:int}/{x:int}/{y:int}.png", stack_tile),
         Route("/api/stacks/{name}/values/{z:int}/{x:int}/{y:int}", stack_values),
         Route("/api/stacks/{name}/point", stack_point),
+        *residual_routes(stack_of),   # /api/stacks/{name}/residual (archive.view.residual, issue 33)
         Mount("/static", StaticFiles(directory=str(static)), name="static"),
         *stac_routes(None if registry.archive is None else ArchiveRoot(registry.archive.path)),
     ]
