@@ -142,15 +142,16 @@ def test_query_batch_coregisters_records_and_renders(fields, tmp_path, capsys):
     assert not _passes_truth_test(nominal)
     assert _passes_truth_test(recorded), (np.median(np.hypot(*recorded.T)), len(recorded))
     # the viewer's residual misregistration between the two time steps of a stack: good after, not before
-    after = _stack_residual(archive, tmp_path / "after.zarr", [ids["ref"], ids["biased"]])
+    after = _stack_residual(archive, tmp_path / "after.zarr", [ids["ref"], ids["biased"]], page=True)
     before = _stack_residual(archive, tmp_path / "before.zarr", [ids["ref"], str(truth.directory)])
     assert after["matched"] >= 8 and after["median"] <= 0.2 and after["p95"] <= 0.5, after
     assert before["matched"] >= 8 and before["median"] >= 5.0, before    # ~3 m of GNSS bias at 28 cm
 
 
-def _stack_residual(archive, out, sources) -> dict:
+def _stack_residual(archive, out, sources, page: bool = False) -> dict:
     """A stack of ``sources`` rendered at the nominal GSD and served by ``archive view``: its
-    /api/stacks/NAME/residual between time steps 0 and 1."""
+    /api/stacks/NAME/residual between time steps 0 and 1. page: also the viewer page's
+    "misregistration" control in Chromium (when installed), which must draw the same windows."""
     import sys
     import urllib.request
     from pathlib import Path
@@ -162,7 +163,25 @@ def _stack_residual(archive, out, sources) -> dict:
     command = [sys.executable, "-m", "archive", "view", "--archive", str(archive), "--stack", str(out), "--port", "0"]
     with archive_view(command, cwd=Path(__file__).resolve().parents[1]) as (url, _):
         with urllib.request.urlopen(f"{url}api/stacks/{out.stem}/residual?a=0&b=1", timeout=120) as r:
-            return json.loads(r.read())
+            found = json.loads(r.read())
+        if page and Path("/usr/bin/chromium").exists():
+            sync_api = pytest.importorskip("playwright.sync_api")
+            with sync_api.sync_playwright() as pw:
+                browser = pw.chromium.launch(executable_path="/usr/bin/chromium", args=["--headless", "--no-sandbox"])
+                view = browser.new_page(viewport={"width": 900, "height": 700})
+                errors: list = []
+                view.on("pageerror", lambda exc: errors.append(str(exc)))
+                view.goto(url)
+                view.click("#residual-show")
+                view.wait_for_function("window.viewer.residual !== undefined")
+                shown = view.evaluate("window.viewer.residual")
+                dots = view.locator("path.leaflet-interactive").count()
+                text = view.inner_text("#residual-out")
+                browser.close()
+            assert not errors, errors
+            assert shown["matched"] == found["matched"] and dots >= found["matched"]
+            assert text.startswith(f"median {found['median']:.2f} px")
+        return found
 
 
 def test_a_field_30_percent_changed_still_converges(fields):
