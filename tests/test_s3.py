@@ -475,3 +475,40 @@ def test_two_concurrent_ingests_of_two_flights(s3_bucket, tmp_path):
     assert sorted(r.id for r in search(ensure_index(root))) == ids
     links = json.loads(storage.read_bytes(root.collection_path))["links"]
     assert sorted(ln["href"].rsplit("/", 1)[-1][:-5] for ln in links if ln["rel"] == "item") == ids
+
+
+def test_zarr_output_chunks_go_straight_to_the_bucket(s3_archive, tmp_path):
+    """A Zarr output in a bucket: once rendered and before its publication, its value chunks are
+    objects in the bucket (written by the tile tasks) while the local staging folder holds no chunk,
+    and no Item exists (readers do not trust it yet); killed there, it never gets one, and the
+    rerun with --overwrite publishes it."""
+    from archive import storage
+
+    url, cid, _ = s3_archive
+    out = url + f"-direct-{uuid.uuid4().hex[:6]}/m.zarr"
+    bucket, prefix = out[5:].split("/", 1)
+    hold = tmp_path / "hold"
+    hold.touch()
+    staging = tmp_path / "tmp"
+    staging.mkdir()
+    args = ["render", cid, "--archive", url, "--out", out, "--gsd", "0.5", "--fov", str(FOV), "--quiet"]
+    p = subprocess.Popen([sys.executable, "-m", "archive", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         env={**os.environ, "ARCHIVE_TEST_HOLD_PUBLISH": str(hold), "TMPDIR": str(staging)})
+    deadline = time.monotonic() + 240
+    while not Path(f"{hold}.reached").exists():
+        assert p.poll() is None, p.communicate()
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+    chunks = [k for k in _keys(bucket, prefix + "/") if k.startswith(f"{prefix}/radiance/") and k[-1].isdigit()]
+    assert len(chunks) >= 4   # 4 bands x the tiles the flight covers
+    local = [q for q in staging.rglob("*") if q.is_file() and "radiance" in q.parts and q.name[-1].isdigit()]
+    assert local == []
+    assert not storage.exists(out + ".json")
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    assert not storage.exists(out + ".json")
+    again = _cli(*args)
+    assert again.returncode != 0 and "exists" in again.stderr.lower()   # data without an Item: not replaced silently
+    again = _cli(*args, "--overwrite")
+    assert again.returncode == 0, again.stderr
+    assert storage.exists(out + ".json")

@@ -14,10 +14,13 @@ again by ``--resume``), never new data beside the old Item. Two processes publis
 output take turns (a lock, ``.<name>.publish.lock``, from :meth:`Output.finalize` until
 :meth:`Output.cleanup`, so the Item written after the rename is part of the turn).
 
-An output at an ``s3://`` URL (:class:`RemoteOutput`) is assembled locally by the same
-:class:`Output` in a staging folder, then uploaded once: its old Item deleted first, its old
-objects next, then every file of the new output (a Zarr store's metadata files last, the data
-files in parallel), then its Item, last (S3 has no rename: the Item is what publishes it).
+An output at an ``s3://`` URL (:class:`RemoteOutput`) is assembled by the same :class:`Output`
+in a local staging folder, then uploaded once: its old Item deleted first, its old objects next,
+then every file of the new output (a Zarr store's metadata files last, the data files in
+parallel), then its Item, last (S3 has no rename: the Item is what publishes it). A Zarr output's
+value chunks are not staged: the tile tasks PUT them straight into the bucket (its old Item and
+objects are deleted before the render starts), the staging folder holds only its metadata and
+small arrays, uploaded after the render.
 """
 
 from __future__ import annotations
@@ -96,6 +99,9 @@ class Output:
     provenance: bool = False   #: provenance layers: sibling file (COG, ENVI) or store variables (Zarr)
     zarr_format: int = 2   #: Zarr version of a .zarr output (2: GDAL >= 3.10 opens it; 3)
     compression: str = "fast"   #: :data:`archive.codecs.COMPRESSIONS` name of a .zarr or .tif output
+    #: s3:// URL the data chunks go to straight from the tile tasks (a Zarr output in a bucket,
+    #: :class:`RemoteOutput`); the local store then holds only the metadata and small arrays
+    remote: str | None = None
     _temps: list[Path] = field(default_factory=list, repr=False)
     _made_dirs: list[Path] = field(default_factory=list, repr=False)
 
@@ -176,8 +182,15 @@ class Output:
         self.check()
         self._make_dirs()
         grid = meta.grid
+        if self.remote is not None:   # the bucket's old output goes now: its Item first, then its objects
+            storage.delete(self.remote + ".json")
+            remove_path(self.remote)
         try:
             sink = self.writer.create(self._temp, self.path, meta)
+            if self.remote is not None:
+                import dataclasses
+
+                sink = dataclasses.replace(sink, remote=self.remote)
         except OSError as exc:
             if exc.errno == errno.ENOSPC:
                 size = meta.nbands * grid.height * grid.width * 4
@@ -276,8 +289,14 @@ class RemoteOutput:
         if quicklook is not None and storage.is_url(quicklook):
             raise InputError(quicklook, "a quicklook cannot be written to object storage",
                              "give a local --quicklook path, or none")
+        #: a Zarr output's chunks are written by the tile tasks straight into the bucket (no local copy)
+        self.direct = self.url.name.lower().endswith(".zarr")
+        if self.direct and quicklook is not None:
+            raise InputError("--quicklook", "a Zarr output in object storage has no quicklook (its values are only "
+                             "in the bucket)", "leave --quicklook out, or render to a local file")
         self.staging = Path(tempfile.mkdtemp(prefix="archive-staging-"))
-        self.local = Output(self.staging / self.url.name, overwrite=True, quicklook=quicklook, **output_options)
+        self.local = Output(self.staging / self.url.name, overwrite=True, quicklook=quicklook,
+                            remote=str(self.url) if self.direct else None, **output_options)
         self._publishing: FileLock | None = None
 
     def _remote(self, local: Path):
@@ -316,14 +335,15 @@ class RemoteOutput:
                                     what=f"output {self.url}")
         self._publishing.acquire(wait=float("inf"))
         try:
-            self.check()   # something may have appeared meanwhile
-            storage.delete(self.item_url)   # the old output is no longer complete from here on
             files = [f for f in self.local.writer.files(self.local.path)]
             sibling = self.local.provenance_path
             if sibling is not None:
                 files += self.local.writer.files(sibling)
-            for local in files:
-                remove_path(self._remote(local))
+            if not self.direct:   # (a direct Zarr output's old objects went before its chunks were written)
+                self.check()   # something may have appeared meanwhile
+                storage.delete(self.item_url)   # the old output is no longer complete from here on
+                for local in files:
+                    remove_path(self._remote(local))
             puts: list[tuple[Path, object]] = []
             for local in files:
                 if local.is_dir():

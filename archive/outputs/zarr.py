@@ -100,9 +100,11 @@ class ChunkWriter:
     (bench/RESULTS.md "Render (issue 4)").
     """
 
-    def __init__(self, array, directory: str):
+    def __init__(self, array, directory: str, remote: str | None = None):
         self.array, self.directory, self.meta = array, directory, array.metadata
         self.codec = _direct_codec(array, directory)
+        #: s3:// URL of the array in a bucket: chunks are PUT there (one object each) instead of ``directory``
+        self.remote = remote
         self._made: set[str] = set()  # chunk directories known to exist
 
     @staticmethod
@@ -118,7 +120,14 @@ class ChunkWriter:
             w = min(CHUNK, self.array.shape[2] - col * CHUNK)
             self.array[band, row * CHUNK:row * CHUNK + h, col * CHUNK:col * CHUNK + w] = chunk[:h, :w]
             return
-        path = os.path.join(self.directory, self.meta.encode_chunk_key((band, row, col)))
+        key = self.meta.encode_chunk_key((band, row, col))
+        if self.remote is not None:   # into the bucket, from this worker; all-NaN chunks are left out
+            if not (np.isnan(chunk[CHUNK // 2]).all() and np.isnan(chunk).all()):
+                from archive import storage
+
+                storage.write_bytes(f"{self.remote}/{key}", self.codec.encode(chunk))
+            return
+        path = os.path.join(self.directory, key)
         middle = chunk[CHUNK // 2]
         if np.isnan(middle).all() and np.isnan(chunk).all():
             try:
@@ -330,6 +339,7 @@ class MosaicStore(Sink):
 
     path: str
     variable: str
+    remote: str | None = None   #: s3:// URL the value chunks are written to (a Zarr output in a bucket)
 
     #: Capabilities (:class:`~archive.outputs.base.Sink`): it records saturation flags; tiles no
     #: cube touches are not written (unwritten chunks read as NaN).
@@ -409,7 +419,12 @@ class MosaicStore(Sink):
 
     def chunk_writer(self) -> ChunkWriter:
         """A :class:`ChunkWriter` on the values array (it checks no tile alignment: see :meth:`check_aligned`)."""
-        return ChunkWriter(self._array(self.variable, "r+"), os.path.join(self.path, self.variable))
+        array = self._array(self.variable, "r+")
+        remote = None if self.remote is None else f"{self.remote}/{self.variable}"
+        writer = ChunkWriter(array, os.path.join(self.path, self.variable), remote)
+        if remote is not None and writer.codec is None:
+            raise ValueError(f"{self.path}: this Zarr layout cannot be written straight into a bucket")
+        return writer
 
     def write_saturated(self, row0: int, col0: int, mask: np.ndarray) -> None:
         """Write whole chunks of the saturation flags: mask (h, w) bool at pixel (row0, col0)."""
