@@ -23,7 +23,7 @@ import numpy as np
 
 from archive.errors import ArchiveError, InputError, RenderError
 
-__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "ClusterStart", "SlurmJobs", "active_client", "check_gpu_workers", "execute",
+__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "ClusterClose", "ClusterStart", "SlurmJobs", "active_client", "check_gpu_workers", "execute",
            "flight_slots", "start_cluster", "start_slurm", "task_budget", "wait_for_writers"]
 
 
@@ -102,6 +102,34 @@ class ClusterStart:
             client.close()
             if cluster is not None:
                 cluster.close()
+
+
+class ClusterClose:
+    """Closes a client and its cluster (None: a shared scheduler, only the client) in a thread, so
+    that the command publishes its output meanwhile instead of waiting for the worker processes to
+    stop first (issue 37); :meth:`join` waits and raises what closing raised. Only once the graph's
+    tasks have all ended: closing stops the worker processes."""
+
+    def __init__(self, client, cluster):
+        import threading
+
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, args=(client, cluster), name="archive-cluster-close",
+                                        daemon=True)
+        self._thread.start()
+
+    def _run(self, client, cluster) -> None:
+        try:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+        except BaseException as exc:   # raised again by join
+            self._error = exc
+
+    def join(self) -> None:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
 
 
 def start_cluster(scheduler, workers: int | None, say, threads: int | None = None):

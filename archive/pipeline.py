@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from archive import storage
-from archive.cluster import active_client, check_gpu_workers, execute, start_cluster, task_budget
+from archive.cluster import ClusterClose, active_client, check_gpu_workers, execute, start_cluster, task_budget
 from archive.errors import InputError
 from archive.files import wait_while_exists
 from archive.graph.mosaic import rule_key
@@ -477,7 +477,7 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
     output.check()
     outputs = [output]
     nav = options.check()
-    client = cluster = None
+    client = cluster = closing = None
     jobs: list[_Job] = []
     graph_seconds = 0.0
     try:
@@ -491,6 +491,8 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
             execute(client, graph, quiet, shared=cluster is None)
         graph_seconds = time.perf_counter() - t
         renderers = worker_renderers(client)
+        closing = ClusterClose(client, cluster)   # every task ended: the workers stop while we publish
+        client = cluster = None
         if os.environ.get(TEST_HOLD_PUBLISH):
             wait_while_exists(os.environ[TEST_HOLD_PUBLISH])
         for job in jobs:
@@ -503,6 +505,8 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
             client.close()
         if cluster is not None:
             cluster.close()  # stops the worker processes, with any task still writing
+        if closing is not None:
+            closing.join()
         for output in outputs:
             output.cleanup()
         if remote is not None:

@@ -92,6 +92,9 @@ def render_keywords(args: argparse.Namespace, scheduler=None) -> dict:
                              "add --archive A with --query-bbox/--query-datetime/--query-wavelength")
         if args.mosaic:
             raise InputError("--stack", "--stack and --mosaic are two kinds of output", "give one of them")
+        if args.compression != "fast":   # its slices and store are made with the default codecs
+            raise InputError("--compression", "a stack is written with the default compression (fast)",
+                             "leave --compression out with --stack")
         keywords["stack"] = True
         keywords.pop("format", None)
     return keywords
@@ -105,9 +108,11 @@ def run(args: argparse.Namespace) -> int:
 
     # The workers (or the connection to --scheduler) start now, while this process imports the
     # pipeline and opens and plans the inputs: those phases leave the other cores idle otherwise.
-    # Slurm jobs are submitted where the command always did (after its checks of the options).
+    # Slurm jobs are submitted where the command always did (after its checks of the options); a
+    # --resume may find nothing to render: its workers start when needed.
     where = _where(args)
-    starting = None if isinstance(where, SlurmJobs) else ClusterStart(where, args.workers, _say(args), args.threads)
+    starting = (None if isinstance(where, SlurmJobs) or args.resume
+                else ClusterStart(where, args.workers, _say(args), args.threads))
     try:
         return _run(args, starting)
     finally:

@@ -134,3 +134,11 @@ def test_unknown_compression_is_a_one_line_error(small_flight, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["render", str(small_flight), "--gsd", "1", "--out", "x.zarr", "--compression", "lzma"])
     assert exc.value.code == 2 and "--compression: invalid choice: 'lzma'" in capsys.readouterr().err
+
+
+def test_a_stack_refuses_another_compression(small_archive, tmp_path, capsys):
+    arc, cid = small_archive
+    code = main(["render", cid, "--archive", str(arc), "--stack", "--gsd", "0.1", "--out", str(tmp_path / "s.zarr"),
+                 "--compression", "small", "--quiet"])
+    assert code == 2 and "--compression: a stack is written with the default compression" in capsys.readouterr().err
+    assert not (tmp_path / "s.zarr").exists()

@@ -1,0 +1,57 @@
+"""The local cluster started while ``archive render`` imports and plans (issue 37,
+:class:`archive.cluster.ClusterStart`) and closed while it publishes (:class:`ClusterClose`): a
+command that fails before it needs workers leaves none running; an error starting them is the
+one-line error it was; a render through both gives its output and leaves no worker behind."""
+
+from __future__ import annotations
+
+import time
+
+import psutil
+import pytest
+
+from archive.cli import main
+from archive.cluster import ClusterStart
+from archive.errors import InputError
+
+
+def _is_worker(p: psutil.Process) -> bool:
+    """A live child process other than multiprocessing's resource tracker (which lives as long as
+    this process, whatever the cluster does)."""
+    try:
+        return p.status() != psutil.STATUS_ZOMBIE and "resource_tracker" not in " ".join(p.cmdline())
+    except psutil.Error:
+        return False
+
+
+def _workers_left(timeout: float = 10.0) -> list:
+    """This process's child processes still alive after up to ``timeout`` s (workers being closed
+    take a moment to exit)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        alive = [p for p in psutil.Process().children(recursive=True) if _is_worker(p)]
+        if not alive or time.monotonic() > deadline:
+            return alive
+        time.sleep(0.2)
+
+
+def test_a_command_failing_before_it_needs_workers_leaves_none(tmp_path, capsys):
+    code = main(["render", str(tmp_path / "no-such-flight"), "--fov", "47.5", "--gsd", "0.1",
+                 "--out", str(tmp_path / "m.zarr"), "--quiet"])
+    assert code == 2 and "no-such-flight: flight directory not found" in capsys.readouterr().err
+    assert _workers_left() == [] and not (tmp_path / "m.zarr").exists()
+
+
+def test_an_error_starting_is_raised_where_the_cluster_is_taken():
+    starting = ClusterStart(None, -1, lambda text: None)
+    with pytest.raises(InputError, match="--workers: expected a positive number of worker processes"):
+        starting.result()
+    starting.close()   # taken: nothing to close
+
+
+def test_a_render_through_both_leaves_no_worker(small_flight, tmp_path):
+    out = tmp_path / "m.tif"
+    assert main(["render", str(small_flight), "--fov", "47.5", "--gsd", "0.05", "--ground-height", "auto",
+                 "--out", str(out), "--quiet"]) == 0
+    assert out.stat().st_size > 0 and (tmp_path / "m.tif.json").exists()
+    assert _workers_left() == []
