@@ -2,14 +2,15 @@
 local archive of the same flight.
 
     python bench/bench_s3.py [--cubes 2] [--bands 300] [--samples 900] [--lines 1000] [--gsd 0.04]
-                             [--workdir DIR] [--repeats 2] [--json FILE]
+                             [--workdir DIR] [--repeats 2] [--json FILE] [--s3-out]
     python bench/bench_s3.py --libraries    # zarr's ObjectStore (obstore) vs FsspecStore (s3fs), reads only
 
 Defaults are the paper shape of bench/bench_render.py: 2 cubes of 900 samples x 1000 lines x 300
 bands. One run: simulate the flight (kept in --workdir while its marker exists), ingest it into a
 local archive and into ``s3://bench/arc`` on a ``ThreadedMotoServer`` in this process (127.0.0.1),
 then ``archive render ID --archive A --out X.zarr`` in a subprocess for each archive, alternately,
-``--repeats`` times each (the output local in both cases). Reported per render: wall (s, the
+``--repeats`` times each (the output local in both cases; with ``--s3-out`` also from the s3 archive
+to ``s3://bench/out/mosaic.zarr``, its chunks PUT by the workers). Reported per render: wall (s, the
 subprocess), requests made to the server (GET / HEAD / LIST, from the server's request log), bytes
 read (sum of the sizes of the objects fetched by GET; the local render reads the same chunk files,
 by construction), and that both renders are equal bit for bit.
@@ -98,6 +99,7 @@ def main() -> int:
     ap.add_argument("--workdir", default="/tmp/bench_s3")
     ap.add_argument("--json", default=None)
     ap.add_argument("--libraries", action="store_true", help="only compare obstore and s3fs reading chunks")
+    ap.add_argument("--s3-out", action="store_true", help="also render from the s3 archive to an s3 Zarr output")
     args = ap.parse_args()
 
     from moto.server import ThreadedMotoServer
@@ -149,15 +151,19 @@ def main() -> int:
 
     rows = []
     outs = {}
+    kinds = [("local", str(local), None), ("s3", "s3://bench/arc", None)]
+    if args.s3_out:
+        kinds.append(("s3 to s3", "s3://bench/arc", "s3://bench/out/mosaic.zarr"))
     for rep in range(args.repeats):
-        for kind, archive in (("local", str(local)), ("s3", "s3://bench/arc")):
-            out = work / f"out_{kind}.zarr"
+        for kind, archive, target in kinds:
+            out = work / f"out_{kind.replace(' ', '_')}.zarr"
             shutil.rmtree(out, ignore_errors=True)
             Path(str(out) + ".json").unlink(missing_ok=True)
             counter.lines.clear()
             t = time.perf_counter()
-            p = subprocess.run([sys.executable, "-m", "archive", "render", cid, "--archive", archive, "--out", str(out),
-                                "--gsd", str(args.gsd), "--fov", "47.5", "--quiet"], capture_output=True, text=True)
+            p = subprocess.run([sys.executable, "-m", "archive", "render", cid, "--archive", archive,
+                                "--out", target or str(out), "--gsd", str(args.gsd), "--fov", "47.5", "--quiet"]
+                               + (["--overwrite"] if target else []), capture_output=True, text=True)
             wall = time.perf_counter() - t
             if p.returncode != 0:
                 print(p.stderr, file=sys.stderr)
@@ -168,14 +174,20 @@ def main() -> int:
             rows.append({"archive": kind, "repeat": rep, "wall_s": round(wall, 2),
                          "requests": sum(methods.values()), "gets": len(got), "heads": methods.get("HEAD", 0),
                          "lists": lists, "bytes_read": sum(sizes.get(k, 0) for k in got)})
-            outs[kind] = out
+            rows[-1]["puts"] = methods.get("PUT", 0)
+            outs[kind] = target or out
             print(json.dumps(rows[-1]), flush=True)
     import xarray as xr
 
     a = xr.open_zarr(outs["local"], consolidated=False)
     b = xr.open_zarr(outs["s3"], consolidated=False)
     equal = all(np.array_equal(a[v].values, b[v].values, equal_nan=True) for v in a.data_vars)
-    walls = {k: min(r["wall_s"] for r in rows if r["archive"] == k) for k in ("local", "s3")}
+    if args.s3_out:
+        from archive.storage import zarr_store
+
+        c = xr.open_zarr(zarr_store(outs["s3 to s3"]), consolidated=False)
+        equal = equal and all(np.array_equal(a[v].values, c[v].values, equal_nan=True) for v in a.data_vars)
+    walls = {k: min(r["wall_s"] for r in rows if r["archive"] == k) for k, _, _ in kinds}
     summary = {"shape": vars(args), "collection": cid, "stored_bytes_s3": stored, "ingest_local_s": round(ingest_local, 1),
                "ingest_s3_s": round(ingest_s3, 1), "renders": rows, "best_wall_s": walls,
                "ratio_s3_over_local": round(walls["s3"] / walls["local"], 3), "outputs_equal": bool(equal),
