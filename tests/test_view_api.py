@@ -647,3 +647,29 @@ def test_band_planes_are_the_renderers_values(demo, mode):
         got = flight.planes.plane(2, band, mode)
         assert np.isnan(got[-1])
         assert np.array_equal(got[:-1].view(np.uint32), want.reshape(-1).view(np.uint32))
+
+
+def test_overlap_rules_are_served_and_say_what_they_need(client, demo):
+    """/api/collections serves the overlap rules the page offers (issue 31: the page hard-codes no
+    rule name): each one's name, label, key plane and winner; a rule with a key plane gets it with its
+    band values (X-Key names it), one without does not; the served names are those accepted."""
+    from archive.view.query import OVERLAPS
+
+    _, cid, item = demo
+    rules = client.get("/api/collections").json()["overlaps"]
+    assert rules == [c.as_dict() for c in OVERLAPS] and len(rules) >= 2
+    assert all(set(r) == {"name", "label", "key", "wins"} and r["label"] for r in rules)
+    assert rules[0]["key"] is None and rules[0]["wins"] == "last"     # the default needs no key plane
+    assert any(r["key"] == "view_zenith" and r["wins"] == "lowest" for r in rules)
+    x, y = max(_tiles_over(item["bbox"], Z), key=lambda t: (_rgba(client.get(
+        f"/api/collections/{cid}/tiles/{Z}/{t[0]}/{t[1]}.png"))[..., 3] > 0).sum())
+    for rule in rules:
+        r = client.get(f"/api/collections/{cid}/values/{Z}/{x}/{y}", params={"bands": "1,3", "overlap": rule["name"]})
+        planes = _values(r, 2 + (rule["key"] is not None))
+        assert r.headers["X-Key"] == (rule["key"] or "")
+        assert np.isfinite(planes[0]).sum() > 1000, rule
+        if rule["key"] is not None:   # the key is there exactly where values are
+            assert np.array_equal(np.isfinite(planes[-1]), np.isfinite(planes[0]))
+    refused = client.get(f"/api/collections/{cid}/values/{Z}/{x}/{y}", params={"bands": "1", "overlap": "first"})
+    assert refused.status_code == 400
+    assert all(r["name"] in refused.json()["error"] for r in rules), refused.json()

@@ -632,3 +632,56 @@ def test_refused_values_stay_out_of_the_hash_and_labels_do_not_collide(server, b
     assert label["x"] >= chart["x"] and label["y"] >= chart["y"] - 0.5
     assert label["y"] + label["height"] <= chart["y"] + chart["height"] + 0.5
     page.close()
+
+
+def test_page_scripts_are_modules_sharing_no_globals_and_rules_come_from_the_api(server, browser, archive_of_flights):
+    """The page's script is ES modules (issue 31): no page script but the vendored Leaflet is a
+    classic script (whose top-level names would be globals), and the page adds to ``window`` only
+    Leaflet's ``L`` (and its UMD ``leaflet``) and ``viewer`` (the state object the tests read). The
+    overlap list is the server's (``/api/collections``), and choosing the rule with a key plane
+    changes the picture only where two flights overlap (the one seen closer to nadir wins there)."""
+    import json
+    import urllib.request
+
+    from scipy.ndimage import binary_erosion
+
+    _, ids = archive_of_flights
+    blank = browser.new_page()
+    blank.goto(server + "api/status")    # a page of the same origin without scripts: what a window has
+    before = set(blank.evaluate("Object.keys(window)"))
+    blank.close()
+    page = Page(browser, server, f"flights={ids[1]},{ids[0]}")
+    p = page.page
+    # Leaflet also keeps its listeners of window in window._leaflet_events
+    added = set(p.evaluate("Object.keys(window)")) - before - {"_leaflet_events"}
+    assert "viewer" in added and added <= {"L", "leaflet", "viewer"}, sorted(added)
+    scripts = p.evaluate("[...document.scripts].map((s) => [s.getAttribute('src'), s.type])")
+    classic = [src for src, kind in scripts if kind != "module"]
+    assert classic == ["/static/vendor/leaflet/leaflet.js"], scripts
+    assert len(scripts) >= 2
+    # the overlap rules: the server's list, its first the default
+    fc = json.loads(urllib.request.urlopen(server + "api/collections").read())
+    rules = fc["overlaps"]
+    options = p.evaluate("[...document.getElementById('overlap').options].map((o) => [o.value, o.textContent])")
+    assert options == [[r["name"], r["label"]] for r in rules]
+    assert p.evaluate("document.getElementById('overlap').value") == rules[0]["name"]
+    keyed = next(r for r in rules if r["key"] is not None)
+    features = {f["id"]: f for f in fc["features"]}
+    p.evaluate(f"() => window.viewer.map.fitBounds(L.geoJSON(window.viewer.features.filter("
+               f"f => ['{ids[0]}', '{ids[1]}'].includes(f.id))).getBounds())")
+    page.settled()
+    page.clean()
+    shot = page.shot()
+    geo = page.geometry()
+    a, b = (_footprint_mask(features[c], shot.shape[:2], geo) for c in ids[:2])
+    p.evaluate("() => { window.viewer.settled = false; }")
+    p.select_option("#overlap", keyed["name"])
+    page.settled()
+    assert f"overlap={keyed['name']}" in p.evaluate("location.hash") or p.wait_for_function(
+        f"() => location.hash.includes('overlap={keyed['name']}')")
+    assert any(f"overlap={keyed['name']}" in u for u in page.values_requests)
+    changed = (page.shot() != shot).any(axis=-1)
+    both, one = binary_erosion(a & b, iterations=3), binary_erosion(a ^ b, iterations=3)
+    assert both.sum() > 500 and one.sum() > 500
+    assert changed[both].mean() > 0.1 and changed[one].mean() < 0.01, (changed[both].mean(), changed[one].mean())
+    page.close()

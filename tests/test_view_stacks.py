@@ -109,7 +109,7 @@ def test_the_page_steps_through_the_flights(stack):
             page.wait_for_load_state("networkidle")
             assert any("time=1" in u for u in tiles)
             box = page.locator("#map").bounding_box()
-            at = page.evaluate(f"(() => {{ const p = map.latLngToContainerPoint([{lat}, {lon}]); return [p.x, p.y]; }})()")
+            at = page.evaluate(f"(() => {{ const p = window.viewer.map.latLngToContainerPoint([{lat}, {lon}]); return [p.x, p.y]; }})()")
             with page.expect_response(lambda r: "/api/stacks/field/point" in r.url) as answer:
                 page.mouse.click(box["x"] + at[0], box["y"] + at[1])   # a pixel the second flight covers
             p = answer.value.json()

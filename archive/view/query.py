@@ -14,7 +14,8 @@ from dataclasses import dataclass
 from archive.errors import InputError
 from archive.sources.base import MODES
 
-__all__ = ["MAX_TEXT", "Stretch", "ViewQuery", "parse_bbox", "parse_number", "parse_query"]
+__all__ = ["MAX_TEXT", "OVERLAPS", "OverlapChoice", "Stretch", "ViewQuery", "overlap_choice", "parse_bbox",
+           "parse_number", "parse_query"]
 
 #: Longest accepted parameter value, characters.
 MAX_TEXT = 200
@@ -22,12 +23,44 @@ MAX_TEXT = 200
 MAX_CHANNELS = 3
 #: Band indices one band-value tile or stats request may name.
 MAX_BANDS = 16
-#: Overlap rules between captures (cubes, flights): as ``archive render --overlap`` ('mean' is not
-#: offered: it mixes pixels, and the browser composes flights by picking one).
-OVERLAPS = ("last", "nadir")
 #: Ground heights (m, ellipsoid) and sync offsets (s) outside these are refused outright.
 MAX_HEIGHT = 10_000.0
 MAX_SYNC_OFFSET = 10.0
+
+
+@dataclass(frozen=True)
+class OverlapChoice:
+    """An overlap rule the viewer offers, as the page needs it to compose flights (``/api/collections``
+    serves the list; the page branches on ``key`` and ``wins``, never on the name).
+
+    name: the rule's name (``overlap=`` of the API, ``archive render --overlap``); label: words for the
+    page's list; key: the per-pixel plane the values come with and the rule compares (None: none);
+    wins: which capture a pixel shows, 'last' (the latest drawn) or 'lowest' (the lowest ``key``).
+    """
+
+    name: str
+    label: str
+    key: str | None
+    wins: str
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "label": self.label, "key": self.key, "wins": self.wins}
+
+
+#: Overlap rules between captures (cubes, flights), the first the default: as ``archive render
+#: --overlap`` ('mean' is not offered: it mixes pixels, and the browser composes flights by picking one).
+#: The one list the server and the page read.
+OVERLAPS = (OverlapChoice("last", "last on top", None, "last"),
+            OverlapChoice("nadir", "closest to nadir", "view_zenith", "lowest"))
+
+
+def overlap_choice(name: str) -> OverlapChoice:
+    """The :data:`OVERLAPS` entry named ``name``; InputError naming ``overlap`` if there is none."""
+    for choice in OVERLAPS:
+        if choice.name == name:
+            return choice
+    raise InputError("overlap", f"unknown overlap rule {name!r}",
+                     f"use one of {', '.join(c.name for c in OVERLAPS)}")
 
 
 def _text(params: Mapping[str, str], name: str) -> str | None:
@@ -131,7 +164,7 @@ class ViewQuery:
     or bands: 0-based band indices (band-value tiles and stats); none: the flight's default. mode: radiometric mode (None: radiance, raw DN without a
     calibration). stretch: :class:`Stretch`. cubes: (first, last) 0-based inclusive, None = all.
     ground_height: m above the ellipsoid (None: as ingested / the headers'). sync_offset: s (None:
-    as ingested, else 0). overlap: how cubes that cover the same pixel combine ('last' | 'nadir').
+    as ingested, else 0). overlap: how cubes that cover the same pixel combine (a name of :data:`OVERLAPS`).
     """
 
     wavelengths: tuple[float, ...] | None = None
@@ -210,9 +243,7 @@ def parse_query(params: Mapping[str, str], channels: bool = True) -> ViewQuery:
     mode = _text(params, "mode")
     if mode is not None and mode not in MODES:
         raise InputError("mode", f"unknown radiometric mode {mode!r}", f"use one of {', '.join(MODES)}")
-    overlap = _text(params, "overlap") or "last"
-    if overlap not in OVERLAPS:
-        raise InputError("overlap", f"unknown overlap rule {overlap!r}", f"use one of {', '.join(OVERLAPS)}")
+    overlap = overlap_choice(_text(params, "overlap") or OVERLAPS[0].name).name
     return ViewQuery(
         wavelengths=wavelengths, band=band, bands=indices if channels else None, mode=mode, stretch=stretch,
         cubes=_cubes(params), overlap=overlap,

@@ -7,14 +7,16 @@ trace):
 - ``GET /api/collections?bbox=W,S,E,N&datetime=A/B&wavelength=NM`` GeoJSON FeatureCollection of
   the footprints (id, time range, wavelength range, bands, nominal gsd...), and ``damaged``: the
   flights the catalog cannot describe (``{id, reason, fix}``: an unreadable Item, a collection
-  without an Item), each costing only itself;
+  without an Item), each costing only itself; and ``overlaps``: the overlap rules the page offers
+  (``{name, label, key, wins}``, the first the default; :data:`archive.view.query.OVERLAPS`);
 - ``GET /api/collections/{id}`` what the page needs to build its controls (bands, modes, cubes,
   default ground height, lowest camera altitude);
 - ``GET /api/collections/{id}/tiles/{z}/{x}/{y}.png?wavelengths=R,G,B|band=I&mode=&stretch=&cubes=A-B
   &ground_height=&sync_offset=`` a 256 x 256 EPSG:3857 tile drawn by the inverse renderer;
 - ``GET /api/collections/{id}/values/{z}/{x}/{y}?bands=I,J,K&mode=&cubes=&ground_height=&sync_offset=
   &overlap=last|nadir&scale=1|2|4|8|16&window=0|1`` band values of a tile (float32 planes,
-  little-endian; then the view-zenith plane with ``overlap=nadir``), stretched and composed by the
+  little-endian; then the rule's key plane, named by ``X-Key``, for a rule that has one: the view
+  zenith of ``nadir``), stretched and composed by the
   page; 204 where no line covers the tile; ``scale`` > 1: a coarse (side 256 / scale) preview;
   ``window=1``: only the rows and columns of the tile that hold a value (header ``X-Window: column,row,
   width,height``; a flight a few pixels wide at an overview zoom sends kilobytes, not 0.8 MB); the
@@ -62,7 +64,7 @@ from archive.errors import ArchiveError, InputError, MissingInputError, RenderEr
 from archive.grid import Grid
 from archive.view.cache import ByteLRU
 from archive.view.registry import FlightRegistry
-from archive.view.query import Stretch, parse_bbox, parse_number, parse_query
+from archive.view.query import OVERLAPS, Stretch, overlap_choice, parse_bbox, parse_number, parse_query
 from archive.view.tiles import MAX_ZOOM, TILE, encode_values, mercator_box, tile_grid
 from archive.view.worker import Cancelled, RenderThread
 
@@ -85,7 +87,7 @@ def cache_bytes(cache_mb: int) -> dict[str, int]:
     """The byte limit of each of the viewer's caches (CACHE_SHARES of ``cache_mb`` MiB)."""
     return {name: int((int(cache_mb) << 20) * share) for name, share in CACHE_SHARES.items()}
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
-#: Tiles asked at most in one request of ``/api/values/batch`` (the page asks up to BATCH of app.js).
+#: Tiles asked at most in one request of ``/api/values/batch`` (the page asks up to BATCH of state.js).
 MAX_PARTS = 64
 
 
@@ -293,6 +295,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
         if when is not None and len(when) > 100:
             raise InputError("datetime", f"value of {len(when)} characters is too long")
         found = await run_in_threadpool(registry.features, bbox, when, wavelength)
+        found["overlaps"] = [choice.as_dict() for choice in OVERLAPS]
         return JSONResponse(found, media_type="application/geo+json")
 
     def tile_request(request):
@@ -332,9 +335,10 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
         if query.bands is None:
             raise InputError("bands", "give the 0-based band indices wanted, e.g. bands=3,5,7")
         common = dataclasses.replace(query, bands=None, stretch=Stretch())
-        keyed = query.overlap == "nadir"
+        key_name = overlap_choice(query.overlap).key
+        keyed = key_name is not None
         headers = {"Cache-Control": "private, max-age=600", "X-Bands": ",".join(map(str, query.bands)),
-                   "X-Side": str(TILE // scale), "X-Key": "view_zenith" if keyed else ""}
+                   "X-Side": str(TILE // scale), "X-Key": key_name or ""}
         if not keyed and query.cubes is None and query.ground_height is None and query.sync_offset is None:
             # the flight as ingested, zoomed out: its overview previews, without the DN (issue 36).
             # On the event loop: two stat() calls, then slices of arrays of a few KB (a level is read

@@ -2,7 +2,11 @@
 // a stack and two of its flights; /api/stacks/{name}/residual measures the shift of every textured
 // window from the first to the second, drawn as dots coloured by its length (green <= 0.2 px,
 // amber <= 0.5 px, red beyond) with its shift in the tooltip, and the median / p95 below.
-// Loaded after app.js (shares its globals: map, getJSON).
+// A module (index.html loads it after app.js): map, getJSON and the page's state imported.
+import { getJSON } from "./dom.js";
+import { map } from "./map.js";
+import { viewer } from "./state.js";
+
 (function () {
   const state = { stacks: [], layer: null };
   const control = L.control({ position: "bottomleft" });
@@ -45,7 +49,7 @@
     control.out.textContent = r.matched
       ? `median ${r.median.toFixed(2)} px, p95 ${r.p95.toFixed(2)} px of ${r.gsd} m (${r.matched} of ${r.textured} textured windows)`
       : `no window matched (${r.textured} textured)`;
-    window.viewer.residual = r;   // the browser tests read it
+    viewer.residual = r;   // the browser tests read it
   }
 
   control.onAdd = function () {

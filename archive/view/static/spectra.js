@@ -1,9 +1,12 @@
 // archive view: pinned spectra of the open flight (the pixel of archive render's grid at the
 // flight's nominal GSD holding a click, float32 as render writes it), their chart, CSV and PNG.
-// Loaded after app.js (shares its globals: viewer, map, $, PALETTE, channelsNm, flightParams, newGeneration).
-"use strict";
+import { $, getJSON, idPath, status } from "./dom.js";
+import { map } from "./map.js";
+import { channelsNm, flightParams } from "./params.js";
+import { MAX_PINS, PALETTE, newGeneration, viewer } from "./state.js";
 
-async function pinPoint(latlng) {
+// pin the open flight's spectrum at a clicked point (a Leaflet LatLng)
+export async function pinPoint(latlng) {
   const id = viewer.open;
   const q = new URLSearchParams(flightParams(id, null));
   q.delete("overlap");

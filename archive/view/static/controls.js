@@ -1,0 +1,349 @@
+// archive view: the panel's controls (catalog list and filters, overlap rule, display, the open
+// flight's cubes, ground and sync sliders) and refresh(): every change makes a new spec of what the
+// tiles show (tiles.js draws it).
+import { $, clearErrors, fmt, getJSON, idPath, showError, status } from "./dom.js";
+import { inGeometry } from "./geo.js";
+import { writeHash } from "./hash.js";
+import { drawFootprints, map } from "./map.js";
+import { channelsNm, flightBox, flightParams, nearestBand, outlineParams, overlapRule } from "./params.js";
+import { pinPoint } from "./spectra.js";
+import { PREVIEW_UP, geometryOf, newGeneration, referenceFlight, viewer, visibleFlights } from "./state.js";
+import { stretchRanges, viewRanges } from "./stretch.js";
+import { markPlaceholders, pump, schedule } from "./tiles.js";
+
+// ---- the spec: what every tile should show (tiles.js) -----------------------------------------
+function buildSpec() {
+  const nm = channelsNm();
+  const preview = viewer.preview;
+  const flights = visibleFlights().map((id) => {
+    const f = viewer.byId.get(id);
+    const coarse = preview && id === viewer.open;
+    return { id, params: flightParams(id, coarse ? preview : null), bands: nm.map((w) => nearestBand(f, w)),
+             up: coarse ? PREVIEW_UP : 0, box: flightBox(id, coarse) };
+  });
+  const ranges = stretchRanges(nm);
+  // the overlap rule says what it needs (a per-pixel key plane) and which capture a pixel shows
+  const rule = overlapRule();
+  const keyed = !!rule.key, lowest = keyed && rule.wins === "lowest";
+  const data = JSON.stringify(flights.map((f) => [f.id, f.params, f.bands, f.up]));
+  return { flights, nm, ranges, keyed, lowest, data, id: data + JSON.stringify(ranges) + keyed, grey: nm.length === 1 };
+}
+
+export function refresh() {
+  // before the first view is set (the hash's, else the fit of every footprint) nothing is asked for:
+  // the world view's tiles would be thrown away at once
+  if (!viewer.booted) return;
+  const spec = buildSpec();
+  if (spec.ranges) viewer.lastRanges = spec.ranges;   // else new statistics are coming: draw when they arrive
+  if (!viewer.current || spec.id !== viewer.current.id) { viewer.failedSpec = null; newGeneration(); }
+  viewer.current = spec;
+  markPlaceholders(spec);
+  viewer.ready = viewer.settled = false;
+  showOutputs();
+  writeHash();
+  pump();
+}
+
+// ---- the catalog: every flight matching the filters, on the map and in the list ---------------
+export async function loadCatalog(fit) {
+  const q = new URLSearchParams();
+  const b = map.getBounds();
+  const clamp = (v, lo, hi) => Math.min(hi, Math.max(lo, v));
+  if ($("f-inview").checked) q.set("bbox", [clamp(b.getWest(), -180, 180), clamp(b.getSouth(), -85, 85),
+                                             clamp(b.getEast(), -180, 180), clamp(b.getNorth(), -85, 85)].map((v) => v.toFixed(7)).join(","));
+  if ($("f-datetime").value.trim()) q.set("datetime", $("f-datetime").value.trim());
+  if ($("f-wavelength").value.trim()) q.set("wavelength", $("f-wavelength").value.trim());
+  let fc;
+  try { fc = await getJSON(`/api/collections?${q}`); } catch (e) { showError(e.message, "err-filters"); return; }
+  clearErrors("err-filters");
+  if (fc.overlaps) setOverlaps(fc.overlaps);
+  viewer.features = fc.features;
+  viewer.byId = new Map(fc.features.map((f) => [f.id, f]));
+  const known = viewer.order.filter((id) => viewer.byId.has(id));
+  viewer.order = known.concat(fc.features.map((f) => f.id).filter((id) => !known.includes(id)));
+  if (viewer.open && !viewer.byId.has(viewer.open)) closeFlight();
+  fillBandOptions();
+  drawFootprints();
+  renderList();
+  status(`${fc.features.length} flight(s)`);
+  if (fit && fc.features.length && !viewer.hashHasMap) map.fitBounds(viewer.footprints.getBounds(), { padding: [20, 20] });
+  refresh();
+}
+
+// the overlap rules the server offers ({name, label, key, wins}, the first the default) in the list
+function setOverlaps(rules) {
+  viewer.overlaps = rules;
+  const select = $("overlap");
+  const keep = select.value;
+  select.replaceChildren(...rules.map((r) => Object.assign(document.createElement("option"), { value: r.name, textContent: r.label })));
+  select.value = rules.some((r) => r.name === keep) ? keep : rules[0].name;
+}
+export const defaultOverlap = () => (viewer.overlaps[0] || { name: "" }).name;
+
+export function renderList() {
+  const list = $("flights");
+  list.replaceChildren();
+  viewer.order.forEach((id, i) => {
+    const f = viewer.byId.get(id);
+    const p = f.properties;
+    const li = document.createElement("li");
+    li.dataset.id = id;
+    li.classList.toggle("open", id === viewer.open);
+    const show = document.createElement("input");
+    show.type = "checkbox";
+    show.checked = !viewer.hidden.has(id);
+    show.setAttribute("aria-label", `draw ${id}`);
+    show.addEventListener("change", () => { if (show.checked) viewer.hidden.delete(id); else viewer.hidden.add(id); drawFootprints(); refresh(); });
+    const open = document.createElement("button");
+    open.type = "button";
+    open.className = "flight-open";
+    open.textContent = id;
+    open.title = `open ${id} (its controls, spectra)`;
+    open.addEventListener("click", () => openFlight(id, true));
+    const meta = document.createElement("span");
+    meta.className = "meta";
+    meta.textContent = `${p.start_datetime.slice(0, 19).replace("T", " ")} UTC · ${p.bands} bands ` +
+      `${fmt(p.min_wavelength, 4)}–${fmt(p.max_wavelength, 4)} nm · ${p.cubes ?? "?"} cubes · ${fmt(p.gsd, 2)} m`;
+    const move = (delta, label, text) => {
+      const b = document.createElement("button");
+      b.type = "button"; b.className = "move"; b.textContent = text; b.title = label; b.setAttribute("aria-label", `${label}: ${id}`);
+      b.disabled = i + delta < 0 || i + delta >= viewer.order.length;
+      b.addEventListener("click", () => {
+        const o = viewer.order;
+        [o[i], o[i + delta]] = [o[i + delta], o[i]];
+        renderList(); drawFootprints(); refresh();
+        const again = $("flights").querySelector(`li[data-id="${CSS.escape(id)}"] button.move[title="${label}"]`);
+        if (again && !again.disabled) again.focus();
+      });
+      return b;
+    };
+    li.append(show, open, move(-1, "draw under", "▲"), move(1, "draw over", "▼"), meta);
+    list.append(li);
+  });
+}
+
+$("filters").addEventListener("submit", (ev) => { ev.preventDefault(); loadCatalog(false); });
+$("show-footprints").addEventListener("change", () => drawFootprints());
+$("overlap").addEventListener("change", () => refresh());
+
+// ---- bands -----------------------------------------------------------------------------------
+function fillBandOptions() {
+  const id = referenceFlight();
+  if (!id) return;
+  const p = viewer.byId.get(id).properties;
+  const keep = ["band-r", "band-g", "band-b", "band-grey"].map((s) => $(s).value);
+  for (const sel of ["band-r", "band-g", "band-b", "band-grey"]) {
+    const select = $(sel);
+    select.replaceChildren();
+    for (let i = 0; i < p.bands; i++) {
+      const o = document.createElement("option");
+      o.value = p.wavelength ? String(p.wavelength[i]) : String(i);
+      o.textContent = p.wavelength ? `${i + 1}: ${p.wavelength[i].toFixed(1)} nm` : `band ${i + 1}`;
+      select.append(o);
+    }
+  }
+  if (keep[0] === "") setTrueColour(false);
+  else ["band-r", "band-g", "band-b", "band-grey"].forEach((s, i) => selectNearest($(s), Number(keep[i])));
+  if (!$("mode").options.length) setModes(["raw", "relative", "radiance"], "radiance");
+}
+export function selectNearest(select, nm) {
+  let best = null;
+  for (const o of select.options) if (best === null || Math.abs(Number(o.value) - nm) < Math.abs(Number(best.value) - nm)) best = o;
+  if (best) select.value = best.value;
+}
+function setTrueColour(apply = true) {
+  const id = referenceFlight();
+  const p = id && viewer.byId.get(id).properties;
+  if (!p) return;
+  if (p.wavelength && p.min_wavelength <= 640 && p.max_wavelength >= 460) {
+    [640, 550, 460].forEach((nm, i) => selectNearest($(["band-r", "band-g", "band-b"][i]), nm));
+  } else {
+    const n = p.bands, pick = (i) => $(["band-r", "band-g", "band-b"][i]).options[i === 0 ? (3 * n) >> 2 : i === 1 ? n >> 1 : n >> 2];
+    [0, 1, 2].forEach((i) => { $(["band-r", "band-g", "band-b"][i]).value = pick(i).value; });
+  }
+  $("band-grey").value = $("band-r").value;
+  if (apply) { $("display").value = "rgb"; showDisplay(); refresh(); }
+}
+function setModes(modes, chosen) {
+  const mode = $("mode");
+  const keep = mode.value;
+  mode.replaceChildren(...modes.map((m) => { const o = document.createElement("option"); o.value = m; o.textContent = m; return o; }));
+  mode.value = modes.includes(keep) ? keep : chosen;
+}
+export function showDisplay() {
+  const grey = $("display").value === "grey";
+  for (const el of document.querySelectorAll(".row.rgb")) el.hidden = grey;
+  for (const el of document.querySelectorAll(".row.grey")) el.hidden = !grey;
+  $("per-channel-label").hidden = grey;
+  document.querySelector(".row.manual").hidden = $("stretch").value !== "manual";
+}
+
+for (const id of ["band-r", "band-g", "band-b", "band-grey"]) $(id).addEventListener("change", () => refresh());
+$("display").addEventListener("change", () => { showDisplay(); refresh(); });
+$("mode").addEventListener("change", () => refresh());
+$("truecolour").addEventListener("click", () => setTrueColour(true));
+$("stretch").addEventListener("change", () => {
+  if ($("stretch").value === "view") viewer.viewStretch = viewer.current ? viewRanges(viewer.current) : null;
+  const lastRanges = viewer.lastRanges;
+  if ($("stretch").value === "manual" && $("stretch-low").value === "" && lastRanges) {
+    $("stretch-low").value = Number(Math.min(...lastRanges.map((r) => r[0])).toPrecision(5));
+    $("stretch-high").value = Number(Math.max(...lastRanges.map((r) => r[1])).toPrecision(5));
+  }
+  showDisplay(); refresh();
+});
+for (const id of ["per-channel", "stretch-low", "stretch-high"]) $(id).addEventListener("change", () => refresh());
+map.on("movestart zoomstart", () => { viewer.settled = viewer.ready = false; });
+map.on("moveend", () => {
+  newGeneration();
+  if ($("stretch").value === "view" && viewer.current) { viewer.current.viewStretchFresh = false; }
+  writeHash();
+  schedule();
+});
+
+function showOutputs() {
+  const preview = viewer.preview;
+  if (viewer.open && viewer.params[viewer.open]) {
+    const p = viewer.params[viewer.open];
+    const g = preview && preview.ground !== undefined ? preview.ground : p.ground;
+    const s = preview && preview.sync !== undefined ? preview.sync : p.sync;
+    $("ground-out").textContent = `${Number(g).toFixed(1)} m`;
+    $("sync-out").textContent = `${Number(s).toFixed(3)} s`;
+  }
+  const r = viewer.current && viewer.current.ranges;
+  const names = $("display").value === "grey" ? ["grey"] : ["R", "G", "B"];
+  $("stretch-values").textContent = r ? r.map(([lo, hi], i) => `${names[i]} ${fmt(lo)}…${fmt(hi)}`).join("  ") : "";
+}
+
+// ---- the open flight: its controls, footprint and spectra -----------------------------------
+export async function openFlight(id, fit) {
+  status(`opening ${id}…`);
+  let info;
+  try { info = await getJSON(idPath(id)); } catch (e) { status(e.message, true); return; }
+  viewer.open = id;
+  viewer.info = info;
+  viewer.hidden.delete(id);
+  if (!viewer.params[id]) viewer.params[id] = { cubes: null, ground: info.ground_height, sync: info.sync_offset };
+  $("flight-title").textContent = id;
+  setModes(info.modes, info.default_mode);
+  fillBandOptions();
+  setSliders(info);
+  $("controls").hidden = false;
+  renderList();
+  if (fit) map.fitBounds(L.geoJSON(viewer.byId.get(id)).getBounds(), { padding: [30, 30] });
+  status(`${id}: ${info.cubes.length} cubes, ${info.bands} bands`);
+  loadOutline(id);
+  drawFootprints();
+  refresh();
+}
+
+export function setSliders(info) {
+  const p = viewer.params[info.id];
+  const gh = info.ground_height;
+  const ground = $("ground");
+  // over a DEM (a collection ingested with --dem) the slider is the DEM's vertical offset
+  document.querySelector('label[for="ground"]').textContent = info.terrain ? "DEM offset" : "Ground";
+  ground.title = info.terrain ? `vertical offset of ${info.terrain.dem}, metres` : "flat ground height, metres";
+  ground.min = (gh - (info.terrain ? 10 : 30)).toFixed(1);
+  ground.max = (info.terrain ? gh + 10 : Math.min(gh + 30, info.lowest_camera - 1.5)).toFixed(1);
+  ground.value = p.ground;
+  const sync = $("sync");
+  sync.min = (info.sync_offset - 0.25).toFixed(3); sync.max = (info.sync_offset + 0.25).toFixed(3);
+  sync.value = p.sync;
+  const n = info.cubes.length;
+  for (const el of [$("cube-first"), $("cube-last")]) { el.min = 1; el.max = n; }
+  $("cube-first").value = p.cubes ? p.cubes[0] : 1;
+  $("cube-last").value = p.cubes ? p.cubes[1] : n;
+  $("cube-first").title = `first cube (${info.cubes[0].base} is 1)`;
+}
+
+export function closeFlight() {
+  viewer.open = viewer.info = null;
+  $("controls").hidden = true;
+  renderList();
+  drawFootprints();
+  refresh();
+}
+
+export async function loadOutline(id) {
+  const q = outlineParams(id);
+  try {
+    const geometry = await getJSON(`${idPath(id)}/outline?${q}`);
+    if (geometry.coordinates.length) viewer.outlines[id] = { geometry, params: q };
+    drawFootprints();
+    refresh();
+  } catch (e) { /* the tiles say what is wrong */ }
+}
+
+// an error message stays until the view it refused is replaced (settle) or Reset: clearing it on
+// input would move the controls under the pointer
+// the outline is asked first: its meshes are the ones the tiles need, and once it has arrived the
+// tiles beyond the new footprint are no longer asked for
+function flightChanged() {
+  if (viewer.open) loadOutline(viewer.open);
+  refresh();
+}
+function cubesInput() {
+  const p = viewer.params[viewer.open];
+  const n = viewer.info.cubes.length;
+  const a = Math.round(Number($("cube-first").value)), b = Math.round(Number($("cube-last").value));
+  p.cubes = a === 1 && b === n ? null : [a, b];
+  flightChanged();
+}
+$("cube-first").addEventListener("change", cubesInput);
+$("cube-last").addEventListener("change", cubesInput);
+
+// sliders: a coarse preview (64 x 64 tiles of the open flight) while dragging, one at a time, at
+// the latest value; the full resolution on release. A preview starts at the next animation frame:
+// a click on the slider's track (input and change at once) asks for no preview nobody would see
+let previewFrame = null;
+export function startPreview(value) {
+  viewer.previewNext = null;
+  viewer.preview = value;
+  refresh();
+}
+for (const [id, name] of [["ground", "ground"], ["sync", "sync"]]) {
+  $(id).addEventListener("input", () => {
+    viewer.previewNext = { [name]: Number($(id).value) };
+    showOutputsValue(name, viewer.previewNext[name]);
+    if ((viewer.preview && !viewer.settled) || previewFrame !== null) return;   // the settled preview starts the next
+    previewFrame = requestAnimationFrame(() => {
+      previewFrame = null;
+      if (viewer.previewNext !== null) startPreview(viewer.previewNext);
+    });
+  });
+  $(id).addEventListener("change", () => {
+    viewer.preview = null; viewer.previewNext = null;
+    viewer.params[viewer.open][name] = Number($(id).value);
+    flightChanged();
+  });
+}
+function showOutputsValue(name, v) {
+  if (name === "ground") $("ground-out").textContent = `${v.toFixed(1)} m`;
+  else $("sync-out").textContent = `${v.toFixed(3)} s`;
+}
+
+$("reset").addEventListener("click", () => {
+  const info = viewer.info;
+  viewer.params[info.id] = { cubes: null, ground: info.ground_height, sync: info.sync_offset };
+  setSliders(info);
+  setModes(info.modes, info.default_mode);
+  $("mode").value = info.default_mode;
+  $("stretch").value = "flight";
+  $("per-channel").checked = true;
+  setTrueColour(false);
+  $("display").value = "rgb";
+  showDisplay();
+  clearErrors();
+  viewer.failedSpec = null;
+  flightChanged();
+});
+$("close").addEventListener("click", () => { closeFlight(); status(""); });
+
+// ---- clicks: open the flight under the pointer, or pin the open flight's spectrum -------------
+map.on("click", (ev) => {
+  const { lng, lat } = ev.latlng;
+  const under = visibleFlights().filter((id) => inGeometry(lng, lat, geometryOf(id)));
+  if (viewer.open && (under.includes(viewer.open) || !under.length)) { pinPoint(ev.latlng); return; }
+  if (under.length) openFlight(under[under.length - 1], false);
+});
+
