@@ -135,6 +135,8 @@ def test_ingest_verify_search(s3_archive, small_archive, small_flight):
     assert v.returncode == 0 and f"{cid}: OK" in v.stdout, v.stderr
     s = _cli("catalog", "search", "--archive", url)
     assert s.returncode == 0 and cid in s.stdout and "1 flight" in s.stdout, s.stderr
+    val = _cli("catalog", "validate", "--archive", url)
+    assert val.returncode == 0 and "3 of 3 valid" in val.stdout, val.stdout + val.stderr
     # no credential in any object written
     for k in keys:
         if not k.split("/")[-1].isdigit():

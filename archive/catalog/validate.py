@@ -104,7 +104,9 @@ def _validator(url: str):
 def _read(obj_or_path: dict | str | os.PathLike) -> tuple[dict, str]:
     if isinstance(obj_or_path, dict):
         return obj_or_path, str(obj_or_path.get("id", "STAC object"))
-    path = Path(obj_or_path)
+    from archive import storage
+
+    path = storage.location(obj_or_path) if storage.is_url(obj_or_path) else Path(obj_or_path)   # s3:// too
     try:
         obj = json.loads(path.read_text())
     except FileNotFoundError:
