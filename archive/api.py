@@ -246,6 +246,11 @@ def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: So
 
         if quicklook:
             raise InputError("--quicklook", "a stack has no quicklook", "leave --quicklook out with --stack")
+        from archive.storage import is_url
+
+        if is_url(out):
+            raise InputError(out, "a stack cannot be written into object storage yet",
+                             "write it to a local or shared folder, then copy it")
         return run_stack(request, out, overwrite=overwrite, resume=resume, scheduler=scheduler, workers=workers,
                          threads=threads, quiet=quiet, tell=tell)
     if tiles is not None:   # each tile a job of its own, in waves

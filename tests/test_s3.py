@@ -514,3 +514,14 @@ def test_zarr_output_chunks_go_straight_to_the_bucket(s3_archive, tmp_path):
     again = _cli(*args, "--overwrite")
     assert again.returncode == 0, again.stderr
     assert storage.exists(out + ".json")
+
+
+def test_a_stack_into_a_bucket_is_refused(s3_archive):
+    """Stacks are not written into object storage yet: one line, exit 2, nothing written."""
+    url, cid, _ = s3_archive
+    out = url + "-stack/field.zarr"
+    r = _cli("render", "--archive", url, "--query-bbox", "-180,-90,180,90", "--stack", "--gsd", "0.5", "--out", out)
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode == 2 and len(lines) == 1 and "cannot be written into object storage" in lines[0], r.stderr
+    bucket, prefix = out[5:].split("/", 1)
+    assert _keys(bucket, prefix.rsplit("/", 1)[0] + "/") == {} and not Path("s3:").exists()
