@@ -92,9 +92,6 @@ def render_keywords(args: argparse.Namespace, scheduler=None) -> dict:
                              "add --archive A with --query-bbox/--query-datetime/--query-wavelength")
         if args.mosaic:
             raise InputError("--stack", "--stack and --mosaic are two kinds of output", "give one of them")
-        if args.compression != "fast":   # its slices and store are made with the default codecs
-            raise InputError("--compression", "a stack is written with the default compression (fast)",
-                             "leave --compression out with --stack")
         keywords["stack"] = True
         keywords.pop("format", None)
     return keywords

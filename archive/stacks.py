@@ -344,6 +344,9 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
     if options.provenance:
         raise InputError("--provenance", "a stack holds no provenance layers",
                          "render the flight alone with --like X.zarr --provenance")
+    if options.compression != "fast":   # its slices and store are made with the default codecs
+        raise InputError("--compression", "a stack is written with the default compression (fast)",
+                         "leave --compression out with --stack")
     if options.archive is not None:   # recipes independent of the working directory
         options = dataclasses.replace(options, archive=os.fspath(Path(options.archive).absolute()))
     nav = options.check()

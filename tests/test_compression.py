@@ -142,3 +142,12 @@ def test_a_stack_refuses_another_compression(small_archive, tmp_path, capsys):
                  "--compression", "small", "--quiet"])
     assert code == 2 and "--compression: a stack is written with the default compression" in capsys.readouterr().err
     assert not (tmp_path / "s.zarr").exists()
+
+
+def test_a_stack_refuses_another_compression_in_python(small_archive, tmp_path):
+    import archive
+
+    arc, cid = small_archive
+    with pytest.raises(InputError, match=r"georectify\(compression=...\): a stack is written with the default compression"):
+        archive.georectify([cid], tmp_path / "s.zarr", archive=str(arc), stack=True, gsd=0.1, compression="small")
+    assert not (tmp_path / "s.zarr").exists()
