@@ -117,7 +117,7 @@ def coregister(source, reference, fov_deg: float, ground: float, *, dem=None, de
         offset = [n for n in estimate if n in ("east", "north", "up")]
         params = fit_separable(sets, params, start, offset, {}, pixel, say).params
     if "sync" in estimate:
-        params = search_sync(sets, params, estimate, pixel, say)
+        params = search_sync(sets, params, estimate, pixel, say, fine=True)
     result = fit_separable(sets, params, start, list(estimate), held, pixel, say)
     params = result.params
     for it in range(ITERATIONS):

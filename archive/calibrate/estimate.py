@@ -59,6 +59,8 @@ LIMITS = np.array([5.0, 5.0, 5.0, 1.5, 50.0, 15.0, 15.0, 10.0])
 CONVERGED_PX = 0.3
 #: Sync offsets searched about the start value, s.
 SYNC_SEARCH = (-1.0, 1.0, 0.1)
+#: The fine search about the best of SYNC_SEARCH (co-registration), s.
+SYNC_FINE = (-0.1, 0.1, 0.01)
 #: Fewest tie windows a calibration accepts (and under the start parameters, the first measurement).
 MIN_TIES = 30
 MIN_FIRST_TIES = 12
@@ -412,19 +414,26 @@ def _check_ties(ties, pairs, estimate, flights, first: bool = False) -> None:
                      "check --fov and the start parameters (--ground-height, the ingested mounting)")
 
 
-def search_sync(sets, start: Params, estimate, pixel: float, say) -> Params:
+def search_sync(sets, start: Params, estimate, pixel: float, say, fine: bool = False) -> Params:
     """The sync offset within +-1 s of the start minimising the robust cost, the other estimated
-    parameters fitted at each step."""
+    parameters fitted at each step. fine: then again every SYNC_FINE[2] s within SYNC_FINE of the
+    best, the others fitted from their start values (a pitch that absorbed a sync offset between
+    two coarse steps does not carry over into the fine steps)."""
     others = tuple(n for n in estimate if n != "sync")
+    bounds = (start.vector() - LIMITS, start.vector() + LIMITS)
+
+    def trial_fit(sync: float) -> Fit:
+        trial = Params.from_vector(np.where(np.array(PARAM_NAMES) == "sync", sync, start.vector()))
+        return fit(sets, trial, others, pixel, max_nfev=6, bounds=bounds) if others else fit(sets, trial, (), pixel)
+
     lo, hi, step = SYNC_SEARCH
-    best = None
-    for ds in np.arange(lo, hi + step / 2, step):
-        trial = Params.from_vector(np.where(np.array(PARAM_NAMES) == "sync", start.sync + ds, start.vector()))
-        bounds = (start.vector() - LIMITS, start.vector() + LIMITS)
-        f = fit(sets, trial, others, pixel, max_nfev=6, bounds=bounds) if others else fit(sets, trial, (), pixel)
-        if best is None or f.cost < best.cost:
-            best = f
-    say(f"sync offset search (+-1 s): {best.params.sync:+.3f} s")
+    best = min((trial_fit(start.sync + ds) for ds in np.arange(lo, hi + step / 2, step)), key=lambda f: f.cost)
+    if fine:
+        lo, hi, step = SYNC_FINE
+        centre = best.params.sync
+        best = min([best] + [trial_fit(centre + ds) for ds in np.arange(lo, hi + step / 2, step) if abs(ds) > 1e-9],
+                   key=lambda f: f.cost)
+    say(f"sync offset search (+-1 s{', then every 10 ms' if fine else ''}): {best.params.sync:+.3f} s")
     return best.params
 
 
