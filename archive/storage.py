@@ -97,10 +97,12 @@ def reason(exc: BaseException) -> str | None:
 @contextmanager
 def storage_errors(where: Any) -> Iterator[None]:
     """Turn an object-store client's error inside the block into a :class:`StorageError` naming ``where``."""
+    from obstore.exceptions import AlreadyExistsError, NotFoundError, PreconditionError
+
     try:
         yield
-    except (StorageError, FileNotFoundError):
-        raise
+    except (StorageError, FileNotFoundError, NotFoundError, AlreadyExistsError, PreconditionError):
+        raise   # answers the callers handle (absent, present), not failures
     except Exception as exc:
         why = reason(exc)
         if why is None:
@@ -190,10 +192,6 @@ def put_if_absent(loc: Any, data: bytes) -> bool:
             obstore.put(object_store(bucket), key, data, mode="create")
     except (AlreadyExistsError, PreconditionError):
         return False
-    except StorageError as exc:   # an AlreadyExists wrapped by the client
-        if "AlreadyExists" in str(exc) or "PreconditionFailed" in str(exc):
-            return False
-        raise
     return True
 
 
