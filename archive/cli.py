@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from archive import __version__
 from archive.api_errors import keep_cli_flags
 from archive.errors import ArchiveError
+from archive.overlap import LAST, RULES
 from archive.params import DEFAULT_MAX_VIEW_ANGLE
 
 # command name -> "module:function" taking the parsed argparse.Namespace and returning an exit code
@@ -220,7 +221,7 @@ def _add_render(sub) -> None:
                         "flights of other zones are rendered into it)")
     _add_dem(p, "the meshes follow it instead of the flat ground; ground no line sees stays NaN; "
                         "exclusive with a numeric --ground-height")
-    p.add_argument("--overlap", choices=["last", "nadir", "mean"], default="last",
+    p.add_argument("--overlap", choices=list(RULES), default=LAST.name,
                    help="where lines overlap: the later line wins (default), the line seen closest to nadir "
                         "(smallest view zenith) wins, or the mean")
     g = p.add_argument_group("the output grid (default: the flights' footprint, pixel edges on multiples of --gsd)")
@@ -244,7 +245,8 @@ def _add_render(sub) -> None:
     p.add_argument("--provenance", action="store_true",
                    help="also write per-pixel provenance layers: source cube/line/sample, time, view and sun "
                         "angles, path length, overlap count (variables of a .zarr; <stem>_provenance.tif/.hdr "
-                        "beside a .tif/.hdr); needs --overlap last or nadir")
+                        "beside a .tif/.hdr); needs --overlap "
+                        + " or ".join(rule.name for rule in RULES.values() if rule.single_source))
     p.add_argument("--quicklook", metavar="PNG", help="also write an RGB preview (2%%/98%% stretch)")
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="Dask scheduler address, e.g. tcp://host:8786 (default: a local cluster). Workers need "

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from archive.errors import InputError, MissingInputError
-from archive.graph.mosaic import RULES, WINNER_RULES
 from archive.navigation import projected_epsg
+from archive.overlap import LAST, RULES, OverlapRule, overlap_rule
 from archive.params import DEFAULT_MAX_VIEW_ANGLE, NavigationParams
 from archive.sources.base import MODES
 from archive.sources.select import parse_bands
@@ -119,7 +119,8 @@ class RenderOptions:
     mode: 'raw' | 'relative' | 'radiance' | 'reflectance' (None: radiance, raw DN when a source has no
     calibration); white_reference: the (nm, radiance) text file for 'reflectance'; sync_offset (s),
     boresight (roll, pitch, yaw deg), lever_arm (x, y, z m): None means as ingested for a collection,
-    else 0; overlap: 'last' | 'nadir' | 'mean'; crs: the output's projected CRS (None: the UTM zone holding most
+    else 0; overlap: the :class:`~archive.overlap.OverlapRule` (resolved by :meth:`create` from its name,
+    'last' | 'nadir' | 'mean'); crs: the output's projected CRS (None: the UTM zone holding most
     of the flights); max_view_angle: degrees off nadir at the field-of-view edge beyond which lines
     are left out of the meshes (turns); dem: a DEM GeoTIFF (any CRS) the meshes follow instead of
     the flat ground (exclusive with a numeric ground_height; :mod:`archive.dem`); dem_datum: its
@@ -148,7 +149,7 @@ class RenderOptions:
     sync_offset: float | None = None
     boresight: tuple[float, float, float] | None = None
     lever_arm: tuple[float, float, float] | None = None
-    overlap: str = "last"
+    overlap: OverlapRule = LAST
     crs: str | None = None
     max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE
     dem: str | None = None
@@ -164,7 +165,7 @@ class RenderOptions:
     def create(cls, sources, *, gsd=None, archive=None, fov=None, calibration=None, ground_height="auto",
                wavelengths=None, bands="all", mode=None, white_reference=None, irradiance_calibration=None,
                panels=None, sync_offset=None,
-               boresight=None, lever_arm=None, overlap="last", crs=None,
+               boresight=None, lever_arm=None, overlap=LAST, crs=None,
                max_view_angle=DEFAULT_MAX_VIEW_ANGLE, dem=None, dem_datum=None, provenance=False,
                zarr_format=2, compression=None, bounds=None, align=False, like=None) -> RenderOptions:
         """A request from API keywords (or CLI values); InputError for malformed values. With
@@ -189,7 +190,7 @@ class RenderOptions:
             panels=None if panels is None else os.path.abspath(panels),
             sync_offset=_number(sync_offset, "--sync-offset", "seconds"),
             boresight=_triple(boresight, "--boresight"), lever_arm=_triple(lever_arm, "--lever-arm"),
-            overlap=overlap, crs=None if crs is None else str(crs),
+            overlap=overlap_rule(overlap), crs=None if crs is None else str(crs),
             max_view_angle=_number(max_view_angle, "--max-view-angle", "degrees"),
             dem=fspath(dem), dem_datum=None if dem_datum is None else str(dem_datum), provenance=bool(provenance),
             zarr_format=_zarr_format(zarr_format), compression=_compression(compression),
@@ -230,12 +231,11 @@ class RenderOptions:
                              f"the default is {DEFAULT_MAX_VIEW_ANGLE:g}")
         if self.crs is not None:
             projected_epsg(self.crs)
-        if self.overlap not in RULES:
-            raise InputError("--overlap", f"unknown overlap rule {self.overlap!r}", f"use one of {', '.join(RULES)}")
-        if self.provenance and self.overlap not in WINNER_RULES:
-            raise InputError("--provenance", f"with --overlap {self.overlap} an output pixel has no single source "
+        if self.provenance and not self.overlap.single_source:
+            single = [rule.name for rule in RULES.values() if rule.single_source]
+            raise InputError("--provenance", f"with --overlap {self.overlap.name} an output pixel has no single source "
                              "pixel, so its provenance layers cannot be written",
-                             f"use --overlap {' or '.join(WINNER_RULES)} with --provenance")
+                             f"use --overlap {' or '.join(single)} with --provenance")
         # reflectance without --white-reference: the flight's downwelling spectra, else the source refuses
         if self.panels and (self.mode != "reflectance" or self.white_reference or self.dem):
             raise InputError("--panels", "fits the empirical line of --mode reflectance on a flat ground",

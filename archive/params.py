@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from archive.overlap import LAST, OverlapRule
+
 #: Lines whose field-of-view edge looks further than this from nadir (degrees) are left out of the
 #: mesh (turns). 23.75 deg is the edge of a level Pika L (47.5 deg field of view); 40 leaves room
 #: for wobble and a boresight in straight flight while a banked turn's lines (which would stretch
@@ -81,14 +83,14 @@ class RenderParams:
     ground_height: flat ground height, metres above the ellipsoid; None means automatic.
     mode: 'raw' | 'relative' | 'radiance' | 'reflectance'.
     bands: band indices (0-based) to render, in output order; None means all bands.
-    overlap: 'last' (the later line wins) or 'mean'.
+    overlap: the overlap rule (:mod:`archive.overlap`).
     """
 
     gsd: float
     ground_height: float | None = None
     mode: str = "radiance"
     bands: tuple[int, ...] | None = None
-    overlap: str = "last"
+    overlap: OverlapRule = LAST
     navigation: NavigationParams = field(default_factory=lambda: NavigationParams(fov_deg=47.5))
 
 

@@ -39,7 +39,6 @@ from archive import storage
 from archive.cluster import ClusterClose, active_client, check_gpu_workers, execute, start_cluster, task_budget
 from archive.errors import InputError
 from archive.files import wait_while_exists
-from archive.graph.mosaic import rule_key
 from archive.grid import GridRequest
 from archive.options import DEFAULT_MAX_VIEW_ANGLE, RenderOptions, check_gsd, grid_request
 from archive.outputs.base import variable_for_mode
@@ -205,11 +204,11 @@ class OutputPlan:
 
     def layers_spec(self, rule_only: bool = False):
         """The :class:`~archive.provenance.ProvenanceSpec` of this output: every provenance layer,
-        or with ``rule_only`` only the layer the overlap rule compares (:func:`~archive.graph.mosaic.rule_key`)."""
+        or with ``rule_only`` only the layer the overlap rule compares (:attr:`~archive.overlap.OverlapRule.key`)."""
         from archive.provenance import provenance_spec
 
         return provenance_spec(self.plan, self.sources, [self.ground_height] * len(self.sources), self.dem,
-                               (rule_key(self.params.overlap),) if rule_only else None)
+                               (self.params.overlap.key,) if rule_only else None)
 
     @property
     def attrs(self) -> dict:
@@ -219,7 +218,7 @@ class OutputPlan:
                   {"dem": self.dem.path, "dem_datum": self.dem.datum or "declared"})
         return {"mode": self.params.mode, "gsd_m": self.params.gsd, "fov_deg": self.params.navigation.fov_deg,
                 **ground, "sync_offset_s": offsets[0] if len(offsets) == 1 else offsets,
-                "overlap": self.params.overlap, "sources": [str(s.label) for s in self.sources]}
+                "overlap": self.params.overlap.name, "sources": [str(s.label) for s in self.sources]}
 
 
 def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget: int | None = None,
@@ -279,7 +278,7 @@ def build_output(output: OutputPlan, target: Output):
                       zarr_format=target.zarr_format, compression=target.compression)
     sink = target.sink(meta)
     layers = layers_sink = None
-    if target.provenance or rule_key(p.overlap) is not None:
+    if target.provenance or p.overlap.key is not None:
         layers = output.layers_spec(rule_only=not target.provenance)
     if target.provenance:
         layers_sink = target.layers_sink(layers)
@@ -584,7 +583,7 @@ def planned_dataset(planned: OutputPlan):
     p, grid = planned.params, planned.plan.grid
     values, saturated = mosaic_arrays(planned.plan, list(planned.sources), mode=p.mode, overlap=p.overlap,
                                       layers=planned.layers_spec(rule_only=True)
-                                      if rule_key(p.overlap) is not None else None,
+                                      if p.overlap.key is not None else None,
                                       mesh_spec=planned.mesh_spec)
     ds = mosaic_dataset(grid, values, saturated, planned.plan.bands[0], planned.wavelengths, planned.fwhm,
                         planned.variable, planned.attrs)

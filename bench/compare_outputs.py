@@ -8,8 +8,8 @@ compare every output bit for bit.
 ``archive render`` command (``archive.cli.main`` with ``PYTHONPATH`` set to the tree, on one local
 Dask cluster per tree), the same requests:
 
-- a flat flight: Zarr, COG and ENVI; the same with ``--overlap nadir --provenance``; COG and ENVI
-  with ``--provenance`` alone;
+- a flat flight: Zarr, COG and ENVI; the same with ``--overlap nadir --provenance`` and with
+  ``--overlap mean``; COG and ENVI with ``--provenance`` alone;
 - a terrain flight (``archive simulate --terrain hills``) with ``--dem``: Zarr, COG and ENVI, and
   Zarr with ``--provenance``.
 
@@ -40,6 +40,7 @@ CASES = [
     ("flat", "flat", [], ["zarr", "tif", "hdr"]),
     ("flat-nadir-prov", "flat", ["--overlap", "nadir", "--provenance"], ["zarr", "tif", "hdr"]),
     ("flat-prov", "flat", ["--provenance"], ["tif", "hdr"]),
+    ("flat-mean", "flat", ["--overlap", "mean"], ["zarr", "tif", "hdr"]),
     ("terrain", "terrain", ["--dem", "{dem}"], ["zarr", "tif", "hdr"]),
     ("terrain-prov", "terrain", ["--dem", "{dem}", "--provenance"], ["zarr"]),
 ]

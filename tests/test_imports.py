@@ -18,6 +18,7 @@ The import graph is read from the source with ``ast`` (no module is imported), e
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -252,8 +253,8 @@ def test_no_private_names_imported_across_modules():
 #: the stages the graph chains; the graph is driven by the commands (options -> pipeline -> cluster,
 #: the library API, ingest, the viewer), and those by the command line.
 LAYERS = [
-    ("foundation", ("archive.errors", "archive.storage", "archive.files", "archive.codecs", "archive.params",
-                    "archive.grid")),   # storage: where archives live (local paths, s3:// URLs)
+    ("foundation", ("archive.errors", "archive.storage", "archive.files", "archive.codecs", "archive.overlap",
+                    "archive.params", "archive.grid")),   # storage: where archives live (local paths, s3:// URLs)
     ("formats", ("archive.formats",)),
     ("geometry", ("archive.navigation", "archive.provenance")),
     ("store", ("archive.collection",)),
@@ -466,3 +467,40 @@ def test_graph_modules_import_without_gl(module):
     _, done = _loaded_gl(module)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "", f"{module} imports {done.stdout.strip()}"
+
+
+#: Where an overlap rule is tested by name (issue 31): a rule name compared (``== "nadir"``,
+#: ``!= 'last'``, ``in ("last", ...)``), a name-keyed helper of the old rule module (``rule_key(``,
+#: ``make_rule(``), or that module imported.
+RULE_NAMES = ("last", "nadir", "mean")
+_QUOTED = "[\"'](?:" + "|".join(RULE_NAMES) + ")[\"']"
+BY_NAME = re.compile("|".join([
+    rf"[=!]=\s*{_QUOTED}", rf"{_QUOTED}\s*[=!]=",                   # == "nadir", "last" != x
+    rf"\bin\s*[(\[{{][^)\]}}]*{_QUOTED}",                            # in ("last", "nadir")
+    r"\b(?:rule_key|make_rule)\(", r"archive\.graph\.mosaic\b", r"\bWINNER_RULES\b",
+]))
+
+
+def name_tests(text: str) -> list[tuple[int, str]]:
+    """(line number, line) of each line of ``text`` (Python source) that tests an overlap rule by name."""
+    return [(n, line.strip()) for n, line in enumerate(text.splitlines(), 1) if BY_NAME.search(line)]
+
+
+def test_name_tests_are_found():
+    """The check finds what it should on made-up lines (and leaves other comparisons alone)."""
+    for line in ['if rule == "nadir":', "if overlap != 'last':", 'if "mean" == p.overlap:',
+                 'if query.overlap in ("last", "nadir"):', "key = rule_key(p.overlap)",
+                 "from archive.graph.mosaic import RULES"]:
+        assert name_tests(line), line
+    for line in ['if mode == "radiance":', 'rule = RULES["nadir"]', 'if layer != "view_zenith":',
+                 'stats = {"mean": 1.0}', "if rule.key is not None:"]:
+        assert not name_tests(line), line
+
+
+def test_no_overlap_rule_is_tested_by_name():
+    """Issue 31: the overlap rule is resolved once (:func:`archive.overlap.overlap_rule`) and passed as
+    an object; outside ``archive/overlap.py`` no module compares a rule's name or asks a name-keyed
+    helper (its needs, its fast paths and its viewer entry are the object's)."""
+    bad = [f"{path.relative_to(ROOT)}:{n}: {line}" for name, path in modules().items() if name != "archive.overlap"
+           for n, line in name_tests(path.read_text())]
+    assert not bad, "overlap rules tested by name outside archive/overlap.py:\n" + "\n".join(bad)

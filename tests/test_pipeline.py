@@ -335,6 +335,7 @@ def test_graph_is_deterministic_and_annotated(flight, tmp_path):
     from archive.graph.build import build_render_graph
     from archive.graph.plan import cube_meshes, plan_render
     from archive.outputs.zarr import MosaicStore
+    from archive.overlap import LAST
     from archive.sources import RawFlightSource
 
     directory, truth = flight
@@ -343,7 +344,7 @@ def test_graph_is_deterministic_and_annotated(flight, tmp_path):
     def build(bands):
         src = RawFlightSource(directory, NavigationParams(fov_deg=FOV))
         plan = plan_render([src], [cube_meshes(src, FOV, truth.ground_height)], [bands], GSD)
-        return plan, build_render_graph(plan, [src], store, mode="radiance", overlap="last",
+        return plan, build_render_graph(plan, [src], store, mode="radiance", overlap=LAST,
                                         mesh_spec=(FOV, truth.ground_height))
 
     plan, graph = build(list(range(6)))
@@ -379,6 +380,7 @@ def test_graph_is_deterministic_and_annotated(flight, tmp_path):
 
 def test_mosaic_rules_last_and_mean_with_saturation():
     from archive.graph.tasks import assemble_task
+    from archive.overlap import LAST, MEAN
 
     a = np.full((2, 4, 4), np.nan, np.float32)
     a[:, :, :3] = 1.0
@@ -389,18 +391,18 @@ def test_mosaic_rules_last_and_mean_with_saturation():
     sat_b[0, 2] = True  # b is saturated there: the mean leaves it out
     tile = (0, 0, 4, 5)  # the renders cover columns 0-3 of a 5-column tile
     boxes = [(0, 0, 4, 4), (0, 0, 4, 4)]
-    last, lsat = assemble_task("last", tile, 2, boxes, (a, sat_a), (b, sat_b))
-    mean, msat = assemble_task("mean", tile, 2, boxes, (a, sat_a), (b, sat_b))
+    last, lsat = assemble_task(LAST, tile, 2, boxes, (a, sat_a), (b, sat_b))
+    mean, msat = assemble_task(MEAN, tile, 2, boxes, (a, sat_a), (b, sat_b))
     assert last.shape == (2, 4, 5) and np.isnan(last[:, :, 4]).all()
     np.testing.assert_array_equal(last[0, 1], [1, 3, 3, 3, np.nan])
     np.testing.assert_array_equal(mean[0, 1], [1, 2, 2, 3, np.nan])
     assert mean[0, 0, 2] == 1.0 and last[0, 0, 2] == 3.0
     assert lsat[0, 2] and msat[0, 2] and lsat.sum() == msat.sum() == 1
     # all samples saturated: the mean of the saturated ones, still flagged
-    only, osat = assemble_task("mean", (0, 0, 4, 4), 2, boxes[:1], (a, np.ones((4, 4), bool)))
+    only, osat = assemble_task(MEAN, (0, 0, 4, 4), 2, boxes[:1], (a, np.ones((4, 4), bool)))
     assert only[0, 0, 0] == 1.0 and osat[0, 0]
     # a render offset into the tile lands at its box
-    off, _ = assemble_task("last", (1024, 0, 10, 10), 2, [(1030, 2, 4, 4)], (a, sat_a))
+    off, _ = assemble_task(LAST, (1024, 0, 10, 10), 2, [(1030, 2, 4, 4)], (a, sat_a))
     assert np.isfinite(off[0, 6:10, 2:5]).all() and np.isfinite(off).sum() == 2 * 12
 
 

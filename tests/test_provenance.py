@@ -330,6 +330,7 @@ def test_nadir_rule_strategy_and_the_writers_fast_path_agree():
     from archive.graph.tasks import assemble_task, assemble_write_task
     from archive.grid import Grid
     from archive.outputs.zarr import MosaicStore
+    from archive.overlap import NADIR
 
     rng = np.random.default_rng(4)
     boxes = [(0, 0, 6, 5), (2, 1, 6, 6), (1, 3, 4, 4)]
@@ -342,7 +343,7 @@ def test_nadir_rule_strategy_and_the_writers_fast_path_agree():
         renders.append((values, rng.random((h, w)) < 0.3))
         keys.append(key)
     tile = (0, 0, 9, 8)
-    values, saturated = assemble_task("nadir", tile, 3, boxes, *renders, keys=keys)
+    values, saturated = assemble_task(NADIR, tile, 3, boxes, *renders, keys=keys)
     # brute force: per pixel, the last part with the smallest finite key
     for r in range(9):
         for c in range(8):
@@ -360,7 +361,7 @@ def test_nadir_rule_strategy_and_the_writers_fast_path_agree():
                 assert saturated[r, c] == renders[k][1][i, j]
     with tempfile.TemporaryDirectory() as folder:
         store = MosaicStore.create(f"{folder}/m.zarr", Grid(32616, 1.0, 0.0, 100.0, 8, 9), None, [0, 1, 2])
-        sat = assemble_write_task(store, "nadir", 0, tile, 3, boxes, None, *renders, keys=keys)
+        sat = assemble_write_task(store, NADIR, 0, tile, 3, boxes, None, *renders, keys=keys)
         written = store._array(store.variable)[:, :9, :8]
         assert np.array_equal(written, values, equal_nan=True)
         assert np.array_equal(sat, saturated)

@@ -48,6 +48,7 @@ from archive import storage
 from archive.catalog.stac import (EO_EXTENSION, PROCESSING_EXTENSION, PROJECTION_EXTENSION, RASTER_EXTENSION,
                                   STAC_VERSION, ZARR_MEDIA_TYPE, eo_bands, rfc3339, software_version, write_item)
 from archive.errors import InputError, MissingInputError
+from archive.overlap import OverlapRule
 
 COG_MEDIA_TYPE = "image/tiff; application=geotiff; profile=cloud-optimized"
 GEOTIFF_MEDIA_TYPE = "image/tiff; application=geotiff"
@@ -314,6 +315,8 @@ def _cli_value(name: str, value: Any) -> str:
         return ",".join(_cli_value(name, v) for v in value)
     if isinstance(value, str | os.PathLike):
         return os.fspath(value)
+    if isinstance(value, OverlapRule):
+        return value.name
     raise InputError("request", f"field {name}={value!r} has no command-line form")
 
 

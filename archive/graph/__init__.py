@@ -3,5 +3,4 @@
 - :mod:`archive.graph.plan`: metadata only: cube meshes, strips, output grid, cube windows.
 - :mod:`archive.graph.build`: the render -> assemble -> write graph with deterministic keys.
 - :mod:`archive.graph.tasks`: the task bodies, plain functions callable without Dask.
-- :mod:`archive.graph.mosaic`: overlap rules ('last', 'mean') as small strategy objects.
 """

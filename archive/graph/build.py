@@ -40,6 +40,7 @@ from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
 from dask.task_spec import DataNode, GraphNode, Task
 
 from archive.grid import boxes_intersect
+from archive.overlap import OverlapRule
 from archive.outputs.base import CHUNK
 from archive.graph.nodes import BANDS_PER_PASS, GL_RESOURCES, Node, Ref, RenderNodes, task_arg
 from archive.graph.plan import GROUP, RenderPlan, band_groups
@@ -259,24 +260,23 @@ def _ref(key: str | None) -> Ref | None:
 
 
 def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
-                       overlap: str, mesh_spec: object = None, layers=None, layers_sink=None) -> RenderGraph:
+                       overlap: OverlapRule, mesh_spec: object = None, layers=None, layers_sink=None) -> RenderGraph:
     """Dask graph rendering ``plan`` from ``sources`` into ``sink`` (:class:`~archive.outputs.zarr.MosaicStore`,
     :class:`~archive.outputs.envi.EnviSink` or :class:`~archive.outputs.cog.CogSink`).
 
     mesh_spec: the parameters the meshes were built from (fov, ground height...), only for keys.
+    overlap: the rule mosaicking the cubes of a tile (:mod:`archive.overlap`).
     layers: a :class:`~archive.provenance.ProvenanceSpec` when per-cube provenance layers are needed:
-    by the 'nadir' rule (its view zenith) and by ``layers_sink``, the sink the provenance layers
+    by a rule that compares one (its :attr:`~archive.overlap.OverlapRule.key`) and by ``layers_sink``, the sink the provenance layers
     are written into (one band per layer of ``layers.names``; ``None``: not written). Per cube, one
     layers task (CPU) computes them from the cube's lookup; per output tile one task assembles and
     writes them, in band group 0.
     """
-    from archive.graph.mosaic import rule_key
-
-    key_layer = rule_key(overlap)   # the layer the overlap rule compares, if any
+    key_layer = overlap.key   # the layer the overlap rule compares, if any
     if (key_layer is not None or layers_sink is not None) and layers is None:
-        raise ValueError(f"the '{overlap}' rule and provenance layers need a ProvenanceSpec")
+        raise ValueError(f"the '{overlap.name}' rule and provenance layers need a ProvenanceSpec")
     if key_layer is not None and key_layer not in layers.names:
-        raise ValueError(f"the '{overlap}' rule needs the {key_layer} layer")
+        raise ValueError(f"the '{overlap.name}' rule needs the {key_layer} layer")
     nodes = RenderNodes(plan, sources, mode=mode, mesh_spec=mesh_spec, layers=layers)
     graph = _TaskGraph()
     for key, value in nodes.data().items():
@@ -333,7 +333,7 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
         if j not in cube_layers:
             cube_layers[j] = graph.node(nodes.cube_layers(j, lk), priority(0, 0, position[j]))
             if key_layer is not None:
-                keys[j] = graph.node(nodes.rule_key(cube_layers[j], key_layer), priority(0, 0, position[j]))
+                keys[j] = graph.node(nodes.layer_pick(cube_layers[j], key_layer), priority(0, 0, position[j]))
         return cube_layers[j]
 
     # Renders in (group, render order) order. Backpressure: render number s (and its lookup) waits for

@@ -5,8 +5,8 @@ collections: the mosaicked values ``(band, y, x)`` float32, one block per output
 Zarr chunks of :mod:`archive.outputs`) and band group, and the saturation flags ``(y, x)`` uint8.
 Their blocks are computed by the render graph's own task bodies (:mod:`archive.graph.tasks`):
 one :func:`~archive.graph.tasks.lookup_task` per cube, one :func:`~archive.graph.tasks.render_task`
-per cube and band group, one :func:`~archive.graph.tasks.assemble_task` (the mosaic rules of
-:mod:`archive.graph.mosaic`) per tile and band group. Computing some bands runs only their groups'
+per cube and band group, one :func:`~archive.graph.tasks.assemble_task` (the overlap rules of
+:mod:`archive.overlap`) per tile and band group. Computing some bands runs only their groups'
 renders (and the lookups); tiles no cube touches are NaN without any render.
 
 The sources, meshes, lookups, renders and rule keys are the nodes of :mod:`archive.graph.nodes`,
@@ -31,6 +31,7 @@ from archive.graph.nodes import GL_RESOURCES, Node, RenderNodes, task_arg
 from archive.graph.plan import RenderPlan
 from archive.graph.tasks import assemble_task
 from archive.grid import boxes_intersect
+from archive.overlap import OverlapRule
 from archive.outputs.base import CHUNK
 
 __all__ = ["GLTask", "mosaic_arrays", "nan_tile", "tile_saturation", "tile_values", "zero_tile"]
@@ -86,14 +87,14 @@ def _task(node: Node) -> Task:
     return kind(node.key, node.func, *map(task_arg, node.args), **node.kwargs)
 
 
-def assemble_keyed(rule: str, tile, nbands: int, boxes, *renders_and_keys):
+def assemble_keyed(rule: OverlapRule, tile, nbands: int, boxes, *renders_and_keys):
     """:func:`~archive.graph.tasks.assemble_task` of a rule that compares a key
-    (:func:`~archive.graph.mosaic.rule_key`): the renders, then each render's key, all positional."""
+    (:attr:`~archive.overlap.OverlapRule.key`): the renders, then each render's key, all positional."""
     n = len(boxes)
     return assemble_task(rule, tile, nbands, boxes, *renders_and_keys[:n], keys=renders_and_keys[n:])
 
 
-def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: str,
+def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: OverlapRule,
                   mesh_spec: object = None, layers=None):
     """(values, saturated) lazy ``dask.array`` collections of ``plan`` rendered from ``sources``.
 
@@ -103,11 +104,9 @@ def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: st
     :func:`~archive.graph.build.build_render_graph`); layers: the
     :class:`~archive.provenance.ProvenanceSpec` of the layer the overlap rule compares (its only layer).
     """
-    from archive.graph.mosaic import rule_key
-
-    key_layer = rule_key(overlap)
+    key_layer = overlap.key
     if key_layer is not None and layers is None:
-        raise ValueError(f"the '{overlap}' rule needs a ProvenanceSpec of its {key_layer} layer")
+        raise ValueError(f"the '{overlap.name}' rule needs a ProvenanceSpec of its {key_layer} layer")
     import dask.array as da
     from dask.base import tokenize
     from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
@@ -125,7 +124,7 @@ def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: st
         lookups[lookup.key] = _task(lookup)
         if key_layer is not None:   # the compared layer of the cube's pixels (CPU, from the lookup)
             stack = nodes.cube_layers(j, lookup.key)
-            pick = nodes.rule_key(stack.key, key_layer)
+            pick = nodes.layer_pick(stack.key, key_layer)
             zeniths[stack.key], zeniths[pick.key] = _task(stack), _task(pick)
             zenith_key[j] = pick.key
         for g in range(len(plan.groups)):

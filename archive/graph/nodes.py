@@ -135,7 +135,7 @@ class RenderNodes:
         return Node(key, layers_task, (Ref(self.source_key(job.source)), job.cube, j, Ref(lookup), self.layers,
                                        ground))
 
-    def rule_key(self, layers: str, name: str) -> Node:
+    def layer_pick(self, layers: str, name: str) -> Node:
         """Layer ``name`` of the cube layers ``layers``: what an overlap rule compares (its ``key``)."""
         return Node(f"key-{tokenize(layers)}", pick_task, (Ref(layers), self.layers.names.index(name)))
 

@@ -25,8 +25,8 @@ import numpy as np
 
 from archive.errors import InputError, RenderError
 from archive.files import test_hold_calls
-from archive.graph.mosaic import last_saturation, last_values, make_rule, nadir_values, nadir_winners, rule_key
 from archive.grid import Grid
+from archive.overlap import OverlapRule
 
 Box = tuple[int, int, int, int]
 
@@ -359,10 +359,11 @@ def _tile_parts(tile: Box, boxes: Sequence[Box], renders) -> list:
     return parts
 
 
-def _tile_keys(tile: Box, boxes: Sequence[Box], keys: Sequence[np.ndarray] | None) -> list:
-    """Each render's key (view zenith, (h, w)) inside ``tile``, in the order of :func:`_tile_parts`."""
+def _tile_keys(tile: Box, boxes: Sequence[Box], keys: Sequence[np.ndarray] | None) -> list | None:
+    """Each render's key (the layer the rule compares, (h, w)) inside ``tile``, in the order of
+    :func:`_tile_parts`; None without keys."""
     if keys is None:
-        return [None] * len(boxes)
+        return None
     if len(keys) != len(boxes):
         raise ValueError(f"{len(boxes)} boxes for {len(keys)} keys")
     out = []
@@ -373,36 +374,33 @@ def _tile_keys(tile: Box, boxes: Sequence[Box], keys: Sequence[np.ndarray] | Non
     return out
 
 
-def assemble_task(rule: str, tile: Box, nbands: int, boxes: Sequence[Box],
+def assemble_task(rule: OverlapRule, tile: Box, nbands: int, boxes: Sequence[Box],
                   *renders: tuple[np.ndarray, np.ndarray], keys: Sequence[np.ndarray] | None = None
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Mosaic cube renders onto one output tile with the overlap ``rule`` ('last' | 'nadir' | 'mean').
+    """Mosaic cube renders onto one output tile with the overlap ``rule`` (:mod:`archive.overlap`).
 
     boxes[i]: where renders[i] (values (nbands, h, w), saturated (h, w)) lies in the output grid;
-    renders in capture order; keys[i]: the view zenith (h, w) of renders[i] (the 'nadir' rule).
+    renders in capture order; keys[i]: the layer the rule compares (:attr:`~archive.overlap.OverlapRule.key`,
+    (h, w)) of renders[i], for a rule that compares one.
     Returns values (nbands, tile h, tile w) float32, saturated (h, w) bool.
     """
     if len(boxes) != len(renders):
         raise ValueError(f"{len(boxes)} boxes for {len(renders)} renders")
-    mosaic = make_rule(rule, nbands, tile[2], tile[3])
-    for (values, saturated, tr, tc), key in zip(_tile_parts(tile, boxes, renders), _tile_keys(tile, boxes, keys)):
-        mosaic.feed(values, saturated, tr, tc, key=key)
-    return mosaic.result()
+    return rule.assemble(nbands, tile[2], tile[3], _tile_parts(tile, boxes, renders), _tile_keys(tile, boxes, keys))
 
 
-def assemble_layers(rule: str, tile: Box, names: Sequence[str], boxes: Sequence[Box],
+def assemble_layers(rule: OverlapRule, tile: Box, names: Sequence[str], boxes: Sequence[Box],
                     *layers: np.ndarray) -> np.ndarray:
     """Provenance layers of one output tile, (len(names), h, w) float32: the layers of the capture
-    the mosaic ``rule`` ('last' | 'nadir') picks at each pixel (so they describe the written value),
-    except 'overlap_count', the SUM over every capture covering the pixel (NaN where none does).
+    the mosaic ``rule`` (one with a single source) picks at each pixel (so they describe the written
+    value), except 'overlap_count', the SUM over every capture covering the pixel (NaN where none does).
 
     layers[i]: (len(names), h, w) float32 of the cube at boxes[i] (:func:`layers_task`), capture order.
     """
     names = list(names)
-    compared = rule_key(rule)
-    key_at = names.index(compared) if compared in names else None
+    key_at = names.index(rule.key) if rule.key in names else None
     count_at = names.index("overlap_count") if "overlap_count" in names else None
-    mosaic = make_rule(rule, len(names), tile[2], tile[3])
+    mosaic = rule.mosaic(len(names), tile[2], tile[3])
     total = np.zeros(tile[2:], np.float32)
     unflagged = np.zeros(tile[2:], bool)
     for box, stack in zip(boxes, layers):
@@ -420,7 +418,7 @@ def assemble_layers(rule: str, tile: Box, names: Sequence[str], boxes: Sequence[
     return values
 
 
-def write_layers_task(sink, rule: str, tile: Box, names: Sequence[str], boxes: Sequence[Box],
+def write_layers_task(sink, rule: OverlapRule, tile: Box, names: Sequence[str], boxes: Sequence[Box],
                       *layers: np.ndarray):
     """:func:`assemble_layers` for one output tile, written through the provenance ``sink`` (one
     sink band per layer); returns what the sink's tile writer passes on (COG: its overview quarter)."""
@@ -460,63 +458,29 @@ def _result(sink, saturated, saturated_before, passed):
     return saturated if saturated_before is None else saturated | saturated_before
 
 
-def assemble_write_task(sink, rule: str, band0: int, tile: Box, nbands: int,
+def assemble_write_task(sink, rule: OverlapRule, band0: int, tile: Box, nbands: int,
                         boxes: Sequence[Box], saturated_before: np.ndarray | None,
                         *renders: tuple[np.ndarray, np.ndarray], keys: Sequence[np.ndarray] | None = None):
     """:func:`assemble_task` and :func:`write_values_task` in one: mosaic the renders of one band
     group onto one output tile (one chunk wide) and write it through ``sink``
     (:class:`~archive.outputs.zarr.MosaicStore`, :class:`~archive.outputs.envi.EnviSink` or
-    :class:`~archive.outputs.cog.CogSink`), band by band.
-
-    For the 'last' rule no tile is built: each band is mosaicked by
-    :func:`~archive.graph.mosaic.last_values` straight into this thread's reusable chunk buffer (the
-    grid's outside part left NaN) and written from there; the other rules assemble the tile first.
+    :class:`~archive.outputs.cog.CogSink`), band by band, by the ``rule``'s own chunk writer
+    (:meth:`~archive.overlap.OverlapRule.write_bands`: 'last' and 'nadir' write each band straight
+    from the renders into this thread's reusable chunk buffer, building no tile).
 
     Returns, for a sink that records saturation (Zarr), the tile's saturation mask (h, w) bool OR
     ``saturated_before`` (earlier band groups); for the others what the sink's tile writer passes on
     (COG: the tile's quarter of overview level 2, (nbands, ceil(h/4), ceil(w/4)) float32, or None).
-    keys: the 'nadir' rule's view zenith (h, w) of each render; as for 'last', each band is written
-    straight from the renders (:func:`~archive.graph.mosaic.nadir_values`, the winners chosen once).
+    keys: the layer the rule compares (h, w) of each render, for a rule that compares one.
     """
-    if rule == "nadir":
-        return _write_nadir(sink, band0, tile, nbands, boxes, saturated_before, renders, keys)
-    if rule != "last":
-        return write_values_task(sink, band0, tile, assemble_task(rule, tile, nbands, boxes, *renders, keys=keys),
-                                 saturated_before)
     if len(boxes) != len(renders):
         raise ValueError(f"{len(boxes)} boxes for {len(renders)} renders")
     parts = _tile_parts(tile, boxes, renders)
-    test_hold_calls(TEST_HOLD_WRITES)
-    with sink.open_tile(band0, tile, nbands) as writer:
-        buffer = writer.buffer()
-        if tile[2] > buffer.shape[0] or tile[3] > buffer.shape[1]:
-            raise ValueError(f"tile {tile} is larger than the sink's {buffer.shape} tile buffer")
-        for b in range(nbands):
-            last_values(buffer, [(values[b], tr, tc) for values, _, tr, tc in parts])
-            writer.write(b, buffer)
-        passed = writer.close()
-    saturated = last_saturation(tile[2], tile[3], parts) if sink.saturation else None
-    return _result(sink, saturated, saturated_before, passed)
-
-
-def _write_nadir(sink, band0: int, tile: Box, nbands: int, boxes: Sequence[Box], saturated_before, renders, keys):
-    """The 'nadir' branch of :func:`assemble_write_task`."""
-    if keys is None or len(keys) != len(boxes) or len(boxes) != len(renders):
-        raise ValueError(f"{len(boxes)} boxes, {len(renders)} renders and {None if keys is None else len(keys)} keys")
-    parts = _tile_parts(tile, boxes, renders)
     parts_keys = _tile_keys(tile, boxes, keys)
-    winner = nadir_winners(tile[2], tile[3], [(k, tr, tc) for k, (_, _, tr, tc) in zip(parts_keys, parts)])
     test_hold_calls(TEST_HOLD_WRITES)
     with sink.open_tile(band0, tile, nbands) as writer:
-        buffer = writer.buffer()
-        buffer[...] = np.nan   # the grid's outside part (zarr's padding of edge chunks)
-        for b in range(nbands):
-            nadir_values(buffer[:tile[2], :tile[3]], winner, [(values[b], tr, tc) for values, _, tr, tc in parts])
-            writer.write(b, buffer)
+        saturated = rule.write_bands(writer, nbands, tile[2], tile[3], parts, parts_keys, sink.saturation)
         passed = writer.close()
-    saturated = None
-    if sink.saturation:
-        saturated = nadir_values(np.empty(tile[2:], bool), winner, [(s, tr, tc) for _, s, tr, tc in parts], fill=False)
     return _result(sink, saturated, saturated_before, passed)
 
 

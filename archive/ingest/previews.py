@@ -11,6 +11,7 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 
+from archive.overlap import LAST
 from archive.previews import FORMAT_VERSION, PERCENTILES, halve, is_current, plan_levels, rendered, write_previews
 
 __all__ = ["add_previews", "make_previews"]
@@ -42,7 +43,7 @@ def make_previews(archive_path: str | os.PathLike, cid: str) -> tuple[dict, dict
         for level in plan_levels(bounds, flight_gsd):
             if above is None or rendered(level, flight_gsd):
                 grid = level.grid()
-                values, _ = flight.render_keyed(grid, bands, mode, cubes, geometry, overlap="last",
+                values, _ = flight.render_keyed(grid, bands, mode, cubes, geometry, overlap=LAST,
                                                 level=overview_level(grid.gsd, flight_gsd))
                 made = "rendered"
             else:

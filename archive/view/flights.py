@@ -36,6 +36,7 @@ import numpy as np
 
 from archive.errors import InputError
 from archive.grid import Grid
+from archive.overlap import LAST, OverlapRule, overlap_rule
 from archive.params import NavigationParams
 from archive.view.cache import ByteLRU
 from archive.view.geometry import Geometry, PosesKept, bounds_intersect, plane_index
@@ -250,28 +251,33 @@ class Flight:
         self.lookup_cache.put(key, zenith, zenith.nbytes)
         return zenith
 
+    def rule_key_plane(self, geometry: Geometry, cube: int, lookup, layer: str) -> np.ndarray:
+        """(height, width) float32 of the layer ``layer`` an overlap rule compares
+        (:attr:`~archive.overlap.OverlapRule.key`) for the line each pixel of ``lookup.grid`` shows:
+        the viewer computes the view zenith (:meth:`view_zenith`); ValueError for another layer."""
+        if layer != "view_zenith":
+            raise ValueError(f"the viewer computes no {layer} layer for an overlap rule (only view_zenith)")
+        return self.view_zenith(geometry, cube, lookup)
+
     def render(self, grid: Grid, bands: Sequence[int], mode: str, cubes: range, geometry: Geometry,
-               check: Callable[[], None] = lambda: None, overlap: str = "last") -> np.ndarray:
+               check: Callable[[], None] = lambda: None, overlap: OverlapRule = LAST) -> np.ndarray:
         """(len(bands), height, width) float32 of the cubes on ``grid`` (EPSG:3857, or the flight's
-        UTM zone), NaN where no line covers, cubes combined by ``overlap`` ('last': later cubes win,
-        'nadir': the cube seen closest to nadir, as ``archive render --overlap``).
+        UTM zone), NaN where no line covers, cubes combined by the rule ``overlap`` (:mod:`archive.overlap`,
+        as ``archive render --overlap``).
         ``check()`` runs before each cube (raises to stop: an abandoned request)."""
         return self.render_keyed(grid, bands, mode, cubes, geometry, check, overlap)[0]
 
     def render_keyed(self, grid: Grid, bands: Sequence[int], mode: str, cubes: range, geometry: Geometry,
-                     check: Callable[[], None] = lambda: None, overlap: str = "last", level: int = 1
+                     check: Callable[[], None] = lambda: None, overlap: OverlapRule = LAST, level: int = 1
                      ) -> tuple[np.ndarray, np.ndarray | None]:
-        """:meth:`render` and, for the 'nadir' rule, the view zenith (deg) of each pixel's winner
-        ((height, width) float32, NaN where none; None for 'last'): what the browser compares
+        """:meth:`render` and, for a rule that compares a key (the 'nadir' rule: the view zenith, deg),
+        the key of each pixel's winner ((height, width) float32, NaN where none; None for a rule
+        without one, 'last'): what the browser compares
         between flights. Each pixel shows the value of the (line, sample) its lookup sees, from the
         band's plane (:meth:`BandPlanes.plane`; ``level`` > 1: the mean of the level x level block of
         the flight's pixels centred there, :meth:`BandPlanes.filtered`)."""
-        from archive.graph.mosaic import make_rule, nadir_values, nadir_winners, rule_key
-
-        rule = make_rule(overlap, len(bands), grid.height, grid.width)
-        keyed = rule_key(overlap) is not None
+        mosaic = overlap.mosaic(len(bands), grid.height, grid.width)
         whole = (slice(0, grid.height), slice(0, grid.width))
-        keys = []
         box = grid.bounds
         unflagged = np.zeros(grid.shape, bool)   # saturation does not change which value shows
         seen = []   # (cube, lookup): pass 1 first (GL, this thread), then the planes they need at once
@@ -297,15 +303,10 @@ class Flight:
             index = plane_index(lookup)
             for i, b in enumerate(bands):
                 np.take(self.planes.filtered(c, b, mode, level), index, out=values[i].reshape(-1), mode="clip")
-            key = self.view_zenith(geometry, c, lookup) if keyed else None
-            if key is not None:
-                keys.append((key, *whole))
-            rule.feed(values, unflagged, *whole, key=key)
-        values = rule.result()[0]
-        if not keyed:
-            return values, None
-        winner = nadir_winners(grid.height, grid.width, keys)
-        return values, nadir_values(np.empty((grid.height, grid.width), np.float32), winner, keys)
+            key = None if overlap.key is None else self.rule_key_plane(geometry, c, lookup, overlap.key)
+            mosaic.feed(values, unflagged, *whole, key=key)
+        values = mosaic.result()[0]
+        return values, mosaic.winning_key()
 
     def band_values(self, grid: Grid, query: ViewQuery, flight_gsd: float | None, scale: int = 1,
                     check: Callable[[], None] = lambda: None) -> tuple[np.ndarray, np.ndarray | None] | None:
@@ -326,7 +327,8 @@ class Flight:
         level = overview_level(gsd, flight_gsd)
         self._level = level
         coarse = Grid(grid.epsg, gsd, grid.x0, grid.y0, side, side)
-        values, key = self.render_keyed(coarse, bands, mode, cubes, geometry, check, query.overlap, level)
+        values, key = self.render_keyed(coarse, bands, mode, cubes, geometry, check, overlap_rule(query.overlap, "overlap"),
+                                        level)
         if not np.isfinite(values).any():
             return None
         return values, key
@@ -348,7 +350,7 @@ class Flight:
         ranges = query.stretch.ranges
         if ranges is None:
             ranges = self.flight_ranges(bands, mode, cubes, geometry, query.stretch.percentiles)
-        values = self.render(grid, bands, mode, cubes, geometry, check, query.overlap)
+        values = self.render(grid, bands, mode, cubes, geometry, check, overlap_rule(query.overlap, "overlap"))
         if not np.isfinite(values).any():
             return transparent_png()
         return encode_png(values, ranges)

@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from archive.grid import Grid
+from archive.overlap import OverlapRule, overlap_rule
 from archive.view.geometry import slice_radiometry
 from archive.view.query import ViewQuery
 
@@ -34,7 +35,8 @@ def point_spectrum(flight, lon: float, lat: float, gsd: float, query: ViewQuery)
     cx, cy = col * gsd + gsd / 2, row * gsd + gsd / 2
     clon, clat = (float(v) for v in to_lonlat(cx, cy, geometry.epsg))
     nbands = flight.cubes[0].bands
-    # every cube covering the pixel: (cube, line, sample, values, saturated, view zenith)
+    rule = overlap_rule(query.overlap, "overlap")
+    # every cube covering the pixel: (cube, line, sample, values, saturated, the rule's key there)
     candidates = []
     for c in cubes:
         mesh = geometry.utm[c]
@@ -59,9 +61,9 @@ def point_spectrum(flight, lon: float, lat: float, gsd: float, query: ViewQuery)
             result = render_lookup(one, dn, rad)
             v[b0:b0 + len(group)] = result.values[:, 0, 0]
             flagged = flagged or bool(result.saturated[0, 0])
-        zenith = float(flight.view_zenith(geometry, c, found)[0, 0]) if query.overlap == "nadir" else None
-        candidates.append((c, line, sample, v, flagged, zenith))
-    values, saturated, hit = overlap_pick(candidates, nbands, query.overlap)
+        key = None if rule.key is None else float(flight.rule_key_plane(geometry, c, found, rule.key)[0, 0])
+        candidates.append((c, line, sample, v, flagged, key))
+    values, saturated, hit = overlap_pick(candidates, nbands, rule)
     answer = {
         "id": flight.id, "lon": lon, "lat": lat, "mode": mode, "gsd": gsd, "epsg": geometry.epsg,
         "pixel": {"x": cx, "y": cy, "lon": clon, "lat": clat},
@@ -78,29 +80,24 @@ def point_spectrum(flight, lon: float, lat: float, gsd: float, query: ViewQuery)
                       utc=gps_seconds_to_datetime(t).isoformat().replace("+00:00", "Z"))
     return answer
 
-def overlap_pick(candidates, nbands: int, overlap: str):
+def overlap_pick(candidates, nbands: int, rule: OverlapRule):
     """(values (nbands,) float32, saturated, (cube, line, sample) shown or None) of one output
     pixel from the cubes covering it, in capture order, by the rule ``archive render --overlap``
-    applies (:mod:`archive.graph.mosaic`): 'last', per band the latest finite value; 'nadir',
-    every band of the cube seen closest to nadir (the later one on a tie)."""
-    from archive.graph.mosaic import make_rule
+    applies (:mod:`archive.overlap`; e.g. 'last', per band the latest finite value; 'nadir',
+    every band of the cube seen closest to nadir, the later one on a tie).
 
+    candidates: (cube, line, sample, values (nbands,), saturated, key) of each covering cube, the
+    key being the rule's compared layer at the pixel (None for a rule without one)."""
     if not candidates:
         return np.full(nbands, np.nan, np.float32), False, None
-    rule = make_rule(overlap, nbands, 1, 1)
+    mosaic = rule.mosaic(nbands, 1, 1)
     whole = (slice(0, 1), slice(0, 1))
-    for _, _, _, v, flagged, zenith in candidates:
-        key = None if zenith is None else np.full((1, 1), zenith, np.float32)
-        rule.feed(v.reshape(nbands, 1, 1), np.full((1, 1), flagged), *whole, key=key)
-    values, saturated = rule.result()
-    if overlap == "nadir":
-        zeniths = [z for *_, z in candidates]
-        finite = [k for k, z in enumerate(zeniths) if np.isfinite(z)]
-        if not finite:
-            return values[:, 0, 0], bool(saturated[0, 0]), None
-        best = min(np.float32(zeniths[k]) for k in finite)
-        shown = max(k for k in finite if np.float32(zeniths[k]) <= best)   # the later one on a tie
-    else:
-        shown = len(candidates) - 1
+    for _, _, _, v, flagged, key in candidates:
+        plane = None if key is None else np.full((1, 1), key, np.float32)
+        mosaic.feed(v.reshape(nbands, 1, 1), np.full((1, 1), flagged), *whole, key=plane)
+    values, saturated = mosaic.result()
+    shown = rule.shown([key for *_, key in candidates])
+    if shown is None:
+        return values[:, 0, 0], bool(saturated[0, 0]), None
     c, line, sample = candidates[shown][:3]
     return values[:, 0, 0], bool(saturated[0, 0]), (c, line, sample)

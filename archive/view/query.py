@@ -12,6 +12,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from archive.errors import InputError
+from archive.overlap import RULES
 from archive.sources.base import MODES
 
 __all__ = ["MAX_TEXT", "OVERLAPS", "OverlapChoice", "Stretch", "ViewQuery", "overlap_choice", "parse_bbox",
@@ -47,11 +48,10 @@ class OverlapChoice:
         return {"name": self.name, "label": self.label, "key": self.key, "wins": self.wins}
 
 
-#: Overlap rules between captures (cubes, flights), the first the default: as ``archive render
-#: --overlap`` ('mean' is not offered: it mixes pixels, and the browser composes flights by picking one).
-#: The one list the server and the page read.
-OVERLAPS = (OverlapChoice("last", "last on top", None, "last"),
-            OverlapChoice("nadir", "closest to nadir", "view_zenith", "lowest"))
+#: Overlap rules between captures (cubes, flights), the first the default: the rules of ``archive render
+#: --overlap`` (:data:`archive.overlap.RULES`) that pick one capture per pixel ('mean' is not offered: it
+#: mixes pixels, and the browser composes flights by picking one). The one list the server and the page read.
+OVERLAPS = tuple(OverlapChoice(rule.name, rule.label, rule.key, rule.wins) for rule in RULES.values() if rule.single_source)
 
 
 def overlap_choice(name: str) -> OverlapChoice:
