@@ -26,7 +26,8 @@ class NavigationParams:
         lever arm: grid east and north of the flight's UTM zone, and up (ellipsoidal); what
         ``archive calibrate --reference`` estimates (a GNSS bias relative to another flight, DESIGN 11).
     None (sync_offset, boresight_deg, lever_arm_m, position_offset_m): not given: what the source
-    recorded, else 0 (see :meth:`resolved`; sources resolve their parameters when opened).
+    recorded, else 0 (see :meth:`resolved`; sources resolve their parameters when opened; a position
+    offset neither given nor recorded stays None, which means none).
     """
 
     fov_deg: float
@@ -54,8 +55,14 @@ class NavigationParams:
             sync_offset=float(pick(self.sync_offset, "sync_offset", 0.0)),
             boresight_deg=tuple(float(v) for v in pick(self.boresight_deg, "boresight_deg", (0.0, 0.0, 0.0))),
             lever_arm_m=tuple(float(v) for v in pick(self.lever_arm_m, "lever_arm_m", (0.0, 0.0, 0.0))),
-            position_offset_m=tuple(float(v) for v in pick(self.position_offset_m, "position_offset_m",
-                                                           (0.0, 0.0, 0.0))))
+            position_offset_m=self._offset(recorded))
+
+    def _offset(self, recorded: dict) -> tuple[float, float, float] | None:
+        """The position offset given, else the recorded one, else None (none: zero)."""
+        if self.position_offset_m is not None:
+            return tuple(float(v) for v in self.position_offset_m)
+        got = recorded.get("position_offset_m")
+        return None if got is None else tuple(float(v) for v in got)
 
     @property
     def position_offset(self) -> tuple[float, float, float]:
