@@ -233,3 +233,13 @@ def test_raw_flight_apply_writes_the_offset_to_its_sidecar(fields, tmp_path):
     for k in range(len(plain.cubes)):
         d = moved.poses(k).utm() - plain.poses(k).utm()
         assert d == pytest.approx(np.tile([1.25, -0.5, 0.2], (len(d), 1)), abs=1e-9)
+
+
+def test_a_solution_that_leaves_the_flights_apart_is_refused(fields, capsys):
+    """Holding the sync offset at 0 against its true 30 ms (--estimate position): opposite passes stay
+    a pixel apart along track, which no position offset fixes: refused in one line, not reported."""
+    ref, biased = fields["ref"], fields["biased"]
+    assert main(["calibrate", str(biased.directory), "--fov", "47.5", "--reference", str(ref.directory),
+                 "--estimate", "position", "--quiet"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"co-registration to {ref.directory} did not converge" in err[0], err
