@@ -156,7 +156,8 @@ def compare_envi(a: Path, b: Path) -> list[str]:
 
 
 #: STAC keys that name the output's own location or the time of writing.
-VOLATILE = {"href", "created", "updated", "processing:datetime", "command", "archive:seconds"}
+VOLATILE = {"href", "created", "updated", "processing:datetime", "command", "archive:seconds",
+            "worker"}   # the Dask worker that rendered (its address changes from run to run)
 
 
 def _strip(value):
