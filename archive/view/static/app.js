@@ -1,14 +1,13 @@
 // archive view: every flight of the catalog on one map, drawn from band-value tiles that this page
-// stretches and composes itself (tiles.js). The page's script is ES modules (no build step; the
-// vendored Leaflet is the one classic script, the global L): state.js (the one state object, also
-// window.viewer, which the browser tests read), dom.js, geo.js, map.js, params.js, tiles.js,
-// stretch.js, controls.js, hash.js, spectra.js, stacks.js. This one starts the page.
-import { loadCatalog, refresh, showDisplay } from "./controls.js";
-import { $ } from "./dom.js";
-import { applyHash } from "./hash.js";
+// stretches and composes itself. The page's script is ES modules (no build step; the vendored
+// Leaflet is the one classic script, the global L): state.js (the one state object, also
+// window.viewer, which the browser tests read; the small helpers), map.js (the map, footprints,
+// tile geometry), tiles.js (band-value tiles, their drawing, the stretch), controls.js (the panel,
+// refresh, the URL hash), spectra.js, stacks.js; residual.js is loaded beside. This one starts the page.
+import { applyHash, loadCatalog, refresh, showDisplay } from "./controls.js";
 import { map } from "./map.js";
 import { loadStacks } from "./stacks.js";
-import { viewer } from "./state.js";
+import { $, viewer } from "./state.js";
 
 // ---- keyboard and narrow screens ------------------------------------------------------------
 $("panel-toggle").addEventListener("click", () => {

@@ -1,15 +1,80 @@
 // archive view: the panel's controls (catalog list and filters, overlap rule, display, the open
-// flight's cubes, ground and sync sliders) and refresh(): every change makes a new spec of what the
-// tiles show (tiles.js draws it).
-import { $, clearErrors, fmt, getJSON, idPath, showError, status } from "./dom.js";
-import { inGeometry } from "./geo.js";
-import { writeHash } from "./hash.js";
-import { drawFootprints, map } from "./map.js";
-import { channelsNm, flightBox, flightParams, nearestBand, outlineParams, overlapRule } from "./params.js";
+// flight's cubes, ground and sync sliders), what they ask for (the bands of each flight, the request
+// parameters of its values, the overlap rule chosen: one of those the server offers), refresh():
+// every change makes a new spec of what the tiles show (tiles.js draws it), and the URL hash: the
+// state of the page, shareable; editing it updates the view.
+import { drawFootprints, geometryBox, inGeometry, map } from "./map.js";
 import { pinPoint } from "./spectra.js";
-import { PREVIEW_UP, geometryOf, newGeneration, referenceFlight, viewer, visibleFlights } from "./state.js";
-import { stretchRanges, viewRanges } from "./stretch.js";
-import { markPlaceholders, pump, schedule } from "./tiles.js";
+import { $, PREVIEW_UP, clearErrors, fmt, geometryOf, getJSON, idPath, newGeneration, referenceFlight, showError, status,
+         viewer, visibleFlights } from "./state.js";
+import { markPlaceholders, pump, schedule, stretchRanges, viewRanges } from "./tiles.js";
+
+// ---- what the controls ask for ------------------------------------------------------------------
+// the band of a flight nearest a wavelength (nm; a band index where the flight has no wavelengths)
+export function nearestBand(feature, nm) {
+  const wl = feature.properties.wavelength;
+  if (!wl) return Math.max(0, Math.min(feature.properties.bands - 1, Math.round(nm)));
+  let best = 0;
+  for (let i = 1; i < wl.length; i++) if (Math.abs(wl[i] - nm) < Math.abs(wl[best] - nm)) best = i;
+  return best;
+}
+// the wavelengths shown: [grey] or [R, G, B] (nm)
+export function channelsNm() {
+  if ($("display").value === "grey") return [Number($("band-grey").value)];
+  return ["band-r", "band-g", "band-b"].map((id) => Number($(id).value));
+}
+
+// the overlap rule chosen ({name, label, key, wins} as /api/collections serves it); before the list
+// has arrived, a rule that picks the later flight and needs no key
+function overlapRule() {
+  const name = $("overlap").value;
+  return viewer.overlaps.find((r) => r.name === name) || viewer.overlaps[0] || { name, key: null, wins: "last" };
+}
+
+// the request parameters of one flight's values (everything but the bands)
+export function flightParams(id, preview) {
+  const q = new URLSearchParams();
+  q.set("mode", $("mode").value || "radiance");
+  q.set("overlap", $("overlap").value);
+  const p = viewer.params[id];
+  if (p) {
+    if (p.cubes) q.set("cubes", `${p.cubes[0] - 1}-${p.cubes[1] - 1}`);
+    const ground = preview && preview.ground !== undefined ? preview.ground : p.ground;
+    const sync = preview && preview.sync !== undefined ? preview.sync : p.sync;
+    if (ground !== null && ground !== undefined) q.set("ground_height", String(ground));
+    if (sync !== null && sync !== undefined) q.set("sync_offset", String(sync));
+  }
+  return q.toString();
+}
+
+// the parameters an outline depends on (not the mode or overlap rule)
+function outlineParams(id) {
+  const q = new URLSearchParams(flightParams(id, null));
+  q.delete("mode"); q.delete("overlap");
+  return q.toString();
+}
+
+// the whole flight's statistics depend on the mode and cube range, not on where its pixels land:
+// a ground-height or sync change keeps its stretch (and asks nothing)
+export function statsParams(id) {
+  const q = new URLSearchParams(flightParams(id, null));
+  for (const name of ["ground_height", "sync_offset", "overlap"]) q.delete(name);
+  return q.toString();
+}
+
+// a flight's box (lon/lat), padded: by half its size while its footprint may have moved (a new
+// ground height, sync offset or cube range whose outline has not arrived, a slider preview), else
+// by a tenth (the outline samples the meshes' edges): tiles outside it are not asked for
+function flightBox(id, moving) {
+  const f = viewer.byId.get(id);
+  const o = viewer.outlines[id];
+  const known = !moving && (o ? o.params === outlineParams(id) : !viewer.params[id]);
+  const b = geometryBox((o && o.geometry) || f.geometry);
+  const pad = known ? 0.1 : 0.5;
+  const dx = (b[2] - b[0]) * pad + 1e-4, dy = (b[3] - b[1]) * pad + 1e-4;
+  return [b[0] - dx, b[1] - dy, b[2] + dx, b[3] + dy];
+}
+
 
 // ---- the spec: what every tile should show (tiles.js) -----------------------------------------
 function buildSpec() {
@@ -78,9 +143,9 @@ function setOverlaps(rules) {
   select.replaceChildren(...rules.map((r) => Object.assign(document.createElement("option"), { value: r.name, textContent: r.label })));
   select.value = rules.some((r) => r.name === keep) ? keep : rules[0].name;
 }
-export const defaultOverlap = () => (viewer.overlaps[0] || { name: "" }).name;
+const defaultOverlap = () => (viewer.overlaps[0] || { name: "" }).name;
 
-export function renderList() {
+function renderList() {
   const list = $("flights");
   list.replaceChildren();
   viewer.order.forEach((id, i) => {
@@ -146,7 +211,7 @@ function fillBandOptions() {
   else ["band-r", "band-g", "band-b", "band-grey"].forEach((s, i) => selectNearest($(s), Number(keep[i])));
   if (!$("mode").options.length) setModes(["raw", "relative", "radiance"], "radiance");
 }
-export function selectNearest(select, nm) {
+function selectNearest(select, nm) {
   let best = null;
   for (const o of select.options) if (best === null || Math.abs(Number(o.value) - nm) < Math.abs(Number(best.value) - nm)) best = o;
   if (best) select.value = best.value;
@@ -215,7 +280,7 @@ function showOutputs() {
 }
 
 // ---- the open flight: its controls, footprint and spectra -----------------------------------
-export async function openFlight(id, fit) {
+async function openFlight(id, fit) {
   status(`opening ${id}…`);
   let info;
   try { info = await getJSON(idPath(id)); } catch (e) { status(e.message, true); return; }
@@ -236,7 +301,7 @@ export async function openFlight(id, fit) {
   refresh();
 }
 
-export function setSliders(info) {
+function setSliders(info) {
   const p = viewer.params[info.id];
   const gh = info.ground_height;
   const ground = $("ground");
@@ -256,7 +321,7 @@ export function setSliders(info) {
   $("cube-first").title = `first cube (${info.cubes[0].base} is 1)`;
 }
 
-export function closeFlight() {
+function closeFlight() {
   viewer.open = viewer.info = null;
   $("controls").hidden = true;
   renderList();
@@ -264,7 +329,7 @@ export function closeFlight() {
   refresh();
 }
 
-export async function loadOutline(id) {
+async function loadOutline(id) {
   const q = outlineParams(id);
   try {
     const geometry = await getJSON(`${idPath(id)}/outline?${q}`);
@@ -347,3 +412,92 @@ map.on("click", (ev) => {
   if (under.length) openFlight(under[under.length - 1], false);
 });
 
+// ---- the URL hash: the state of the page, shareable; editing it updates the view --------------
+let writing = false;
+function hashState() {
+  const c = map.getCenter();
+  const s = new URLSearchParams();
+  s.set("map", `${map.getZoom()}/${c.lat.toFixed(7)}/${c.lng.toFixed(7)}`);
+  s.set("bands", channelsNm().map((v) => Number(v.toFixed(3))).join(","));
+  if ($("mode").value) s.set("mode", $("mode").value);
+  const kind = $("stretch").value;
+  // a refused value (LOW >= HIGH, a cube range the flight does not have) is not shared: the last
+  // accepted one is
+  const lo = $("stretch-low").value, hi = $("stretch-high").value;
+  if (kind === "manual" && lo !== "" && hi !== "" && isFinite(Number(lo)) && isFinite(Number(hi)) && Number(lo) < Number(hi)) {
+    viewer.acceptedStretch = `${lo},${hi}`;
+  }
+  s.set("stretch", kind === "manual" ? (viewer.acceptedStretch || "p2,p98") : kind === "flight" ? "p2,p98" : kind);
+  if (!$("per-channel").checked) s.set("shared", "1");
+  if ($("overlap").value !== defaultOverlap()) s.set("overlap", $("overlap").value);
+  if (viewer.open) {
+    s.set("open", viewer.open);
+    const p = viewer.params[viewer.open];
+    if (p && viewer.info) {
+      if (p.ground !== viewer.info.ground_height) s.set("ground", String(p.ground));
+      if (p.sync !== viewer.info.sync_offset) s.set("sync", String(p.sync));
+      const n = viewer.info.cubes.length;
+      if (p.cubes && p.cubes.every(Number.isInteger) && 1 <= p.cubes[0] && p.cubes[0] <= p.cubes[1] && p.cubes[1] <= n) {
+        s.set("cubes", `${p.cubes[0]}-${p.cubes[1]}`);
+      }
+    }
+  }
+  if (viewer.hidden.size || viewer.order.join() !== viewer.features.map((f) => f.id).join()) s.set("flights", visibleFlights().join(","));
+  return s.toString().replace(/%2C/g, ",").replace(/%2F/g, "/").replace(/%7C/g, "|");
+}
+let hashTimer = null;
+function writeHash() {
+  if (!viewer.booted) return;
+  clearTimeout(hashTimer);
+  hashTimer = setTimeout(() => {
+    const h = "#" + hashState();
+    if (location.hash !== h) { writing = true; history.replaceState(null, "", h); writing = false; }
+    viewer.hash = h;
+  }, 100);
+}
+
+export async function applyHash(initial) {
+  const s = new URLSearchParams(location.hash.slice(1));
+  const m = (s.get("map") || "").split("/").map(Number);
+  if (m.length === 3 && m.every(isFinite)) { map.setView([m[1], m[2]], m[0], { animate: false }); viewer.hashHasMap = true; }
+  if (s.has("flights")) {
+    const shown = s.get("flights").split(",").filter(Boolean);
+    const all = viewer.features.map((f) => f.id);
+    viewer.hidden = new Set(all.filter((id) => !shown.includes(id)));
+    viewer.order = all.filter((id) => !shown.includes(id)).concat(shown.filter((id) => all.includes(id)));
+  } else if (!initial) { viewer.hidden = new Set(); }
+  $("overlap").value = s.has("overlap") ? s.get("overlap") : defaultOverlap();
+  const open = s.get("open");
+  if (open && viewer.byId.has(open) && open !== viewer.open) await openFlight(open, false);
+  else if (!open && viewer.open && !initial) closeFlight();
+  if (s.has("mode") && [...$("mode").options].some((o) => o.value === s.get("mode"))) $("mode").value = s.get("mode");
+  const bands = (s.get("bands") || "").split(",").filter((v) => v.trim() !== "").map(Number).filter(isFinite);
+  if (bands.length === 1) { $("display").value = "grey"; selectNearest($("band-grey"), bands[0]); }
+  if (bands.length === 3) { $("display").value = "rgb"; ["band-r", "band-g", "band-b"].forEach((id, i) => selectNearest($(id), bands[i])); }
+  const st = s.get("stretch");
+  if (st) {
+    const parts = st.split(/[,|]/);
+    if (st === "view" || st === "unscaled") $("stretch").value = st;
+    else if (parts.length === 2 && parts.every((p) => /^p/i.test(p))) $("stretch").value = "flight";
+    else if (parts.length === 2 && parts.every((p) => isFinite(Number(p)))) {
+      $("stretch").value = "manual"; $("stretch-low").value = parts[0]; $("stretch-high").value = parts[1];
+    }
+  }
+  $("per-channel").checked = s.get("shared") !== "1";
+  if (viewer.open && viewer.info) {
+    const p = viewer.params[viewer.open];
+    if (s.has("ground") && isFinite(Number(s.get("ground")))) p.ground = Number(s.get("ground"));
+    else if (!initial) p.ground = viewer.info.ground_height;
+    if (s.has("sync") && isFinite(Number(s.get("sync")))) p.sync = Number(s.get("sync"));
+    else if (!initial) p.sync = viewer.info.sync_offset;
+    const c = (s.get("cubes") || "").split("-").map(Number);
+    p.cubes = c.length === 2 && c.every(Number.isInteger) ? c : null;
+    setSliders(viewer.info);
+    loadOutline(viewer.open);
+  }
+  showDisplay();
+  renderList();
+  drawFootprints();
+  refresh();
+}
+window.addEventListener("hashchange", () => { if (!writing) applyHash(false); });

@@ -3,9 +3,8 @@
 // window from the first to the second, drawn as dots coloured by its length (green <= 0.2 px,
 // amber <= 0.5 px, red beyond) with its shift in the tooltip, and the median / p95 below.
 // A module (index.html loads it after app.js): map, getJSON and the page's state imported.
-import { getJSON } from "./dom.js";
 import { map } from "./map.js";
-import { viewer } from "./state.js";
+import { getJSON, viewer } from "./state.js";
 
 (function () {
   const state = { stacks: [], layer: null };

@@ -1,9 +1,8 @@
 // archive view: pinned spectra of the open flight (the pixel of archive render's grid at the
 // flight's nominal GSD holding a click, float32 as render writes it), their chart, CSV and PNG.
-import { $, getJSON, idPath, status } from "./dom.js";
+import { channelsNm, flightParams } from "./controls.js";
 import { map } from "./map.js";
-import { channelsNm, flightParams } from "./params.js";
-import { MAX_PINS, PALETTE, newGeneration, viewer } from "./state.js";
+import { $, MAX_PINS, PALETTE, getJSON, idPath, newGeneration, status, viewer } from "./state.js";
 
 // pin the open flight's spectrum at a clicked point (a Leaflet LatLng)
 export async function pinPoint(latlng) {

@@ -1,8 +1,7 @@
 // Time stacks (archive view --stack X.zarr): one time step of a stack at a time, a slider through
 // its flights (the same grid, so the same pixels), values read from the stack's Zarr by the server.
-import { $, fmt, getJSON } from "./dom.js";
 import { map } from "./map.js";
-import { viewer } from "./state.js";
+import { $, fmt, getJSON, viewer } from "./state.js";
 
 const state = { stacks: [], open: null, layer: null, outline: null, clicked: null };
 

@@ -1,6 +1,8 @@
 // archive view: the page's one state object. Every module imports it from here (no page script
 // declares a global); it is also window.viewer, the one name the page adds for the browser tests and
-// the bench, which read it (with Leaflet's L).
+// the bench, which read it (with Leaflet's L). And the small helpers every module uses: elements,
+// numbers, JSON requests (carrying the view generation), the status line and the errors shown next
+// to the control that caused them.
 
 export const TILE = 256;
 export const PALETTE = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b", "#e377c2"];
@@ -43,3 +45,43 @@ export const referenceFlight = () => viewer.open ||
   (viewer.features.find((f) => !viewer.hidden.has(f.id)) || viewer.features[0] || { id: null }).id;
 // the outline of a flight as drawn now (its meshes' edges), else its catalog footprint
 export const geometryOf = (id) => (viewer.outlines[id] && viewer.outlines[id].geometry) || viewer.byId.get(id).geometry;
+
+// ---- helpers -----------------------------------------------------------------------------------
+export const $ = (id) => document.getElementById(id);
+export const fmt = (v, digits = 4) => (v === null || v === undefined || !isFinite(v) ? "–" : Number(v).toPrecision(digits));
+export const idPath = (id) => `/api/collections/${encodeURIComponent(id)}`;
+
+export async function getJSON(url, options) {
+  const response = await fetch(url, { ...(options || {}), headers: { ...generationHeaders(), ...((options || {}).headers || {}) } });
+  let body = null;
+  try { body = await response.json(); } catch (e) { /* not JSON */ }
+  if (!response.ok) throw new Error((body && body.error) || `${response.status} ${response.statusText}`);
+  return body;
+}
+
+// a refused answer as an Error (the server's message, its status as .http)
+export async function refusal(response) {
+  let body = null;
+  try { body = await response.json(); } catch (err) { /* not JSON */ }
+  return Object.assign(new Error((body && body.error) || `${response.status} ${response.statusText}`), { http: response.status });
+}
+
+export function status(text, isError = false) {
+  const el = $("status");
+  el.textContent = text || "";
+  el.classList.toggle("error", !!isError);
+}
+
+// errors in words next to the control that caused them (the server names the parameter first)
+const ERROR_SLOTS = { cubes: "err-cubes", ground_height: "err-ground", sync_offset: "err-sync", mode: "err-mode",
+                      bands: "err-bands", band: "err-bands", wavelengths: "err-bands", stretch: "err-stretch",
+                      bbox: "err-filters", datetime: "err-filters", wavelength: "err-filters" };
+export function showError(message, slot) {
+  const name = slot || ERROR_SLOTS[(message.match(/^([a-z_]+):/) || [])[1]];
+  viewer.errors[name || "status"] = message;
+  if (name) { $(name).textContent = message; } else status(message, true);
+}
+export function clearErrors(...slots) {
+  for (const slot of slots.length ? slots : Object.values(ERROR_SLOTS)) { $(slot).textContent = ""; delete viewer.errors[slot]; }
+  if (!slots.length) { delete viewer.errors.status; if ($("status").classList.contains("error")) status(""); }
+}

@@ -6,20 +6,19 @@
 // The spec (viewer.current, made by controls.js's refresh): what every tile should show, {flights:
 // [{id, params, bands, up, box}], nm, ranges, keyed, lowest, data, id, grey}; keyed: the values come
 // with the overlap rule's per-pixel key plane; lowest: a pixel shows the flight of the lowest key,
-// else the later flight.
-import { refresh, startPreview } from "./controls.js";
-import { $, clearErrors, idPath, refusal, showError, status } from "./dom.js";
-import { boxesMeet, tileBounds } from "./geo.js";
-import { map } from "./map.js";
-import { BATCH, CACHE_BYTES, TILE, generationHeaders, viewer } from "./state.js";
-import { clearStats, ensureRanges, viewRanges } from "./stretch.js";
+// else the later flight. The stretch is computed here too: from the reference flight's statistics
+// (asked once per flight, mode, cube range and bands), the view's values or the user's range.
+import { nearestBand, refresh, startPreview, statsParams } from "./controls.js";
+import { boxesMeet, map, tileBounds } from "./map.js";
+import { $, BATCH, CACHE_BYTES, TILE, clearErrors, generationHeaders, getJSON, idPath, referenceFlight, refusal, showError,
+         status, viewer } from "./state.js";
 
 let scheduled = false;      // a pump() is due at the next animation frame
 
 // ---- band planes: fetched per tile and flight, cached, shared by every band choice -------------
 const cache = new Map();     // entry key -> {planes: Map(band -> Float32Array), key, empty, side, bytes}
 let cacheBytes = 0;
-viewer.clearCache = () => { cache.clear(); cacheBytes = 0; clearStats(); };
+viewer.clearCache = () => { cache.clear(); cacheBytes = 0; statsCache.clear(); };
 const inflight = new Map();  // request key -> {controller, entry, bands}
 
 // the tile whose values a shown tile uses: itself, or for a preview its ancestor f.up zooms up
@@ -49,7 +48,7 @@ function entryReady(e, f, keyed) {
 }
 
 // the loaded planes of flight f over a tile ([band of f.bands] -> Float32Array), null if not all loaded
-export function loadedPlanes(tile, f) {
+function loadedPlanes(tile, f) {
   const e = cache.get(entryKey(f, tile.coords));
   if (!e || e.empty || !f.bands.every((band) => e.planes.has(band))) return null;
   return f.bands.map((band) => e.planes.get(band));
@@ -200,7 +199,7 @@ layer.on("tileunload", (ev) => {
 layer.addTo(map);
 
 // the tiles of the current zoom, those nearest the centre of the view first (asked for first)
-export function liveTiles() {
+function liveTiles() {
   const z = Math.round(map.getZoom());
   const c = map.project(map.getCenter(), z).divideBy(TILE);
   const d = (t) => (t.coords.x + 0.5 - c.x) ** 2 + (t.coords.y + 0.5 - c.y) ** 2;
@@ -328,4 +327,111 @@ function draw(tile, spec) {
   tile.el.classList.remove("placeholder");
   tile.shown = spec.id;
   viewer.draws += 1;
+}
+
+// ---- the stretch -----------------------------------------------------------------------------
+const statsCache = new Map();    // flight params + bands + percentiles -> {low, high}
+const statsPending = new Set();
+
+// [low, high] per channel of nm (the wavelengths shown), null while the statistics are coming
+export function stretchRanges(nm) {
+  const kind = $("stretch").value;
+  const per = $("per-channel").checked && nm.length === 3;
+  let pairs = null;
+  if (kind === "manual") {
+    const lo = Number($("stretch-low").value), hi = Number($("stretch-high").value);
+    if (!(isFinite(lo) && isFinite(hi) && hi > lo) || $("stretch-low").value === "" || $("stretch-high").value === "") {
+      showError("stretch: give LOW < HIGH", "err-stretch");
+      return viewer.lastRanges;
+    }
+    clearErrors("err-stretch");
+    return nm.map(() => [lo, hi]);
+  }
+  clearErrors("err-stretch");
+  const lastRanges = viewer.lastRanges;
+  if (kind === "view") {
+    pairs = viewer.viewStretch && viewer.viewStretch.length === nm.length ? viewer.viewStretch : null;
+    if (!pairs) return lastRanges && lastRanges.length === nm.length ? lastRanges : null;
+  } else {
+    const id = referenceFlight();
+    if (!id) return null;
+    const f = viewer.byId.get(id);
+    const st = statsCache.get(statsKey(id, nm.map((w) => nearestBand(f, w)), kind));
+    if (!st) return null;
+    pairs = st.low.map((l, i) => [l === null ? 0 : l, st.high[i] === null ? 1 : st.high[i]]);
+    if (kind === "unscaled") {
+      const hi = Math.max(...pairs.map((p) => p[1]));
+      return nm.map(() => [0, hi > 0 ? hi : 1]);
+    }
+  }
+  pairs = pairs.map(([l, h]) => [l, h > l ? h : l + 1]);
+  if (!per) {
+    const l = Math.min(...pairs.map((p) => p[0])), h = Math.max(...pairs.map((p) => p[1]));
+    pairs = pairs.map(() => [l, h]);
+  }
+  return pairs;
+}
+const statsKey = (id, bands, kind) => `${id}|${statsParams(id)}|${bands}|${kind === "unscaled" ? "0,100" : "2,98"}`;
+
+// ask for what the stretch of spec still needs (the flight's statistics), refresh when it arrives
+function ensureRanges(spec) {
+  const kind = $("stretch").value;
+  if (kind === "view") {
+    if (!viewer.viewStretch) { viewer.viewStretch = viewRanges(spec) || null; if (viewer.viewStretch) refresh(); }
+    return;
+  }
+  if (kind === "manual") return;
+  const id = referenceFlight();
+  if (!id) return;
+  const f = viewer.byId.get(id);
+  const bands = spec.nm.map((w) => nearestBand(f, w));
+  const key = statsKey(id, bands, kind);
+  if (statsCache.has(key) || statsPending.has(key)) return;
+  statsPending.add(key);
+  getJSON(`${idPath(id)}/stats?bands=${bands.join(",")}&${statsParams(id)}&percentiles=${kind === "unscaled" ? "0,100" : "2,98"}`)
+    .then((st) => { statsCache.set(key, st); refresh(); })
+    .catch((err) => showError(err.message))
+    .finally(() => statsPending.delete(key));
+}
+
+// 2 %/98 % of the values the view shows (loaded planes of the tiles in view, subsampled to at most
+// VIEW_SAMPLES pixels: a stretch change stays a few milliseconds whatever the window's size)
+const VIEW_SAMPLES = 40000;
+export function viewRanges(spec) {
+  const b = map.getBounds();
+  const view = [b.getWest(), b.getSouth(), b.getEast(), b.getNorth()];
+  const k = spec.nm.length;
+  const sources = [];
+  let total = 0;
+  for (const tile of liveTiles()) {
+    const tb = tileBounds(tile.coords.z, tile.coords.x, tile.coords.y);
+    if (!boxesMeet(tb, view)) continue;
+    for (const f of spec.flights) {
+      const planes = loadedPlanes(tile, f);
+      if (!planes) continue;
+      sources.push(planes);
+      total += planes[0].length;
+    }
+  }
+  if (!total) return null;
+  const step = Math.max(1, Math.ceil(total / VIEW_SAMPLES));
+  const samples = Array.from({ length: k }, () => new Float32Array(Math.ceil(total / step) + sources.length));
+  let n = 0, offset = 0;
+  for (const planes of sources) {
+    const len = planes[0].length;
+    for (let s = (step - (offset % step)) % step; s < len; s += step) {
+      let finite = true;
+      for (let c = 0; c < k; c++) { const v = planes[c][s]; if (v !== v) { finite = false; break; } }
+      if (!finite) continue;
+      for (let c = 0; c < k; c++) samples[c][n] = planes[c][s];
+      n += 1;
+    }
+    offset += len;
+  }
+  if (!n) return null;
+  return samples.map((v) => {
+    const sorted = v.subarray(0, n).sort();
+    const at = (q) => sorted[Math.min(n - 1, Math.max(0, Math.round((q / 100) * (n - 1))))];
+    return [at(2), at(98)];
+  });
 }
