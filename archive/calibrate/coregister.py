@@ -138,8 +138,8 @@ def coregister(source, reference, fov_deg: float, ground: float, *, dem=None, de
     try:
         check_converged(result, start, after, [flight])
     except InputError as exc:
-        raise InputError(name, f"co-registration to {ref_name} did not converge: "
-                         f"{exc.problem.removeprefix('calibration did not converge: ')}", exc.fix) from None
+        what = exc.problem.removeprefix("calibration did not converge: ").replace("the passes", "the flights")
+        raise InputError(name, f"co-registration to {ref_name} did not converge: {what}", exc.fix) from None
     own_pairs = [{k: v for k, v in p.items() if k != "own"} for p in cross_pairs if p.get("own")]
     report = make_report(result, start, estimate, held, own_before, own, own_pairs, pixel, dem_label)
     tried = sum(p["tried"] for p in cross_pairs if not p.get("own"))
