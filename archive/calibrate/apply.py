@@ -105,5 +105,9 @@ def _apply_collection(source, params: dict, ground, note: dict, archive) -> Path
         from archive.catalog.describe import catalog_collection
         from archive.catalog.root import open_root
 
-        catalog_collection(open_root(archive), source.id)
+        from archive.ingest.previews import add_previews
+
+        root = open_root(archive)
+        catalog_collection(root, source.id)
+        add_previews(root, [source.id])   # the previews drawn under the old navigation are stale now
     return Path(source.store)
