@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 from pathlib import Path
 
 import pytest
 import rioxarray  # noqa: F401  (registers .rio for tests reading outputs; the render no longer imports it)
+
+from helpers import FOV, SMALL_FLIGHT, STRIPS_FLIGHT, TINY_FLIGHT
 
 RESONON_SAMPLES = Path(__file__).resolve().parents[1].parent / "shared" / "samples" / "resonon"
 
@@ -19,29 +22,76 @@ def resonon_samples() -> Path:
     return RESONON_SAMPLES
 
 
-#: The shape of the small flight the concurrency and fault tests share (2 cubes on one pass).
-SMALL_FLIGHT = dict(cubes=2, bands=4, samples=64, lines=100, cubes_per_pass=2)
+@pytest.fixture(scope="session")
+def simulated(tmp_path_factory):
+    """``simulated(**options) -> (directory, Truth)``: a simulated raw flight (``simulate_flight``'s
+    options, seed included), made once per session for each set of options and shared read-only by
+    the tests that ask for it; a test that changes a flight copies it first (``shutil.copytree``)."""
+    from archive.simulator.command import simulate_flight
+
+    made: dict = {}
+
+    def simulate(**options):
+        key = tuple(sorted(options.items()))
+        if key not in made:
+            directory = tmp_path_factory.mktemp("flight") / "flight"
+            made[key] = directory, simulate_flight(directory, **options)
+        return made[key]
+
+    return simulate
 
 
 @pytest.fixture(scope="session")
-def small_flight(tmp_path_factory) -> Path:
-    """A small simulated raw flight (:data:`SMALL_FLIGHT`, seed 0), shared read-only by the tests."""
-    from archive.simulator.command import simulate_flight
+def small_flights(simulated):
+    """``small_flights(seed) -> directory``: the :data:`helpers.SMALL_FLIGHT` flight of that seed."""
+    return lambda seed: simulated(seed=seed, **SMALL_FLIGHT)[0]
 
-    d = tmp_path_factory.mktemp("small_flight") / "flight"
-    simulate_flight(d, seed=0, **SMALL_FLIGHT)
-    return d
+
+@pytest.fixture(scope="session")
+def small_flight(small_flights) -> Path:
+    """The small simulated raw flight (:data:`helpers.SMALL_FLIGHT`, seed 0), shared read-only."""
+    return small_flights(0)
 
 
 @pytest.fixture(scope="session")
 def small_archive(small_flight, tmp_path_factory) -> tuple[Path, str]:
-    """(archive, collection id) of :func:`small_flight` ingested (field of view 47.5 degrees); tests
-    read it and write their outputs elsewhere."""
+    """(archive, collection id) of :func:`small_flight` ingested (field of view :data:`helpers.FOV`);
+    tests read it and write their outputs elsewhere."""
     from archive.ingest.command import ingest
 
     arc = tmp_path_factory.mktemp("small_archive") / "arc"
-    (r,) = ingest([str(small_flight)], arc, 47.5, progress=False)
+    (r,) = ingest([str(small_flight)], arc, FOV, progress=False)
     return arc, r.cid
+
+
+@pytest.fixture(scope="session")
+def strips_flight(simulated):
+    """(directory, Truth) of the :data:`helpers.STRIPS_FLIGHT` flight (4 cubes in 2 strips), shared read-only."""
+    return simulated(**STRIPS_FLIGHT)
+
+
+@pytest.fixture(scope="session")
+def tiny_flights(simulated):
+    """``tiny_flights(seed) -> directory``: the :data:`helpers.TINY_FLIGHT` flight of that seed."""
+    return lambda seed: simulated(seed=seed, **TINY_FLIGHT)[0]
+
+
+@pytest.fixture(scope="session")
+def local_cluster():
+    """A LocalCluster shaped like ``archive render``'s own (1 spawned worker, 2 threads, GPU=2), shared
+    by the tests that render through ``--scheduler`` and leave its workers as they are (a test that
+    kills, restarts or reconfigures workers starts its own). Its scheduler runs in this process."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=True, resources={"GPU": 2},
+                      dashboard_address=":0", silence_logs=logging.ERROR) as cluster:
+        yield cluster
+
+
+@pytest.fixture(scope="session")
+def scheduler(local_cluster) -> str:
+    """The address of :func:`local_cluster`'s scheduler (for ``--scheduler``)."""
+    return local_cluster.scheduler_address
 
 
 @contextlib.contextmanager

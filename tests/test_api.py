@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import logging
 import subprocess
 import sys
 from pathlib import Path
@@ -22,34 +21,22 @@ import xarray as xr
 import archive
 from archive.cli import main
 from archive.errors import InputError, OutputExistsError
+from helpers import FOV
 
-FOV = 47.5
 GSD = 0.04  # 1570 x 780 px: 2 output tiles of 1024 px
 DAY = 86400.0
 
 
 @pytest.fixture(scope="module")
-def flight(tmp_path_factory):
-    from archive.simulator.command import simulate_flight
-
-    directory = tmp_path_factory.mktemp("api") / "flight"
-    truth = simulate_flight(directory, cubes=4, bands=6, samples=64, lines=150, cubes_per_pass=2, seed=3)
-    return directory, truth
+def flight(strips_flight):
+    """(directory, Truth) of the shared 4-cube flight in 2 strips, 6 bands (conftest), read only."""
+    return strips_flight
 
 
 @pytest.fixture(scope="module")
-def cluster():
-    """A LocalCluster like the command's own (spawned worker, GPU=1), shared by the file renders."""
-    from distributed import LocalCluster
-
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=True, resources={"GPU": 1},
-                      dashboard_address=":0", silence_logs=logging.ERROR) as cluster:
-        yield cluster
-
-
-@pytest.fixture(scope="module")
-def scheduler(cluster):
-    return cluster.scheduler_address
+def cluster(local_cluster):
+    """The session's LocalCluster shaped like the command's own (spawned worker, GPU=2; conftest)."""
+    return local_cluster
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,6 @@ ingested flight keeps its ``fwhm`` (and stores from before it was recorded read 
 from __future__ import annotations
 
 import json
-import logging
 import re
 import shutil
 import subprocess
@@ -28,8 +27,8 @@ from archive.cli import main
 from archive.errors import FormatError
 from archive.formats.envi import read_header
 from archive.params import NavigationParams
+from helpers import FOV
 
-FOV = 47.5
 GSD = 0.1
 BANDS = 301
 PICK = "450,700,950"  # nm: three bands with different widths
@@ -50,15 +49,6 @@ def flight(tmp_path_factory):
         hdr.write_text("".join(line for line in hdr.read_text().splitlines(keepends=True)
                                if not line.startswith("fwhm")))
     return directory, bare
-
-
-@pytest.fixture(scope="module")
-def scheduler():
-    from distributed import LocalCluster
-
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, resources={"GPU": 1},
-                      dashboard_address=":0", silence_logs=logging.ERROR) as cluster:
-        yield cluster.scheduler_address
 
 
 def _render(source, out: Path, scheduler: str, *extra: str) -> None:

@@ -9,7 +9,6 @@ tags read back by zarr and GDAL (rasterio), GDAL's COG checks on every COG.
 from __future__ import annotations
 
 import json
-import logging
 
 import numpy as np
 import pytest
@@ -22,19 +21,9 @@ from archive.errors import InputError
 from archive.options import RenderOptions
 from archive.outputs.cog_check import check_cog
 from archive.outputs.tiff import decode_tile, encode_tile
+from helpers import FOV
 
-FOV = 47.5
 GSD = 0.02   # ~1760 x 400 px: two chunk columns, 4 x 1 COG tiles and 2 overview levels
-
-
-@pytest.fixture(scope="module")
-def scheduler():
-    """A LocalCluster shaped like the command's own: 1 spawned worker, 2 threads, GPU=2."""
-    from distributed import LocalCluster
-
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=True, resources={"GPU": 2},
-                      dashboard_address=":0", silence_logs=logging.ERROR) as cluster:
-        yield cluster.scheduler_address
 
 
 @pytest.fixture(scope="module")

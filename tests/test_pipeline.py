@@ -21,29 +21,16 @@ from archive.cli import main
 from archive.errors import InputError
 from archive.grid import Grid
 from archive.params import NavigationParams
+from helpers import FOV
 
-FOV = 47.5
 GSD = 0.04  # ~1570 x 780 px: 2 output tiles of 1024 px, cube windows straddling the tile edge
 
 
 @pytest.fixture(scope="module")
-def flight(tmp_path_factory):
-    """A 4-cube flight in 2 strips (2 passes), 6 bands 400-1000 nm, and its truth."""
-    from archive.simulator.command import simulate_flight
-
-    directory = tmp_path_factory.mktemp("pipeline") / "flight"
-    truth = simulate_flight(directory, cubes=4, bands=6, samples=64, lines=150, cubes_per_pass=2, seed=3)
-    return directory, truth
-
-
-@pytest.fixture(scope="module")
-def scheduler():
-    """Address of a LocalCluster shaped like the command's own: 1 spawned worker, 1 thread, GPU=1."""
-    from distributed import LocalCluster
-
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, resources={"GPU": 1},
-                      dashboard_address=":0", silence_logs=logging.ERROR) as cluster:
-        yield cluster.scheduler_address
+def flight(strips_flight):
+    """(directory, Truth) of the shared 4-cube flight in 2 strips (2 passes), 6 bands 400-1000 nm
+    (conftest), read only; ``scheduler`` is the session's LocalCluster shaped like the command's own."""
+    return strips_flight
 
 
 def _render(flight, out, *extra, scheduler=None) -> int:

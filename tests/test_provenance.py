@@ -24,19 +24,16 @@ from archive.formats.envi import EnviCube
 from archive.formats.lcf import gps_seconds_to_datetime
 from archive.provenance import LAYERS, sun_position
 from archive.simulator.scene import points_in_polygon
+from helpers import FOV
 
-FOV = 47.5
 GSD = 0.03
 NAMES = [layer.name for layer in LAYERS]
 
 
 @pytest.fixture(scope="module")
-def flight(tmp_path_factory):
-    from archive.simulator.command import simulate_flight
-
-    directory = tmp_path_factory.mktemp("provenance") / "flight"
-    truth = simulate_flight(directory, cubes=4, bands=6, samples=64, lines=150, cubes_per_pass=2, seed=5)
-    return directory, truth
+def flight(strips_flight):
+    """(directory, Truth) of the shared 4-cube flight in 2 strips, 6 bands (conftest), read only."""
+    return strips_flight
 
 
 def _render(flight_dir: Path, out: Path, *extra: str) -> int:

@@ -1,0 +1,31 @@
+"""Constants and shapes the test files share (``from helpers import FOV``; pytest puts ``tests/`` on
+``sys.path``). The fixtures that build on them are in ``conftest.py``."""
+
+from __future__ import annotations
+
+#: degrees: the camera field of view of every simulated flight (``simulate_flight``'s default
+#: ``fov_deg``), given to ingest and render as ``--fov``.
+FOV = 47.5
+
+#: The small flight the concurrency, fault, batch and publication tests share (2 cubes on one pass,
+#: 4 bands, 64 samples x 100 lines); ``small_flights`` gives it for seeds 0, 1, ...
+SMALL_FLIGHT = dict(cubes=2, bands=4, samples=64, lines=100, cubes_per_pass=2)
+
+#: A 4-cube flight in 2 strips (2 passes), 6 bands 400-1000 nm, 64 samples x 150 lines, seed 3: the
+#: render, library API tests' flight (``strips_flight``).
+STRIPS_FLIGHT = dict(cubes=4, bands=6, samples=64, lines=150, cubes_per_pass=2, seed=3)
+
+#: The tiniest flight a batch or an S3 archive needs (2 cubes, 2 bands, 24 samples x 40 lines).
+TINY_FLIGHT = dict(cubes=2, bands=2, samples=24, lines=40, cubes_per_pass=2)
+
+
+def ingest_each(directories, archive, fov: float = FOV, **options) -> list[str]:
+    """Ingest each raw flight directory on its own into ``archive`` (field of view ``fov`` degrees,
+    ``ingest``'s other ``options``); the collection id of each, in order (one collection a flight)."""
+    from archive.ingest.command import ingest
+
+    ids = []
+    for directory in directories:
+        (result,) = ingest([str(directory)], archive, fov, progress=False, **options)
+        ids.append(result.cid)
+    return ids
