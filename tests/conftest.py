@@ -34,7 +34,8 @@ def simulated(tmp_path_factory):
     def simulate(**options):
         key = tuple(sorted(options.items()))
         if key not in made:
-            directory = tmp_path_factory.mktemp("flight") / "flight"
+            # named by seed: a batch of one shape's seeds writes one output a flight, named by its folder
+            directory = tmp_path_factory.mktemp("simulated") / f"flight{options.get('seed', 0)}"
             made[key] = directory, simulate_flight(directory, **options)
         return made[key]
 

@@ -23,27 +23,17 @@ import pytest
 
 from archive.cli import main
 from archive.collection import CheckedDn, CorruptChunkError, chunk_path
+from helpers import FOV, ingest_each
 
-FOV = 47.5
 GSD = "0.1"
-SHAPE = dict(cubes=2, bands=4, samples=64, lines=100, cubes_per_pass=2)
 
 
 @pytest.fixture(scope="module")
-def flights(tmp_path_factory):
-    """(raw directories, archive, ids) of four small flights ingested into one archive."""
-    from archive.ingest.command import ingest
-    from archive.simulator.command import simulate_flight
-
-    root = tmp_path_factory.mktemp("batch")
-    dirs, ids = [], []
-    for seed in range(4):
-        d = root / f"flight{seed}"
-        simulate_flight(d, seed=seed, **SHAPE)
-        (r,) = ingest([str(d)], root / "archive", FOV, progress=False)
-        dirs.append(d)
-        ids.append(r.cid)
-    return dirs, root / "archive", ids
+def flights(small_flights, tmp_path_factory):
+    """(raw directories, archive, ids) of four small flights (seeds 0-3, conftest) ingested into one archive."""
+    dirs = [small_flights(seed) for seed in range(4)]
+    archive = tmp_path_factory.mktemp("batch") / "archive"
+    return dirs, archive, ingest_each(dirs, archive)
 
 
 def copy_archive(archive: Path, to: Path) -> Path:
@@ -307,15 +297,9 @@ def _peak_tasks(dirs: list[Path], out: Path) -> tuple[int, dict]:
     return plugin.peak, summary
 
 
-def test_waves_keep_the_scheduler_flat(tmp_path):
+def test_waves_keep_the_scheduler_flat(tiny_flights, tmp_path):
     """40 flights hold no more tasks in the scheduler at once than a wave of single flights (as 4 do)."""
-    from archive.simulator.command import simulate_flight
-
-    dirs = []
-    for seed in range(40):
-        d = tmp_path / "raw" / f"f{seed:02d}"
-        simulate_flight(d, cubes=2, bands=2, samples=24, lines=40, cubes_per_pass=2, seed=seed)
-        dirs.append(d)
+    dirs = [tiny_flights(seed) for seed in range(40)]
     peak1, one = _peak_tasks(dirs[:1], tmp_path / "one")
     peak4, four = _peak_tasks(dirs[:4], tmp_path / "four")
     peak40, forty = _peak_tasks(dirs, tmp_path / "forty")

@@ -13,6 +13,7 @@ import pytest
 from archive.cli import main
 from archive.cluster import ClusterStart
 from archive.errors import InputError
+from helpers import FOV
 
 
 def _is_worker(p: psutil.Process) -> bool:
@@ -24,22 +25,29 @@ def _is_worker(p: psutil.Process) -> bool:
         return False
 
 
-def _workers_left(timeout: float = 10.0) -> list:
-    """This process's child processes still alive after up to ``timeout`` s (workers being closed
-    take a moment to exit)."""
+def _children() -> set[int]:
+    """The pids of this process's live child processes (the session's shared LocalCluster of
+    conftest, where an earlier test started it, among them)."""
+    return {p.pid for p in psutil.Process().children(recursive=True) if _is_worker(p)}
+
+
+def _workers_left(before: set[int], timeout: float = 10.0) -> list:
+    """This process's child processes not in ``before`` (those alive before the command) still
+    alive after up to ``timeout`` s (workers being closed take a moment to exit)."""
     deadline = time.monotonic() + timeout
     while True:
-        alive = [p for p in psutil.Process().children(recursive=True) if _is_worker(p)]
+        alive = [p for p in psutil.Process().children(recursive=True) if _is_worker(p) and p.pid not in before]
         if not alive or time.monotonic() > deadline:
             return alive
         time.sleep(0.2)
 
 
 def test_a_command_failing_before_it_needs_workers_leaves_none(tmp_path, capsys):
-    code = main(["render", str(tmp_path / "no-such-flight"), "--fov", "47.5", "--gsd", "0.1",
+    before = _children()
+    code = main(["render", str(tmp_path / "no-such-flight"), "--fov", str(FOV), "--gsd", "0.1",
                  "--out", str(tmp_path / "m.zarr"), "--quiet"])
     assert code == 2 and "no-such-flight: flight directory not found" in capsys.readouterr().err
-    assert _workers_left() == [] and not (tmp_path / "m.zarr").exists()
+    assert _workers_left(before) == [] and not (tmp_path / "m.zarr").exists()
 
 
 def test_an_error_starting_is_raised_where_the_cluster_is_taken():
@@ -51,7 +59,8 @@ def test_an_error_starting_is_raised_where_the_cluster_is_taken():
 
 def test_a_render_through_both_leaves_no_worker(small_flight, tmp_path):
     out = tmp_path / "m.tif"
-    assert main(["render", str(small_flight), "--fov", "47.5", "--gsd", "0.05", "--ground-height", "auto",
+    before = _children()
+    assert main(["render", str(small_flight), "--fov", str(FOV), "--gsd", "0.05", "--ground-height", "auto",
                  "--out", str(out), "--quiet"]) == 0
     assert out.stat().st_size > 0 and (tmp_path / "m.tif.json").exists()
-    assert _workers_left() == []
+    assert _workers_left(before) == []

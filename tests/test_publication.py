@@ -19,26 +19,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import FOV, ingest_each
 
-FOV = "47.5"
-SHAPE = dict(cubes=2, bands=4, samples=64, lines=100, cubes_per_pass=2)
 
 
 @pytest.fixture(scope="module")
-def flights(tmp_path_factory):
-    """(raw directories, archive, ids) of two small flights ingested into one archive."""
-    from archive.ingest.command import ingest
-    from archive.simulator.command import simulate_flight
-
-    root = tmp_path_factory.mktemp("publication")
-    dirs, ids = [], []
-    for seed in range(2):
-        d = root / f"flight{seed}"
-        simulate_flight(d, seed=seed, **SHAPE)
-        (r,) = ingest([str(d)], root / "archive", float(FOV), progress=False)
-        dirs.append(d)
-        ids.append(r.cid)
-    return dirs, root / "archive", ids
+def flights(small_flights, tmp_path_factory):
+    """(raw directories, archive, ids) of two small flights (seeds 0-1, conftest) ingested into one archive."""
+    dirs = [small_flights(seed) for seed in range(2)]
+    archive = tmp_path_factory.mktemp("publication") / "archive"
+    return dirs, archive, ingest_each(dirs, archive)
 
 
 def run(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
@@ -118,7 +108,7 @@ def test_reingest_then_resume_renders_again(flights, tmp_path):
     before = values(out / f"{ids[0]}.tif")
     inputs = recipe(out / f"{ids[0]}.tif.json")["inputs"]
     assert inputs[0]["source"] == ids[0] and inputs[0]["navigation_params"]["sync_offset"] == 0.0
-    again = run("ingest", str(dirs[0]), "--archive", str(archive), "--fov", FOV, "--overwrite", "--sync-offset",
+    again = run("ingest", str(dirs[0]), "--archive", str(archive), "--fov", str(FOV), "--overwrite", "--sync-offset",
                 "0.2", "--quiet")
     assert again.returncode == 0, again.stderr
     resumed = batch(archive, out, "0.1", "--resume")

@@ -25,11 +25,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import FOV
 
 pytest.importorskip("moto")
 pytest.importorskip("obstore")
 
-FOV = 47.5
 SECRET = "s3cr3t-" + uuid.uuid4().hex   # must never appear in an object the archive writes
 
 
@@ -360,7 +360,7 @@ def test_stac_api_and_viewer_over_an_s3_archive(s3_archive, small_archive):
     assert item["assets"]["data"]["href"] == f"{url}/collections/{cid}.zarr"   # workers read it from the bucket
 
 
-def test_killed_batch_into_s3_is_resumed(s3_bucket, tmp_path):
+def test_killed_batch_into_s3_is_resumed(s3_bucket, tiny_flights):
     """A batch of two flights from an s3 archive into an ``s3://`` folder, killed once the first
     output is uploaded (its Item last): the rerun with --resume skips it (same recipe, its Item
     untouched) and renders the other; the report in the bucket says so; no staging folder is left."""
@@ -368,12 +368,9 @@ def test_killed_batch_into_s3_is_resumed(s3_bucket, tmp_path):
 
     from archive import storage
     from archive.ingest.command import ingest
-    from archive.simulator.command import simulate_flight
 
     url = f"s3://{s3_bucket}/batch-arc-{uuid.uuid4().hex[:6]}"
-    for seed in (1, 2):
-        simulate_flight(tmp_path / f"f{seed}", cubes=2, bands=2, samples=24, lines=40, cubes_per_pass=2, seed=seed)
-    ids = sorted(r.cid for r in ingest([str(tmp_path / "f1"), str(tmp_path / "f2")], url, FOV, progress=False))
+    ids = sorted(r.cid for r in ingest([str(tiny_flights(1)), str(tiny_flights(2))], url, FOV, progress=False))
     assert len(ids) == 2
     out = f"{s3_bucket}/batch-out-{uuid.uuid4().hex[:6]}"
     args = ["render", "--archive", url, "--query-bbox", "-180,-90,180,90", "--gsd", "0.5", "--out", f"s3://{out}",
@@ -454,19 +451,16 @@ def test_bad_bucket_or_endpoint_is_one_line(s3_bucket, small_flight):
         assert "AWS_ENDPOINT_URL" in lines[0] and SECRET not in r.stderr + r.stdout
 
 
-def test_two_concurrent_ingests_of_two_flights(s3_bucket, tmp_path):
+def test_two_concurrent_ingests_of_two_flights(s3_bucket, tiny_flights):
     """Two ingests of different flights into one new s3 archive at once: the archive marker (a
     conditional PUT) made once, both collections complete, and the catalog (its updates take turns
     on the catalog's lock object) lists both: the index and the STAC Collection's item links."""
     from archive.catalog.index import ensure_index, search
     from archive.catalog.root import open_root
-    from archive.simulator.command import simulate_flight
     from archive import storage
 
     url = f"s3://{s3_bucket}/pair-{uuid.uuid4().hex[:6]}"
-    for seed in (3, 4):
-        simulate_flight(tmp_path / f"f{seed}", cubes=2, bands=2, samples=24, lines=40, cubes_per_pass=2, seed=seed)
-    procs = [subprocess.Popen([sys.executable, "-m", "archive", "ingest", str(tmp_path / f"f{seed}"), "--archive", url,
+    procs = [subprocess.Popen([sys.executable, "-m", "archive", "ingest", str(tiny_flights(seed)), "--archive", url,
                                "--fov", str(FOV), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for seed in (3, 4)]
     outs = [p.communicate(timeout=240) for p in procs]

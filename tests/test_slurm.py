@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import ingest_each
 
-FOV = 47.5
 GSD = "0.02"
 #: Flights large enough that one renders for seconds on one worker thread (the cancel lands mid-batch).
 SHAPE = dict(cubes=2, bands=6, samples=96, lines=160, cubes_per_pass=2)
@@ -266,19 +266,10 @@ def slurm(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def archive3(tmp_path_factory):
+def archive3(simulated, tmp_path_factory):
     """(archive, ids) of three small flights (seeds 0-2: distinct ids)."""
-    from archive.ingest.command import ingest
-    from archive.simulator.command import simulate_flight
-
-    root = tmp_path_factory.mktemp("slurm-archive")
-    ids = []
-    for seed in range(3):
-        d = root / f"flight{seed}"
-        simulate_flight(d, seed=seed, **SHAPE)
-        (r,) = ingest([str(d)], root / "archive", FOV, progress=False)
-        ids.append(r.cid)
-    return root / "archive", ids
+    archive = tmp_path_factory.mktemp("slurm-archive") / "archive"
+    return archive, ingest_each([simulated(seed=seed, **SHAPE)[0] for seed in range(3)], archive)
 
 
 def _read(path: Path) -> np.ndarray:
@@ -289,7 +280,7 @@ def _read(path: Path) -> np.ndarray:
 
 
 @needs_slurm
-def test_batch_on_slurm_survives_a_cancelled_worker_job(slurm, archive3, tmp_path):
+def test_batch_on_slurm_survives_a_cancelled_worker_job(slurm, archive3, scheduler, tmp_path):
     archive, ids = archive3
     config = tmp_path / "dask"
     config.mkdir()
@@ -350,14 +341,9 @@ def test_batch_on_slurm_survives_a_cancelled_worker_job(slurm, archive3, tmp_pat
     assert "JobState=CANCELLED" in state, state
 
     # the same flights, each rendered alone on a local cluster: equal bit for bit
-    import logging
-
     import archive as api
-    from distributed import LocalCluster
 
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=True, resources={"GPU": 2},
-                      dashboard_address=":0", silence_logs=logging.CRITICAL) as local:
-        for cid in ids:
-            single = tmp_path / "single" / f"{cid}.tif"
-            api.georectify([cid], single, archive=archive, gsd=float(GSD), scheduler=local.scheduler_address)
-            assert np.array_equal(_read(out / f"{cid}.tif"), _read(single), equal_nan=True), cid
+    for cid in ids:
+        single = tmp_path / "single" / f"{cid}.tif"
+        api.georectify([cid], single, archive=archive, gsd=float(GSD), scheduler=scheduler)
+        assert np.array_equal(_read(out / f"{cid}.tif"), _read(single), equal_nan=True), cid
