@@ -50,10 +50,8 @@ from archive import storage
 from archive.errors import ArchiveError, InputError
 from archive.files import FileLock, path_exists, remove_path, test_hold, write_atomic
 
-__all__ = ["FORMATS", "LOCK", "REPORT", "Flight", "recipe_request", "run_batch"]
+__all__ = ["LOCK", "REPORT", "Flight", "recipe_request", "run_batch"]
 
-#: Formats of the per-flight outputs.
-FORMATS = ("zarr", "tif", "hdr")
 #: The batch report's file name in the output directory.
 REPORT = "report.json"
 #: The lock file a batch holds in its output directory.
@@ -94,9 +92,11 @@ class Flight:
 
 
 def _directory(out) -> Path:
+    from archive.outputs.registry import looks_like_output
+
     if storage.is_url(out):   # an s3:// folder: each output staged locally, uploaded once, its Item last
         directory = storage.location(out)
-        if directory.suffix.lower() in (".zarr", ".tif", ".tiff", ".hdr"):
+        if looks_like_output(directory):
             raise InputError(directory, "looks like one output, but a batch job writes one output per flight",
                              "give --out s3://BUCKET/FOLDER (outputs FOLDER/<id>.<format>), or add --mosaic")
         return directory
@@ -104,7 +104,7 @@ def _directory(out) -> Path:
     if directory.exists() and not directory.is_dir():
         raise InputError(directory, "is a file, but a batch job writes one output per flight into a directory",
                          "give --out DIR, or --mosaic for one output")
-    if directory.suffix.lower() in (".zarr", ".tif", ".tiff", ".hdr"):
+    if looks_like_output(directory):
         raise InputError(directory, "looks like one output file, but a batch job writes one output per flight",
                          "give --out DIR (outputs DIR/<id>.<format>), or add --mosaic")
     return directory
@@ -260,13 +260,13 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
     outputs that may not be replaced). ``units``: instead of one output per source, one output per
     ``(name, request, Item properties)`` (a tile of :mod:`archive.tiles`: the mosaic of its sources)."""
     from archive.outputs.publish import Output
+    from archive.outputs.registry import format_named
     from archive.options import check_gsd
     from archive.pipeline import recipe_inputs
 
     started = time.perf_counter()
     check_gsd(options.gsd)
-    if format not in FORMATS:
-        raise InputError("--format", f"unknown output format {format!r}", f"use {', '.join(FORMATS)}")
+    fmt = format_named(format)
     directory = _directory(out)
     if options.archive is not None and not storage.is_url(options.archive):   # recipes independent of the cwd
         options = dataclasses.replace(options, archive=os.fspath(Path(options.archive).absolute()))
@@ -283,12 +283,12 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
             if storage.is_url(directory):
                 from archive.outputs.publish import RemoteOutput
 
-                remote = RemoteOutput(str(directory / f"{name}.{format}"), overwrite=bool(overwrite),
+                remote = RemoteOutput(str(directory / f"{name}{fmt.suffix}"), overwrite=bool(overwrite),
                                       provenance=options.provenance, zarr_format=options.zarr_format,
                                       compression=options.compression)
                 output = remote.local
             else:
-                output = Output(directory / f"{name}.{format}", overwrite=bool(overwrite),
+                output = Output(directory / f"{name}{fmt.suffix}", overwrite=bool(overwrite),
                                 provenance=options.provenance, zarr_format=options.zarr_format,
                                 compression=options.compression)
             flights.append(Flight(",".join(recipe.sources), name, output, recipe, inputs=recipe_inputs(recipe),

@@ -287,8 +287,9 @@ def _add_render(sub) -> None:
                         "multiple of --gsd) that a matching flight touches, --out DIR/<EPSG>_<E0>_<N0>.<format> (lower-"
                         "left corner): the mosaic (--overlap) of the tile's flights, each with its STAC Item; tiles "
                         "are the batch's units (report.json, --resume); --bounds selects tiles")
-    q.add_argument("--format", choices=["zarr", "tif", "hdr"], default="zarr",
-                   help="format of the per-flight outputs in --out DIR (default zarr)")
+    q.add_argument("--format", default="zarr", metavar="FORMAT",
+                   help="format of the per-flight outputs in --out DIR: zarr (default), tif or cog (Cloud-Optimized "
+                        "GeoTIFF), hdr or envi (ENVI BSQ)")
     q.add_argument("--resume", action="store_true",
                    help="skip flights whose output in --out DIR is complete (its STAC Item exists) and was made "
                         "by the same request; redo incomplete ones (a different request is an error without "

@@ -69,7 +69,9 @@ def render_keywords(args: argparse.Namespace, scheduler=None) -> dict:
     unless ``--mosaic``). ``scheduler``: where to run instead of the options' (a
     :class:`~archive.cluster.ClusterStart` already under way)."""
     from archive.options import KEYWORDS
+    from archive.outputs.registry import format_named
 
+    format_named(args.format)   # an unknown --format: one line, before anything is opened
     keywords = {"sources": list(args.sources or []), "out": args.out,
                 **{name: getattr(args, name) for name in KEYWORDS + RUN_KEYWORDS},
                 "scheduler": _where(args) if scheduler is None else scheduler}

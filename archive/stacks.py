@@ -567,12 +567,13 @@ def _write_item(out: Path, layout: _Layout, flights: list[StackFlight], options)
     the time span of its flights, and the datacube extension's ``cube:dimensions``/``cube:variables``."""
     from archive.catalog.product import product_item, render_command
     from archive.catalog.stac import write_item
+    from archive.outputs.zarr import FORMAT as ZARR
 
     g = layout.grid
     start = datetime.fromisoformat(min(f.start for f in flights))
     end = datetime.fromisoformat(max(f.end for f in flights))
     command = render_command(options.with_sources([f.source for f in flights]), out) + " --stack"
-    item = product_item(out, fmt="zarr", grid=g, band_indices=layout.bands, wavelengths=layout.wavelengths,
+    item = product_item(out, fmt=ZARR, grid=g, band_indices=layout.bands, wavelengths=layout.wavelengths,
                         fwhm=layout.fwhm, variable=layout.variable, attrs=layout.attrs, start=start, end=end,
                         sources=[f.source for f in flights], command=command, request=options)
     w, s, e, n = g.bounds

@@ -113,7 +113,7 @@ def write_mosaic(
     out = Output(Path(path), overwrite=overwrite, quicklook=quicklook)
     meta = OutputMeta(grid, tuple(band_indices), None if wavelengths is None else tuple(wavelengths), variable, attrs)
     try:
-        if out.format == "zarr":
+        if out.format.sink is MosaicStore:
             store = out.sink(meta)
         else:
             out.check()
@@ -122,7 +122,7 @@ def write_mosaic(
                                        variable, attrs)
         for tile in tiles:
             write_tile(store, tile)
-        if out.format != "zarr":
+        if out.format.sink is not MosaicStore:
             copy_store(store, out.sink(meta))
         out.finalize()
     finally:

@@ -504,3 +504,79 @@ def test_no_overlap_rule_is_tested_by_name():
     bad = [f"{path.relative_to(ROOT)}:{n}: {line}" for name, path in modules().items() if name != "archive.overlap"
            for n, line in name_tests(path.read_text())]
     assert not bad, "overlap rules tested by name outside archive/overlap.py:\n" + "\n".join(bad)
+
+
+#: The output formats' names and command-line words, and their suffixes (issue 31): known to
+#: ``archive/outputs/`` only (:mod:`archive.outputs.registry`); everyone else asks a format object.
+FORMAT_WORDS = ("zarr", "cog", "envi", "tif", "tiff", "hdr")
+FORMAT_SUFFIXES = tuple(f".{w}" for w in ("zarr", "tif", "tiff", "hdr"))
+
+
+def format_tables(text: str) -> list[tuple[int, str]]:
+    """(line number, what) of each place in ``text`` (Python source) that keeps its own knowledge of
+    the output formats: a format name compared (``fmt == "cog"``, ``format in ("zarr", "tif")``), or
+    a collection literal (tuple, list, set, dict keys) holding two or more format words or suffixes."""
+    found = []
+
+    def words(node: ast.AST, table: tuple[str, ...]) -> list[str]:
+        items = node.keys if isinstance(node, ast.Dict) else getattr(node, "elts", [])
+        return [k.value for k in items if isinstance(k, ast.Constant) and isinstance(k.value, str)
+                and k.value.lower() in table]
+
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, ast.Compare):
+            for side in (node.left, *node.comparators):
+                if isinstance(side, ast.Constant) and isinstance(side.value, str) and side.value in FORMAT_WORDS:
+                    found.append((node.lineno, f"compares the format name {side.value!r}"))
+        if isinstance(node, ast.Tuple | ast.List | ast.Set | ast.Dict):
+            for table in (FORMAT_WORDS, FORMAT_SUFFIXES):
+                listed = words(node, table)
+                if len(set(listed)) >= 2:
+                    found.append((node.lineno, f"lists the formats {listed}"))
+    return found
+
+
+def test_format_tables_are_found():
+    """The check finds what it should on made-up lines (and leaves other strings alone)."""
+    for line in ['if fmt == "zarr": pass', "ok = format in ('zarr', 'tif', 'hdr')", 'FORMATS = ("zarr", "tif", "hdr")',
+                 'SUFFIX = {".zarr": "zarr", ".tif": "cog"}', 'if p.suffix in (".tif", ".tiff"): pass',
+                 'q.add_argument("--format", choices=["zarr", "tif", "hdr"])']:
+        assert format_tables(line), line
+    for line in ['store = root / f"{cid}.zarr"', 'if zarr_format == 2: pass', 'DATA = (".bil", ".bip", ".bsq")',
+                 'hdr = path.with_name(path.name + ".hdr")', 'kinds = ("zarr", "png")']:
+        assert not format_tables(line), line
+
+
+def test_one_format_table():
+    """Issue 31: each output format is one object of its module (:class:`archive.outputs.base.OutputFormat`),
+    listed by :mod:`archive.outputs.registry`; outside ``archive/outputs/`` no module lists format names
+    or suffixes or compares a format's name (the catalog, the batch render and the CLI ask the objects)."""
+    bad = [f"{path.relative_to(ROOT)}:{n}: {what}" for name, path in modules().items()
+           if not name.startswith("archive.outputs.") for n, what in format_tables(path.read_text())]
+    assert not bad, "output formats known outside archive/outputs/:\n" + "\n".join(bad)
+
+
+def envi_header_writers(text: str) -> list[int]:
+    """Line numbers of ``text`` (Python source) that start an ENVI header of their own: a string
+    ``"ENVI"`` alone in a list or tuple (the header's first line), or a string starting ``"ENVI\\n"``."""
+    lines = []
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, ast.List | ast.Tuple):
+            lines += [e.lineno for e in node.elts if isinstance(e, ast.Constant) and e.value == "ENVI"]
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value.startswith("ENVI\n"):
+            lines.append(node.lineno)
+        elif isinstance(node, ast.JoinedStr) and node.values and isinstance(node.values[0], ast.Constant) \
+                and str(node.values[0].value).startswith("ENVI\n"):
+            lines.append(node.lineno)
+    return lines
+
+
+def test_one_envi_header_writer():
+    """Issue 31: the ENVI header is written one way, :func:`archive.formats.envi.header_text` (raw cubes
+    written by :func:`~archive.formats.envi.write_envi`, rendered ENVI outputs, the simulator's Resonon
+    headers); no other module starts a header of its own."""
+    for line in ['rows = ["ENVI", "samples = 3"]', 'text = "ENVI\\nsamples = 3\\n"', 'text = f"ENVI\\nbands = {n}"']:
+        assert envi_header_writers(line), line
+    assert not envi_header_writers('if first.strip() != "ENVI": pass')
+    writers = {name for name, path in modules().items() if envi_header_writers(path.read_text())}
+    assert writers == {"archive.formats.envi"}, f"ENVI headers written outside archive.formats.envi: {writers}"

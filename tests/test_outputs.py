@@ -61,8 +61,8 @@ def _same(a, b) -> None:
 
 
 def test_output_format_by_suffix(tmp_path):
-    assert output_format("a.zarr") == "zarr" and output_format("a.TIF") == "cog"
-    assert output_format("a.tiff") == "cog" and output_format("a.hdr") == "envi"
+    assert output_format("a.zarr").name == "zarr" and output_format("a.TIF").name == "cog"
+    assert output_format("a.tiff").name == "cog" and output_format("a.hdr").name == "envi"
     with pytest.raises(InputError, match=r"\.png"):
         output_format(tmp_path / "a.png")
 
@@ -204,3 +204,56 @@ def test_failure_with_overwrite_keeps_the_old_output(tmp_path):
 def test_bad_quicklook_name(tmp_path):
     with pytest.raises(InputError, match="png"):
         Output(tmp_path / "m.tif", quicklook=tmp_path / "q.jpg")
+
+
+def test_format_objects_and_their_spellings(tmp_path):
+    """Issue 31: one object per format, found by suffix (:func:`output_format`) or by any word a user
+    types after --format (:func:`format_named`); each says its files, sidecars, provenance sibling, sink."""
+    import pickle
+    from pathlib import Path
+
+    from archive.outputs.cog import CogSink
+    from archive.outputs.envi import EnviSink
+    from archive.outputs.registry import FORMATS, format_named
+
+    assert [f.name for f in FORMATS] == ["zarr", "cog", "envi"]
+    for word, name, suffix in [("zarr", "zarr", ".zarr"), ("tif", "cog", ".tif"), ("TIFF", "cog", ".tif"),
+                               ("cog", "cog", ".tif"), ("hdr", "envi", ".hdr"), ("envi", "envi", ".hdr")]:
+        fmt = format_named(word)
+        assert (fmt.name, fmt.suffix) == (name, suffix) and output_format(f"a{suffix}") is fmt
+        assert format_named(fmt) is fmt and pickle.loads(pickle.dumps(fmt)) == fmt
+    with pytest.raises(InputError, match=r"--format: unknown output format 'gtiff' \(use one of zarr, cog, tif"):
+        format_named("gtiff")
+    zarr_, cog, envi = FORMATS
+    assert (zarr_.sink, cog.sink, envi.sink) == (MosaicStore, CogSink, EnviSink)
+    d = Path("d")
+    assert envi.files(d / "m.hdr") == [d / "m", d / "m.hdr"] and envi.sidecars(d / "m.hdr") == [d / "m"]
+    assert envi.sibling(d / "m.hdr") == d / "m_provenance.hdr" and cog.sibling(d / "m.tif") == d / "m_provenance.tif"
+    assert cog.files(d / "m.tif") == [d / "m.tif"] and zarr_.sibling(d / "m.zarr") is None
+    assert (zarr_.media_type, envi.media_type) == ("application/vnd+zarr", "image/x-envi")
+
+
+@pytest.mark.parametrize("zarr_format", [2, 3])
+def test_zarr_item_says_the_version_written(tmp_path, zarr_format):
+    """The STAC Item of a Zarr output names the Zarr version of the store (v2 by default; the title
+    said v3 for every store before issue 31)."""
+    from datetime import UTC, datetime
+
+    from archive.catalog.product import product_item
+
+    from archive.outputs.base import OutputMeta
+
+    out = tmp_path / "m.zarr"
+    output = Output(out, zarr_format=zarr_format)
+    try:
+        output.sink(OutputMeta(SMALL, (3,), zarr_format=zarr_format))   # no tile written: all NaN
+        output.finalize()
+    finally:
+        output.cleanup()
+    when = datetime(2024, 6, 12, 16, tzinfo=UTC)
+    item = product_item(out, fmt=output_format(out), grid=SMALL, band_indices=[3], wavelengths=None, fwhm=None,
+                        variable="radiance", attrs={}, start=when, end=when, sources=["f"], command="archive render",
+                        request={})
+    title = item["assets"]["data"]["title"]
+    assert title.startswith(f"radiance (Zarr v{zarr_format}, variable 'radiance'"), title
+    assert item["properties"]["archive:format"] == "zarr"

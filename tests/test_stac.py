@@ -32,6 +32,7 @@ from archive.cli import build_parser, main
 from archive.errors import FormatError, InputError
 from archive.grid import Grid
 from archive.ingest.command import ingest
+from archive.outputs.registry import format_named
 from archive.simulator.command import simulate_flight
 
 REPO = Path(__file__).resolve().parents[1]
@@ -283,7 +284,7 @@ def rendered(tmp_path_factory):
     for fmt, name in (("cog", "mosaic.tif"), ("envi", "mosaic.hdr")):
         out = base / name
         archive.georectify([str(flight)], out, workers=1, threads=2, **keywords)
-        item = product_item(out, fmt=fmt, grid=planned.plan.grid, band_indices=planned.plan.bands[0],
+        item = product_item(out, fmt=format_named(fmt), grid=planned.plan.grid, band_indices=planned.plan.bands[0],
                             wavelengths=planned.wavelengths, fwhm=getattr(planned, "fwhm", None),
                             variable=planned.variable, attrs=planned.attrs, start=start, end=end,
                             sources=request.sources, command=render_command(request, out), request=request,
@@ -412,7 +413,8 @@ def _grid() -> Grid:
 
 
 def _item(out: Path, fmt: str, **more) -> dict:
-    kwargs = dict(fmt=fmt, grid=_grid(), band_indices=[3, 7], wavelengths=[550.0, 650.0], fwhm=[5.0, float("nan")],
+    kwargs = dict(fmt=format_named(fmt), grid=_grid(), band_indices=[3, 7], wavelengths=[550.0, 650.0],
+                  fwhm=[5.0, float("nan")],
                   variable="reflectance", attrs={"mode": "reflectance", "gsd_m": 0.5, "sources": ["f"]},
                   start=datetime(2024, 6, 12, 16, tzinfo=UTC), end=datetime(2024, 6, 12, 16, 5, tzinfo=UTC),
                   sources=["f"], command="archive render f --out x --gsd 0.5", request={"gsd": 0.5, "bands": (3, 7)})

@@ -46,7 +46,7 @@ import numpy as np
 
 from archive import storage
 from archive.catalog.stac import (EO_EXTENSION, PROCESSING_EXTENSION, PROJECTION_EXTENSION, RASTER_EXTENSION,
-                                  STAC_VERSION, ZARR_MEDIA_TYPE, eo_bands, rfc3339, software_version, write_item)
+                                  STAC_VERSION, eo_bands, rfc3339, software_version, write_item)
 from archive.errors import InputError, MissingInputError
 from archive.overlap import OverlapRule
 
@@ -56,8 +56,6 @@ TEXT_MEDIA_TYPE = "text/plain"
 #: ENVI has no registered media type: an unregistered image type, so that loaders which go by the
 #: media type (odc-stac: image/* is raster) take the data file, whose header GDAL finds beside it.
 ENVI_MEDIA_TYPE = "image/x-envi"
-#: Output format names (as :data:`archive.outputs.FORMATS` gives them) -> file suffix.
-FORMATS = {"zarr": ".zarr", "cog": ".tif", "envi": ".hdr"}
 #: processing:level of a rendered output, by its data variable.
 LEVELS = {"dn": "L1A", "relative": "L1A", "radiance": "L1B", "reflectance": "L2A"}
 #: raster:bands unit of each data variable (an output's ``units`` attribute overrides it).
@@ -162,46 +160,40 @@ def _zarr_layers(store: Path, variable: str) -> list[dict]:
     return layers
 
 
-def _provenance(provenance: Path, out: Path, fmt: str, variable: str, grid, item_dir: Path
+def _describe_layers(variable: str):
+    """``describe(path)`` for :meth:`~archive.outputs.base.OutputFormat.provenance_assets`: (raster:bands,
+    layer names) of a provenance raster file, read from it; (None, layer names) of a Zarr store."""
+    def describe(path: Path) -> tuple[list[dict] | None, list[str]]:
+        if Path(path).is_dir():
+            return None, [layer["name"] for layer in _zarr_layers(path, variable)]
+        return _raster_file_bands(path)
+    return describe
+
+
+def _provenance(provenance: Path, out: Path, fmt, variable: str, grid, item_dir: Path
                 ) -> tuple[dict[str, dict], dict]:
-    """(assets, properties) describing the provenance layers of an output."""
+    """(assets, properties) describing the provenance layers of an output of format ``fmt``."""
     provenance = Path(provenance)
     if not provenance.exists():
         raise MissingInputError(provenance, "provenance output")
-    if fmt == "zarr" and provenance.absolute() == out.absolute():
+    if provenance.absolute() == out.absolute():   # the layers are variables of the output (Zarr)
         return {}, {"archive:provenance": {"asset": "data", "layers": _zarr_layers(out, variable)}}
-    if provenance.suffix == ".hdr":
-        data = provenance.with_suffix("")
-        bands, names = _raster_file_bands(data)
-        assets = {
-            "provenance": {"href": _href(data, item_dir), "type": ENVI_MEDIA_TYPE,
-                           "title": "Provenance layers (ENVI BSQ data)",
-                           "roles": ["metadata"], **_grid_fields(grid), "raster:bands": bands, "archive:layers": names},
-            "provenance_header": {"href": _href(provenance, item_dir), "type": TEXT_MEDIA_TYPE,
-                                  "title": "ENVI header of the provenance layers", "roles": ["metadata"]},
-        }
-    elif provenance.suffix in (".tif", ".tiff"):
-        bands, names = _raster_file_bands(provenance)
-        assets = {"provenance": {"href": _href(provenance, item_dir), "type": COG_MEDIA_TYPE,
-                                 "title": "Provenance layers (Cloud-Optimized GeoTIFF)", "roles": ["metadata"],
-                                 **_grid_fields(grid), "raster:bands": bands, "archive:layers": names}}
-    elif provenance.suffix == ".zarr":
-        assets = {"provenance": {"href": _href(provenance, item_dir), "type": ZARR_MEDIA_TYPE,
-                                 "title": "Provenance layers (Zarr)", "roles": ["metadata"], **_grid_fields(grid),
-                                 "archive:layers": [ly["name"] for ly in _zarr_layers(provenance, variable)]}}
-    else:
-        raise InputError(provenance, "unknown provenance format", "expected .tif, .hdr or .zarr")
-    return assets, {}
+    if provenance.suffix not in fmt.suffixes:
+        raise InputError(provenance, f"not a provenance output of a {fmt.label} output",
+                         f"give the {'/'.join(fmt.suffixes)} provenance file the render wrote")
+    return fmt.provenance_assets(provenance, lambda path: _href(path, item_dir), _grid_fields(grid),
+                                 _describe_layers(variable)), {}
 
 
-def product_item(out: str | os.PathLike, *, fmt: str, grid, band_indices: Sequence[int],
+def product_item(out: str | os.PathLike, *, fmt, grid, band_indices: Sequence[int],
                  wavelengths: Sequence[float] | None, fwhm: Sequence[float] | None, variable: str, attrs: dict,
                  start: datetime, end: datetime, sources: Sequence[str], command: str, request: dict,
                  provenance: str | os.PathLike | None = None, created: datetime | None = None) -> dict:
     """The STAC Item (a dict) of the output written at ``out`` (see the module docstring).
 
     out: the final output path, ``.zarr`` store, ``.tif`` COG or ENVI ``.hdr`` (its data file is
-    ``out`` without ``.hdr``); fmt: 'zarr' | 'cog' | 'envi'; grid: the output
+    ``out`` without ``.hdr``); fmt: its format (:class:`archive.outputs.base.OutputFormat`, as
+    :func:`archive.outputs.registry.output_format` gives it: it builds the format's assets); grid: the output
     :class:`archive.grid.Grid`; band_indices: source band (0-based) of each output band;
     wavelengths, fwhm: nm per output band, or None; variable: the data variable ('radiance',
     'dn'...); attrs: the output's processing attributes; start, end: UTC times of its first and
@@ -212,8 +204,9 @@ def product_item(out: str | os.PathLike, *, fmt: str, grid, band_indices: Sequen
     The Item is meant to be written to :func:`product_item_path` (``write_product_item``).
     """
     out = Path(out)
-    if fmt not in FORMATS:
-        raise InputError(out, f"unknown output format {fmt!r}", f"one of {', '.join(FORMATS)}")
+    if not callable(getattr(fmt, "stac_assets", None)):
+        raise InputError(out, f"unknown output format {fmt!r}",
+                         "pass the output's format object (archive.outputs.registry.output_format(out))")
     nb = len(band_indices)
     for name, values in (("wavelengths", wavelengths), ("fwhm", fwhm)):
         if values is not None and len(values) != nb:
@@ -233,21 +226,7 @@ def product_item(out: str | os.PathLike, *, fmt: str, grid, band_indices: Sequen
     data: dict[str, Any] = {"roles": ["data"], **grid_fields, "raster:bands": raster_bands}
     if bands_eo is not None:
         data["eo:bands"] = bands_eo
-    assets: dict[str, dict] = {}
-    if fmt == "cog":
-        assets["data"] = {"href": _href(out, item_dir), "type": COG_MEDIA_TYPE,
-                          "title": f"{variable} (Cloud-Optimized GeoTIFF, float32, NaN where not covered)", **data}
-    elif fmt == "envi":
-        if out.suffix != ".hdr":
-            raise InputError(out, "an ENVI output is named by its header, PATH.hdr")
-        assets["data"] = {"href": _href(out.with_suffix(""), item_dir), "type": ENVI_MEDIA_TYPE,
-                          "title": f"{variable} (ENVI BSQ, float32 little-endian, NaN where not covered)", **data}
-        assets["header"] = {"href": _href(out, item_dir), "type": TEXT_MEDIA_TYPE, "title": "ENVI header",
-                            "roles": ["metadata"]}
-    else:
-        assets["data"] = {"href": _href(out, item_dir), "type": ZARR_MEDIA_TYPE,
-                          "title": f"{variable} (Zarr v3, variable '{variable}' (band, y, x), float32, NaN where "
-                                   "not covered)", "archive:variable": variable, **data}
+    assets: dict[str, dict] = fmt.stac_assets(out, lambda path: _href(path, item_dir), variable, data)
     props: dict[str, Any] = {f"archive:{k}": _jsonable(v) for k, v in (attrs or {}).items()}
     props.update({
         "datetime": rfc3339(start),
@@ -262,7 +241,7 @@ def product_item(out: str | os.PathLike, *, fmt: str, grid, band_indices: Sequen
                               "georectification; archive:recipe.command renders it again",
         "processing:software": {"archive": version},
         "processing:datetime": rfc3339(created),
-        "archive:format": fmt,
+        "archive:format": fmt.name,
         "archive:variable": variable,
         "archive:source_bands": [int(i) for i in band_indices],
         "archive:recipe": {"command": str(command), "request": _jsonable(request),

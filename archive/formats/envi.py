@@ -31,6 +31,7 @@ __all__ = [
     "data_path_for",
     "header_from_metadata",
     "header_path_for",
+    "header_text",
     "parse_header_text",
     "read_header",
     "write_envi",
@@ -447,7 +448,15 @@ def _format_value(value: object) -> str:
     return str(value)
 
 
-def _header_text(meta: Mapping[str, object]) -> str:
+def header_text(meta: Mapping[str, object]) -> str:
+    """The text of an ENVI header holding ``meta`` in its order: the one ENVI header writer of the
+    package (cubes written here, rendered ENVI outputs, the simulator's raw headers).
+
+    Keys are lower-cased with inner whitespace collapsed; values: lists as ``{a, b}`` (their items
+    formatted alike, strings as given), tuples as ``(a, b)``, Python floats with full precision
+    (``repr``), booleans as ``True``/``False``; free-text keys (``description``, ``coordinate system
+    string``, ``history``) and strings spanning lines in braces; ``map info`` given without braces
+    gets them. Ends with a newline. InputError for a key that is empty or holds ``=``."""
     lines = ["ENVI"]
     for key, value in meta.items():
         key = " ".join(str(key).split()).lower()
@@ -527,5 +536,5 @@ def write_envi(path: str | os.PathLike, data: np.ndarray, metadata: Mapping[str,
             if header_offset:
                 f.write(b"\0" * header_offset)
             out.tofile(f)
-        tmp_hdr.write_text(_header_text(meta), encoding="utf-8")
+        tmp_hdr.write_text(header_text(meta), encoding="utf-8")
     return data_path

@@ -18,7 +18,9 @@ float32, NaN where no line covers a pixel; ``y`` grows southwards (row 0 is the 
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
@@ -26,7 +28,8 @@ import numpy as np
 from archive.errors import InputError
 from archive.grid import Grid
 
-__all__ = ["CHUNK", "OutputMeta", "Sink", "TileWriter", "all_nan", "check_bands", "check_tile", "chunk_buffer", "variable_for_mode"]
+__all__ = ["CHUNK", "OutputFormat", "OutputMeta", "Sink", "TileWriter", "all_nan", "check_bands", "check_tile",
+           "chunk_buffer", "variable_for_mode"]
 
 #: Output tile = Zarr chunk edge, pixels.
 CHUNK = 1024
@@ -177,3 +180,79 @@ class OutputMeta:
     def units(self) -> str | None:
         """The values' unit (:data:`VARIABLE_UNITS`), None for an unknown variable."""
         return VARIABLE_UNITS.get(self.variable)
+
+
+#: ``href(path)``: a file's address relative to the STAC Item that names it (the catalog's).
+Href = Callable[[Path], str]
+#: ``describe(path)``: (raster:bands or None, layer names) of a written provenance output, read from
+#: it (the catalog's: rasterio for a raster file, the store's variables for a Zarr store).
+Describe = Callable[[Path], tuple[list[dict] | None, list[str]]]
+
+
+class OutputFormat:
+    """One output format, everything the package knows of it (:mod:`archive.outputs.registry` lists
+    them; each format module exports its one instance as ``FORMAT``):
+
+    - ``name`` ('zarr' | 'cog' | 'envi'), ``suffixes`` (the first is the one written when only the
+      format is given: ``archive render --query... --format``), ``spellings`` (the words that name
+      it on the command line: its name and its suffixes without the dot), ``label`` (for people),
+      ``media_type`` (of its data asset), ``sink`` (the :class:`Sink` class its tiles are written
+      through);
+    - ``files(path)``: the paths an output at ``path`` occupies (ENVI: data and header);
+      ``sidecars(path)``: those besides ``path`` itself; ``sibling(path)``: where its provenance
+      layers go (None: into the output itself);
+    - ``create``, ``create_layers``, ``finish``, ``finish_layers``: the sinks under temporary names
+      and their finishing (header, COG layout; returns the renames), driven by
+      :class:`~archive.outputs.publish.Output`;
+    - ``stac_assets``, ``provenance_assets``: its assets in the STAC Item the catalog writes
+      (:func:`archive.catalog.product.product_item`).
+
+    Instances are stateless: one per format (equal when of the same format, also after pickling).
+    """
+
+    name: ClassVar[str]
+    suffixes: ClassVar[tuple[str, ...]]
+    label: ClassVar[str]
+    media_type: ClassVar[str]
+    sink: ClassVar[type[Sink]]
+
+    @property
+    def suffix(self) -> str:
+        """The suffix written when only the format is named ('.zarr', '.tif', '.hdr')."""
+        return self.suffixes[0]
+
+    @property
+    def spellings(self) -> tuple[str, ...]:
+        """The words naming this format on the command line: its name, then its suffixes without the dot."""
+        return tuple(dict.fromkeys((self.name, *(s.lstrip(".") for s in self.suffixes))))
+
+    def files(self, path: Path) -> list[Path]:
+        """Every path an output at ``path`` occupies (``path`` included)."""
+        return [path, *self.sidecars(path)]
+
+    def sidecars(self, path: Path) -> list[Path]:
+        """The files an output at ``path`` occupies besides ``path`` itself (none by default)."""
+        return []
+
+    def sibling(self, path: Path) -> Path | None:
+        raise NotImplementedError
+
+    def stac_assets(self, out: Path, href: Href, variable: str, data: dict) -> dict[str, dict]:
+        """The assets of output ``out`` in its STAC Item: ``data`` (the values, carrying the fields
+        ``data``: roles, projection, raster:bands, eo:bands) and any sidecar asset."""
+        raise NotImplementedError
+
+    def provenance_assets(self, provenance: Path, href: Href, fields: dict, describe: Describe) -> dict[str, dict]:
+        """The assets of a provenance output of this format at ``provenance`` (a sibling file, or a
+        store of its own): ``provenance`` (``fields``: the projection; plus ``raster:bands`` and
+        ``archive:layers`` as ``describe`` reads them) and any sidecar asset."""
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        return f"<output format {self.name}>"
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, OutputFormat) and other.name == self.name
+
+    def __hash__(self) -> int:
+        return hash(self.name)

@@ -5,8 +5,8 @@ overview level computed from them into a spool file; overview tasks compute each
 the one below (:meth:`CogSink.overview`); a layout task per band group copies the group's
 full-resolution tiles into the COG's data file in their final order (:meth:`CogSink.lay_out`), and
 :func:`assemble_cog` puts the header and the overviews in front of them at the end, without decoding
-any tile (:mod:`archive.outputs.tiff`). :class:`CogWriter` is the format's entry
-of the registry (:mod:`archive.outputs.registry`); provenance layers go to a sibling
+any tile (:mod:`archive.outputs.tiff`). :data:`FORMAT` (:class:`CogFormat`) is the format's
+entry of the registry (:mod:`archive.outputs.registry`); provenance layers go to a sibling
 ``<stem>_provenance.tif`` with nearest-neighbour overviews.
 """
 
@@ -20,13 +20,15 @@ from pathlib import Path
 
 import numpy as np
 
+from archive.catalog.product import COG_MEDIA_TYPE
 from archive.errors import RenderError
 from archive.files import remove_path
 from archive.grid import Grid
-from archive.outputs.base import CHUNK, OutputMeta, Sink, TileWriter, all_nan, check_bands, check_tile, chunk_buffer
+from archive.outputs.base import (CHUNK, OutputFormat, OutputMeta, Sink, TileWriter, all_nan, check_bands, check_tile,
+                                  chunk_buffer)
 from archive.outputs.layers import layers_cog_metadata, sibling_path
 
-__all__ = ["CogSink", "CogWriter", "assemble_cog", "read_band"]
+__all__ = ["FORMAT", "CogFormat", "CogSink", "assemble_cog", "read_band"]
 
 
 @dataclass(frozen=True)
@@ -314,26 +316,26 @@ def read_band(path: str | os.PathLike, grid: Grid, b: int, step: int) -> np.ndar
     return np.concatenate(parts).astype(np.float32, copy=False)
 
 
-class CogWriter:
-    """The COG format in the registry: one ``.tif``; provenance layers in a sibling
-    ``<stem>_provenance.tif``."""
+class CogFormat(OutputFormat):
+    """The COG format (:class:`~archive.outputs.base.OutputFormat`): one ``.tif``; provenance layers
+    in a sibling ``<stem>_provenance.tif``."""
 
-    @staticmethod
-    def files(path: Path) -> list[Path]:
-        return [path]
+    name = "cog"
+    suffixes = (".tif", ".tiff")
+    label = "Cloud-Optimized GeoTIFF"
+    media_type = COG_MEDIA_TYPE
+    sink = CogSink
 
-    @staticmethod
-    def sibling(path: Path) -> Path | None:
-        return sibling_path(path, "cog")
+    def sibling(self, path: Path) -> Path | None:
+        return sibling_path(path)
 
     @staticmethod
     def create(temp, path: Path, meta: OutputMeta) -> CogSink:
         return CogSink.create(temp(path, ".tiles"), meta.nbands, meta.grid.height, meta.grid.width,
                               compression=meta.compression)
 
-    @staticmethod
-    def create_layers(temp, path: Path, sink, meta: OutputMeta, spec) -> CogSink:
-        return CogSink.create(temp(CogWriter.sibling(path), ".tiles"), len(spec.names), meta.grid.height,
+    def create_layers(self, temp, path: Path, sink, meta: OutputMeta, spec) -> CogSink:
+        return CogSink.create(temp(self.sibling(path), ".tiles"), len(spec.names), meta.grid.height,
                               meta.grid.width, nearest=True, compression=meta.compression)
 
     @staticmethod
@@ -343,10 +345,23 @@ class CogWriter:
         remove_path(sink.spool)
         return [(cog, path)], lambda b, step: read_band(cog, meta.grid, b, step)
 
-    @staticmethod
-    def finish_layers(temp, path: Path, layers: CogSink, meta: OutputMeta, spec) -> list:
-        sibling = CogWriter.sibling(path)
+    def finish_layers(self, temp, path: Path, layers: CogSink, meta: OutputMeta, spec) -> list:
+        sibling = self.sibling(path)
         cog = temp(sibling)
         assemble_cog(layers, cog, meta.grid, len(spec.names), layers_cog_metadata(spec))
         remove_path(layers.spool)
         return [(cog, sibling)]
+
+    def stac_assets(self, out: Path, href, variable: str, data: dict) -> dict[str, dict]:
+        return {"data": {"href": href(out), "type": self.media_type,
+                         "title": f"{variable} ({self.label}, float32, NaN where not covered)", **data}}
+
+    def provenance_assets(self, provenance: Path, href, fields: dict, describe) -> dict[str, dict]:
+        bands, names = describe(provenance)
+        return {"provenance": {"href": href(provenance), "type": self.media_type,
+                               "title": f"Provenance layers ({self.label})", "roles": ["metadata"], **fields,
+                               "raster:bands": bands, "archive:layers": names}}
+
+
+#: The COG format's entry of :mod:`archive.outputs.registry`.
+FORMAT = CogFormat()

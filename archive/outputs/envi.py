@@ -2,7 +2,7 @@
 
 :class:`EnviSink` writes float32 little-endian (band, y, x) into a data file preallocated at its
 final size (no memory map); :func:`envi_header` is the one header builder (values and provenance
-layers); :class:`EnviWriter` is the format's entry of the registry (:mod:`archive.outputs.registry`):
+layers); :data:`FORMAT` (:class:`EnviFormat`) is the format's entry of the registry (:mod:`archive.outputs.registry`):
 the data file and then the header (what readers open) are renamed into place, header last.
 """
 
@@ -16,11 +16,15 @@ from pathlib import Path
 
 import numpy as np
 
+from archive.catalog.product import ENVI_MEDIA_TYPE, TEXT_MEDIA_TYPE
+from archive.errors import InputError
+from archive.formats.envi import header_text
 from archive.grid import Grid
-from archive.outputs.base import CHUNK, OutputMeta, Sink, TileWriter, check_bands, check_tile, chunk_buffer
+from archive.outputs.base import (CHUNK, OutputFormat, OutputMeta, Sink, TileWriter, check_bands, check_tile,
+                                  chunk_buffer)
 from archive.outputs.layers import sibling_path
 
-__all__ = ["ENVI_STRIP_MAX", "EnviSink", "EnviWriter", "envi_data_path", "envi_header", "map_info"]
+__all__ = ["ENVI_STRIP_MAX", "FORMAT", "EnviFormat", "EnviSink", "envi_data_path", "envi_header", "map_info"]
 
 
 #: Widest ENVI tile (px): tiles are CHUNK rows x up to this many columns. Mosaics up to this wide are
@@ -122,40 +126,38 @@ def envi_data_path(header: str | os.PathLike) -> Path:
     return header.with_name(header.name[: -len(".hdr")]) if header.name.lower().endswith(".hdr") else header
 
 
-def envi_header(grid: Grid, nbands: int, description: str, band_names, extra=()) -> str:
+def envi_header(grid: Grid, nbands: int, description: str, band_names, extra: dict | None = None) -> str:
     """The ENVI header text of a float32 little-endian BSQ file on ``grid``: ``nbands`` bands named
     ``band_names`` (commas replaced), its ``map info`` and WKT, NaN as the ignore value, then the
-    ``extra`` lines (``key = value``)."""
-    lines = [
-        "ENVI",
-        f"description = {{{description}}}",
-        f"samples = {grid.width}",
-        f"lines = {grid.height}",
-        f"bands = {nbands}",
-        "header offset = 0",
-        "file type = ENVI Standard",
-        "data type = 4",
-        "interleave = bsq",
-        "byte order = 0",
-        f"map info = {map_info(grid)}",
-        f"coordinate system string = {{{grid.crs.to_wkt(version='WKT1_ESRI')}}}",
-        "data ignore value = NaN",
-        "band names = {" + ", ".join(name.replace(",", ";") for name in band_names) + "}",
-        *extra,
-    ]
-    return "\n".join(lines) + "\n"
+    ``extra`` keys in their order; written by the package's one ENVI header writer,
+    :func:`archive.formats.envi.header_text`."""
+    return header_text({
+        "description": description,
+        "samples": grid.width,
+        "lines": grid.height,
+        "bands": nbands,
+        "header offset": 0,
+        "file type": "ENVI Standard",
+        "data type": 4,
+        "interleave": "bsq",
+        "byte order": 0,
+        "map info": map_info(grid),
+        "coordinate system string": grid.crs.to_wkt(version="WKT1_ESRI"),
+        "data ignore value": "NaN",
+        "band names": [name.replace(",", ";") for name in band_names],
+        **(extra or {}),
+    })
 
 
 def values_header(meta: OutputMeta) -> str:
     """The header of a rendered mosaic (``wavelength`` and ``fwhm`` in nm when known)."""
-    extra = []
+    extra: dict[str, object] = {}
     if meta.wavelengths is not None:
-        extra += ["wavelength units = Nanometers",
-                  "wavelength = {" + ", ".join(f"{w:.4f}" for w in meta.wavelengths) + "}"]
+        extra["wavelength units"] = "Nanometers"
+        extra["wavelength"] = [f"{w:.4f}" for w in meta.wavelengths]
     if meta.fwhm is not None:  # in 'wavelength units' (nm), which ENVI applies to fwhm too
-        if meta.wavelengths is None:
-            extra.append("wavelength units = Nanometers")
-        extra.append("fwhm = {" + ", ".join(f"{w:.4f}" for w in meta.fwhm) + "}")
+        extra["wavelength units"] = "Nanometers"
+        extra["fwhm"] = [f"{w:.4f}" for w in meta.fwhm]
     return envi_header(meta.grid, meta.nbands, f"archive render mosaic: {meta.variable}, NaN where not covered",
                        meta.labels, extra)
 
@@ -163,10 +165,10 @@ def values_header(meta: OutputMeta) -> str:
 def layers_header(grid: Grid, spec) -> str:
     """The header of the provenance layers' BSQ (float32 little-endian, NaN = no source)."""
     return envi_header(grid, len(spec.names), f"archive render provenance layers; NaN where not covered; time: "
-                       f"{spec.time_units}", spec.names, [
-                           f"time reference = {spec.reference_utc}",
+                       f"{spec.time_units}", spec.names, {
+                           "time reference": spec.reference_utc,
                            # cube index i of the 'cube' layer = the i-th entry: <source id>/<cube file base name>
-                           "provenance cubes = {" + ", ".join(f"{c['source']}/{c['cube']}" for c in spec.cubes) + "}"])
+                           "provenance cubes": [f"{c['source']}/{c['cube']}" for c in spec.cubes]})
 
 
 def read_band(data: str | os.PathLike, grid: Grid, b: int, step: int) -> np.ndarray:
@@ -183,25 +185,31 @@ def read_band(data: str | os.PathLike, grid: Grid, b: int, step: int) -> np.ndar
     return out
 
 
-class EnviWriter:
-    """The ENVI format in the registry: ``<name>`` (data) + ``<name>.hdr``; provenance layers in a
-    sibling ``<stem>_provenance`` + ``.hdr``."""
+class EnviFormat(OutputFormat):
+    """The ENVI format (:class:`~archive.outputs.base.OutputFormat`): ``<name>`` (data) +
+    ``<name>.hdr``; provenance layers in a sibling ``<stem>_provenance`` + ``.hdr``."""
 
-    @staticmethod
-    def files(path: Path) -> list[Path]:
-        return [envi_data_path(path), path]
+    name = "envi"
+    suffixes = (".hdr",)
+    label = "ENVI BSQ"
+    media_type = ENVI_MEDIA_TYPE
+    sink = EnviSink
 
-    @staticmethod
-    def sibling(path: Path) -> Path | None:
-        return sibling_path(path, "envi")
+    def files(self, path: Path) -> list[Path]:
+        return [*self.sidecars(path), path]   # the data file first: it is renamed into place first
+
+    def sidecars(self, path: Path) -> list[Path]:
+        return [envi_data_path(path)]
+
+    def sibling(self, path: Path) -> Path | None:
+        return sibling_path(path)
 
     @staticmethod
     def create(temp, path: Path, meta: OutputMeta) -> EnviSink:
         return EnviSink.create(temp(envi_data_path(path)), meta.nbands, meta.grid.height, meta.grid.width)
 
-    @staticmethod
-    def create_layers(temp, path: Path, sink, meta: OutputMeta, spec) -> EnviSink:
-        data = temp(envi_data_path(EnviWriter.sibling(path)))
+    def create_layers(self, temp, path: Path, sink, meta: OutputMeta, spec) -> EnviSink:
+        data = temp(envi_data_path(self.sibling(path)))
         return EnviSink.create(data, len(spec.names), meta.grid.height, meta.grid.width)
 
     @staticmethod
@@ -211,9 +219,29 @@ class EnviWriter:
         moves = [(Path(sink.data), envi_data_path(path)), (header, path)]   # header last
         return moves, lambda b, step: read_band(sink.data, meta.grid, b, step)
 
-    @staticmethod
-    def finish_layers(temp, path: Path, layers: EnviSink, meta: OutputMeta, spec) -> list:
-        sibling = EnviWriter.sibling(path)
+    def finish_layers(self, temp, path: Path, layers: EnviSink, meta: OutputMeta, spec) -> list:
+        sibling = self.sibling(path)
         header = temp(sibling)
         header.write_text(layers_header(meta.grid, spec), encoding="ascii")
         return [(Path(layers.data), envi_data_path(sibling)), (header, sibling)]
+
+    def stac_assets(self, out: Path, href, variable: str, data: dict) -> dict[str, dict]:
+        if out.suffix != ".hdr":
+            raise InputError(out, "an ENVI output is named by its header, PATH.hdr")
+        return {"data": {"href": href(envi_data_path(out)), "type": self.media_type,
+                         "title": f"{variable} ({self.label}, float32 little-endian, NaN where not covered)", **data},
+                "header": {"href": href(out), "type": TEXT_MEDIA_TYPE, "title": "ENVI header",
+                           "roles": ["metadata"]}}
+
+    def provenance_assets(self, provenance: Path, href, fields: dict, describe) -> dict[str, dict]:
+        data = envi_data_path(provenance)
+        bands, names = describe(data)
+        return {"provenance": {"href": href(data), "type": self.media_type,
+                               "title": f"Provenance layers ({self.label} data)", "roles": ["metadata"], **fields,
+                               "raster:bands": bands, "archive:layers": names},
+                "provenance_header": {"href": href(provenance), "type": TEXT_MEDIA_TYPE,
+                                      "title": "ENVI header of the provenance layers", "roles": ["metadata"]}}
+
+
+#: The ENVI format's entry of :mod:`archive.outputs.registry`.
+FORMAT = EnviFormat()

@@ -30,12 +30,10 @@ __all__ = ["layer_attrs", "layers_cog_metadata", "layers_metadata", "sibling_pat
 _BY_NAME = {layer.name: layer for layer in LAYERS}
 
 
-def sibling_path(path: Path, fmt: str) -> Path | None:
-    """The provenance file beside output ``path`` of format ``fmt`` ('cog': ``<stem>_provenance.tif``,
-    'envi': the header ``<stem>_provenance.hdr``), None for 'zarr' (layers go into the store)."""
+def sibling_path(path: Path) -> Path:
+    """The provenance file beside a single-file output ``path`` (COG: ``<stem>_provenance.tif``,
+    ENVI: the header ``<stem>_provenance.hdr``); a Zarr output has none (the layers go into the store)."""
     path = Path(path)
-    if fmt == "zarr":
-        return None
     return path.with_name(f"{path.stem}_provenance{path.suffix}")
 
 

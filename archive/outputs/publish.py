@@ -36,7 +36,7 @@ from archive.errors import InputError, OutputExistsError
 from archive.files import FileLock, host_name, path_exists, pid_alive, remove_path, replace_path
 from archive.outputs.base import OutputMeta
 from archive.outputs.quicklook import quicklook_png
-from archive.outputs.registry import output_format, writer
+from archive.outputs.registry import output_format
 
 __all__ = ["Output", "RemoteOutput", "unwritable_output"]
 
@@ -88,7 +88,7 @@ class Output:
     """One requested output (plus an optional quicklook) and the temporary files that build it.
 
     Use: ``out.check()`` early; ``sink = out.sink(meta)`` creates the format's sink under temporary
-    names (its writer's, :mod:`archive.outputs.registry`); write every tile through it (the render
+    names (its format's, :mod:`archive.outputs.registry`); write every tile through it (the render
     graph's tasks do); then ``out.finalize()``; always ``out.cleanup()`` in a ``finally`` (it removes
     temporaries only). The STAC Item at :attr:`item_path` is the pipeline's to write, last.
     """
@@ -108,8 +108,7 @@ class Output:
     def __post_init__(self) -> None:
         self.path = Path(self.path)
         self.quicklook = None if self.quicklook is None else Path(self.quicklook)
-        self.format = output_format(self.path)
-        self.writer = writer(self.format)
+        self.format = output_format(self.path)   # its OutputFormat: files, sinks, finishing
         if self.quicklook is not None and self.quicklook.suffix.lower() != ".png":
             raise InputError(self.quicklook, "the quicklook must be a .png file", "name it <something>.png")
         self._sink = self._meta = None
@@ -120,7 +119,7 @@ class Output:
     def provenance_path(self) -> Path | None:
         """The provenance sibling (COG: ``<stem>_provenance.tif``; ENVI: its header), None for Zarr
         (the layers are variables of the store) or without ``provenance``."""
-        return self.writer.sibling(self.path) if self.provenance else None
+        return self.format.sibling(self.path) if self.provenance else None
 
     def _temp(self, final: Path, tag: str = "") -> Path:
         tmp = final.with_name(f".{final.name}.partial-{os.getpid()}@{host_name()}{tag}")
@@ -130,10 +129,10 @@ class Output:
     @property
     def finals(self) -> list[Path]:
         """Every path this output will occupy (ENVI: data and header; plus the quicklook)."""
-        paths = self.writer.files(self.path)
+        paths = self.format.files(self.path)
         sibling = self.provenance_path
         if sibling is not None:
-            paths += self.writer.files(sibling)
+            paths += self.format.files(sibling)
         return paths + [self.item_path] + ([self.quicklook] if self.quicklook is not None else [])
 
     @property
@@ -186,7 +185,7 @@ class Output:
             storage.delete(self.remote + ".json")
             remove_path(self.remote)
         try:
-            sink = self.writer.create(self._temp, self.path, meta)
+            sink = self.format.create(self._temp, self.path, meta)
             if self.remote is not None:
                 import dataclasses
 
@@ -207,14 +206,14 @@ class Output:
         if self._sink is None or not self.provenance:
             raise RuntimeError(f"{self.path}: layers_sink needs provenance=True and the values sink first")
         try:
-            layers = self.writer.create_layers(self._temp, self.path, self._sink, self._meta, spec)
+            layers = self.format.create_layers(self._temp, self.path, self._sink, self._meta, spec)
         except OSError as exc:
             raise unwritable_output(self.path.parent, exc) from None
         self._layers, self._layers_spec = layers, spec
         return layers
 
     def finalize(self, sink=None) -> None:
-        """Finish the output (its writer's: ENVI header, COG layout; the quicklook) and rename
+        """Finish the output (its format's: ENVI header, COG layout; the quicklook) and rename
         everything into place; an existing Item (of the output being replaced) is removed first, so
         that no reader takes the new data for the output the old Item describes (the caller writes
         the new Item last)."""
@@ -222,8 +221,8 @@ class Output:
         meta = self._meta
         moves: list[tuple[Path, Path]] = []
         if self._layers is not None:
-            moves += self.writer.finish_layers(self._temp, self.path, self._layers, meta, self._layers_spec)
-        done, read_band = self.writer.finish(self._temp, self.path, sink, meta)
+            moves += self.format.finish_layers(self._temp, self.path, self._layers, meta, self._layers_spec)
+        done, read_band = self.format.finish(self._temp, self.path, sink, meta)
         moves += done
         if self.quicklook is not None:
             tmp = self._temp(self.quicklook)
@@ -305,10 +304,10 @@ class RemoteOutput:
 
     def data_urls(self) -> list:
         """The URLs of the output's data (ENVI: data and header; a provenance sibling too)."""
-        files = list(self.local.writer.files(self.local.path))
+        files = list(self.local.format.files(self.local.path))
         sibling = self.local.provenance_path
         if sibling is not None:
-            files += self.local.writer.files(sibling)
+            files += self.local.format.files(sibling)
         return [self._remote(p) for p in files]
 
     @property
@@ -335,10 +334,10 @@ class RemoteOutput:
                                     what=f"output {self.url}")
         self._publishing.acquire(wait=float("inf"))
         try:
-            files = [f for f in self.local.writer.files(self.local.path)]
+            files = [f for f in self.local.format.files(self.local.path)]
             sibling = self.local.provenance_path
             if sibling is not None:
-                files += self.local.writer.files(sibling)
+                files += self.local.format.files(sibling)
             if not self.direct:   # (a direct Zarr output's old objects went before its chunks were written)
                 self.check()   # something may have appeared meanwhile
                 storage.delete(self.item_url)   # the old output is no longer complete from here on

@@ -4,7 +4,7 @@
 whole by :class:`ChunkWriter`); :class:`LayersStore` writes the provenance layers into variables of
 the same store (:func:`add_zarr_layers`); :func:`mosaic_dataset` is the dataset layout both the
 store and :func:`archive.mosaic` have (CF and GeoZarr attributes, :func:`geozarr_attrs`);
-:class:`ZarrWriter` is the format's entry of the registry (:mod:`archive.outputs.registry`).
+:data:`FORMAT` (:class:`ZarrFormat`) is the format's entry of the registry (:mod:`archive.outputs.registry`).
 """
 
 from __future__ import annotations
@@ -20,16 +20,18 @@ from typing import ClassVar
 
 import numpy as np
 
+from archive.catalog.stac import ZARR_MEDIA_TYPE
 from archive.codecs import compression as compression_named
 from archive.codecs import numcodecs_blosc
 from archive.files import write_atomic
 from archive.grid import Grid
-from archive.outputs.base import CHUNK, VARIABLE_UNITS, OutputMeta, Sink, TileWriter, check_bands, chunk_buffer
+from archive.outputs.base import (CHUNK, VARIABLE_UNITS, OutputFormat, OutputMeta, Sink, TileWriter, check_bands,
+                                  chunk_buffer)
 from archive.outputs.layers import layer_attrs, layers_metadata
 from archive.outputs.zarr_metadata import ArraySpec, add_arrays, write_store
 
-__all__ = ["ChunkWriter", "LayersStore", "MosaicStore", "ZarrWriter", "add_zarr_layers", "geozarr_attrs",
-           "mosaic_dataset", "store_layout"]
+__all__ = ["FORMAT", "ChunkWriter", "LayersStore", "MosaicStore", "ZarrFormat", "add_zarr_layers", "geozarr_attrs",
+           "mosaic_dataset", "store_layout", "store_version"]
 
 _GRID_ATTR = "archive_grid"
 
@@ -483,15 +485,17 @@ class _LayersTileWriter(TileWriter):
         self.group[self.sink.names[self.band0 + b]][row0:row0 + h, col0:col0 + w] = chunk[:h, :w]
 
 
-class ZarrWriter:
-    """The Zarr format in the registry: a store directory; provenance layers are its variables."""
+class ZarrFormat(OutputFormat):
+    """The Zarr format (:class:`~archive.outputs.base.OutputFormat`): a store directory; provenance
+    layers are its variables."""
 
-    @staticmethod
-    def files(path: Path) -> list[Path]:
-        return [path]
+    name = "zarr"
+    suffixes = (".zarr",)
+    label = "Zarr"
+    media_type = ZARR_MEDIA_TYPE
+    sink = MosaicStore
 
-    @staticmethod
-    def sibling(path: Path) -> Path | None:
+    def sibling(self, path: Path) -> Path | None:
         return None   # the layers are variables of the store
 
     @staticmethod
@@ -513,3 +517,29 @@ class ZarrWriter:
     @staticmethod
     def finish_layers(temp, path: Path, layers, meta: OutputMeta, spec) -> list:
         return []   # written into the store, which moves with the values
+
+    def stac_assets(self, out: Path, href, variable: str, data: dict) -> dict[str, dict]:
+        version = store_version(out)
+        return {"data": {"href": href(out), "type": self.media_type,
+                         "title": f"{variable} ({self.label}{'' if version is None else f' v{version}'}, variable "
+                                  f"'{variable}' (band, y, x), float32, NaN where not covered)",
+                         "archive:variable": variable, **data}}
+
+    def provenance_assets(self, provenance: Path, href, fields: dict, describe) -> dict[str, dict]:
+        _, names = describe(provenance)
+        return {"provenance": {"href": href(provenance), "type": self.media_type,
+                               "title": f"Provenance layers ({self.label})", "roles": ["metadata"], **fields,
+                               "archive:layers": names}}
+
+
+def store_version(path: str | os.PathLike) -> int | None:
+    """The Zarr version of the store at ``path`` read from its root metadata (``zarr.json``: 3,
+    ``.zgroup``: 2), None when it holds neither."""
+    path = Path(path)
+    if (path / "zarr.json").is_file():
+        return 3
+    return 2 if (path / ".zgroup").is_file() else None
+
+
+#: The Zarr format's entry of :mod:`archive.outputs.registry`.
+FORMAT = ZarrFormat()

@@ -14,6 +14,7 @@ from types import TracebackType
 
 import numpy as np
 
+from archive.formats.envi import header_text as envi_header_text
 from archive.formats.lcf import GPS_EPOCH
 
 __all__ = ["BilWriter", "header_text"]
@@ -25,39 +26,37 @@ def header_text(samples: int, lines: int, bands: int, wavelengths: np.ndarray, s
     """Resonon-like raw header. ``timestamp`` is the GPS time of the first line, not UTC-corrected
     (as Resonon writes it). ``ground_elevation`` (m, same datum as the .lcf altitude), as the 2023
     acquisition software records it, lets ``--ground-height auto`` work. ``wavelengths`` and
-    ``fwhm`` (bands,) nm; ``fwhm`` (spectral full width at half maximum) is left out when None."""
+    ``fwhm`` (bands,) nm; ``fwhm`` (spectral full width at half maximum) is left out when None.
+    Written by the package's one ENVI header writer (:func:`archive.formats.envi.header_text`),
+    numbers formatted as Resonon does."""
     stamp = (GPS_EPOCH + timedelta(seconds=float(gps_time))).strftime("%m/%d/%Y-%Hh%Mm%Ss")
-    wl = ", ".join(f"{w:.3f}" for w in np.asarray(wavelengths, float))
-    rows = [
-        "ENVI",
-        "data type = 12",
-        "interleave = bil",
-        f"lines = {lines}",
-        f"samples = {samples}",
-        f"bands = {bands}",
-        "ceiling = 4095",
-        "bit depth = 12",
-        "sample binning = 1",
-        "spectral binning = 1",
-        "imager serial number = Pika L-SIM",
-        f"shutter = {shutter_ms:g}",
-        "shutter units = milliseconds",
-        f"gain = {gain_db:g}",
-        f"framerate = {framerate:g}",
-        "byte order = 0",
-        "header offset = 0",
-        "wavelength units = nm",
-        f"wavelength = {{{wl}}}",
-        *([] if fwhm is None else ["fwhm = {" + ", ".join(f"{w:.3f}" for w in np.asarray(fwhm, float)) + "}"]),
-        "direction = logo right",
-        "flip radiometric calibration = False",
-        f"timestamp = {stamp}",
-        "target = simulate",
-        f"label = {label}",
-    ]
+    meta: dict[str, object] = {
+        "data type": 12,
+        "interleave": "bil",
+        "lines": lines,
+        "samples": samples,
+        "bands": bands,
+        "ceiling": 4095,
+        "bit depth": 12,
+        "sample binning": 1,
+        "spectral binning": 1,
+        "imager serial number": "Pika L-SIM",
+        "shutter": f"{shutter_ms:g}",
+        "shutter units": "milliseconds",
+        "gain": f"{gain_db:g}",
+        "framerate": f"{framerate:g}",
+        "byte order": 0,
+        "header offset": 0,
+        "wavelength units": "nm",
+        "wavelength": [f"{w:.3f}" for w in np.asarray(wavelengths, float)],
+    }
+    if fwhm is not None:
+        meta["fwhm"] = [f"{w:.3f}" for w in np.asarray(fwhm, float)]
+    meta.update({"direction": "logo right", "flip radiometric calibration": "False", "timestamp": stamp})
     if ground_elevation is not None:
-        rows.insert(-2, f"ground elevation = {ground_elevation:.3f}")
-    return "\n".join(rows) + "\n"
+        meta["ground elevation"] = f"{ground_elevation:.3f}"
+    meta.update({"target": "simulate", "label": label})
+    return envi_header_text(meta)
 
 
 class BilWriter:
