@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import rioxarray  # noqa: F401  (registers .rio for tests reading outputs; the render no longer imports it)
 
-from helpers import FOV, SMALL_FLIGHT, STRIPS_FLIGHT, TINY_FLIGHT
+from helpers import FOV, HILLS, RIDGE, SMALL_FLIGHT, STRIPS_FLIGHT, TINY_FLIGHT
 
 RESONON_SAMPLES = Path(__file__).resolve().parents[1].parent / "shared" / "samples" / "resonon"
 
@@ -69,6 +69,26 @@ def small_archive(small_flight, tmp_path_factory) -> tuple[Path, str]:
 def strips_flight(simulated):
     """(directory, Truth) of the :data:`helpers.STRIPS_FLIGHT` flight (4 cubes in 2 strips), shared read-only."""
     return simulated(**STRIPS_FLIGHT)
+
+
+def _terrain(simulated, options: dict):
+    from archive.simulator.truth import load_truth
+
+    directory, _ = simulated(**options)
+    return directory, load_truth(directory)
+
+
+@pytest.fixture(scope="session")
+def hills(simulated):
+    """(directory, Truth as loaded from it) of the :data:`helpers.HILLS` terrain flight (its DEM
+    ``dem.tif`` inside), shared read-only."""
+    return _terrain(simulated, HILLS)
+
+
+@pytest.fixture(scope="session")
+def ridge(simulated):
+    """(directory, Truth as loaded from it) of the :data:`helpers.RIDGE` terrain flight, shared read-only."""
+    return _terrain(simulated, RIDGE)
 
 
 @pytest.fixture(scope="session")

@@ -15,6 +15,11 @@ SMALL_FLIGHT = dict(cubes=2, bands=4, samples=64, lines=100, cubes_per_pass=2)
 #: render, library API tests' flight (``strips_flight``).
 STRIPS_FLIGHT = dict(cubes=4, bands=6, samples=64, lines=150, cubes_per_pass=2, seed=3)
 
+#: The terrain flights (``hills``, ``ridge`` in conftest): two passes of two cubes each, ~40 m above
+#: 12 m of relief: hills of -4 to +8 m, everything seen; a ridge with an 83-degree back that hides a strip.
+HILLS = dict(terrain="hills", cubes=4, cubes_per_pass=2, bands=4, samples=128, lines=200, seed=21)
+RIDGE = dict(terrain="ridge", cubes=4, cubes_per_pass=2, bands=3, samples=96, lines=150, seed=22)
+
 #: The tiniest flight a batch or an S3 archive needs (2 cubes, 2 bands, 24 samples x 40 lines).
 TINY_FLIGHT = dict(cubes=2, bands=2, samples=24, lines=40, cubes_per_pass=2)
 

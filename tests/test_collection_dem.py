@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 
-from tests.test_terrain import FOV, HILLS, terrain_flight
+from helpers import FOV
 
 GSD = 0.06
 
@@ -23,9 +23,9 @@ def _archive(*args: str) -> subprocess.CompletedProcess:
 
 
 @pytest.fixture(scope="module")
-def ingested(tmp_path_factory):
+def ingested(hills, tmp_path_factory):
     """(flight directory, its DEM (a copy the archive records), archive, collection id)."""
-    directory, _ = terrain_flight(tmp_path_factory, "hills", HILLS)
+    directory, _ = hills
     root = tmp_path_factory.mktemp("collection-dem")
     dem = root / "dem.tif"
     for name in ("dem.tif", "dem.tif.aux.xml"):     # the aux file holds the DEM's 3-D CRS

@@ -14,16 +14,11 @@ import pickle
 import numpy as np
 import pytest
 
-from tests.test_terrain import FOV, HILLS, terrain_flight
+from helpers import FOV
 
 GSD = 0.05
 #: Largest pickled value or task a render graph may hold besides its sources (KiB).
 SMALL_KIB = 32
-
-
-@pytest.fixture(scope="module")
-def hills(tmp_path_factory):
-    return terrain_flight(tmp_path_factory, "hills", HILLS)
 
 
 def _build(directory, tmp_path, **options):

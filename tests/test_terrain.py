@@ -1,7 +1,7 @@
 """Terrain (issue 11): inverse rendering over a DEM against the simulator's truth.
 
 Two simulated flights of two passes each, ~40 m above the ground (flights, DEMs and truths made once
-per session, shared with test_terrain_inputs.py):
+per session in conftest.py, shared with test_terrain_inputs.py):
 
 - ``hills``: 12 m of relief (bumps of -4 to +8 m, slopes up to ~45 degrees), everything seen;
 - ``ridge``: a 12 m ridge beside the second pass with an 83-degree back: a strip of ground behind it
@@ -20,33 +20,10 @@ import math
 import numpy as np
 import pytest
 
+from helpers import FOV
 from tests.test_render_truth import textured_shifts
 
-FOV = 47.5
-HILLS = dict(terrain="hills", cubes=4, cubes_per_pass=2, bands=4, samples=128, lines=200, seed=21)
-RIDGE = dict(terrain="ridge", cubes=4, cubes_per_pass=2, bands=3, samples=96, lines=150, seed=22)
 BAND = 2
-
-
-def terrain_flight(tmp_path_factory, name: str, options: dict):
-    """(directory, truth) of a simulated terrain flight, made once per test session."""
-    from archive.simulator.command import simulate_flight
-    from archive.simulator.truth import load_truth
-
-    directory = tmp_path_factory.getbasetemp() / f"terrain-{name}" / "flight"
-    if not (directory / "truth" / "truth.json").exists():
-        simulate_flight(directory, **options)
-    return directory, load_truth(directory)
-
-
-@pytest.fixture(scope="module")
-def hills(tmp_path_factory):
-    return terrain_flight(tmp_path_factory, "hills", HILLS)
-
-
-@pytest.fixture(scope="module")
-def ridge(tmp_path_factory):
-    return terrain_flight(tmp_path_factory, "ridge", RIDGE)
 
 
 def mosaic(directory, gsd, **keywords):

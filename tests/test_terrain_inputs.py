@@ -15,17 +15,8 @@ import pytest
 
 from archive.errors import InputError
 from tests.test_render_truth import lucas_kanade
-from tests.test_terrain import FOV, HILLS, RIDGE, mosaic, terrain_flight
-
-
-@pytest.fixture(scope="module")
-def hills(tmp_path_factory):
-    return terrain_flight(tmp_path_factory, "hills", HILLS)
-
-
-@pytest.fixture(scope="module")
-def ridge(tmp_path_factory):
-    return terrain_flight(tmp_path_factory, "ridge", RIDGE)
+from helpers import FOV
+from tests.test_terrain import mosaic
 
 
 def dem_bounds(truth, margin=10.0):
