@@ -19,13 +19,10 @@ import pytest
 from archive.calibrate import Params, calibrate
 from archive.cli import main
 from archive.errors import InputError
-from archive.graph.plan import cube_meshes
-from archive.grid import Grid
 from archive.params import NavigationParams
-from archive.render.renderer import render_cube
 from archive.simulator.command import simulate_flight
 from archive.sources import RawFlightSource
-from tests.test_render_truth import textured_shifts
+from tests.test_render_truth import passes_truth_test, render_shifts
 
 BANDS = 4
 #: The issue's accuracy goals: deg, deg, deg, s, m.
@@ -49,25 +46,7 @@ def _render_shifts(directory, truth, params: Params | None) -> np.ndarray:
         source = RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg, sync_offset=params.sync,
                                                               boresight_deg=params.boresight_deg))
         ground = params.ground
-    meshes = cube_meshes(source, truth.fov_deg, ground)
-    bounds = np.array([m.bounds_utm() for m in meshes if m.rows >= 2])
-    grid = Grid.from_bounds(truth.epsg, bounds[:, 0].min() - 1, bounds[:, 1].min() - 1, bounds[:, 2].max() + 1,
-                            bounds[:, 3].max() + 1, truth.nominal_gsd)
-    band = BANDS // 2
-    mosaic = np.full(grid.shape, np.nan, np.float32)
-    for k, mesh in enumerate(meshes):
-        if mesh.rows < 2:
-            continue
-        r = render_cube(mesh, source.read_bands(k, [band]), source.radiometry(k, [band], "radiance"), grid)
-        mosaic[r.covered] = r.values[0][r.covered]
-    return textured_shifts(mosaic, grid, lambda xx, yy: truth, band, 24)
-
-
-def _passes_truth_test(shifts: np.ndarray) -> bool:
-    if len(shifts) < 15:
-        return False
-    size = np.hypot(shifts[:, 0], shifts[:, 1])
-    return bool(np.median(size) <= 0.2 and np.percentile(size, 95) <= 0.5)
+    return render_shifts(source, truth, ground, BANDS // 2)
 
 
 def _check(result, truth, observable_required=()):
@@ -108,8 +87,8 @@ def test_two_passes_recover_the_planted_errors(two_passes):
     assert result.residual_after["windows"] >= 100
     nominal = _render_shifts(directory, truth, Params(ground=truth.ground_height + 5.0))
     calibrated = _render_shifts(directory, truth, result.params)
-    assert not _passes_truth_test(nominal)
-    assert _passes_truth_test(calibrated), (np.median(np.hypot(*calibrated.T)), len(calibrated))
+    assert not passes_truth_test(nominal)
+    assert passes_truth_test(calibrated), (np.median(np.hypot(*calibrated.T)), len(calibrated))
 
 
 @pytest.fixture(scope="module")
@@ -146,8 +125,8 @@ def test_four_passes_from_the_command_line_apply_a_sidecar_the_render_reads(four
     assert out["applied"] == [str(directory / "navigation_params.json")]
     nominal = _render_shifts(directory, truth, Params(ground=truth.ground_height - 5))
     recorded = _render_shifts(directory, truth, None)
-    assert not _passes_truth_test(nominal)
-    assert _passes_truth_test(recorded), (np.median(np.hypot(*recorded.T)), len(recorded))
+    assert not passes_truth_test(nominal)
+    assert passes_truth_test(recorded), (np.median(np.hypot(*recorded.T)), len(recorded))
 
 
 def test_pitch_and_sync_of_straight_level_passes_are_reported_not_invented(tmp_path):

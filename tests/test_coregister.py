@@ -18,13 +18,10 @@ import pytest
 
 from archive.calibrate.coregister import coregister
 from archive.cli import main
-from archive.graph.plan import cube_meshes
-from archive.grid import Grid
 from archive.params import NavigationParams
-from archive.render.renderer import render_cube
 from archive.simulator.command import simulate_flight
 from archive.sources import RawFlightSource, open_source
-from tests.test_render_truth import textured_shifts
+from tests.test_render_truth import passes_truth_test, render_shifts
 
 BANDS = 4
 LINES = 700
@@ -55,30 +52,6 @@ def fields(tmp_path_factory):
 
 def _raw(truth) -> RawFlightSource:
     return RawFlightSource(truth.directory, NavigationParams(fov_deg=truth.fov_deg))
-
-
-def _render_shifts(source, truth, ground: float) -> np.ndarray:
-    """Truth shift test (tests/test_render_truth.py) of a GL render of ``source`` at ``ground``:
-    (n, 2) Lucas-Kanade shifts (px of the nominal GSD) of the radiance mosaic against the truth."""
-    meshes = cube_meshes(source, truth.fov_deg, ground)
-    bounds = np.array([m.bounds_utm() for m in meshes if m.rows >= 2])
-    grid = Grid.from_bounds(truth.epsg, bounds[:, 0].min() - 1, bounds[:, 1].min() - 1, bounds[:, 2].max() + 1,
-                            bounds[:, 3].max() + 1, truth.nominal_gsd)
-    band = BANDS // 2
-    mosaic = np.full(grid.shape, np.nan, np.float32)
-    for k, mesh in enumerate(meshes):
-        if mesh.rows < 2:
-            continue
-        r = render_cube(mesh, source.read_bands(k, [band]), source.radiometry(k, [band], "radiance"), grid)
-        mosaic[r.covered] = r.values[0][r.covered]
-    return textured_shifts(mosaic, grid, lambda xx, yy: truth, band, 24)
-
-
-def _passes_truth_test(shifts: np.ndarray) -> bool:
-    if len(shifts) < 15:
-        return False
-    size = np.hypot(shifts[:, 0], shifts[:, 1])
-    return bool(np.median(size) <= 0.2 and np.percentile(size, 95) <= 0.5)
 
 
 def _check_estimates(position_offset, sync, truth) -> None:
@@ -137,10 +110,10 @@ def test_query_batch_coregisters_records_and_renders(fields, tmp_path, capsys):
     source = open_source(ids["biased"], NavigationParams(fov_deg=47.5, sync_offset=None, boresight_deg=None,
                                                          lever_arm_m=None), archive=archive)
     assert source.params.position_offset == pytest.approx(tuple(row["position_offset_m"]), abs=1e-4)
-    recorded = _render_shifts(source, truth, source.ground_height)
-    nominal = _render_shifts(_raw(truth), truth, 80.0)
-    assert not _passes_truth_test(nominal)
-    assert _passes_truth_test(recorded), (np.median(np.hypot(*recorded.T)), len(recorded))
+    recorded = render_shifts(source, truth, source.ground_height, BANDS // 2)
+    nominal = render_shifts(_raw(truth), truth, 80.0, BANDS // 2)
+    assert not passes_truth_test(nominal)
+    assert passes_truth_test(recorded), (np.median(np.hypot(*recorded.T)), len(recorded))
     # the viewer's residual misregistration between the two time steps of a stack: good after, not before
     after = _stack_residual(archive, tmp_path / "after.zarr", [ids["ref"], ids["biased"]], page=True)
     before = _stack_residual(archive, tmp_path / "before.zarr", [ids["ref"], str(truth.directory)])

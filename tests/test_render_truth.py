@@ -166,6 +166,34 @@ def textured_shifts(image: np.ndarray, grid, truth_of, band: int, size: int) -> 
     return np.array(out)
 
 
+def render_shifts(source, truth, ground: float, band: int) -> np.ndarray:
+    """Truth shift test of a GL render of ``source`` (its cubes' meshes at ``ground`` m, each on the
+    cubes' common grid at the nominal GSD, "later wins"): (n, 2) Lucas-Kanade shifts (px) of ``band``
+    of the radiance mosaic against the truth on textured 24 x 24 windows (:func:`textured_shifts`)."""
+    from archive.graph.plan import cube_meshes
+
+    meshes = cube_meshes(source, truth.fov_deg, ground)
+    bounds = np.array([m.bounds_utm() for m in meshes if m.rows >= 2])
+    grid = Grid.from_bounds(truth.epsg, bounds[:, 0].min() - 1, bounds[:, 1].min() - 1, bounds[:, 2].max() + 1,
+                            bounds[:, 3].max() + 1, truth.nominal_gsd)
+    mosaic = np.full(grid.shape, np.nan, np.float32)
+    for k, mesh in enumerate(meshes):
+        if mesh.rows < 2:
+            continue
+        r = render_cube(mesh, source.read_bands(k, [band]), source.radiometry(k, [band], "radiance"), grid)
+        mosaic[r.covered] = r.values[0][r.covered]
+    return textured_shifts(mosaic, grid, lambda xx, yy: truth, band, 24)
+
+
+def passes_truth_test(shifts: np.ndarray) -> bool:
+    """Whether :func:`render_shifts` passes: at least 15 windows, median shift <= 0.2 px, 95th
+    percentile <= 0.5 px."""
+    if len(shifts) < 15:
+        return False
+    size = np.hypot(shifts[:, 0], shifts[:, 1])
+    return bool(np.median(size) <= 0.2 and np.percentile(size, 95) <= 0.5)
+
+
 def test_geometry_has_no_subpixel_shift(flight, rendered):
     """Rendered radiance vs the truth box-averaged over each pixel, on textured 32 x 32 windows."""
     truth = flight[0]
