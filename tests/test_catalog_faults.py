@@ -26,8 +26,8 @@ from archive.ingest.command import ingest
 from archive.simulator.command import simulate_flight
 from archive.view.registry import FlightRegistry
 from archive.view.server import LOOPBACK_NAMES, create_app
+from helpers import FOV
 
-FOV = 47.5
 STARTS = ("2024-06-12T16:00:00Z", "2024-07-01T10:00:00Z")
 
 

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import psutil
 import pytest
+from helpers import FOV
 
 SIM_ARGS = ["--cubes", "2", "--lines", "60", "--samples", "32", "--bands", "4", "--quiet"]
 
@@ -225,7 +226,6 @@ def test_sync_offset_beyond_navigation(flight):
 
 # --- issue 8: two defects through info, ingest and render, in their own sessions -------------------
 
-FOV = "47.5"
 
 
 @dataclass(frozen=True)
@@ -374,7 +374,7 @@ class DefectRun:
 def archive_root(flight, tmp_path_factory) -> tuple[Path, str]:
     """An archive holding the good flight (what the refused commands must leave untouched)."""
     root = tmp_path_factory.mktemp("archive") / "archive"
-    done = _archive("ingest", str(flight), "--archive", str(root), "--fov", FOV, "--quiet", timeout=300)
+    done = _archive("ingest", str(flight), "--archive", str(root), "--fov", str(FOV), "--quiet", timeout=300)
     assert done.returncode == 0, done.stderr
     cid = done.stdout.split(":")[0].strip()
     return root, cid
@@ -390,11 +390,11 @@ def _defect_run(flight: Path, archive_root: tuple[Path, str], work: Path, defect
     if command == "info":
         args, watched = ("info", str(bad)), (bad, out)
     elif command == "ingest":
-        args, watched = ("ingest", str(bad), "--archive", str(root), "--fov", FOV, "--quiet"), (bad, root)
+        args, watched = ("ingest", str(bad), "--archive", str(root), "--fov", str(FOV), "--quiet"), (bad, root)
     elif command == "ingest-new":
-        args, watched = ("ingest", str(bad), "--archive", str(out / "archive"), "--fov", FOV, "--quiet"), (bad, out)
+        args, watched = ("ingest", str(bad), "--archive", str(out / "archive"), "--fov", str(FOV), "--quiet"), (bad, out)
     else:  # the good collection first: the archive is read before the bad flight is refused
-        args = ("render", cid, str(bad), "--archive", str(root), "--fov", FOV, "--gsd", "0.1",
+        args = ("render", cid, str(bad), "--archive", str(root), "--fov", str(FOV), "--gsd", "0.1",
                 "--out", str(out / "mosaic.zarr"), "--quicklook", str(out / "look.png"), "--quiet")
         watched = (bad, root, out)
     before = snapshot(*watched)
@@ -434,7 +434,7 @@ def test_render_refused_after_its_cluster_started(flight, tmp_path):
     the GSD: checked once the cube meshes exist) stops the cluster's processes before it exits."""
     out = tmp_path / "out"
     before = snapshot(flight, out)
-    done = run_in_session("render", str(flight), "--fov", FOV, "--gsd", "0.00001", "--out", str(out / "m.zarr"),
+    done = run_in_session("render", str(flight), "--fov", str(FOV), "--gsd", "0.00001", "--out", str(out / "m.zarr"),
                           "--quiet")
     assert done.returncode != 0 and "Traceback" not in done.stderr, done.stderr
     lines = done.stderr.strip().splitlines()
@@ -479,7 +479,7 @@ def test_render_failing_on_a_worker(flight, tmp_path):
     (tmp_path / "inject" / "sitecustomize.py").write_text(FAILING_READS)
     out = tmp_path / "out"
     before = snapshot(flight, out)
-    done = run_in_session("render", str(flight), "--fov", FOV, "--gsd", "0.05", "--out", str(out / "m.zarr"),
+    done = run_in_session("render", str(flight), "--fov", str(FOV), "--gsd", "0.05", "--out", str(out / "m.zarr"),
                           "--quiet", env={"PYTHONPATH": os.pathsep.join(filter(None, [str(tmp_path / "inject"),
                                                                            os.environ.get("PYTHONPATH")])),
                                "ARCHIVE_TEST_FAIL_READS": "1"})

@@ -27,8 +27,8 @@ import numpy as np
 import pytest
 import rioxarray  # noqa: F401  (registers .rio)
 import xarray as xr
+from helpers import FOV
 
-FOV = 47.5
 GSD = 0.03          # two flights 45 m apart: ~2700 x 800 px, 3 output tiles of 1024 px
 BANDS = 8           # two band groups of 4: 8 render tasks for 4 cubes
 PY = sys.executable

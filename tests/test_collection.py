@@ -34,8 +34,8 @@ from archive.params import NavigationParams
 from archive.simulator.command import simulate_flight
 from archive.simulator.sensor import band_fwhm
 from archive.sources import MODES, RawFlightSource
+from helpers import FOV
 
-FOV = 47.5
 PARAMS = [NavigationParams(FOV),
           NavigationParams(FOV, sync_offset=0.011, boresight_deg=(0.4, -0.7, 1.5), lever_arm_m=(0.1, -0.2, 0.3))]
 

@@ -18,8 +18,8 @@ import pytest
 
 from archive.cli import main
 from archive.files import FileLock, LockHeldError, host_name
+from helpers import FOV
 
-FOV = "47.5"
 
 
 def archive_cmd(*args: str) -> list[str]:
@@ -32,7 +32,7 @@ def test_ten_concurrent_ingests_of_one_flight(small_flight, tmp_path):
     nothing left beside it. (Before the lock, they shared one partial store: 3 of 10 runs left a
     collection without dn/time/navigation under its final name.)"""
     arc = tmp_path / "arc"
-    procs = [subprocess.Popen(archive_cmd("ingest", str(small_flight), "--archive", str(arc), "--fov", FOV, "--quiet",
+    procs = [subprocess.Popen(archive_cmd("ingest", str(small_flight), "--archive", str(arc), "--fov", str(FOV), "--quiet",
                                           "--workers", "1"),
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(10)]
     results = [(p.wait(timeout=600), p.stdout.read(), p.stderr.read()) for p in procs]
@@ -107,14 +107,14 @@ def test_a_waiting_ingest_takes_over_from_a_killed_one(small_flight, tmp_path):
     """An ingest killed while holding the lock (its lock file and partial store left behind, its PID
     dead on this host): the next ingest takes the lock over and resumes."""
     arc = tmp_path / "arc"
-    first = subprocess.run(archive_cmd("ingest", str(small_flight), "--archive", str(arc), "--fov", FOV, "--quiet"),
+    first = subprocess.run(archive_cmd("ingest", str(small_flight), "--archive", str(arc), "--fov", str(FOV), "--quiet"),
                            capture_output=True, text=True)
     assert first.returncode == 0, first.stderr
     cid = first.stdout.split(":")[0]
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     _lock_file(arc / "collections" / f"{cid}.zarr.lock", host_name(), dead.pid)
-    again = subprocess.run(archive_cmd("ingest", str(small_flight), "--archive", str(arc), "--fov", FOV, "--quiet",
+    again = subprocess.run(archive_cmd("ingest", str(small_flight), "--archive", str(arc), "--fov", str(FOV), "--quiet",
                                        "--overwrite"), capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
     assert "waiting" not in again.stderr and not (arc / "collections" / f"{cid}.zarr.lock").exists()

@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 
 from archive.cli import main
+from helpers import FOV
 
-FOV = "47.5"
 
 
 @pytest.fixture
@@ -107,7 +107,7 @@ def test_ingest_into_a_full_disk(small_flight, tmp_path, small_disk):
     arc = tmp_path / "arc"
     create_archive(arc)
     collections = small_disk(arc / "collections", "96k")
-    args = ["ingest", str(small_flight), "--archive", str(arc), "--fov", FOV, "--quiet"]
+    args = ["ingest", str(small_flight), "--archive", str(arc), "--fov", str(FOV), "--quiet"]
     done = cli(*args)
     line = one_line(done.stderr)
     assert done.returncode == 2 and "the disk is full while ingesting" in line and "run the same ingest again" in line
@@ -128,7 +128,7 @@ def test_ingest_with_a_full_catalog_disk(small_flight, tmp_path, small_disk):
     catalog = small_disk(arc / "catalog", "64k")
     (catalog / "items").mkdir()
     fill(catalog)
-    args = ["ingest", str(small_flight), "--archive", str(arc), "--fov", FOV, "--quiet"]
+    args = ["ingest", str(small_flight), "--archive", str(arc), "--fov", str(FOV), "--quiet"]
     done = cli(*args)
     line = one_line(done.stderr)
     assert done.returncode == 2 and "the disk is full while ingesting" in line, line

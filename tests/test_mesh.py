@@ -11,8 +11,8 @@ from scipy.spatial.transform import Rotation
 from archive.errors import RenderError
 from archive.navigation import LocalFrame, Poses
 from archive.render.mesh import build_mesh, mid_exposure
+from helpers import FOV
 
-FOV = 47.5
 T = math.tan(math.radians(FOV / 2))
 FRAME = LocalFrame(32616, 500000.0, 3900000.0, 100.0)
 

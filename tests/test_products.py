@@ -13,8 +13,8 @@ import rasterio
 
 from archive.catalog.validate import validate
 from archive.cli import main
+from helpers import FOV
 
-FOV = 47.5
 
 
 @pytest.fixture(scope="module")

@@ -13,8 +13,8 @@ from archive.navigation import LocalFrame, Poses, frame_interval, joined, local_
 from archive.params import NavigationParams
 from archive.render.mesh import build_mesh
 from archive.sources.navigation import CubeNavigation, FlightNavigation
+from helpers import FOV
 
-FOV = 47.5
 
 
 # ---------------------------------------------------------------------------------------------

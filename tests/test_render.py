@@ -17,8 +17,8 @@ from archive.render.mesh import build_mesh
 from archive.render.reference import reference_lookup, reference_values
 from archive.render.renderer import Lookup, rasterize_lookup, render_cube, render_lookup
 from archive.sources import Radiometry
+from helpers import FOV
 
-FOV = 47.5
 T = math.tan(math.radians(FOV / 2))
 H = 40.0                     # flying height above ground, m
 RATE = 270.0                 # Hz; 10 m/s -> 3.7 cm between lines (not a multiple of the GSD)

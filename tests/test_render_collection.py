@@ -14,8 +14,8 @@ import pytest
 import xarray as xr
 
 from archive.cli import main
+from helpers import FOV
 
-FOV = 47.5
 
 
 @pytest.fixture(scope="module")

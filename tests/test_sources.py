@@ -41,9 +41,9 @@ from archive.sources import (
     RawFlightSource,
     open_source,
 )
+from helpers import FOV
 
 CUBES, BANDS, SAMPLES, LINES = 2, 4, 48, 80
-FOV = 47.5
 PARAMS = NavigationParams(fov_deg=FOV)
 WHITE = np.linspace(100.0, 200.0, BANDS)
 KINDS = ("raw", "collection", "memory")

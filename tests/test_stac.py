@@ -34,9 +34,9 @@ from archive.grid import Grid
 from archive.ingest.command import ingest
 from archive.outputs.registry import format_named
 from archive.simulator.command import simulate_flight
+from helpers import FOV
 
 REPO = Path(__file__).resolve().parents[1]
-FOV = 47.5
 DAY = 86400.0
 
 

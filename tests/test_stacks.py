@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarray as xr
+from helpers import FOV
 
-FOV = "47.5"
 GSD = "0.5"
 SHAPE = ["--cubes", "2", "--samples", "32", "--lines", "60", "--bands", "4"]
 DAYS = ("2024-06-12", "2024-06-19", "2024-06-26")
@@ -42,7 +42,7 @@ def field(tmp_path_factory):
         cli("simulate", str(root / f"day{k}"), *SHAPE, "--seed", str(k), "--scene-seed", "0",
             "--start", f"{day}T16:00:00Z", "--quiet")
         if k < 2:
-            (r,) = ingest([str(root / f"day{k}")], root / "archive", float(FOV), progress=False)
+            (r,) = ingest([str(root / f"day{k}")], root / "archive", FOV, progress=False)
             ids.append(r.cid)
     return root, root / "archive", ids
 
@@ -81,18 +81,18 @@ def test_bounds_align_and_like(field, tmp_path):
 
     root, _, _ = field
     day0, day1 = str(root / "day0"), str(root / "day1")
-    cli("render", day0, "--fov", FOV, "--gsd", "0.1", "--out", str(tmp_path / "foot.tif"), "--quiet")
+    cli("render", day0, "--fov", str(FOV), "--gsd", "0.1", "--out", str(tmp_path / "foot.tif"), "--quiet")
     with rasterio.open(tmp_path / "foot.tif") as ds:
         w, s, e, n = ds.bounds
     # --bounds without --align: the top-left corner exactly at W,N; with --align: edges on multiples of the GSD
     box = (w + 2.03, s + 3.01, e - 4.02, n - 2.07)
     text = ",".join(f"{v:.2f}" for v in box)
-    cli("render", day0, "--fov", FOV, "--gsd", "0.1", "--bounds", text, "--out", str(tmp_path / "exact.zarr"),
+    cli("render", day0, "--fov", str(FOV), "--gsd", "0.1", "--bounds", text, "--out", str(tmp_path / "exact.zarr"),
         "--quiet")
-    cli("render", day0, "--fov", FOV, "--gsd", "0.1", "--bounds", text, "--align", "--out",
+    cli("render", day0, "--fov", str(FOV), "--gsd", "0.1", "--bounds", text, "--align", "--out",
         str(tmp_path / "part.zarr"), "--quiet")
     big = f"{np.floor(w) - 5:.0f},{np.floor(s) - 5:.0f},{np.ceil(e) + 5:.0f},{np.ceil(n) + 5:.0f}"
-    cli("render", day0, "--fov", FOV, "--gsd", "0.1", "--bounds", big, "--align", "--out",
+    cli("render", day0, "--fov", str(FOV), "--gsd", "0.1", "--bounds", big, "--align", "--out",
         str(tmp_path / "big.zarr"), "--quiet")
     from archive.outputs.like import read_grid
 
@@ -109,7 +109,7 @@ def test_bounds_align_and_like(field, tmp_path):
     assert np.isfinite(mine).mean() > 0.2
     np.testing.assert_array_equal(cut, mine)
     # --like a COG: the other day's flight on that very grid, --gsd taken from it
-    cli("render", day1, "--fov", FOV, "--like", str(tmp_path / "foot.tif"), "--out", str(tmp_path / "day1.tif"),
+    cli("render", day1, "--fov", str(FOV), "--like", str(tmp_path / "foot.tif"), "--out", str(tmp_path / "day1.tif"),
         "--quiet")
     with rasterio.open(tmp_path / "foot.tif") as a, rasterio.open(tmp_path / "day1.tif") as b:
         assert (a.crs, a.transform, a.shape) == (b.crs, b.transform, b.shape)
@@ -127,7 +127,7 @@ def test_bad_grid_input_is_refused_in_one_line(field, tmp_path):
         ([], "gsd"),
     ]
     for extra, words in cases:
-        proc = cli("render", day0, "--fov", FOV, *extra, "--out", str(tmp_path / "x.zarr"), ok=False)
+        proc = cli("render", day0, "--fov", str(FOV), *extra, "--out", str(tmp_path / "x.zarr"), ok=False)
         err = proc.stderr.strip()
         assert len(err.splitlines()) == 1 and words in err and "Traceback" not in err, (extra, err)
     assert not (tmp_path / "x.zarr").exists()
@@ -173,7 +173,7 @@ def test_stack_slices_equal_like_renders_and_resume_adds_only_the_missing(field,
     assert item["properties"]["archive:recipe"]["sources"] == ids
     cli("catalog", "validate", str(tmp_path / "field.zarr.json"))   # valid STAC
     # a new flight of the field ingested: --resume renders it alone, at the end of time
-    (r,) = ingest([str(root / "day2")], archive, float(FOV), progress=False)
+    (r,) = ingest([str(root / "day2")], archive, FOV, progress=False)
     before = {p: p.stat().st_mtime_ns for p in (out / "radiance").glob("[01].*")}
     proc = cli("render", *query, "--stack", "--gsd", GSD, "--out", str(out), "--resume")
     lines = [line for line in proc.stdout.splitlines() if line.startswith("archive render: ")]

@@ -29,8 +29,8 @@ from archive.view.cache import ByteLRU
 from archive.view.registry import FlightRegistry
 from archive.view.server import LOOPBACK_NAMES, check_host, create_app
 from archive.view.tiles import HALF_WORLD, tile_grid
+from helpers import FOV
 
-FOV = 47.5
 Z = 20  # ~0.12 m pixels here: the flight spans a few tiles
 
 

@@ -32,13 +32,13 @@ import pytest
 from PIL import Image
 
 from tests.conftest import archive_view
+from helpers import FOV
 
 CHROMIUM = Path("/usr/bin/chromium")
 LAUNCH_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
                "--disable-component-update", "--disable-sync"]
 ROOT = Path(__file__).resolve().parents[1]
 BACKGROUND = (255, 0, 255)  # the map's background during pixel checks: no stretched flight pixel is this
-FOV = 47.5
 HALF_WORLD = np.pi * 6378137.0
 FLIGHTS = 6
 

@@ -30,9 +30,9 @@ import numpy as np
 import pytest
 
 from tests.conftest import archive_view
+from helpers import FOV
 
 ROOT = Path(__file__).resolve().parents[1]
-FOV = "47.5"
 
 
 def _env() -> dict[str, str]:
@@ -104,7 +104,7 @@ def test_the_installed_wheel_renders_what_the_checkout_renders(installed, tmp_pa
                "--lines", "120", "--seed", "3", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     for ext in ("tif", "zarr"):
-        common = [str(flight), "--fov", FOV, "--gsd", "0.5", "--quiet", "--workers", "1"]
+        common = [str(flight), "--fov", str(FOV), "--gsd", "0.5", "--quiet", "--workers", "1"]
         done = run(installed, "render", *common, "--out", str(tmp_path / f"wheel.{ext}"), cwd=tmp_path)
         assert done.returncode == 0, done.stderr
         editable = subprocess.run([sys.executable, "-m", "archive", "render", *common, "--out",
@@ -136,7 +136,7 @@ def test_the_installed_wheel_serves_the_viewer_and_answers_doctor(installed, tmp
     flight = tmp_path / "flight"
     assert run(installed, "simulate", str(flight), "--cubes", "2", "--bands", "4", "--samples", "40",
                "--lines", "100", cwd=tmp_path).returncode == 0
-    done = run(installed, "ingest", str(flight), "--archive", str(tmp_path / "arc"), "--fov", FOV, "--quiet",
+    done = run(installed, "ingest", str(flight), "--archive", str(tmp_path / "arc"), "--fov", str(FOV), "--quiet",
                cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     # the wheel's own console script, its environment without the checkout (_env: no PYTHONPATH)

@@ -11,8 +11,8 @@ import sys
 
 import numpy as np
 import pytest
+from helpers import FOV
 
-FOV = 47.5
 
 
 def _archive(*args) -> subprocess.CompletedProcess:
