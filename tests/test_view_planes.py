@@ -92,3 +92,36 @@ def test_planes_are_made_on_the_workers_ahead_and_once():
         for c in range(4):
             planes.filtered(c, 1, "raw", 2)
     assert sorted(source.reads) == [(c, 1) for c in range(4)]
+
+
+class SlowCube(FakeSource):
+    """A source whose reads of one cube wait for ``release`` (a worker still making it)."""
+
+    def __init__(self, cubes: int, slow: int):
+        super().__init__(cubes)
+        self.slow, self.release, self.reading = slow, threading.Event(), threading.Event()
+
+    def read_bands(self, cube, bands):
+        if cube == self.slow:
+            self.reading.set()
+            assert self.release.wait(20)
+        return super().read_bands(cube, bands)
+
+
+def test_a_plane_a_worker_is_making_is_waited_for_not_made_again():
+    """The last plane missing is being made ahead on a worker: asking for it waits for that worker
+    instead of reading the cube a second time (a race the load of CI once showed)."""
+    source = SlowCube(4, slow=2)
+    with ThreadPoolExecutor(2) as workers:
+        planes = _planes(source, workers)
+        planes.prepare([0, 1], [1], "raw", size=2, ahead=[2, 3])
+        assert source.reading.wait(20)   # cube 2 is being read on a worker
+        deadline = time.monotonic() + 20
+        while ("fake", 3, 1, "raw", "filtered", 2) not in planes.cache:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        threading.Timer(0.3, source.release.set).start()
+        planes.prepare([0, 1, 2, 3], [1], "raw", size=2)   # only cube 2's plane missing: waited for
+        for c in range(4):
+            planes.filtered(c, 1, "raw", 2)
+    assert sorted(source.reads) == [(c, 1) for c in range(4)]

@@ -123,7 +123,14 @@ class BandPlanes:
                     if (self.id, int(c), int(b), mode, "filtered", int(size)) not in self.cache
                     and (size > 1 or (self.id, int(c), int(b), mode) not in self.cache)]
         now, later = missing(cubes), missing(ahead)
-        if self.workers is None or len(now) + len(later) < 2:
+        if self.workers is None:
+            return
+        if len(now) + len(later) < 2:   # one plane: the caller makes it, unless a worker is making it now
+            with self._lock:
+                busy = [self._making.get((c, b, mode, int(size))) for c, b in now]
+            for future in busy:
+                if future is not None:
+                    future.result()
             return
         self.source()
         for c in {c for c, _ in now + later}:
