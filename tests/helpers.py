@@ -34,3 +34,22 @@ def ingest_each(directories, archive, fov: float = FOV, **options) -> list[str]:
         (result,) = ingest([str(directory)], archive, fov, progress=False, **options)
         ids.append(result.cid)
     return ids
+
+
+def eroded_dilated(inside, grid, d_px: float = 1.5):
+    """(eroded, dilated): boolean (height, width) masks on ``grid``'s pixel centres of where
+    ``inside(xx, yy)`` (eastings, northings in the grid's CRS, m -> bool of their shape) holds at every
+    / at any of the 9 points displaced by -d_px, 0, +d_px pixels in x and y."""
+    import numpy as np
+
+    x, y = grid.xy_centres()
+    xx, yy = np.meshgrid(x, y)
+    d = d_px * grid.gsd
+    eroded = np.ones(grid.shape, bool)
+    dilated = np.zeros(grid.shape, bool)
+    for dx in (-d, 0.0, d):
+        for dy in (-d, 0.0, d):
+            held = inside(xx + dx, yy + dy)
+            eroded &= held
+            dilated |= held
+    return eroded, dilated

@@ -13,7 +13,7 @@ from archive.navigation import LocalFrame, Poses, frame_interval, joined, local_
 from archive.params import NavigationParams
 from archive.render.mesh import build_mesh
 from archive.sources.navigation import CubeNavigation, FlightNavigation
-from helpers import FOV
+from helpers import FOV, eroded_dilated
 
 
 
@@ -126,19 +126,12 @@ def _mosaic(sources, gsd, **keywords):
 
 def _coverage(truths, grid, d_px=1.5):
     """(eroded, dilated) truth coverage on ``grid`` (in its CRS), by d_px pixels."""
-    x, y = grid.xy_centres()
-    xx, yy = np.meshgrid(x, y)
-    d = d_px * grid.gsd
     eroded = np.zeros(grid.shape, bool)
     dilated = np.zeros(grid.shape, bool)
     for truth in truths:
-        e = np.ones(grid.shape, bool)
-        for dx in (-d, 0.0, d):
-            for dy in (-d, 0.0, d):
-                inside = truth.covered(xx + dx, yy + dy, crs=grid.epsg)
-                e &= inside
-                dilated |= inside
+        e, d = eroded_dilated(lambda xx, yy: truth.covered(xx, yy, crs=grid.epsg), grid, d_px)
         eroded |= e
+        dilated |= d
     return eroded, dilated
 
 

@@ -55,6 +55,13 @@ def grid_around(mesh, margin=0.3):
     return Grid.from_bounds(FRAME.epsg, w - margin, s - margin, e + margin, n + margin, GSD)
 
 
+def nadir_cube(nb, lines, samples):
+    """(mesh, DN, grid) of the nadir flight's cube: its mesh over ground 110 m below the frame's
+    origin, :func:`pattern` DN (bands, lines, samples) and :func:`grid_around` its mesh."""
+    mesh = build_mesh(flight(lines), FOV, 110.0, SHUTTER, RATE)
+    return mesh, pattern(nb, lines, samples), grid_around(mesh)
+
+
 def expected_nadir(grid, lines, samples):
     """Analytic (line, sample) of each pixel centre for the nadir flight, -1 outside."""
     x, y = grid.xy_centres()
@@ -87,10 +94,8 @@ def test_gl_info_reports_limits():
 
 def test_nadir_flight_renders_the_expected_pixels_with_radiometry():
     nb, lines, samples = 6, 150, 96
-    mesh = build_mesh(flight(lines), FOV, 110.0, SHUTTER, RATE)
-    dn = pattern(nb, lines, samples)
+    mesh, dn, grid = nadir_cube(nb, lines, samples)
     rad = radiometry(nb, lines, samples)
-    grid = grid_around(mesh)
     result = render_cube(mesh, dn, rad, grid, bands_per_pass=4)     # 2 passes
     assert result.values.shape == (nb, *grid.shape) and result.values.dtype == np.float32
     line, sample, inside = expected_nadir(grid, lines, samples)
@@ -118,10 +123,8 @@ def test_nadir_flight_renders_the_expected_pixels_with_radiometry():
 @pytest.mark.parametrize("per_pass", [1, 2, 3])
 def test_bands_per_pass_do_not_change_values(per_pass):
     nb, lines, samples = 5, 60, 40
-    mesh = build_mesh(flight(lines), FOV, 110.0, SHUTTER, RATE)
-    dn = pattern(nb, lines, samples)
+    mesh, dn, grid = nadir_cube(nb, lines, samples)
     rad = radiometry(nb, lines, samples)
-    grid = grid_around(mesh)
     four = render_cube(mesh, dn, rad, grid, bands_per_pass=4)
     other = render_cube(mesh, dn, rad, grid, bands_per_pass=per_pass)
     np.testing.assert_array_equal(other.values, four.values)
@@ -147,10 +150,8 @@ def test_saturation_flag_marks_pixels_of_saturated_samples():
 
 def test_windows_and_line_chunks_equal_a_single_render():
     nb, lines, samples = 4, 200, 64
-    mesh = build_mesh(flight(lines), FOV, 110.0, SHUTTER, RATE)
-    dn = pattern(nb, lines, samples)
+    mesh, dn, grid = nadir_cube(nb, lines, samples)
     rad = radiometry(nb, lines, samples, saturation=3000)
-    grid = grid_around(mesh)
     whole = render_cube(mesh, dn, rad, grid)
     tiled = render_cube(mesh, dn, rad, grid, max_size=70)   # 70-px windows, 70-line textures
     assert grid.width > 70 * 8 and grid.height > 70 * 2
@@ -178,9 +179,7 @@ def test_grid_windows_far_or_partial():
 
 def test_float_dn_matches_integer_dn():
     nb, lines, samples = 3, 50, 32
-    mesh = build_mesh(flight(lines), FOV, 110.0, SHUTTER, RATE)
-    dn = pattern(nb, lines, samples)
-    grid = grid_around(mesh)
+    mesh, dn, grid = nadir_cube(nb, lines, samples)
     a = render_cube(mesh, dn, None, grid)
     b = render_cube(mesh, dn.astype(np.float32), None, grid)
     np.testing.assert_array_equal(a.values, b.values)
@@ -215,9 +214,7 @@ def test_each_thread_gets_its_own_context_and_the_same_pixels():
     import threading
 
     nb, lines, samples = 2, 40, 32
-    mesh = build_mesh(flight(lines), FOV, 110.0, SHUTTER, RATE)
-    dn = pattern(nb, lines, samples)
-    grid = grid_around(mesh)
+    mesh, dn, grid = nadir_cube(nb, lines, samples)
     here = render_cube(mesh, dn, None, grid)
     out = {}
 
@@ -272,9 +269,7 @@ def test_lookup_then_bands_equals_render_cube(per_pass):
 
 def test_lookup_pickles_and_is_reused_for_band_groups():
     nb, lines, samples = 6, 60, 40
-    mesh = build_mesh(flight(lines), FOV, 110.0, SHUTTER, RATE)
-    dn = pattern(nb, lines, samples)
-    grid = grid_around(mesh)
+    mesh, dn, grid = nadir_cube(nb, lines, samples)
     lookup = pickle.loads(pickle.dumps(rasterize_lookup(mesh, grid, samples)))
     assert lookup.grid == grid and (lookup.lines, lookup.samples) == (lines, samples)
     whole = render_cube(mesh, dn, None, grid)
@@ -311,10 +306,8 @@ def test_lookup_indices_equal_the_cpu_reference():
 
 def test_lookup_windows_and_line_chunks_equal_a_single_pass():
     nb, lines, samples = 7, 200, 64
-    mesh = build_mesh(flight(lines), FOV, 110.0, SHUTTER, RATE)
-    dn = pattern(nb, lines, samples)
+    mesh, dn, grid = nadir_cube(nb, lines, samples)
     rad = radiometry(nb, lines, samples, saturation=3000)
-    grid = grid_around(mesh)
     whole = rasterize_lookup(mesh, grid, samples)
     tiled = rasterize_lookup(mesh, grid, samples, max_size=70)
     np.testing.assert_array_equal(tiled.line, whole.line)

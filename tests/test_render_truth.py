@@ -18,6 +18,7 @@ from archive.render.reference import reference_values
 from archive.render.renderer import render_cube
 from archive.simulator.command import simulate_flight
 from archive.sources import RawFlightSource
+from helpers import eroded_dilated
 
 BANDS = 6
 
@@ -58,16 +59,7 @@ def rendered(request, flight):
 def test_coverage_matches_the_true_footprint(flight, rendered):
     truth = flight[0]
     grid = rendered["grid"]
-    x, y = grid.xy_centres()
-    xx, yy = np.meshgrid(x, y)
-    d = 1.5 * grid.gsd
-    eroded = np.ones(grid.shape, bool)
-    dilated = np.zeros(grid.shape, bool)
-    for dx in (-d, 0.0, d):
-        for dy in (-d, 0.0, d):
-            inside = truth.covered(xx + dx, yy + dy)
-            eroded &= inside
-            dilated |= inside
+    eroded, dilated = eroded_dilated(truth.covered, grid, 1.5)
     for mode in ("raw", "radiance"):
         has_value = ~np.isnan(rendered[mode + "_mosaic"]).any(axis=0)
         assert eroded.sum() > 5000

@@ -20,7 +20,7 @@ import math
 import numpy as np
 import pytest
 
-from helpers import FOV
+from helpers import FOV, eroded_dilated
 from tests.test_render_truth import textured_shifts
 
 BAND = 2
@@ -40,16 +40,8 @@ def mosaic(directory, gsd, **keywords):
 def visible_masks(truth, grid, d_px=1.5):
     """(eroded, dilated, covered): the truly visible ground on ``grid`` eroded and dilated by d_px
     pixels (every / any of the 9 points at +-d_px), and the footprint (visible or not)."""
-    x, y = grid.xy_centres()
-    xx, yy = np.meshgrid(x, y)
-    d = d_px * grid.gsd
-    eroded = np.ones(grid.shape, bool)
-    dilated = np.zeros(grid.shape, bool)
-    for dx in (-d, 0.0, d):
-        for dy in (-d, 0.0, d):
-            seen = truth.visible(xx + dx, yy + dy, crs=grid.epsg)
-            eroded &= seen
-            dilated |= seen
+    eroded, dilated = eroded_dilated(lambda xx, yy: truth.visible(xx, yy, crs=grid.epsg), grid, d_px)
+    xx, yy = np.meshgrid(*grid.xy_centres())
     return eroded, dilated, truth.covered(xx, yy, crs=grid.epsg)
 
 
