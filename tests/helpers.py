@@ -53,3 +53,19 @@ def eroded_dilated(inside, grid, d_px: float = 1.5):
             eroded &= held
             dilated |= held
     return eroded, dilated
+
+
+def inside_geometry(geometry: dict, lon, lat):
+    """Boolean mask, of ``lon``'s shape, of the points (``lon``, ``lat``: arrays of one shape,
+    degrees) inside a GeoJSON Polygon or MultiPolygon ``geometry`` (the outer ring of each polygon)."""
+    import numpy as np
+
+    from archive.catalog.footprint import points_in_polygon
+
+    lon, lat = np.asarray(lon), np.asarray(lat)
+    polygons = [geometry["coordinates"]] if geometry["type"] == "Polygon" else geometry["coordinates"]
+    pts = np.stack([lon.ravel(), lat.ravel()], axis=-1)
+    inside = np.zeros(len(pts), bool)
+    for poly in polygons:
+        inside |= points_in_polygon(pts, np.asarray(poly[0]))
+    return inside.reshape(lon.shape)

@@ -22,14 +22,13 @@ from PIL import Image
 from pyproj import Transformer
 
 import archive
-from archive.catalog.footprint import points_in_polygon
 from archive.cli import main
 from archive.errors import InputError
 from archive.view.cache import ByteLRU
 from archive.view.registry import FlightRegistry
 from archive.view.server import LOOPBACK_NAMES, check_host, create_app
 from archive.view.tiles import HALF_WORLD, tile_grid
-from helpers import FOV
+from helpers import FOV, inside_geometry
 
 Z = 20  # ~0.12 m pixels here: the flight spans a few tiles
 
@@ -87,16 +86,6 @@ def _pixel_lonlat(z, x, y):
     return np.asarray(lon), np.asarray(lat)
 
 
-def _inside_footprint(item, lon, lat) -> np.ndarray:
-    geometry = item["geometry"]
-    polygons = [geometry["coordinates"]] if geometry["type"] == "Polygon" else geometry["coordinates"]
-    pts = np.stack([lon.ravel(), lat.ravel()], axis=-1)
-    inside = np.zeros(len(pts), bool)
-    for poly in polygons:
-        inside |= points_in_polygon(pts, np.asarray(poly[0]))
-    return inside.reshape(lon.shape)
-
-
 def test_collections_geojson_and_filters(client, demo):
     _, cid, item = demo
     fc = client.get("/api/collections").json()
@@ -135,7 +124,7 @@ def test_tiles_cover_the_footprint_and_nothing_else(client, demo):
         rgba = _rgba(client.get(f"/api/collections/{cid}/tiles/{Z}/{x}/{y}.png"))
         opaque = rgba[..., 3] > 0
         assert set(np.unique(rgba[..., 3])) <= {0, 255}
-        inside = _inside_footprint(item, *_pixel_lonlat(Z, x, y))
+        inside = inside_geometry(item["geometry"], *_pixel_lonlat(Z, x, y))
         assert not (opaque & ~inside).any(), f"tile {x}/{y}: pixels drawn outside the footprint"
         opaque_total += int(opaque.sum())
         inside_total += int(inside.sum())

@@ -32,7 +32,7 @@ import pytest
 from PIL import Image
 
 from tests.conftest import archive_view
-from helpers import FOV
+from helpers import FOV, inside_geometry
 
 CHROMIUM = Path("/usr/bin/chromium")
 LAUNCH_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
@@ -159,16 +159,8 @@ def _expected_coverage(ds, shape, geo) -> np.ndarray:
 
 
 def _footprint_mask(feature, shape, geo) -> np.ndarray:
-    from archive.catalog.footprint import points_in_polygon
-
-    lon, lat = _screen_lonlat(shape, geo)
-    g = feature["geometry"]
-    polygons = [g["coordinates"]] if g["type"] == "Polygon" else g["coordinates"]
-    pts = np.stack([lon.ravel(), lat.ravel()], axis=-1)
-    inside = np.zeros(len(pts), bool)
-    for poly in polygons:
-        inside |= points_in_polygon(pts, np.asarray(poly[0]))
-    return inside.reshape(shape)
+    """Boolean (height, width) ``shape`` mask of the screen pixels inside ``feature``'s footprint."""
+    return inside_geometry(feature["geometry"], *_screen_lonlat(shape, geo))
 
 
 def _shots_while(page: Page, start, seconds: float = 8.0) -> list[np.ndarray]:
