@@ -20,6 +20,7 @@ import rioxarray
 import xarray as xr
 
 import archive
+from helpers import FOV
 
 SIM = ["--cubes", "2", "--lines", "60", "--samples", "32", "--bands", "4", "--quiet"]
 RADIANCE_UNITS = "uW cm-2 sr-1 um-1"
@@ -32,7 +33,7 @@ def outputs(tmp_path_factory) -> Path:
         subprocess.run([sys.executable, "-m", "archive", "simulate", str(d / f"f{k}"), *SIM, "--seed", str(k)],
                        check=True)
     for name in ("m.tif", "m.zarr"):
-        subprocess.run([sys.executable, "-m", "archive", "render", str(d / "f0"), "--fov", "47.5", "--gsd", "0.5",
+        subprocess.run([sys.executable, "-m", "archive", "render", str(d / "f0"), "--fov", str(FOV), "--gsd", "0.5",
                         "--out", str(d / name), "--quiet"], check=True)
     return d
 
@@ -61,9 +62,9 @@ def test_zarr_cf_units_seen_by_xarray_and_gdal(outputs):
 
 
 def test_mosaic_and_stack_declare_nan_nodata(outputs):
-    ds = archive.mosaic([str(outputs / "f0")], gsd=0.5, fov=47.5)
+    ds = archive.mosaic([str(outputs / "f0")], gsd=0.5, fov=FOV)
     assert math.isnan(ds.radiance.rio.nodata) and ds.radiance.attrs["units"] == RADIANCE_UNITS
-    stack = archive.stack([str(outputs / "f0"), str(outputs / "f1")], gsd=0.5, fov=47.5)
+    stack = archive.stack([str(outputs / "f0"), str(outputs / "f1")], gsd=0.5, fov=FOV)
     assert stack.dims == ("time", "band", "y", "x") and math.isnan(stack.rio.nodata)
     # metadata only: the values are the COG's, NaN where no line covers a pixel
     with rasterio.open(outputs / "m.tif") as cog:

@@ -23,6 +23,7 @@ from archive.params import NavigationParams
 from archive.simulator.command import simulate_flight
 from archive.sources import RawFlightSource
 from tests.test_render_truth import passes_truth_test, render_shifts
+from helpers import FOV
 
 BANDS = 4
 #: The issue's accuracy goals: deg, deg, deg, s, m.
@@ -104,7 +105,7 @@ def test_four_passes_from_the_command_line_apply_a_sidecar_the_render_reads(four
     middle passes overlap on both sides), each within the issue's accuracy; --apply writes the
     sidecar and a render that names no parameter passes the truth test."""
     directory, truth = four_passes
-    assert main(["calibrate", str(directory), "--fov", "47.5", "--ground-height", str(truth.ground_height - 5),
+    assert main(["calibrate", str(directory), "--fov", str(FOV), "--ground-height", str(truth.ground_height - 5),
                  "--json", "--apply"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out) >= {"boresight_deg", "sync_offset_s", "ground_height_m", "sigma", "observable", "residual_px",
@@ -217,11 +218,11 @@ def test_no_overlap_is_refused(tmp_path):
 def test_single_pass_and_short_flight_are_refused(tmp_path, capsys):
     one = tmp_path / "one"
     simulate_flight(one, cubes=2, cubes_per_pass=2, bands=2, samples=32, lines=200)
-    assert main(["calibrate", str(one), "--fov", "47.5"]) != 0
+    assert main(["calibrate", str(one), "--fov", str(FOV)]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "1 pass and no overlap" in err[0]
     short = tmp_path / "short"
     simulate_flight(short, cubes=2, cubes_per_pass=1, bands=2, samples=64, lines=40)
-    assert main(["calibrate", str(short), "--fov", "47.5"]) != 0
+    assert main(["calibrate", str(short), "--fov", str(FOV)]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "flight too short" in err[0]

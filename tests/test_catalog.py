@@ -24,6 +24,7 @@ from archive.ingest.command import ingest
 from archive.formats.flight import discover_flight
 from archive.formats.lcf import read_lcf, write_lcf
 from archive.simulator.command import simulate_flight
+from helpers import FOV
 
 REPO = Path(__file__).resolve().parents[1]
 DAY = 86400.0
@@ -72,7 +73,7 @@ def catalog(tmp_path_factory):
         flights[name] = d
     ids = {}
     for name, d in flights.items():
-        (r,) = ingest([str(d)], archive_dir, 47.5, ground_height=truths[name].ground_height, progress=False)
+        (r,) = ingest([str(d)], archive_dir, FOV, ground_height=truths[name].ground_height, progress=False)
         ids[name] = r.cid
     return archive_dir, ids, truths
 

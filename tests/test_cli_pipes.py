@@ -20,6 +20,7 @@ import pytest
 import archive
 from archive.api_errors import KeywordError
 from archive.errors import InputError
+from helpers import FOV
 
 SIM_ARGS = ["--cubes", "2", "--lines", "60", "--samples", "32", "--bands", "4", "--quiet"]
 FIRST, SECOND = "Pika-L-SIM_20240612T160000", "Pika-L-SIM_20240612T160100"
@@ -38,7 +39,7 @@ def work(tmp_path_factory) -> Path:
     for k in (0, 1):
         done = _archive("simulate", f"f{k}", *SIM_ARGS, "--seed", str(k), cwd=d)
         assert done.returncode == 0, done.stderr
-    done = _archive("ingest", "f0", "f1", "--archive", "arc", "--fov", "47.5", "--quiet", cwd=d)
+    done = _archive("ingest", "f0", "f1", "--archive", "arc", "--fov", str(FOV), "--quiet", cwd=d)
     assert done.returncode == 0, done.stderr
     return d
 
@@ -56,21 +57,21 @@ def _closed_stdout(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
 COMMANDS = [
     ["--help"],
     ["simulate", "g", *SIM_ARGS[:-1], "--seed", "5"],
-    ["info", "f0", "--fov", "47.5"],
+    ["info", "f0", "--fov", str(FOV)],
     ["info", FIRST, "--archive", "arc", "--json"],
-    ["ingest", "f0", "--archive", "arc", "--fov", "47.5", "--quiet"],
+    ["ingest", "f0", "--archive", "arc", "--fov", str(FOV), "--quiet"],
     ["verify", "--archive", "arc"],
     ["catalog", "search", "--archive", "arc", "--json"],
     ["catalog", "search", "--archive", "arc"],
     ["catalog", "list", "--archive", "arc"],
     ["catalog", "rebuild", "--archive", "arc"],
     ["catalog", "validate", "--archive", "arc"],
-    ["render", "f0", "--fov", "47.5", "--gsd", "0.5", "--out", "one.tif", "--quiet", "--overwrite"],
+    ["render", "f0", "--fov", str(FOV), "--gsd", "0.5", "--out", "one.tif", "--quiet", "--overwrite"],
     ["catalog", "add", "one.tif.json", "--archive", "arc"],
     ["render", "--archive", "arc", "--query-datetime", "2024-06-12", "--gsd", "0.5", "--out", "batch",
      "--format", "tif", "--quiet", "--overwrite"],
     ["view", "--archive", "arc", "--port", "0"],
-    ["calibrate", "f0", "--fov", "47.5", "--json", "--quiet"],
+    ["calibrate", "f0", "--fov", str(FOV), "--json", "--quiet"],
     ["doctor", "--json"],
 ]
 
@@ -88,11 +89,11 @@ def test_closed_stdout_no_traceback(work, args):
 
 
 def test_same_flight_twice_in_one_ingest(work, tmp_path):
-    again = _archive("ingest", "f1", "f1", "--archive", str(tmp_path / "a"), "--fov", "47.5", "--quiet", cwd=work)
+    again = _archive("ingest", "f1", "f1", "--archive", str(tmp_path / "a"), "--fov", str(FOV), "--quiet", cwd=work)
     assert again.returncode == 0, again.stderr
     assert again.stdout.splitlines() == [f"{SECOND}: ingested ({tmp_path / 'a' / 'collections' / SECOND}.zarr)"]
     shutil.copytree(work / "f1", tmp_path / "copy")
-    both = _archive("ingest", "f1", str(tmp_path / "copy"), "--archive", "arc", "--fov", "47.5", "--quiet",
+    both = _archive("ingest", "f1", str(tmp_path / "copy"), "--archive", "arc", "--fov", str(FOV), "--quiet",
                     cwd=work)
     assert both.returncode == 2 and "Traceback" not in both.stderr, both.stderr
     line, = both.stderr.strip().splitlines()
@@ -114,11 +115,11 @@ def test_batch_lines_past_the_progress_bar(work):
 def test_python_errors_name_the_function_and_keyword(work):
     os.chdir(work)
     with pytest.raises(KeywordError) as bad:
-        archive.mosaic(["f0"], gsd=0.5, fov=47.5, groundheight=3)
+        archive.mosaic(["f0"], gsd=0.5, fov=FOV, groundheight=3)
     assert isinstance(bad.value, TypeError)
     assert str(bad.value) == "archive.mosaic(): no keyword 'groundheight' (did you mean ground_height=?)"
     with pytest.raises(InputError) as bad:
-        archive.mosaic(["f0"], gsd=-1, fov=47.5)
+        archive.mosaic(["f0"], gsd=-1, fov=FOV)
     assert str(bad.value).startswith("archive.mosaic(gsd=...): ") and "--" not in str(bad.value)
     with pytest.raises(InputError) as bad:
         archive.mosaic(["f0"], gsd=0.5)
@@ -129,4 +130,4 @@ def test_python_errors_name_the_function_and_keyword(work):
     with pytest.raises(KeywordError, match=r"Archive.search\(\): no keyword 'bbx' \(did you mean bbox=\?\)"):
         archive.open_archive("arc").search(bbx=(1, 2, 3, 4))
     with pytest.raises(KeywordError, match=r"archive.georectify\(\): no keyword 'overwite'"):
-        archive.georectify(["f0"], "x.tif", gsd=0.5, fov=47.5, overwite=True)
+        archive.georectify(["f0"], "x.tif", gsd=0.5, fov=FOV, overwite=True)

@@ -22,6 +22,7 @@ from archive.params import NavigationParams
 from archive.simulator.command import simulate_flight
 from archive.sources import RawFlightSource, open_source
 from tests.test_render_truth import passes_truth_test, render_shifts
+from helpers import FOV
 
 BANDS = 4
 LINES = 700
@@ -71,7 +72,7 @@ def test_query_batch_coregisters_records_and_renders(fields, tmp_path, capsys):
     from archive.ingest.command import ingest
 
     archive = tmp_path / "archive"
-    ids = {name: ingest([str(fields[name].directory)], archive, 47.5, ground_height=80.0, progress=False)[0].cid
+    ids = {name: ingest([str(fields[name].directory)], archive, FOV, ground_height=80.0, progress=False)[0].cid
            for name in ("ref", "biased", "far")}
     code = main(["calibrate", "--archive", str(archive), "--query-bbox", ",".join(map(str, SITE)),
                  "--reference", ids["ref"], "--apply", "--json"])
@@ -107,7 +108,7 @@ def test_query_batch_coregisters_records_and_renders(fields, tmp_path, capsys):
     assert co["position_offset_m"] == pytest.approx(row["position_offset_m"], abs=1e-4)
     assert co["sigma"]["east"] > 0
     # renders of the collection use the recorded corrections (all cubes); the raw flight is still off
-    source = open_source(ids["biased"], NavigationParams(fov_deg=47.5, sync_offset=None, boresight_deg=None,
+    source = open_source(ids["biased"], NavigationParams(fov_deg=FOV, sync_offset=None, boresight_deg=None,
                                                          lever_arm_m=None), archive=archive)
     assert source.params.position_offset == pytest.approx(tuple(row["position_offset_m"]), abs=1e-4)
     recorded = render_shifts(source, truth, source.ground_height, BANDS // 2)
@@ -131,7 +132,7 @@ def _stack_residual(archive, out, sources, page: bool = False) -> dict:
 
     from tests.conftest import archive_view
 
-    assert main(["render", *sources, "--archive", str(archive), "--fov", "47.5", "--stack", "--out", str(out),
+    assert main(["render", *sources, "--archive", str(archive), "--fov", str(FOV), "--stack", "--out", str(out),
                  "--gsd", "0.28", "--bands", str(BANDS // 2), "--quiet"]) == 0
     command = [sys.executable, "-m", "archive", "view", "--archive", str(archive), "--stack", str(out), "--port", "0"]
     with archive_view(command, cwd=Path(__file__).resolve().parents[1]) as (url, _):
@@ -161,7 +162,7 @@ def test_a_field_30_percent_changed_still_converges(fields):
     """Ground painted with new patches over 30 % of the field since the reference: the windows that
     no longer match are rejected and counted; the estimate stays within the accuracy goals."""
     truth = fields["changed"]
-    result = coregister(_raw(truth), _raw(fields["ref"]), 47.5, 80.0)
+    result = coregister(_raw(truth), _raw(fields["ref"]), FOV, 80.0)
     _check_estimates(result.params.position_offset, result.params.sync, truth)
     w = result.windows
     assert w["unmatched"] + w["outliers"] >= 0.2 * w["textured"]
@@ -173,14 +174,14 @@ def test_a_field_30_percent_changed_still_converges(fields):
 
 def test_no_overlap_is_refused_in_one_line(fields, capsys):
     ref, far = fields["ref"], fields["far"]
-    assert main(["calibrate", str(far.directory), "--fov", "47.5", "--reference", str(ref.directory)]) != 0
+    assert main(["calibrate", str(far.directory), "--fov", str(FOV), "--reference", str(ref.directory)]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
     assert str(far.directory) in err[0] and str(ref.directory) in err[0] and "overlap found 0 m2" in err[0]
 
 
 def test_position_needs_a_reference(fields, capsys):
-    assert main(["calibrate", str(fields["ref"].directory), "--fov", "47.5", "--estimate", "position"]) != 0
+    assert main(["calibrate", str(fields["ref"].directory), "--fov", str(FOV), "--estimate", "position"]) != 0
     assert "add --reference REF" in capsys.readouterr().err
 
 
@@ -195,14 +196,14 @@ def test_raw_flight_apply_writes_the_offset_to_its_sidecar(fields, tmp_path):
 
     copy = tmp_path / "copy"
     shutil.copytree(fields["far"].directory, copy)
-    plain = RawFlightSource(copy, NavigationParams(fov_deg=47.5))
+    plain = RawFlightSource(copy, NavigationParams(fov_deg=FOV))
     params = Params(ground=80.0, east=1.25, north=-0.5, up=0.2)
     result = Calibration(params, Params(ground=80.0), ("east", "north", "up"), {"east": 0.01}, {"east": True}, {},
                          {}, {}, [], 0.28, reference="REF")
     (path,) = apply([plain], result)
     record = json.loads(path.read_text())
     assert record["position_offset_m"] == [1.25, -0.5, 0.2] and record["relative_to"] == "REF"
-    moved = RawFlightSource(copy, NavigationParams(fov_deg=47.5, sync_offset=None, boresight_deg=None))
+    moved = RawFlightSource(copy, NavigationParams(fov_deg=FOV, sync_offset=None, boresight_deg=None))
     for k in range(len(plain.cubes)):
         d = moved.poses(k).utm() - plain.poses(k).utm()
         assert d == pytest.approx(np.tile([1.25, -0.5, 0.2], (len(d), 1)), abs=1e-9)
@@ -212,7 +213,7 @@ def test_a_solution_that_leaves_the_flights_apart_is_refused(fields, capsys):
     """Holding the sync offset at 0 against its true 30 ms (--estimate position): opposite passes stay
     a pixel apart along track, which no position offset fixes: refused in one line, not reported."""
     ref, biased = fields["ref"], fields["biased"]
-    assert main(["calibrate", str(biased.directory), "--fov", "47.5", "--reference", str(ref.directory),
+    assert main(["calibrate", str(biased.directory), "--fov", str(FOV), "--reference", str(ref.directory),
                  "--estimate", "position", "--quiet"]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"co-registration to {ref.directory} did not converge" in err[0], err

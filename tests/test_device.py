@@ -20,6 +20,7 @@ from archive.errors import RenderError
 from archive.render.device import (EGLDevice, check_renderer, choose_device, egl_devices, gpu_required,
                                    spread_environments)
 from archive.simulator import simulate_flight
+from helpers import FOV
 
 ROOT = Path(__file__).resolve().parents[1]
 NV = ("EGL_NV_device_cuda", "EGL_EXT_device_drm")
@@ -115,7 +116,7 @@ def flight(tmp_path_factory):
 
 
 def _render(flight: Path, out: Path, **env: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "archive", "render", str(flight), "--fov", "47.5", "--gsd", "0.5",
+    return subprocess.run([sys.executable, "-m", "archive", "render", str(flight), "--fov", str(FOV), "--gsd", "0.5",
                            "--out", str(out), "--quiet", "--workers", "1"], capture_output=True, text=True,
                           cwd=ROOT, env=_clean_env(**env), timeout=600)
 

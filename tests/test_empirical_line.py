@@ -18,6 +18,7 @@ from archive.render.renderer import render_cube
 from archive.simulator.clouds import truth_reflectance
 from archive.simulator.command import simulate_flight
 from archive.sources import RawFlightSource
+from helpers import FOV
 
 BANDS = 8
 
@@ -77,7 +78,7 @@ def test_two_panels_give_reflectance_within_2_percent(tmp_path):
     import rasterio
 
     out = tmp_path / "refl.tif"
-    done = subprocess.run([sys.executable, "-m", "archive", "render", str(directory), "--fov", "47.5", "--gsd",
+    done = subprocess.run([sys.executable, "-m", "archive", "render", str(directory), "--fov", str(FOV), "--gsd",
                            str(grid.gsd), "--mode", "reflectance", "--panels", str(tmp_path / "panels.geojson"),
                            "--out", str(out), "--quiet"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr

@@ -13,6 +13,7 @@ import pytest
 
 from archive.errors import InputError
 from archive.overlap import LAST, MEAN, NADIR, RULES, overlap_rule
+from helpers import FOV
 
 
 def test_names_resolve_once_to_the_singletons():
@@ -49,13 +50,13 @@ def test_options_hold_the_rule_and_records_keep_the_name(tmp_path):
     from archive.catalog.product import render_command
     from archive.options import RenderOptions
 
-    options = RenderOptions.create(["flight"], gsd=0.5, fov=47.5, overlap="nadir")
+    options = RenderOptions.create(["flight"], gsd=0.5, fov=FOV, overlap="nadir")
     assert options.overlap is NADIR and RenderOptions.create(["flight"], gsd=0.5).overlap is LAST
     assert recipe_request(options)["overlap"] == "nadir"
     assert "--overlap nadir" in render_command(options, "out.zarr")
     with pytest.raises(InputError, match="--overlap: unknown overlap rule 'first'"):
         RenderOptions.create(["flight"], gsd=0.5, overlap="first")
-    refused = RenderOptions.create([tmp_path], gsd=0.5, fov=47.5, overlap="mean", provenance=True)
+    refused = RenderOptions.create([tmp_path], gsd=0.5, fov=FOV, overlap="mean", provenance=True)
     with pytest.raises(InputError, match="--overlap last or nadir with --provenance"):
         refused.check()
 

@@ -18,6 +18,7 @@ from archive.cli import main
 from archive.previews import GROUP, read_previews, verify_previews
 from archive.view.registry import FlightRegistry
 from archive.view.server import create_app
+from helpers import FOV
 
 
 def _client(app):
@@ -172,7 +173,7 @@ def test_stale_or_missing_previews_fall_back_and_ingest_adds_them(archive_copy, 
         assert not _tile(client, cid, z, x, y, bands)[1]
     # ingesting the same flight again adds them (its navigation as ingested again first)
     record_navigation(store, attrs["navigation_params"], {}, ground_height=attrs["ground_height"])
-    (result,) = ingest([str(small_flight)], arc, 47.5, progress=False)
+    (result,) = ingest([str(small_flight)], arc, FOV, progress=False)
     assert result.status == "already ingested"
     again = read_previews(store)
     assert again is not None and sorted(again.levels) == sorted(previews.levels)

@@ -22,6 +22,7 @@ from archive.render.renderer import rasterize_lookup, render_cube, render_lookup
 from archive.simulator.clouds import load_clouds, truth_reflectance
 from archive.simulator.command import simulate_flight
 from archive.sources import RawFlightSource
+from helpers import FOV
 
 BANDS = 64          # bands 9.5 nm wide: the simulator samples the scene at band centres
 BANDS_USED = list(range(0, BANDS, 7))
@@ -147,7 +148,7 @@ def test_missing_or_garbled_spectra_are_refused_by_name(flight, tmp_path):
     # the command: one line naming the file, non-zero exit, nothing written
     src = _copy(flight, tmp_path / "e", drop=("sim_downwelling_2_pre.spec",))
     out = tmp_path / "e" / "out.tif"
-    done = subprocess.run([sys.executable, "-m", "archive", "render", str(src.directory), "--fov", "47.5",
+    done = subprocess.run([sys.executable, "-m", "archive", "render", str(src.directory), "--fov", str(FOV),
                            "--gsd", "1", "--mode", "reflectance", "--bands", "0,9", "--out", str(out)],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode != 0 and "Traceback" not in done.stderr
@@ -162,7 +163,7 @@ def test_the_command_renders_reflectance_and_records_the_sky(flight, tmp_path):
     import json
 
     out = tmp_path / "refl.tif"
-    done = subprocess.run([sys.executable, "-m", "archive", "render", str(flight[0].directory), "--fov", "47.5",
+    done = subprocess.run([sys.executable, "-m", "archive", "render", str(flight[0].directory), "--fov", str(FOV),
                            "--gsd", "0.5", "--mode", "reflectance", "--bands", "0,21", "--out", str(out), "--quiet"],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
@@ -171,7 +172,7 @@ def test_the_command_renders_reflectance_and_records_the_sky(flight, tmp_path):
     cubes = record["flights"][0]["cubes"]
     assert [c["changed"] for c in cubes] == [True, False, True, False]
     assert record["summary"]["max_separable_error"] < 1e-9      # a grey sky: exact
-    info = subprocess.run([sys.executable, "-m", "archive", "info", str(flight[0].directory), "--fov", "47.5"],
+    info = subprocess.run([sys.executable, "-m", "archive", "info", str(flight[0].directory), "--fov", str(FOV)],
                           capture_output=True, text=True, timeout=120)
     assert info.returncode == 0 and "downwelling 4 spectra, calibration" in info.stdout, info.stdout + info.stderr
 
@@ -211,11 +212,11 @@ def test_a_dcp_kept_elsewhere(flight, tmp_path):
     np.testing.assert_array_equal(a.gain, b.gain)
     np.testing.assert_array_equal(a.response, b.response)
     with pytest.raises(MissingInputError, match="nowhere.dcp"):
-        open_source(src.directory, NavigationParams(fov_deg=47.5), irradiance_calibration=tmp_path / "nowhere.dcp")
+        open_source(src.directory, NavigationParams(fov_deg=FOV), irradiance_calibration=tmp_path / "nowhere.dcp")
     from archive.ingest.command import ingest
 
-    (result,) = ingest([src.directory], tmp_path / "arc", 47.5, progress=False, irradiance_calibration=pack)
-    coll = open_source(result.cid, NavigationParams(fov_deg=47.5), archive=tmp_path / "arc")
+    (result,) = ingest([src.directory], tmp_path / "arc", FOV, progress=False, irradiance_calibration=pack)
+    coll = open_source(result.cid, NavigationParams(fov_deg=FOV), archive=tmp_path / "arc")
     np.testing.assert_array_equal(coll.radiometry(1, [0, 9], "reflectance").gain, b.gain)
 
 
@@ -294,7 +295,7 @@ def test_provenance_flags_the_sky_per_pixel(flight, tmp_path):
     import xarray as xr
 
     out = tmp_path / "p.zarr"
-    done = subprocess.run([sys.executable, "-m", "archive", "render", str(flight[0].directory), "--fov", "47.5",
+    done = subprocess.run([sys.executable, "-m", "archive", "render", str(flight[0].directory), "--fov", str(FOV),
                            "--gsd", "0.5", "--mode", "reflectance", "--bands", "0", "--provenance", "--out", str(out),
                            "--quiet"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr

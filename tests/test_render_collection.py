@@ -63,6 +63,6 @@ def test_unknown_collection_and_calibration_refused(raw_and_archive, tmp_path, c
     assert main(["render", cid, "--archive", str(archive_dir), "--gsd", "0.1", "--out", str(out),
                  "--calibration", str(flight / "calibration.icp")]) != 0
     assert "--calibration" in capsys.readouterr().err
-    assert main(["render", "no-such-id", "--gsd", "0.1", "--out", str(out), "--fov", "47.5"]) != 0
+    assert main(["render", "no-such-id", "--gsd", "0.1", "--out", str(out), "--fov", str(FOV)]) != 0
     assert "--archive" in capsys.readouterr().err
     assert not out.exists()

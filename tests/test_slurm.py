@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import ingest_each
+from helpers import FOV, ingest_each
 
 GSD = "0.02"
 #: Flights large enough that one renders for seconds on one worker thread (the cancel lands mid-batch).
@@ -54,7 +54,7 @@ def test_slurm_options_are_checked_before_anything_starts(tmp_path, capsys):
     """--job-* without --cluster slurm, --cluster with --scheduler or --workers: one line, exit 2."""
     from archive.cli import main
 
-    base = ["render", str(tmp_path / "flight"), "--fov", "47.5", "--gsd", "0.1", "--out", str(tmp_path / "o.tif")]
+    base = ["render", str(tmp_path / "flight"), "--fov", str(FOV), "--gsd", "0.1", "--out", str(tmp_path / "o.tif")]
     cases = [(["--jobs", "2"], "--jobs: sizes the worker jobs of --cluster slurm"),
              (["--job-memory", "4GB"], "--job-memory: sizes the worker jobs of --cluster slurm"),
              (["--cluster", "slurm", "--scheduler", "tcp://h:8786"], "--cluster and --scheduler both say where"),

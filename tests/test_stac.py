@@ -496,10 +496,10 @@ def test_render_command_leaves_out_defaults(tmp_path):
 
     flight = tmp_path / "my flight"
     flight.mkdir()
-    request = RenderOptions.create([str(flight)], gsd=0.25, fov=47.5)
+    request = RenderOptions.create([str(flight)], gsd=0.25, fov=FOV)
     command = render_command(request, tmp_path / "out.tif")
     assert command == shlex.join(["archive", "render", str(flight), "--out", str(tmp_path / "out.tif"),
-                                  "--gsd", "0.25", "--fov", "47.5"])
+                                  "--gsd", "0.25", "--fov", str(FOV)])
     again, keywords = _round_trip(command)
     assert again == request and keywords["out"] == str(tmp_path / "out.tif")
 

@@ -21,6 +21,7 @@ import pytest
 
 from archive.ingest.command import ingest
 from archive.simulator.command import simulate_flight
+from helpers import FOV
 
 ENDPOINTS = ("GET /stac/search", "GET /stac/collections/flights/items", "POST /stac/search")
 
@@ -30,7 +31,7 @@ def archive_dir(tmp_path_factory) -> Path:
     """An archive holding one small simulated flight."""
     base = tmp_path_factory.mktemp("stac_faults")
     truth = simulate_flight(base / "flight", cubes=1, samples=32, lines=120, seed=3, start="2024-06-12T16:00:00Z")
-    ingest([str(base / "flight")], base / "archive", 47.5, ground_height=truth.ground_height, progress=False)
+    ingest([str(base / "flight")], base / "archive", FOV, ground_height=truth.ground_height, progress=False)
     return base / "archive"
 
 

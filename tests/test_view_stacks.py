@@ -17,6 +17,7 @@ import pytest
 
 from tests.conftest import archive_view
 import xarray as xr
+from helpers import FOV
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = Path("/usr/bin/chromium")
@@ -32,7 +33,7 @@ def stack(tmp_path_factory):
     for k, day in enumerate(("2024-06-12", "2024-06-19")):
         simulate_flight(root / f"day{k}", cubes=2, samples=32, lines=60, bands=4, seed=k, scene_seed=0,
                         start=f"{day}T16:00:00Z")
-        ingest([str(root / f"day{k}")], root / "archive", 47.5, progress=False)
+        ingest([str(root / f"day{k}")], root / "archive", FOV, progress=False)
     out = root / "field.zarr"
     subprocess.run([sys.executable, "-m", "archive", "render", "--archive", str(root / "archive"), "--query-datetime",
                     "2024-06", "--stack", "--gsd", "0.5", "--out", str(out), "--quiet"], check=True,
