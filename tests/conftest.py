@@ -1,4 +1,11 @@
-"""Shared pytest fixtures."""
+"""Shared pytest fixtures.
+
+Set-ups made once a session and shared read-only (a test that changes one copies it first):
+``simulated(**options)`` (any simulated raw flight, one per set of options), ``small_flight`` /
+``small_flights(seed)``, ``strips_flight``, ``tiny_flights(seed)``, the terrain flights ``hills`` and
+``ridge`` (shapes in ``helpers.py``), ``small_archive``; ``local_cluster`` / ``scheduler``: one
+LocalCluster shaped like ``archive render``'s own for the tests that render through ``--scheduler``.
+Constants and small helpers are in ``helpers.py`` (``from helpers import FOV``)."""
 
 from __future__ import annotations
 
