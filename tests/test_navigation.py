@@ -270,8 +270,8 @@ SIM_ARGS = ["--cubes", "3", "--lines", "80", "--samples", "16", "--bands", "2", 
 
 
 @pytest.fixture(scope="module")
-def simulated(tmp_path_factory):
-    """A small simulated flight (3 cubes: a pass of 2, a turn, 1 more) and its truth."""
+def cli_simulated(tmp_path_factory):
+    """A small flight made by ``archive simulate`` (3 cubes: a pass of 2, a turn, 1 more) and its truth."""
     import subprocess
     import sys
 
@@ -291,8 +291,8 @@ def _source(directory, truth, **kw):
     return RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg, **kw))
 
 
-def test_poses_match_simulated_truth(simulated):
-    directory, truth = simulated
+def test_poses_match_simulated_truth(cli_simulated):
+    directory, truth = cli_simulated
     source = _source(directory, truth)
     assert source.frame.epsg == truth.epsg
     assert len(source.cubes) == len(truth.cubes) == 3
@@ -306,8 +306,8 @@ def test_poses_match_simulated_truth(simulated):
 
 
 @pytest.mark.parametrize("offset", [0.01, -0.013])
-def test_sync_offset_matches_shifted_truth(simulated, offset):
-    directory, truth = simulated
+def test_sync_offset_matches_shifted_truth(cli_simulated, offset):
+    directory, truth = cli_simulated
     source = _source(directory, truth, sync_offset=offset)
     for info, cube in zip(source.cubes, truth.cubes, strict=True):
         poses = source.poses(info.index)
