@@ -164,3 +164,14 @@ def test_bad_packs(tmp_path):
         "offset_x.bip": (np.zeros((BANDS, 1, 5), np.uint16), {"gain": 0, "shutter": 3.0})})
     with pytest.raises(FormatError, match=r"shape\.icp: dark frame offset_x\.bip"):
         read_icp(shape)
+
+
+def test_the_same_calibration_gives_the_same_bytes(tmp_path):
+    """A pack written twice is the same bytes: its members carry a fixed zip time stamp, not their
+    files' (two flights of one seed simulated across a 2 s boundary differed in calibration.icp)."""
+    cal = _calibration(((0.0, 5.0),))
+    write_icp(tmp_path / "a.icp", cal)
+    write_icp(tmp_path / "b.icp", cal)
+    assert (tmp_path / "a.icp").read_bytes() == (tmp_path / "b.icp").read_bytes()
+    with zipfile.ZipFile(tmp_path / "b.icp") as zf:
+        assert {i.date_time for i in zf.infolist()} == {(1980, 1, 1, 0, 0, 0)}

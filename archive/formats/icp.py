@@ -234,5 +234,8 @@ def write_icp(path: str | os.PathLike, calibration: Calibration) -> None:
         for name, data, meta in members:
             file = Path(scratch) / name
             write_envi(file, data[:, None, :], {**base_meta, **meta}, interleave="bip")
-            zf.write(file, name)
-            zf.write(file.with_name(name + ".hdr"), name + ".hdr")
+            for member, source in ((name, file), (name + ".hdr", file.with_name(name + ".hdr"))):
+                # a fixed time stamp: the same calibration gives the same bytes (reproducible flights)
+                info = zipfile.ZipInfo(member, date_time=(1980, 1, 1, 0, 0, 0))
+                info.external_attr = 0o644 << 16
+                zf.writestr(info, source.read_bytes(), compress_type=zipfile.ZIP_STORED)
