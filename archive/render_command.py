@@ -14,8 +14,9 @@ from archive.errors import InputError
 __all__ = ["render_keywords", "run"]
 
 
-def _query_ids(args: argparse.Namespace) -> list[str] | None:
-    """Collection ids of ``--archive`` matching the ``--query-*`` filters (None when none is given)."""
+def query_ids(args: argparse.Namespace) -> list[str] | None:
+    """Collection ids of ``--archive`` matching the ``--query-*`` filters (None when none is given);
+    ``archive render`` and ``archive calibrate`` share these options."""
     bbox, when = args.query_bbox, args.query_datetime
     wavelength = args.query_wavelength
     if bbox is None and when is None and wavelength is None:
@@ -75,7 +76,7 @@ def render_keywords(args: argparse.Namespace, scheduler=None) -> dict:
     keywords = {"sources": list(args.sources or []), "out": args.out,
                 **{name: getattr(args, name) for name in KEYWORDS + RUN_KEYWORDS},
                 "scheduler": _where(args) if scheduler is None else scheduler}
-    ids = _query_ids(args)
+    ids = query_ids(args)
     if ids is not None:
         keywords["sources"] += [i for i in ids if i not in keywords["sources"]]
         keywords["per_flight"] = not (args.mosaic or args.stack)

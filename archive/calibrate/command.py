@@ -100,10 +100,11 @@ def run_reference(args: argparse.Namespace) -> int:
     from archive.calibrate.coregister import COREGISTER_ESTIMATE, coregister
     from archive.calibrate.estimate import parse_estimate
     from archive.errors import ArchiveError
+    from archive.render_command import query_ids
 
     estimate = parse_estimate(args.estimate, default=COREGISTER_ESTIMATE)
     names = list(args.sources or [])
-    names += [i for i in query_ids(args) if i not in names]
+    names += [i for i in query_ids(args) or () if i not in names]
     (reference,), fov = open_calibration_sources([args.reference], args.archive, args.fov)
     ref_id = str(reference.id) if hasattr(reference, "store") else str(reference.label)
     names = [n for n in names if n not in (args.reference, ref_id)]
@@ -149,24 +150,6 @@ def run_reference(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(outputs[0] if not batch else {"reference": ref_id, "flights": outputs}, indent=1))
     return 1 if failed else 0
-
-
-def query_ids(args: argparse.Namespace) -> list[str]:
-    """Collection ids of ``--archive`` matching the ``--query-*`` filters ([] when none is given)."""
-    bbox, when, wavelength = args.query_bbox, args.query_datetime, args.query_wavelength
-    if bbox is None and when is None and wavelength is None:
-        return []
-    if not args.archive:
-        raise InputError("--query-*", "a catalog query needs the archive to search", "pass --archive ARCHIVE")
-    from archive.api import open_archive
-
-    ids = open_archive(args.archive).search(bbox=bbox, datetime=when, wavelength=wavelength)
-    if not ids:
-        asked = ", ".join(f"{k} {v}" for k, v in (("--query-bbox", bbox), ("--query-datetime", when),
-                                                   ("--query-wavelength", wavelength)) if v is not None)
-        raise InputError(args.archive, f"no flight in the catalog matches {asked}",
-                         "check the filters with 'archive catalog search'")
-    return list(ids)
 
 
 def summary_line(name: str, result) -> str:
