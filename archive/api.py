@@ -271,4 +271,4 @@ def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: So
         raise InputError("--resume", "resumes batch jobs (one output per flight)",
                          "leave it out: a single output is written whole or not at all")
     return pipeline.georectify(request, out, quicklook=quicklook, overwrite=overwrite, scheduler=scheduler,
-                               workers=workers, quiet=quiet, format=format, threads=threads)
+                               workers=workers, quiet=quiet, threads=threads)

@@ -131,7 +131,7 @@ class RenderOptions:
     name of :data:`archive.codecs.COMPRESSIONS` ('fast', the default; 'small'; 'none').
 
     Build one with :meth:`create`, which normalises what callers give (a single source, CLI text
-    such as ``'550,650'``, paths); checks that need files are :meth:`check`'s.
+    such as ``'550,650'``, paths); :meth:`check` checks the rest without opening a file.
     """
 
     sources: tuple[str, ...]
@@ -201,8 +201,10 @@ class RenderOptions:
         return dataclasses.replace(self, sources=tuple(os.fspath(s) for s in sources))
 
     def check(self) -> NavigationParams:
-        """Checks that read no pixels (fast, before anything starts); the navigation parameters the
-        sources are opened with (the field of view of collections read from their records)."""
+        """Checks that open no file (fast, before anything starts: no collection, DEM or output is
+        read); the navigation parameters the sources are opened with. Their field of view is
+        ``fov``, None for collections rendered without ``--fov``: :func:`archive.pipeline.open_inputs`
+        (:func:`archive.pipeline.navigation`) reads the one they were ingested with."""
         check_gsd(self.gsd)
         if not self.sources:
             raise InputError("SOURCE", "nothing to render",
@@ -216,11 +218,7 @@ class RenderOptions:
         if fov is None and len(collections) < len(self.sources):
             raise InputError("--fov", "the field of view is required for raw flight directories",
                              "pass --fov DEG (47.5 for a Pika L and for 'archive simulate' flights)")
-        if fov is None:
-            from archive.sources.open import collection_fov
-
-            fov = collection_fov(self.archive, collections)
-        if not (math.isfinite(fov) and 0 < fov < 180):
+        if fov is not None and not (math.isfinite(fov) and 0 < fov < 180):
             raise InputError("--fov", f"must be between 0 and 180 degrees, got {fov:g}")
         if self.sync_offset is not None and not math.isfinite(self.sync_offset):
             raise InputError("--sync-offset", f"must be a finite number of seconds, got {self.sync_offset!r}")
@@ -244,7 +242,7 @@ class RenderOptions:
         if self.like is not None and (self.bounds is not None or self.align):
             raise InputError("--like", f"takes the whole grid of {self.like}, so --bounds and --align have nothing "
                              "to decide", "leave --bounds/--align out, or --like")
-        return NavigationParams(fov_deg=float(fov),
+        return NavigationParams(fov_deg=None if fov is None else float(fov),
                                 sync_offset=None if self.sync_offset is None else float(self.sync_offset),
                                 boresight_deg=self.boresight, lever_arm_m=self.lever_arm)
 
@@ -269,8 +267,8 @@ def grid_request(options: RenderOptions):
 
 
 def _check_dem(options: RenderOptions) -> None:
-    """--dem / --dem-datum: exclusive with a numeric --ground-height; the DEM opens (a raster with a
-    CRS, whose vertical datum is declared or given, and whose geoid grid PROJ finds): metadata only."""
+    """--dem / --dem-datum: exclusive with a numeric --ground-height (the DEM itself is opened, once,
+    by :func:`archive.pipeline.open_inputs`)."""
     if options.dem is None:
         if options.dem_datum is not None:
             raise InputError("--dem-datum", "gives the vertical datum of a DEM, but no --dem was given",
@@ -279,9 +277,6 @@ def _check_dem(options: RenderOptions) -> None:
     if str(options.ground_height).strip().lower() != "auto":
         raise InputError("--dem", f"--dem and --ground-height {options.ground_height} are exclusive: the DEM "
                          "gives the ground", "leave --ground-height out")
-    from archive.dem import open_dem
-
-    open_dem(options.dem, options.dem_datum)
 
 
 def _compression(value) -> str:

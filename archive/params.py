@@ -17,7 +17,9 @@ DEFAULT_MAX_VIEW_ANGLE = 40.0
 class NavigationParams:
     """How navigation is turned into per-line camera poses.
 
-    fov_deg: across-track field of view of the camera, degrees.
+    fov_deg: across-track field of view of the camera, degrees (None from
+        :meth:`~archive.options.RenderOptions.check` for collections rendered without ``--fov``:
+        :func:`archive.pipeline.navigation` reads the one they were ingested with).
     sync_offset: seconds added to every line time before looking up navigation.
     boresight_deg: camera -> body rotation as (roll, pitch, yaw) degrees, aerospace sign, applied
         intrinsically Z-Y-X like the body attitude.
@@ -30,7 +32,7 @@ class NavigationParams:
     offset neither given nor recorded stays None, which means none).
     """
 
-    fov_deg: float
+    fov_deg: float | None
     sync_offset: float | None = 0.0
     boresight_deg: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
     lever_arm_m: tuple[float, float, float] | None = (0.0, 0.0, 0.0)

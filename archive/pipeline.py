@@ -40,7 +40,7 @@ from archive.cluster import ClusterClose, active_client, check_gpu_workers, exec
 from archive.errors import InputError
 from archive.files import wait_while_exists
 from archive.grid import GridRequest
-from archive.options import DEFAULT_MAX_VIEW_ANGLE, RenderOptions, check_gsd, grid_request
+from archive.options import DEFAULT_MAX_VIEW_ANGLE, RenderOptions, grid_request
 from archive.outputs.base import variable_for_mode
 from archive.outputs.publish import Output
 from archive.outputs.zarr import mosaic_dataset
@@ -106,6 +106,17 @@ def _quiet(text: str) -> None:
     pass
 
 
+def navigation(options: RenderOptions, nav: NavigationParams) -> NavigationParams:
+    """``nav`` (from :meth:`~archive.options.RenderOptions.check`) with its field of view decided:
+    ``--fov``, else the one the collections of ``options`` were ingested with (their records read
+    here; they must agree)."""
+    if nav.fov_deg is not None:
+        return nav
+    from archive.sources.open import collection_fov
+
+    return dataclasses.replace(nav, fov_deg=float(collection_fov(options.archive, options.sources)))
+
+
 def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosaic: bool = True) -> Inputs:
     """Open and check the sources of ``options`` (``nav`` from :meth:`~archive.options.RenderOptions.check`).
 
@@ -118,7 +129,13 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
     from archive.graph.plan import cube_meshes
     from archive.sources import open_source
 
+    from archive.dem import DemSpec
+    from archive.sources.ground import sources_dem
+
     grid = grid_request(options)   # --like read once, before the sources
+    nav = navigation(options, nav)
+    given_dem = None if options.dem is None else DemSpec.create(options.dem, options.dem_datum)
+    terrain = None if given_dem is None else given_dem.open()   # opened once, here: its errors before the sources'
     # absolute paths: workers (maybe on another machine sharing the file system) open them again
     archive = None if options.archive is None else \
         (options.archive if storage.is_url(options.archive) else Path(options.archive).absolute())
@@ -148,19 +165,16 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
             for s, b in zip(sources, bands)]
     for s, b in zip(sources, bands):
         s.radiometry(0, b[:1], mode)  # mode problems (calibration, white reference) surface now
-    from archive.dem import DemSpec
-    from archive.sources.ground import sources_dem
-
-    if options.dem is not None:   # the DEM gives the ground: no flat height to settle
-        dem = DemSpec.create(options.dem, options.dem_datum)
+    if given_dem is not None:   # the DEM gives the ground: no flat height to settle
+        dem = given_dem
     elif str(options.ground_height).strip().lower() == "auto":   # collections ingested with --dem: theirs
         dem = sources_dem(sources)
+        terrain = None if dem is None else dem.open()
     else:
         dem = None
     if dem is not None:
         grounds = [None] * len(sources)
-        opened = dem.open()
-        meshes = tuple(cube_meshes(s, nav.fov_deg, math.nan, float(options.max_view_angle), terrain=opened,
+        meshes = tuple(cube_meshes(s, nav.fov_deg, math.nan, float(options.max_view_angle), terrain=terrain,
                                    gsd=float(options.gsd))
                        for s in sources)
     elif mosaic:
@@ -447,7 +461,7 @@ def client_budget() -> int | None:
 
 def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str | os.PathLike | None = None,
                overwrite: bool = False, scheduler: str | None = None, workers: int | None = None,
-               quiet: bool = True, format: str = "zarr", threads: int | None = None) -> dict:
+               quiet: bool = True, threads: int | None = None) -> dict:
     """Georectify ``options`` into ``out`` (.zarr, .tif or .hdr); returns a summary dict. Raises ArchiveError.
 
     One output at ``out`` (batch jobs, one output per flight, are :func:`archive.batch.run_batch`'s).
@@ -457,7 +471,7 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
     """
     started = time.perf_counter()
     say = progress_lines(quiet)
-    check_gsd(options.gsd)
+    nav = options.check()
     remote = None
     if storage.is_url(out):   # rendered in a local staging folder, uploaded once, its Item last
         from archive.outputs.publish import RemoteOutput
@@ -475,7 +489,6 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
                         provenance=options.provenance)
     output.check()
     outputs = [output]
-    nav = options.check()
     client = cluster = closing = None
     jobs: list[_Job] = []
     graph_seconds = 0.0

@@ -330,14 +330,13 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
     "renders" (render tasks run), "width", "height", "gsd", "epsg", "bands", "seconds"}``.
     ArchiveError before anything is written for problems of the whole request."""
     from archive.cluster import flight_slots, start_cluster, task_budget, wait_for_writers
-    from archive.options import check_gsd
     from archive.outputs.publish import Output
-    from archive.pipeline import build_output, open_inputs, plan_output, progress_lines
+    from archive.pipeline import build_output, navigation, open_inputs, plan_output, progress_lines
 
     started = time.perf_counter()
     tell = tell or (lambda line: None)
     say = progress_lines(quiet)
-    check_gsd(options.gsd)
+    nav = options.check()
     out = Path(out).absolute()
     if out.suffix.lower() != ".zarr":
         raise InputError(out, "a stack is one Zarr store (time, band, y, x)", "name --out X.zarr")
@@ -349,7 +348,7 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
                          "leave --compression out with --stack")
     if options.archive is not None:   # recipes independent of the working directory
         options = dataclasses.replace(options, archive=os.fspath(Path(options.archive).absolute()))
-    nav = options.check()
+    nav = navigation(options, nav)   # one field of view for all the flights
     Output(out, overwrite=True).check()   # a writable folder; temporaries of killed runs removed
     for tmp in out.parent.glob(f"..{out.name}.slice-*.zarr.partial-*"):   # and their slice stores
         Output(tmp.parent / tmp.name[1:].split(".partial-")[0], overwrite=True).check()
@@ -617,9 +616,9 @@ def stack(options, *, band_group: int | None = None, quiet: bool = True):
     it (dask culls the other tiles' tasks; a tile no cube of a flight touches is NaN without GL)."""
     import xarray as xr
 
-    from archive.pipeline import client_budget, plan as plan_of, planned_dataset, progress_lines
+    from archive.pipeline import client_budget, navigation, plan as plan_of, planned_dataset, progress_lines
 
-    nav = options.check()
+    nav = navigation(options, options.check())   # one field of view for all the flights
     if options.provenance:
         raise InputError("provenance", "a stack holds no provenance layers")
     sources = list(dict.fromkeys(options.sources))

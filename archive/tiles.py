@@ -128,7 +128,9 @@ def run_tiles(options, out, size, *, format: str = "zarr", overwrite: bool = Fal
         raise InputError("--tiles", "tiles have their own grids, edges on multiples of the tile side",
                          "leave --like out (--bounds selects the tiles)")
     size = check_size(size, options.gsd)
-    nav = options.check()
+    from archive.pipeline import navigation
+
+    nav = navigation(options, options.check())   # one field of view for all the tiles
     tiles = plan_tiles(options, nav, size)
     name = {s: Path(s).name if Path(s).is_dir() else str(s) for s in options.sources}
     units = []
