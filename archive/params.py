@@ -17,7 +17,8 @@ DEFAULT_MAX_VIEW_ANGLE = 40.0
 class NavigationParams:
     """How navigation is turned into per-line camera poses.
 
-    fov_deg: across-track field of view of the camera, degrees (None from
+    fov_deg: across-track field of view of the camera, degrees; None (the default): not decided here
+        (sources ignore it; the meshes take the one decided for the render), or, from
         :meth:`~archive.options.RenderOptions.check` for collections rendered without ``--fov``:
         :func:`archive.pipeline.navigation` reads the one they were ingested with).
     sync_offset: seconds added to every line time before looking up navigation.
@@ -32,7 +33,7 @@ class NavigationParams:
     offset neither given nor recorded stays None, which means none).
     """
 
-    fov_deg: float | None
+    fov_deg: float | None = None
     sync_offset: float | None = 0.0
     boresight_deg: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
     lever_arm_m: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
@@ -100,7 +101,7 @@ class RenderParams:
     mode: str = "radiance"
     bands: tuple[int, ...] | None = None
     overlap: OverlapRule = LAST
-    navigation: NavigationParams = field(default_factory=lambda: NavigationParams(fov_deg=47.5))
+    navigation: NavigationParams = field(default_factory=NavigationParams)
 
 
 def coregistration_properties(attrs: dict) -> dict:

@@ -580,3 +580,31 @@ def test_one_envi_header_writer():
     assert not envi_header_writers('if first.strip() != "ENVI": pass')
     writers = {name for name, path in modules().items() if envi_header_writers(path.read_text())}
     assert writers == {"archive.formats.envi"}, f"ENVI headers written outside archive.formats.envi: {writers}"
+
+
+def dummy_fovs(text: str) -> list[int]:
+    """Lines of ``text`` that give :class:`~archive.params.NavigationParams` a field of view holding a
+    number literal (``fov_deg=47.5``, ``fov or 47.5``, ``47.5 if fov is None else fov``, or positionally)."""
+    bad = []
+    for node in ast.walk(ast.parse(text)):
+        if not (isinstance(node, ast.Call) and getattr(node.func, "id", getattr(node.func, "attr", None))
+                == "NavigationParams"):
+            continue
+        given = [k.value for k in node.keywords if k.arg == "fov_deg"] + node.args[:1]
+        if any(isinstance(c, ast.Constant) and isinstance(c.value, int | float) and not isinstance(c.value, bool)
+               for g in given for c in ast.walk(g)):
+            bad.append(node.lineno)
+    return bad
+
+
+def test_no_dummy_field_of_view():
+    """Issue 31: navigation parameters carry no field of view that nobody reads; a source is opened
+    with ``NavigationParams(sync_offset=...)`` and the field of view is the render's (--fov, else the
+    collections' record), never a number made up for the call."""
+    for line in ["NavigationParams(fov_deg=47.5)", "p.NavigationParams(fov_deg=fov or 47.5, sync_offset=None)",
+                 "NavigationParams(47.5 if f is None else f)", "NavigationParams(40)"]:
+        assert dummy_fovs(line), line
+    assert not dummy_fovs("NavigationParams(fov_deg=fov, sync_offset=0.0)")
+    assert not dummy_fovs("NavigationParams(sync_offset=0.5)")
+    bad = [f"{path.relative_to(ROOT)}:{n}" for path in modules().values() for n in dummy_fovs(path.read_text())]
+    assert not bad, "NavigationParams given a made-up field of view:\n" + "\n".join(bad)

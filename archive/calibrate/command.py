@@ -24,7 +24,7 @@ def open_calibration_sources(names, archive=None, fov=None):
         raise InputError("calibrate", "no flight given", "name a raw flight directory or a collection id with --archive")
     opened = []
     for name in names:
-        params = NavigationParams(fov_deg=fov or 47.5, sync_offset=None, boresight_deg=None, lever_arm_m=None)
+        params = NavigationParams(fov_deg=fov, sync_offset=None, boresight_deg=None, lever_arm_m=None)
         opened.append(open_source(name, params, archive=archive))
     fovs = {fov} if fov is not None else {s.fov_deg for s in opened}
     if None in fovs:

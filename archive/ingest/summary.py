@@ -211,22 +211,21 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--dem-datum", "gives the vertical datum of a DEM, but no --dem was given",
                          "add --dem FILE, or leave --dem-datum out")
     if archive is None or Path(args.directory).is_dir():
-        params = NavigationParams(fov_deg=47.5 if fov is None else float(fov), sync_offset=float(args.sync_offset))
-        source = RawFlightSource(args.directory, params)
+        fov = 47.5 if fov is None else float(fov)   # info's documented default (a Pika L's)
+        source = RawFlightSource(args.directory, NavigationParams(sync_offset=float(args.sync_offset)))
         spec = None
     else:
         if fov is None:
             from archive.sources.open import collection_fov
 
             fov = collection_fov(archive, [args.directory])
-        params = NavigationParams(fov_deg=float(fov), sync_offset=None)
-        source = open_source(args.directory, params, archive=archive)
+        source = open_source(args.directory, NavigationParams(sync_offset=None), archive=archive)
         spec = recorded_dem(source.info.attrs.get("terrain"), str(args.directory))
     if getattr(args, "dem", None) is not None:
         dem = open_dem(args.dem, args.dem_datum)
     else:
         dem = None if spec is None else spec.open()
-    summary = summarize(source, source.params.fov_deg, dem)
+    summary = summarize(source, float(fov), dem)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

@@ -123,8 +123,8 @@ class Flight:
         if found is not None:
             self._sources.move_to_end(sync_offset)
             return found
-        # fov_deg is not used by sources (meshes take self.fov); boresight and lever arm: as ingested
-        params = NavigationParams(fov_deg=47.5, sync_offset=sync_offset, boresight_deg=None, lever_arm_m=None)
+        # no field of view: sources do not use one (meshes take self.fov); boresight and lever arm: as ingested
+        params = NavigationParams(sync_offset=sync_offset, boresight_deg=None, lever_arm_m=None)
         return self._keep(self._sources, sync_offset, self.opener(params), GEOMETRIES_KEPT)
 
     def terrain(self):
