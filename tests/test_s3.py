@@ -519,3 +519,25 @@ def test_a_stack_into_a_bucket_is_refused(s3_archive):
     assert r.returncode == 2 and len(lines) == 1 and "cannot be written into object storage" in lines[0], r.stderr
     bucket, prefix = out[5:].split("/", 1)
     assert _keys(bucket, prefix.rsplit("/", 1)[0] + "/") == {} and not Path("s3:").exists()
+
+
+def test_an_archive_created_by_another_ingest_meanwhile_is_opened(s3_bucket, monkeypatch):
+    """The marker of a new s3 archive PUT by another ingest between this one's check for it and its
+    listing of the prefix (the race CI met once: 'holds objects but no archive.json'): the prefix is
+    an archive, opened, not refused."""
+    from archive import storage
+    from archive.catalog import root as roots
+
+    url = f"s3://{s3_bucket}/race-{uuid.uuid4().hex[:6]}"
+    real_exists, calls = storage.exists, []
+
+    def exists_as_before_the_other_put(loc):
+        calls.append(loc)
+        if len(calls) == 1:   # checked before the other ingest's PUT ...
+            storage.put_if_absent(storage.location(url) / roots.MARKER, b'{"format": "archive", "version": 1}\n')
+            return False
+        return real_exists(loc)   # ... which has happened by the listing
+
+    monkeypatch.setattr(storage, "exists", exists_as_before_the_other_put)
+    root = roots.create_archive(url)
+    assert str(root.path).rstrip("/") == url and len(calls) >= 2

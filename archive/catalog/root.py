@@ -173,7 +173,9 @@ def create_archive(path: str | os.PathLike) -> ArchiveRoot:
     if storage.is_url(root):
         if storage.exists(root / MARKER):
             return open_root(root)
-        if any(True for _ in storage.list_names(root)):
+        # another ingest creating this archive puts its marker first, before any other object: a prefix
+        # found non-empty is an archive when the marker is there now (it may have appeared since the check)
+        if any(True for _ in storage.list_names(root)) and not storage.exists(root / MARKER):
             raise InputError(root, f"holds objects but no {MARKER}, so it is not an archive",
                              "choose a new or empty prefix for --archive")
         storage.put_if_absent(root / MARKER, (json.dumps({"format": FORMAT, "version": VERSION}, indent=2)
