@@ -32,10 +32,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from archive.calibrate.estimate import (ITERATIONS, MIN_OVERLAP_WINDOWS, MIN_WINDOW, SPACING, STOP, SWATH_PIXELS,
+from archive.calibrate.estimate import (MIN_OVERLAP_WINDOWS, MIN_WINDOW, SPACING, SWATH_PIXELS,
                                         WINDOW, Calibration, FlightImages, check_converged, dem_surface,
                                         describe_params, fit_separable, make_report, measure_passes, nominal_pixel,
-                                        pass_images, prefiltered, rect_sides, search_sync, tie_stats)
+                                        pass_images, prefiltered, rect_sides, refit, search_sync, tie_stats)
 from archive.calibrate.match import measure_pair, pair_grid
 from archive.calibrate.model import PARAM_NAMES, FlightModel, Params
 from archive.calibrate.solve import anchored
@@ -119,16 +119,16 @@ def coregister(source, reference, fov_deg: float, ground: float, *, dem=None, de
     if "sync" in estimate:
         params = search_sync(sets, params, estimate, pixel, say, fine=True)
     result = fit_separable(sets, params, start, list(estimate), held, pixel, say)
-    params = result.params
-    for it in range(ITERATIONS):
-        say(f"iteration {it + 1}: {_text(params, dem)}")
-        sets, cross_pairs, cross_ties, own_ties = _measure_both(flight, ref, params, ref_params, spacing, window, say)
+
+    def measure(trial: Params):
+        sets, cross_pairs, cross_ties, _ = _measure_both(flight, ref, trial, ref_params, spacing, window, say)
         _check_cross(cross_ties, cross_pairs, estimate, name, ref_name)
-        result = fit_separable(sets, params, start, [n for n in estimate if n not in held], held, pixel, say)
-        moved = np.abs(result.params.vector() - params.vector())
-        params = result.params
-        if np.all(moved <= STOP):
-            break
+        return sets
+
+    result = refit(result, measure, lambda sets, trial: fit_separable(
+        sets, trial, start, [n for n in estimate if n not in held], held, pixel, say),
+        lambda trial: _text(trial, dem), say)
+    params = result.params
     say(f"final: {_text(params, dem)}")
     _, cross_pairs, cross_after, own_after = _measure_both(flight, ref, params, ref_params, spacing, window,
                                                            lambda text: None)

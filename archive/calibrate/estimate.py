@@ -27,7 +27,7 @@ rather than inventing it.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -304,15 +304,15 @@ def calibrate(sources: Sequence, fov_deg: float, ground: float, *, dem=None, dem
     held: dict = {}
     result = fit_separable(sets, params, start, list(estimate), held, pixel, say)
     params = result.params
-    for it in range(ITERATIONS):
-        say(f"iteration {it + 1}: {describe_params(params, dem is not None)}")
-        sets, pairs, ties = measure_passes(flights, params, spacing, window, say)
+    def measure(trial: Params):
+        sets, pairs, ties = measure_passes(flights, trial, spacing, window, say)
         _check_ties(ties, pairs, estimate, flights)
-        result = fit_separable(sets, params, start, [n for n in estimate if n not in held], held, pixel, say)
-        moved = np.abs(result.params.vector() - params.vector())
-        params = result.params
-        if np.all(moved <= STOP):
-            break
+        return sets
+
+    result = refit(result, measure, lambda sets, trial: fit_separable(
+        sets, trial, start, [n for n in estimate if n not in held], held, pixel, say),
+        lambda trial: describe_params(trial, dem is not None), say)
+    params = result.params
     say(f"final: {describe_params(params, dem is not None)}")
     sets_after, pairs, ties_after = measure_passes(flights, params, spacing, window, lambda text: None)
     final_ground = params.ground if dem is None else float(np.median(dem.typical_height())) + params.ground
@@ -322,6 +322,21 @@ def calibrate(sources: Sequence, fov_deg: float, ground: float, *, dem=None, dem
     pixel = pixel_after
     check_converged(result, start, after, flights)
     return make_report(result, start, estimate, held, before, after, pairs, pixel, dem_label)
+
+
+def refit(result: Fit, measure: Callable[[Params], list], fit: Callable[[list, Params], Fit],
+          describe: Callable[[Params], str], say: Callable[[str], None]) -> Fit:
+    """Measure the overlaps again under ``result``'s parameters and fit again, until no parameter
+    moves by more than :data:`STOP` (at most :data:`ITERATIONS` times): ``measure(params)`` -> the
+    solver's sets, ``fit(sets, params)`` -> the next :class:`Fit`. Returns the last fit. Shared by
+    the calibration within a flight and the co-registration to a reference."""
+    for it in range(ITERATIONS):
+        params = result.params
+        say(f"iteration {it + 1}: {describe(params)}")
+        result = fit(measure(params), params)
+        if np.all(np.abs(result.params.vector() - params.vector()) <= STOP):
+            break
+    return result
 
 
 def check_converged(result: Fit, start: Params, after: dict, flights) -> None:
