@@ -88,10 +88,7 @@ def render_cli(flight: Path, out: Path, gsd: float, ground: float, extra=(), wor
         raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}): {stderr[-3000:]}")
     os.sync()
     synced = time.perf_counter() - t
-    files = [out] if out.is_file() else [f for f in out.rglob("*") if f.is_file()]
-    if out.suffix == ".hdr":
-        files.append(out.with_suffix(""))
-    size = sum(f.stat().st_size for f in files)
+    size = output_bytes(out)
     prof = json.loads(profile.read_text())
     cpu = prof["cpu"]["client"] + sum(prof["cpu"]["workers"].values())
     task_s = sum(v["task_s"] for v in prof["tasks"].values())
@@ -101,6 +98,14 @@ def render_cli(flight: Path, out: Path, gsd: float, ground: float, extra=(), wor
             "busy_cpu": cpu / wall / prof["cores"], "busy_graph_cpu": cpu / max(prof["graph_s"], 1e-9) / prof["cores"],
             "busy_tasks": task_s / max(prof["graph_s"] * prof["nthreads"], 1e-9),
             "profile": prof, "load": [load0, br.load()]}
+
+
+def output_bytes(out: Path) -> int:
+    """Bytes of an output on disk: the file, every file of a store, an ENVI header and its data."""
+    files = [out] if out.is_file() else [f for f in out.rglob("*") if f.is_file()]
+    if out.suffix == ".hdr":
+        files.append(out.with_suffix(""))
+    return sum(f.stat().st_size for f in files)
 
 
 def render_plain(flight: Path, out: Path, gsd: float, ground: float, extra=()) -> dict:
@@ -125,13 +130,10 @@ def render_plain(flight: Path, out: Path, gsd: float, ground: float, extra=()) -
         raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}): {stderr[-3000:]}")
     os.sync()
     synced = time.perf_counter() - t
-    files = [out] if out.is_file() else [f for f in out.rglob("*") if f.is_file()]
-    if out.suffix == ".hdr":
-        files.append(out.with_suffix(""))
     cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
     return {"cmd": "archive render " + " ".join(cmd[4:]), "wall_s": wall, "wall_sync_s": synced, "tree_cpu_s": cpu,
             "busy_tree": cpu / wall / (os.cpu_count() or 1), "peak_tree_rss": poll.peak_rss,
-            "peak_tree_anon": poll.peak_anon, "out_mb": sum(f.stat().st_size for f in files) / br.MB,
+            "peak_tree_anon": poll.peak_anon, "out_mb": output_bytes(out) / br.MB,
             "load": [load0, br.load()]}
 
 
