@@ -20,7 +20,7 @@ from archive.codecs import COMPRESSIONS, DEFAULT_COMPRESSION, compression
 from archive.errors import InputError
 from archive.options import RenderOptions
 from archive.outputs.cog_check import check_cog
-from archive.outputs.tiff import decode_tile, encode_tile
+from archive.outputs.tiff import decode_tile, encode_tile, float_predictor
 from helpers import FOV
 
 GSD = 0.02   # ~1760 x 400 px: two chunk columns, 4 x 1 COG tiles and 2 overview levels
@@ -114,6 +114,37 @@ def test_tile_codec_round_trip(name):
     back = decode_tile(data, compressed=c.cog_zstd is not None, predictor=c.cog_predictor)
     np.testing.assert_array_equal(_bits(back), _bits(tile))
     assert (len(data) == tile.nbytes) == (c.cog_zstd is None)
+
+
+def _fp_diff(tile: np.ndarray) -> np.ndarray:
+    """libtiff's fpDiff written out byte by byte (TIFF technical note 3): per row, the bytes of each
+    pixel big-endian, byte k of every pixel before byte k + 1, then each byte minus the previous
+    one modulo 256."""
+    import struct
+
+    h, w = tile.shape
+    out = np.empty((h, 4 * w), np.uint8)
+    for y in range(h):
+        be = [struct.pack(">f", float(v)) if np.isfinite(v) else int(np.float32(v).view(np.uint32)).to_bytes(4, "big")
+              for v in tile[y]]
+        row = [be[x][k] for k in range(4) for x in range(w)]
+        out[y] = [row[0]] + [(row[i] - row[i - 1]) % 256 for i in range(1, 4 * w)]
+    return out
+
+
+def test_float_predictor_is_libtiffs_fpdiff_on_views_and_special_values():
+    """The predictor (planes by shifts, no transpose copy) gives fpDiff's bytes, from a tile that
+    is a view of a wider chunk too (as the writer hands its 2 x 2 tiles), and so the same file bytes."""
+    rng = np.random.default_rng(5)
+    chunk = rng.normal(40.0, 30.0, (12, 22)).astype(np.float32)
+    chunk.flat[::7] = np.nan
+    chunk[0, :8] = [np.inf, -np.inf, -0.0, 0.0, 1e-45, -3e38, np.float32(np.uint32(0xFFC00000).view(np.float32)), 1.0]
+    for tile in (chunk, chunk[2:9, 11:20], np.ascontiguousarray(chunk[2:9, 11:20])):
+        np.testing.assert_array_equal(float_predictor(tile), _fp_diff(tile))
+    view = chunk[:, 11:]
+    assert encode_tile(view) == encode_tile(np.ascontiguousarray(view))
+    back = decode_tile(encode_tile(view), shape=view.shape)
+    np.testing.assert_array_equal(_bits(back), _bits(view))
 
 
 def test_unknown_compression_is_a_one_line_error(small_flight, capsys):

@@ -215,6 +215,50 @@ def test_overview_downsampling_is_the_mean_of_the_finite_pixels(shape):
         np.testing.assert_allclose(full, block.astype(np.float64).reshape(windows.shape).mean(axis=(-3, -1)), rtol=1e-6)
 
 
+def _window_means(block: np.ndarray) -> np.ndarray:
+    """The 2 x 2 NaN-aware means of a (h, w) float32 block, window by window in float32 as
+    downsample2 documents: (tl + bl) + (tr + br) of the finite pixels (others +0), / their count."""
+    h, w = block.shape
+    out = np.empty((-(-h // 2), -(-w // 2)), np.float32)
+    zero = np.float32(0)
+    for r in range(out.shape[0]):
+        for c in range(out.shape[1]):
+            px = [block[y, x] if y < h and x < w else np.float32(np.nan)
+                  for y, x in ((2 * r, 2 * c), (2 * r + 1, 2 * c), (2 * r, 2 * c + 1), (2 * r + 1, 2 * c + 1))]
+            z = [p if np.isfinite(p) else zero for p in px]
+            n = sum(bool(np.isfinite(p)) for p in px)
+            out[r, c] = np.nan
+            if n:
+                out[r, c] = ((z[0] + z[1]) + (z[2] + z[3])) / np.uint8(n)
+    return out
+
+
+@pytest.mark.parametrize("nan_share", [0.0, 0.02, 0.6])
+@pytest.mark.parametrize("shape", [(40, 58), (37, 51), (1, 9), (9, 1)])
+def test_overview_downsampling_bits_window_by_window(shape, nan_share):
+    """downsample2's bits equal the documented per-window float32 sum and count, whichever way it
+    takes (all finite; a few windows with a NaN, averaged one by one; many, all at once; the odd
+    edges), on a view of a wider chunk and into a slice of a larger buffer (as the COG writer does)."""
+    rng = np.random.default_rng(8)
+    chunk = (rng.random((shape[0] + 3, shape[1] + 5)) * 300 - 20).astype(np.float32)
+    chunk[rng.random(chunk.shape) < nan_share] = np.nan
+    block = chunk[1:1 + shape[0], 2:2 + shape[1]]
+    if nan_share:
+        block.flat[3] = np.inf
+        block.flat[5] = -0.0
+        block[:2, :2] = 3.4e38   # a window whose sum overflows
+    with np.errstate(over="ignore", invalid="ignore"):
+        expected = _window_means(block)
+        assert np.array_equal(_bits(downsample2(block)), _bits(expected))
+        buffer = np.full((40, 40), 7, np.float32)
+        oh, ow = expected.shape
+        downsample2(block, out=buffer[:oh, :ow])
+        assert np.array_equal(_bits(buffer[:oh, :ow]), _bits(expected)) and (buffer[oh:] == 7).all()
+        stacked = downsample2(np.stack([block, block[::-1]]))   # leading axes
+        assert np.array_equal(_bits(stacked[0]), _bits(expected))
+        assert np.array_equal(_bits(stacked[1]), _bits(_window_means(np.ascontiguousarray(block[::-1]))))
+
+
 def test_blank_tiles_are_nan(rendered):
     folder, values = rendered
     untouched = [(r, c) for r in range(0, values.shape[1], CHUNK) for c in range(0, values.shape[2], CHUNK)

@@ -99,13 +99,18 @@ class CogSink(Sink):
         """The encoded all-NaN tile (computed once per process and compression)."""
         return _nan_tile(self.compression)
 
-    def downsample(self, block: np.ndarray) -> np.ndarray:
-        """One overview step of ``block`` (..., h, w) -> (..., ceil(h/2), ceil(w/2)) float32: the
-        NaN-aware 2 x 2 average (:func:`archive.outputs.tiff.downsample2`), or with ``nearest`` each window's
-        top-left pixel."""
+    def downsample(self, block: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """One overview step of ``block`` (..., h, w) -> (..., ceil(h/2), ceil(w/2)) float32 (into
+        ``out`` when given; returned): the NaN-aware 2 x 2 average
+        (:func:`archive.outputs.tiff.downsample2`), or with ``nearest`` each window's top-left pixel."""
         from archive.outputs.tiff import downsample2
 
-        return np.array(block[..., ::2, ::2]) if self.nearest else downsample2(block)
+        if not self.nearest:
+            return downsample2(block, out)
+        if out is None:
+            return np.array(block[..., ::2, ::2])
+        out[...] = block[..., ::2, ::2]
+        return out
 
     @property
     def levels(self) -> list[tuple[int, int]]:
@@ -168,7 +173,7 @@ class CogSink(Sink):
                 tile[i * half:i * half + ch, j * half:j * half + cw] = child[b]
             encoded.append([self.encode(tile)])
             if quarter is not None:
-                quarter[b] = self.downsample(tile[:h, :w])
+                self.downsample(tile[:h, :w], out=quarter[b])
         write_spool(self.spool_path(level, r, c, band0), encoded)
         return quarter if quarter is not None and np.isfinite(quarter).any() else None
 
@@ -192,12 +197,14 @@ class _CogTileWriter(TileWriter):
 
         super().__init__(band0, tile)
         self.sink, self.nbands = sink, nbands
-        h, w = tile[2:]
+        self.h, self.w = h, w = tile[2:]
         self.rows, self.cols = -(-h // TILE), -(-w // TILE)
         self.encoded: list[list[bytes]] = [[] for _ in range(nbands)]
         self.first: list[bytes | None] = [None] * nbands
         self.levels = sink.overview_levels
         self.oh, self.ow = -(-h // 2), -(-w // 2)  # extent of this tile in level 1
+        # its level-1 tile, band after band: NaN beyond the grid (as the chunk), the rest overwritten
+        self.down = np.full((TILE, TILE), np.nan, np.float32) if self.levels >= 1 else None
         self.block = (np.full((nbands, -(-self.oh // 2), -(-self.ow // 2)), np.nan, np.float32)
                       if self.levels >= 2 else None)
         self.finite = False
@@ -213,10 +220,11 @@ class _CogTileWriter(TileWriter):
         self.encoded[b] = [self.sink.encode(chunk[i * TILE:(i + 1) * TILE, j * TILE:(j + 1) * TILE])
                            for i in range(self.rows) for j in range(self.cols)]
         if self.levels >= 1:
-            down = self.sink.downsample(chunk)  # (TILE, TILE): NaN beyond the grid, as the chunk
-            self.first[b] = self.sink.encode(down)
+            # only the grid's part is averaged (the windows beyond it are NaN in self.down already)
+            inside = self.sink.downsample(chunk[:self.h, :self.w], out=self.down[:self.oh, :self.ow])
+            self.first[b] = self.sink.encode(self.down)
             if self.block is not None:
-                self.block[b] = self.sink.downsample(down[:self.oh, :self.ow])
+                self.sink.downsample(inside, out=self.block[b])
                 self.finite = True
 
     def close(self):

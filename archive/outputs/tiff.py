@@ -30,8 +30,10 @@ follow GDAL's ``OVERVIEWS=AUTO`` (halve until the level fits in one tile), of si
 
 from __future__ import annotations
 
+import functools
 import os
 import struct
+import threading
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -43,7 +45,7 @@ from archive.files import write_atomic
 
 __all__ = ["COMPRESSION", "DATA_ALIGN", "GHOST", "PREDICTOR", "TILE", "TYPES", "ZSTD_LEVEL", "LevelPart", "Spool",
            "assemble", "read_part_index", "write_level_part", "write_part_index", "decode_tile",
-           "downsample2", "encode_tile", "frame", "level_shapes", "read_spool", "write_spool"]
+           "downsample2", "encode_tile", "float_predictor", "frame", "level_shapes", "read_spool", "write_spool"]
 
 #: COG tile edge, pixels (GDAL's default block size).
 TILE = 512
@@ -66,26 +68,54 @@ _SPOOL_MAGIC = b"ASPL"
 # ---------------------------------------------------------------------------------------------
 # Tiles
 # ---------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=8)
 def _codec(level: int = ZSTD_LEVEL):
+    """The numcodecs Zstd of ``level`` (one per process and level: stateless, safe across threads)."""
     import numcodecs
 
     return numcodecs.Zstd(level=level)
 
 
+_buffers = threading.local()
+
+
+def _predictor_buffers(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """This thread's (h, 4, w) byte-plane and (h, 4 w) difference buffers, uint8, reused tile after
+    tile (a tile's encoded bytes are a copy: nothing refers to them once :func:`encode_tile` returns)."""
+    known = getattr(_buffers, "predictor", None)
+    if known is None or known[0].shape != (h, 4, w):
+        known = _buffers.predictor = (np.empty((h, 4, w), np.uint8), np.empty((h, 4 * w), np.uint8))
+    return known
+
+
+def float_predictor(tile: np.ndarray) -> np.ndarray:
+    """TIFF's floating-point horizontal predictor (predictor 3, libtiff's ``fpDiff``) of a (h, w)
+    float32 tile: (h, 4 w) uint8, each row's bytes in planes, most significant byte first (byte k
+    of pixel x at column ``k * w + x``), each byte then replaced by its difference (modulo 256) with
+    the previous one along the row. The array is this thread's buffer, valid until
+    its next call.
+
+    The planes come from the pixels' bits as uint32, each shifted and narrowed into its plane in one
+    pass (no byte-strided transpose copy); ``tile`` may be a strided view (rows of a larger chunk).
+    """
+    h, w = tile.shape
+    bits = np.asarray(tile, dtype="<f4").view("<u4")
+    planes, data = _predictor_buffers(h, w)
+    for k, shift in enumerate((24, 16, 8)):
+        np.right_shift(bits, shift, out=planes[:, k, :], casting="unsafe")
+    np.copyto(planes[:, 3, :], bits, casting="unsafe")   # the low byte: narrowing keeps it
+    rows = planes.reshape(h, 4 * w)
+    data[:, 0] = rows[:, 0]
+    np.subtract(rows[:, 1:], rows[:, :-1], out=data[:, 1:])
+    return data
+
+
 def encode_tile(tile: np.ndarray, level: int | None = ZSTD_LEVEL, predictor: int = PREDICTOR) -> bytes:
     """One (TILE, TILE) float32 tile as TIFF stores it: with ``predictor`` 3 the floating-point
-    predictor, then Zstandard at ``level`` (None: stored uncompressed; predictor 1: none).
-
-    The predictor (libtiff's ``fpDiff``) puts each row's bytes in planes, most significant byte
-    first, then replaces each byte by its difference with the previous one along the row.
-    """
+    predictor (:func:`float_predictor`), then Zstandard at ``level`` (None: stored uncompressed;
+    predictor 1: none)."""
     if predictor == 3:
-        h, w = tile.shape
-        planes = np.ascontiguousarray(tile, dtype="<f4").view(np.uint8).reshape(h, w, 4)[:, :, ::-1]
-        rows = planes.transpose(0, 2, 1).reshape(h, 4 * w)
-        data = np.empty_like(rows)
-        data[:, 0] = rows[:, 0]
-        np.subtract(rows[:, 1:], rows[:, :-1], out=data[:, 1:])
+        data = float_predictor(tile)
     elif predictor == 1:
         data = np.ascontiguousarray(tile, dtype="<f4")
     else:
@@ -110,33 +140,76 @@ def frame(data: bytes) -> tuple[bytes, bytes, bytes]:
     return struct.pack("<I", len(data)), data, data[-4:]
 
 
-def downsample2(block: np.ndarray) -> np.ndarray:
-    """NaN-aware 2 x 2 average of ``block`` (..., h, w) float32 -> (..., ceil(h/2), ceil(w/2)) float32.
+#: Up to this share of a block's windows holding a non-finite pixel, :func:`downsample2` averages
+#: those windows one by one (gathered by index); beyond it, every window the NaN-aware way.
+SPARSE_SHARE = 0.25
+
+
+def downsample2(block: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """NaN-aware 2 x 2 average of ``block`` (..., h, w) float32 -> (..., ceil(h/2), ceil(w/2)) float32
+    (into ``out`` when given, of that shape; returned).
 
     Each output pixel is the mean of the finite input pixels of its 2 x 2 window (a window reaching
     past an odd edge averages what it has), NaN where none is finite (GDAL's AVERAGE overview
     resampling with a NaN nodata). Summed in float32 as (top-left + bottom-left) + (top-right +
     bottom-right), then divided by the count; no-data pixels are ``np.nan`` exactly.
+
+    Every window is first summed as if all were finite and scaled by 1/4 (x * 0.25 is x / 4, bit for
+    bit); the windows whose sum is not finite (a NaN or infinite pixel, or an overflow) are then
+    averaged the NaN-aware way (:func:`_nan_mean`): one by one, gathered by index, where they are
+    up to :data:`SPARSE_SHARE` of the windows (a tile at a coverage edge), else all windows (the
+    same bits for the finite ones); the windows past an odd edge on their own.
     """
+    block = np.asarray(block, np.float32)
     *lead, h, w = block.shape
-    if h % 2 or w % 2:
-        padded = np.full((*lead, h + h % 2, w + w % 2), np.nan, np.float32)
-        padded[..., :h, :w] = block
-        block = padded
-    total = block[..., 0::2, :] + block[..., 1::2, :]
-    total = total[..., 0::2] + total[..., 1::2]
-    if np.isfinite(total).all():   # most tiles: no NaN among the inputs (x * 0.25 is x / 4, bit for bit)
-        total *= np.float32(0.25)  # (a NaN or infinite input makes its window's sum non-finite)
-        return total
-    finite = np.isfinite(block)
-    zeroed = block.copy()
-    np.copyto(zeroed, np.float32(0), where=~finite)
-    total = zeroed[..., 0::2, :] + zeroed[..., 1::2, :]
-    total = total[..., 0::2] + total[..., 1::2]
-    flags = finite.view(np.uint8)
-    count = flags[..., 0::2, :] + flags[..., 1::2, :]
-    count = count[..., 0::2] + count[..., 1::2]
-    mean = np.full(total.shape, np.nan, np.float32)  # one NaN (np.nan's bits) wherever nothing is finite
+    h2, w2 = h // 2, w // 2   # whole windows down and across
+    if out is None:
+        out = np.empty((*lead, h - h2, w - w2), np.float32)
+    if h2 and w2:
+        inner = out[..., :h2, :w2]
+        pairs = block[..., 0:2 * h2:2, :2 * w2] + block[..., 1:2 * h2:2, :2 * w2]
+        np.add(pairs[..., 0::2], pairs[..., 1::2], out=inner)
+        bad = ~np.isfinite(inner)
+        inner *= np.float32(0.25)
+        at = np.flatnonzero(bad)
+        if at.size > SPARSE_SHARE * bad.size:   # many: the NaN-aware mean of every window
+            inner[...] = _nan_mean(*(block[..., i:2 * h2:2, j:2 * w2:2] for j in (0, 1) for i in (0, 1)))
+        elif at.size:   # a few (a coverage edge): those windows' pixels gathered by index
+            *lead_at, r, c = np.unravel_index(at, bad.shape)
+            if not lead and block.strides[1] == 4 and block.strides[0] % 4 == 0:   # a tile, rows of pixels
+                step = block.strides[0] // 4   # pixels from one row to the next (a view of a chunk: its width)
+                flat = np.lib.stride_tricks.as_strided(block, ((h - 1) * step + w,), (4,), writeable=False)
+                top_left = 2 * r * step + 2 * c
+                pixels = [flat.take(top_left + k) for k in (0, step, 1, step + 1)]
+            else:
+                pixels = [block[(*lead_at, 2 * r + i, 2 * c + j)] for j in (0, 1) for i in (0, 1)]
+            inner[(*lead_at, r, c)] = _nan_mean(*pixels)
+    if h % 2:   # the last row of windows: its bottom pixels past the edge
+        row = block[..., h - 1, :]
+        left = row[..., 0::2]
+        right = np.full(left.shape, np.nan, np.float32)
+        right[..., :w2] = row[..., 1::2]
+        none = np.full(left.shape, np.nan, np.float32)
+        out[..., h2, :] = _nan_mean(left, none, right, none)
+    if w % 2 and h2:   # the last column of windows (above the last row): its right pixels past the edge
+        column = block[..., :2 * h2, w - 1]
+        none = np.full((*lead, h2), np.nan, np.float32)
+        out[..., :h2, w2] = _nan_mean(column[..., 0::2], column[..., 1::2], none, none)
+    return out
+
+
+def _nan_mean(top_left: np.ndarray, bottom_left: np.ndarray, top_right: np.ndarray,
+              bottom_right: np.ndarray) -> np.ndarray:
+    """The NaN-aware mean of windows given as their four pixels (same shapes, float32): non-finite
+    pixels count as absent (+0 in the sum), (tl + bl) + (tr + br) in float32 divided by the uint8
+    count of finite pixels; ``np.nan`` exactly where none is finite."""
+    zeroed, count = [], None
+    for pixels in (top_left, bottom_left, top_right, bottom_right):
+        finite = np.isfinite(pixels)
+        zeroed.append(np.where(finite, pixels, np.float32(0)))
+        count = finite.view(np.uint8) if count is None else count + finite.view(np.uint8)
+    total = (zeroed[0] + zeroed[1]) + (zeroed[2] + zeroed[3])
+    mean = np.full(total.shape, np.nan, np.float32)
     return np.divide(total, count, out=mean, where=count > 0)
 
 
