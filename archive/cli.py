@@ -13,6 +13,7 @@ import os
 import re
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from archive import __version__
 from archive.api_errors import keep_cli_flags
@@ -518,7 +519,49 @@ def _stdout_closed() -> int:
     return 141
 
 
+def exit_now(code: int) -> NoReturn:
+    """End this process with ``code`` as the interpreter's own exit would, less its finalization:
+    non-daemon threads joined (and what they registered, e.g. ``concurrent.futures``' executors),
+    the ``atexit`` handlers run (multiprocessing's children, Dask's clusters, logging, ``weakref``
+    finalizers), stdout and stderr flushed, then ``os._exit``. What is skipped is the teardown of
+    every module and the collection of every object the command made: 0.2-0.5 s of wall after a
+    render's output was published, on the 2-core VM (issue 37; ``bench/timeline.py``'s 'exit' phase). Only for the
+    command run as a program (:func:`main` without ``argv``), never inside a caller's process."""
+    import atexit
+    import threading
+
+    timeline = os.environ.get("ARCHIVE_TIMELINE")   # bench/timeline.py (archive.cluster.phase)
+    if timeline:
+        from archive.cluster import phase
+
+        phase("main-returned")
+    shutdown = getattr(threading, "_shutdown", None)   # what Py_Finalize calls first
+    if shutdown is not None:
+        shutdown()
+    atexit._run_exitfuncs()
+    if timeline:
+        phase("atexit-done")
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except BrokenPipeError:
+            code = _stdout_closed() if stream is sys.stdout else code
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """``archive`` with ``argv`` (default: the program's arguments); the exit code. Run as the
+    program (``argv`` None: the ``archive`` script, ``python -m archive``), it ends the process
+    through :func:`exit_now` once the command is done."""
+    code = _main(argv)
+    if argv is None:
+        exit_now(code)
+    return code
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(join_negative_values(sys.argv[1:] if argv is None else argv))

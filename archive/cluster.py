@@ -7,7 +7,8 @@
   dead worker to a :class:`~archive.errors.RenderError` (on a shared cluster, cancelling what is
   left and waiting for running writers first);
 - :func:`task_budget`: bytes of values one render task may hold on these workers;
-- :func:`active_client`: the default distributed Client, if any (for lazy mosaics).
+- :func:`active_client`: the default distributed Client, if any (for lazy mosaics);
+- :func:`phase`: a command's phases as they pass, for ``bench/timeline.py`` (``ARCHIVE_TIMELINE``).
 """
 
 from __future__ import annotations
@@ -24,7 +25,26 @@ import numpy as np
 from archive.errors import ArchiveError, InputError, RenderError
 
 __all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "ClusterClose", "ClusterStart", "SlurmJobs", "active_client", "check_gpu_workers", "execute",
-           "flight_slots", "start_cluster", "start_slurm", "task_budget", "wait_for_writers"]
+           "flight_slots", "phase", "start_cluster", "warm_up", "start_slurm", "task_budget", "wait_for_writers"]
+
+
+#: ``ARCHIVE_TIMELINE=PATH``: every :func:`phase` a command passes is appended to the text file PATH
+#: as a line ``NAME SECONDS`` (wall clock, ``time.time()``): what ``bench/timeline.py`` lays over its
+#: CPU samples. Unset (always, outside that bench), :func:`phase` costs one environment lookup.
+TIMELINE = "ARCHIVE_TIMELINE"
+
+
+def phase(name: str) -> None:
+    """Record that the command reached ``name`` (one word, e.g. 'cluster-up') now, in the file of
+    ``$ARCHIVE_TIMELINE``; nothing when it is unset. Never raises (an unwritable file is skipped:
+    a record, not a condition of the run)."""
+    path = os.environ.get(TIMELINE)
+    if path:
+        try:
+            with open(path, "a") as f:
+                f.write(f"{name} {time.time():.6f}\n")
+        except OSError:
+            pass
 
 
 def check_gpu_workers(client, where: str) -> None:
@@ -80,11 +100,13 @@ class ClusterStart:
     def _run(self, scheduler, workers, say, threads) -> None:
         try:
             self._result = start_cluster(scheduler, workers, say, threads)
+            phase("cluster-up")
         except BaseException as exc:   # raised again where the cluster is taken
             self._error = exc
 
     def result(self) -> tuple:
         """(client, cluster or None) once started; raises what starting raised."""
+        phase("cluster-wanted")
         self._thread.join()
         self._taken = True
         if self._error is not None:
@@ -114,6 +136,7 @@ class ClusterClose:
         import threading
 
         self._error: BaseException | None = None
+        phase("cluster-close")
         self._thread = threading.Thread(target=self._run, args=(client, cluster), name="archive-cluster-close",
                                         daemon=True)
         self._thread.start()
@@ -123,6 +146,7 @@ class ClusterClose:
             client.close()
             if cluster is not None:
                 cluster.close()
+            phase("cluster-closed")
         except BaseException as exc:   # raised again by join
             self._error = exc
 
@@ -206,11 +230,15 @@ def _start_cluster(scheduler, workers: int | None, say, threads: int | None = No
 
     spread = spread_environments(egl_devices(), workers)
     spreading = any(spread)
+    # Each worker warms itself up while it starts (dask_setup below, a worker preload after any the
+    # configuration names): the command is still importing and planning on one core meanwhile.
+    preload = [*(dask.config.get("distributed.worker.preload", None) or []), __name__]
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
         cluster = LocalCluster(n_workers=0 if spreading else workers,
                                threads_per_worker=threads or max(2, cores), processes=True,
                                resources={"GPU": GL_SLOTS}, env={"LP_NUM_THREADS": str(cores)},
-                               dashboard_address=":0", silence_logs=logging.CRITICAL)  # errors come back here
+                               dashboard_address=":0", silence_logs=logging.CRITICAL,  # errors come back here
+                               preload=preload)
         if spreading:   # one worker spec each, with its own device variables, then started together
             for extra in spread:
                 ((name, spec),) = cluster.new_worker_spec().items()
@@ -222,6 +250,40 @@ def _start_cluster(scheduler, workers: int | None, say, threads: int | None = No
     if spreading:
         client.wait_for_workers(workers, timeout=120)
     return client, cluster
+
+
+def warm_up() -> None:
+    """What a render task's first run on a fresh worker process does besides its work, done ahead:
+    import the modules the graph's tasks are unpickled with (sources, renderers, output writers:
+    ~0.45 CPU-s) and make the process's GL context on its GL thread, deciding its band pass
+    (:func:`archive.graph.tasks.band_pass_choice`, the same decision a render task makes). Never
+    raises: a failure here is the first render task's to report, as it would have been."""
+    try:
+        import archive.outputs.registry   # noqa: F401  (the writers: Zarr, COG, ENVI)
+        import archive.render.gather   # noqa: F401
+        import archive.sources   # noqa: F401
+        from archive.graph.tasks import band_pass_choice
+
+        band_pass_choice()
+    except BaseException:   # noqa: BLE001  (reported by the task that needs it)
+        pass
+
+
+def dask_setup(worker) -> None:
+    """Dask worker preload hook (local clusters of :func:`_start_cluster` name this module): starts
+    :func:`warm_up` in a daemon thread of the worker process once the worker runs (has joined the
+    cluster) and returns at once: the worker warms up while the command imports and plans (issue 37:
+    the first render task no longer pays ~0.5 s of imports and GL start-up after the graph is
+    submitted)."""
+    import threading
+
+    def once_running() -> None:   # the worker registers first: the warm-up must not delay the cluster's start
+        deadline = time.monotonic() + 60
+        while getattr(getattr(worker, "status", None), "name", "running") != "running" and time.monotonic() < deadline:
+            time.sleep(0.01)
+        warm_up()
+
+    threading.Thread(target=once_running, name="archive-warm-up", daemon=True).start()
 
 
 @dataclass(frozen=True)
@@ -391,16 +453,20 @@ def execute(client, graph, quiet: bool, shared: bool) -> None:
     from distributed import KilledWorker, as_completed
     from tqdm import tqdm
 
+    phase("graph-submit")
     futures = client.compute(list(graph.writes))
     done = as_completed(futures, loop=client.loop)   # not the default client's loop (archive.batch)
     del futures  # only as_completed holds them: results are released as soon as they are counted
     try:
         with tqdm(total=len(graph), desc="render", unit="task", disable=quiet, file=sys.stderr) as bar:
-            for future in done:
+            for n, future in enumerate(done):
                 if future.status == "error":
                     future.result()  # raises the task's exception here
                 future.release()
                 bar.update(1)
+                if not n:
+                    phase("first-write")
+        phase("last-write")
     except BaseException as exc:
         if shared:
             client.cancel(list(done.futures), force=True)

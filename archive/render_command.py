@@ -104,8 +104,9 @@ def run(args: argparse.Namespace) -> int:
     """``archive render``: :func:`archive.georectify` with the parsed options; prints a one-paragraph
     summary (batch mode: one line per flight as it finishes, done / skipped / failed with its reason,
     then the totals; exit code 1 when a flight failed)."""
-    from archive.cluster import ClusterStart, SlurmJobs
+    from archive.cluster import ClusterStart, SlurmJobs, phase
 
+    phase("command")
     # The workers (or the connection to --scheduler) start now, while this process imports the
     # pipeline and opens and plans the inputs: those phases leave the other cores idle otherwise.
     # Slurm jobs are submitted where the command always did (after its checks of the options); a
@@ -134,9 +135,12 @@ def _say(args: argparse.Namespace):
 
 def _run(args: argparse.Namespace, starting) -> int:
     from archive.api import georectify
+    from archive.cluster import phase
     from archive.pipeline import describe
 
     from tqdm import tqdm
+
+    phase("imports")
 
     def tell(line: str) -> None:
         # past the progress bar (stderr, the same terminal): cleared, the line, the bar drawn again
@@ -144,6 +148,7 @@ def _run(args: argparse.Namespace, starting) -> int:
             print(f"archive render: {line}", flush=True)
 
     s = georectify(**render_keywords(args, starting), tell=tell)
+    phase("published")
     if "added" in s:
         n = len(s["flights"])
         print(f"archive render: stack {s['out']}: {n} flight{'s' if n != 1 else ''} on {s['width']} x {s['height']} px "

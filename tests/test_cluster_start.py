@@ -64,3 +64,45 @@ def test_a_render_through_both_leaves_no_worker(small_flight, tmp_path):
                  "--out", str(out), "--quiet"]) == 0
     assert out.stat().st_size > 0 and (tmp_path / "m.tif.json").exists()
     assert _workers_left(before) == []
+
+
+def _warm_facts() -> dict:
+    """On a worker: whether the render tasks' modules are imported and the band pass decided (the
+    GL context made), and whether the test's own preload ran."""
+    import os
+    import sys
+
+    from archive.graph.tasks import decided_band_pass
+
+    return {"imported": all(m in sys.modules for m in ("archive.graph.tasks", "archive.outputs.registry",
+                                                       "archive.sources")),
+            "band_pass": decided_band_pass(), "preloaded": os.environ.get("ARCHIVE_TEST_PRELOADED")}
+
+
+def test_workers_warm_up_before_any_task_and_keep_a_configured_preload(tmp_path):
+    """A local cluster's workers import what the render tasks need and make their GL context while
+    they start (``archive.cluster.dask_setup``, issue 37), with no task sent; a worker preload of the
+    Dask configuration still runs too."""
+    import dask
+    import distributed  # noqa: F401  (its configuration defaults loaded before the set below, which drops what it adds)
+
+    from archive.cluster import start_cluster
+
+    script = tmp_path / "mark_worker.py"
+    script.write_text("import os\n\n\ndef dask_setup(worker):\n    os.environ['ARCHIVE_TEST_PRELOADED'] = 'yes'\n")
+    before = _children()
+    with dask.config.set({"distributed.worker.preload": [str(script)]}):
+        client, cluster = start_cluster(None, 1, lambda text: None, 2)
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            (facts,) = client.run(_warm_facts).values()
+            if facts["band_pass"] is not None or time.monotonic() > deadline:
+                break
+            time.sleep(0.1)
+        assert facts["imported"] and facts["band_pass"]["method"] in ("cpu", "gl", "compute"), facts
+        assert facts["preloaded"] == "yes"
+    finally:
+        client.close()
+        cluster.close()
+    assert _workers_left(before) == []
