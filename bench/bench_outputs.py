@@ -25,7 +25,9 @@ marker file exists. After reading the input once (warm page cache), one run meas
    (:func:`render_plain`): wall from process start to exit, then ``sync`` (wall + sync compares
    with the floor's fsync'ed write), CPU-seconds of the whole process tree (the command, its
    scheduler, its workers: ``getrusage`` of the reaped children), **cores busy** = that CPU / wall
-   / cores, peak RSS of the tree (polled every 0.1 s), output size; ratios to the floor and to
+   / cores, the machine's cores x wall meanwhile split into busy (the tree) / iowait (waiting on the
+   disk) / idle / others (other processes, steal) from ``/proc/stat`` (``bench/timeline.py`` splits
+   it per phase of the command), peak RSS of the tree (polled every 0.1 s), output size; ratios to the floor and to
    GDAL from this same run. Then (unless ``--no-stages``) the same render again through
    ``bench/stage_profile.py`` (its cluster started apart, the task stream recorded, stage timers in
    the workers): **CPU-seconds per cube per stage** (GL lookup, band passes or CPU gather, DN reads,
@@ -56,6 +58,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_render as br  # noqa: E402  (the I/O floor, GDAL's warp, memory polling, flights)
+import timeline  # noqa: E402  (the machine's CPU split from /proc/stat)
+from timeline import machine_jiffies  # noqa: E402
 
 FORMATS = ("zarr", "tif", "hdr")
 
@@ -100,6 +104,25 @@ def render_cli(flight: Path, out: Path, gsd: float, ground: float, extra=(), wor
             "profile": prof, "load": [load0, br.load()]}
 
 
+def core_split(m0: dict, m1: dict, tree_cpu_s: float) -> dict:
+    """The machine's cores x wall between two :func:`timeline.machine_jiffies` reads, split into
+    the render's tree (``tree_cpu_s``), other processes, waiting on the disk (iowait), idle (what
+    the render left idle: its serial phases) and steal; fractions summing to 1."""
+    d = {k: (m1[k] - m0[k]) / timeline.HZ for k in m0}
+    total = max(sum(d.values()), 1e-9)
+    ours = min(tree_cpu_s, d["busy"])
+    return {"busy": ours / total, "others": max(d["busy"] - ours, 0.0) / total, "iowait": d["iowait"] / total,
+            "idle": d["idle"] / total, "steal": d["steal"] / total}
+
+
+def split_text(split: dict | None) -> str:
+    """'busy 75 / iowait 12 / idle 10 / others 3 %' of :func:`core_split` ('-' without one)."""
+    if not split:
+        return "-"
+    return (f"{100 * split['busy']:.0f} / {100 * split['iowait']:.0f} / {100 * split['idle']:.0f} / "
+            f"{100 * (split['others'] + split['steal']):.0f} %")
+
+
 def output_bytes(out: Path) -> int:
     """Bytes of an output on disk: the file, every file of a store, an ENVI header and its data."""
     files = [out] if out.is_file() else [f for f in out.rglob("*") if f.is_file()]
@@ -112,7 +135,8 @@ def render_plain(flight: Path, out: Path, gsd: float, ground: float, extra=()) -
     """``python -m archive render`` as a user runs it, from process start to exit: wall, wall +
     sync, CPU-seconds of the whole process tree (``getrusage(RUSAGE_CHILDREN)`` before and after:
     the command, its scheduler and its worker processes, all reaped), **cores busy** = that CPU /
-    wall / cores, peak tree RSS (polled every 0.1 s), output bytes."""
+    wall / cores, its :func:`core_split` (busy / iowait / idle / others), peak tree RSS (polled
+    every 0.1 s), output bytes."""
     import resource
 
     cmd = [sys.executable, "-m", "archive", "render", str(flight), "--fov", str(br.FOV), "--gsd", str(gsd),
@@ -120,11 +144,13 @@ def render_plain(flight: Path, out: Path, gsd: float, ground: float, extra=()) -
            "--quiet", *extra]
     load0 = br.load()
     ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    m0 = machine_jiffies()
     t = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     with br.MemoryPoll(proc.pid) as poll:
         stdout, stderr = proc.communicate()
     wall = time.perf_counter() - t
+    m1 = machine_jiffies()
     ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}): {stderr[-3000:]}")
@@ -132,7 +158,7 @@ def render_plain(flight: Path, out: Path, gsd: float, ground: float, extra=()) -
     synced = time.perf_counter() - t
     cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
     return {"cmd": "archive render " + " ".join(cmd[4:]), "wall_s": wall, "wall_sync_s": synced, "tree_cpu_s": cpu,
-            "busy_tree": cpu / wall / (os.cpu_count() or 1), "peak_tree_rss": poll.peak_rss,
+            "busy_tree": cpu / wall / (os.cpu_count() or 1), "split": core_split(m0, m1, cpu), "peak_tree_rss": poll.peak_rss,
             "peak_tree_anon": poll.peak_anon, "out_mb": output_bytes(out) / br.MB,
             "load": [load0, br.load()]}
 
@@ -404,7 +430,8 @@ def main(argv=None) -> int:
         out = work / f"mosaic.{fmt}"
         r = R["render"][fmt] = render_plain(flight, out, args.gsd, ground, extra=compression)
         _say(f"archive render -> .{fmt}: {r['wall_s']:.1f} s (+sync {r['wall_sync_s']:.1f}), "
-             f"{r['tree_cpu_s']:.1f} CPU-s (tree, start to exit), cores busy {100 * r['busy_tree']:.0f} %, "
+             f"{r['tree_cpu_s']:.1f} CPU-s (tree, start to exit), cores busy {100 * r['busy_tree']:.0f} % "
+             f"(cores x wall: busy / iowait / idle / others {split_text(r.get('split'))}), "
              f"tree RSS {br.fmt_gb(r['peak_tree_rss'])}, {r['out_mb']:.0f} MB")
         if fmt == "hdr" and args.codec_table:
             R["codecs"] = codec_table(out, len(plan.jobs), plan.nbands, spool=work)
@@ -458,21 +485,21 @@ def report(R: dict) -> None:
           f"load {R['load_start']} -> {R['load_end']}")
     print()
     print("| path | wall s | wall + sync s | ratio to floor | GDAL / it | CPU-s (tree, start to exit) | CPU-s per cube (tree) | "
-          "cores busy (tree CPU / wall / cores) | threads busy (task stream, profiled run) | peak RSS GB (tree) | "
-          "lines/s | load before -> after |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "cores busy (tree CPU / wall / cores) | cores x wall: busy / iowait / idle / others | "
+          "threads busy (task stream, profiled run) | peak RSS GB (tree) | lines/s | load before -> after |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     print(f"| I/O floor (read input + write {R['grid']['mb']:.0f} MB, fsync) | {floor:.1f} | {floor:.1f} | 1.00 | "
-          "- | - | - | - | - | - | - | - |")
+          "- | - | - | - | - | - | - | - | - |")
     if "gdal" in R:
         gd = R["gdal"]
         print(f"| GDAL geolocation warp (all bands per call, 2 threads) | {gd['wall_s']:.1f} | - | "
-              f"{gd['wall_s'] / floor:.2f} | 1.00 | - | - | - | - | {br.fmt_gb(gd['peak_rss'])} | "
+              f"{gd['wall_s'] / floor:.2f} | 1.00 | - | - | - | - | - | {br.fmt_gb(gd['peak_rss'])} | "
               f"{R['lines'] / gd['wall_s']:.0f} | - |")
     for fmt, r in R["render"].items():
         gdal = f"{R['gdal']['wall_s'] / r['wall_sync_s']:.2f}" if "gdal" in R else "-"
         print(f"| `archive render` -> .{fmt} | {r['wall_s']:.1f} | {r['wall_sync_s']:.1f} | "
               f"**{r['wall_sync_s'] / floor:.2f}** | {gdal} | {r['tree_cpu_s']:.1f} | {r['tree_cpu_s'] / R['cubes']:.2f} | "
-              f"**{100 * r['busy_tree']:.0f} %** | "
+              f"**{100 * r['busy_tree']:.0f} %** | {split_text(r.get('split'))} | "
               f"{'-' if 'profiled' not in r else format(100 * r['profiled']['busy_tasks'], '.0f') + ' %'} | "
               f"{br.fmt_gb(r['peak_tree_rss'])} | {R['lines'] / r['wall_s']:.0f} | {r['load'][0]} -> {r['load'][1]} |")
     if any("profile" in r for r in R["render"].values()):
