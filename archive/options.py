@@ -202,9 +202,10 @@ class RenderOptions:
 
     def check(self) -> NavigationParams:
         """Checks that open no file (fast, before anything starts: no collection, DEM or output is
-        read); the navigation parameters the sources are opened with. Their field of view is
-        ``fov``, None for collections rendered without ``--fov``: :func:`archive.pipeline.open_inputs`
-        (:func:`archive.pipeline.navigation`) reads the one they were ingested with."""
+        read); the navigation parameters the sources are opened with. The meshes' field of view is
+        decided once, with the ground, in :func:`archive.pipeline.open_inputs` (the
+        :class:`~archive.params.MeshSpec`: ``fov``, else the one the collections were ingested with,
+        :func:`archive.pipeline.field_of_view`)."""
         check_gsd(self.gsd)
         if not self.sources:
             raise InputError("SOURCE", "nothing to render",
@@ -242,8 +243,7 @@ class RenderOptions:
         if self.like is not None and (self.bounds is not None or self.align):
             raise InputError("--like", f"takes the whole grid of {self.like}, so --bounds and --align have nothing "
                              "to decide", "leave --bounds/--align out, or --like")
-        return NavigationParams(fov_deg=None if fov is None else float(fov),
-                                sync_offset=None if self.sync_offset is None else float(self.sync_offset),
+        return NavigationParams(sync_offset=None if self.sync_offset is None else float(self.sync_offset),
                                 boresight_deg=self.boresight, lever_arm_m=self.lever_arm)
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
 
 from archive.overlap import LAST, OverlapRule
@@ -15,12 +17,9 @@ DEFAULT_MAX_VIEW_ANGLE = 40.0
 
 @dataclass(frozen=True)
 class NavigationParams:
-    """How navigation is turned into per-line camera poses.
+    """How navigation is turned into per-line camera poses (no field of view: poses do not depend on
+    it; the meshes' one is the render's :class:`MeshSpec`).
 
-    fov_deg: across-track field of view of the camera, degrees; None (the default): not decided here
-        (sources ignore it; the meshes take the one decided for the render), or, from
-        :meth:`~archive.options.RenderOptions.check` for collections rendered without ``--fov``:
-        :func:`archive.pipeline.navigation` reads the one they were ingested with).
     sync_offset: seconds added to every line time before looking up navigation.
     boresight_deg: camera -> body rotation as (roll, pitch, yaw) degrees, aerospace sign, applied
         intrinsically Z-Y-X like the body attitude.
@@ -33,7 +32,6 @@ class NavigationParams:
     offset neither given nor recorded stays None, which means none).
     """
 
-    fov_deg: float | None = None
     sync_offset: float | None = 0.0
     boresight_deg: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
     lever_arm_m: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
@@ -54,7 +52,6 @@ class NavigationParams:
                                                 else float(got))
 
         return NavigationParams(
-            fov_deg=self.fov_deg,
             sync_offset=float(pick(self.sync_offset, "sync_offset", 0.0)),
             boresight_deg=tuple(float(v) for v in pick(self.boresight_deg, "boresight_deg", (0.0, 0.0, 0.0))),
             lever_arm_m=tuple(float(v) for v in pick(self.lever_arm_m, "lever_arm_m", (0.0, 0.0, 0.0))),
@@ -89,19 +86,62 @@ def recorded_navigation(attrs: dict) -> dict:
 class RenderParams:
     """What to render and how.
 
-    gsd: output pixel size, metres.
-    ground_height: flat ground height, metres above the ellipsoid; None means automatic.
+    gsd: output pixel size, metres (the ground, field of view and view-angle limit are the
+    render's :class:`MeshSpec`).
     mode: 'raw' | 'relative' | 'radiance' | 'reflectance'.
     bands: band indices (0-based) to render, in output order; None means all bands.
     overlap: the overlap rule (:mod:`archive.overlap`).
     """
 
     gsd: float
-    ground_height: float | None = None
     mode: str = "radiance"
     bands: tuple[int, ...] | None = None
     overlap: OverlapRule = LAST
     navigation: NavigationParams = field(default_factory=NavigationParams)
+
+
+@dataclass(frozen=True)
+class MeshSpec:
+    """How the cube meshes of a render are built: decided once (:func:`archive.pipeline.open_inputs`)
+    and passed whole (inputs, output plan, render plan, mesh tasks, graph keys, provenance layers).
+
+    fov_deg: across-track field of view of the camera, degrees.
+    ground_height: flat ground height, metres above the ellipsoid; None with a DEM.
+    max_view_angle: degrees off nadir at the field-of-view edge beyond which lines are left out of
+        the meshes (turns); None: none.
+    epsg: EPSG code of the output grid (meshes of another CRS are transformed into it); None: not
+        decided yet (``--crs`` not given: the plan takes the UTM zone holding most of the flights,
+        :meth:`with_epsg`).
+    dem: the :class:`archive.dem.DemSpec` the meshes follow instead of flat ground, else None.
+    gsd: with a DEM, the output pixel size (metres) the terrain segmentation follows; else None.
+
+    A frozen dataclass of plain values (and a DemSpec, itself one): it tokenizes by value, so graph
+    keys built from it are the same in every run.
+    """
+
+    fov_deg: float
+    ground_height: float | None = None
+    max_view_angle: float | None = DEFAULT_MAX_VIEW_ANGLE
+    epsg: int | None = None
+    dem: object = None   #: an archive.dem.DemSpec (not imported: params is below the terrain layer)
+    gsd: float | None = None
+
+    def __post_init__(self):
+        if (self.dem is None) == (self.ground_height is None):
+            raise ValueError("a MeshSpec has either a flat ground height or a DEM")
+
+    @property
+    def flat_ground(self) -> float:
+        """The flat ground height (m) the mesh builders take: NaN with a DEM."""
+        return math.nan if self.ground_height is None else float(self.ground_height)
+
+    def with_epsg(self, epsg: int) -> MeshSpec:
+        """This spec for an output grid in EPSG:``epsg``."""
+        return dataclasses.replace(self, epsg=int(epsg))
+
+    def with_ground(self, ground_height: float) -> MeshSpec:
+        """This spec on flat ground at ``ground_height`` m (a flat spec's own source's ground)."""
+        return dataclasses.replace(self, ground_height=float(ground_height))
 
 
 def coregistration_properties(attrs: dict) -> dict:

@@ -5,7 +5,8 @@ starts: :meth:`~archive.options.RenderOptions.check`) and goes through the same 
 out:
 
 1. open (:func:`open_inputs`): open the sources (:func:`archive.sources.open_source`), select the
-   bands, settle the radiometric mode and the ground height (:mod:`archive.sources.select`);
+   bands, settle the radiometric mode, and decide once how the meshes are built, the
+   :class:`~archive.params.MeshSpec` (field of view, ground height or DEM, view-angle limit, CRS);
 2. plan (:func:`plan_output`): cube meshes, output grid and cube windows (metadata only, no GL;
    the graph's tasks build the meshes again on the workers: the plan keeps only the windows);
 3. build (:func:`build_output`): the output's sink under a temporary name
@@ -24,6 +25,7 @@ memory limits (:func:`archive.cluster.task_budget`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import sys
@@ -40,18 +42,19 @@ from archive.cluster import ClusterClose, active_client, check_gpu_workers, exec
 from archive.errors import InputError
 from archive.files import wait_while_exists
 from archive.grid import GridRequest
-from archive.options import DEFAULT_MAX_VIEW_ANGLE, RenderOptions, grid_request
+from archive.navigation import projected_epsg
+from archive.options import RenderOptions, grid_request
 from archive.outputs.base import variable_for_mode
 from archive.outputs.publish import Output
 from archive.outputs.zarr import mosaic_dataset
-from archive.params import NavigationParams, RenderParams
+from archive.params import MeshSpec, NavigationParams, RenderParams
 from archive.sources.select import check_same_bands, read_white_reference, resolve_ground_height, select_bands
 
 if TYPE_CHECKING:
     from archive.graph.plan import RenderPlan
 
 __all__ = ["OUTPUT_BUDGET", "TASK_BUDGET_BYTES", "Inputs", "OutputPlan", "build_output", "check_size", "describe",
-           "client_budget", "georectify", "mosaic", "open_inputs", "plan", "plan_output", "planned_dataset",
+           "client_budget", "field_of_view", "georectify", "mosaic", "open_inputs", "plan", "plan_output", "planned_dataset",
            "progress_lines", "publish"]
 
 #: Largest render task: cube window x 4 bands x float32 (plus its flags), bytes.
@@ -89,15 +92,14 @@ def check_size(plan, gsd: float) -> None:
 @dataclass(frozen=True, eq=False)
 class Inputs:
     """The opened sources of a request: bands (per source, the source band of each output band),
-    params (gsd, mode as settled, overlap, navigation), grounds (ground height per source, m)."""
+    params (gsd, mode as settled, overlap, navigation), mesh_specs (per source, the
+    :class:`~archive.params.MeshSpec` its cube meshes are built from: field of view, flat ground or
+    DEM, view-angle limit, ``--crs``; in a mosaic one and the same for every source)."""
 
     sources: tuple
     bands: tuple[tuple[int, ...], ...]
     params: RenderParams
-    grounds: tuple[float, ...]
-    crs: str | None = None
-    max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE
-    dem: object = None  #: the :class:`archive.dem.DemSpec` the meshes follow (grounds are then None)
+    mesh_specs: tuple[MeshSpec, ...]
     meshes: tuple | None = None  #: with a DEM: each source's terrain meshes (built here: DEM errors come early)
     grid: GridRequest = GridRequest()  #: what the output grid is asked to be (--bounds, --align, --like)
 
@@ -106,34 +108,39 @@ def _quiet(text: str) -> None:
     pass
 
 
-def navigation(options: RenderOptions, nav: NavigationParams) -> NavigationParams:
-    """``nav`` (from :meth:`~archive.options.RenderOptions.check`) with its field of view decided:
-    ``--fov``, else the one the collections of ``options`` were ingested with (their records read
-    here; they must agree)."""
-    if nav.fov_deg is not None:
-        return nav
+def field_of_view(options: RenderOptions) -> float:
+    """The field of view (deg) the meshes of ``options`` are built with: ``--fov``, else the one the
+    collections of ``options`` were ingested with (their records read here; they must agree)."""
+    if options.fov is not None:
+        return float(options.fov)
     from archive.sources.open import collection_fov
 
-    return dataclasses.replace(nav, fov_deg=float(collection_fov(options.archive, options.sources)))
+    return float(collection_fov(options.archive, options.sources))
 
 
-def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosaic: bool = True) -> Inputs:
-    """Open and check the sources of ``options`` (``nav`` from :meth:`~archive.options.RenderOptions.check`).
+def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosaic: bool = True,
+                fov: float | None = None) -> Inputs:
+    """Open and check the sources of ``options`` (``nav`` from :meth:`~archive.options.RenderOptions.check`)
+    and decide, once, the :class:`~archive.params.MeshSpec` their meshes are built from.
 
     mosaic: all sources go into one output (same bands, one ground height); else each source is
     an output of its own. ``say(text)`` tells notes (a source without calibration renders raw DN).
+    fov: the field of view (deg) when the caller decided it for several requests (a stack's or
+    tiles' flights, each opened alone), else :func:`field_of_view` of ``options``.
     With a DEM, the sources' terrain meshes are built here (metadata and DEM only, no pixel, no GL),
     so that a DEM that does not cover the flights, or has holes under them, fails before any
     cluster starts.
     """
-    from archive.graph.plan import cube_meshes
+    from archive.graph.plan import spec_meshes
     from archive.sources import open_source
 
     from archive.dem import DemSpec
     from archive.sources.ground import sources_dem
 
     grid = grid_request(options)   # --like read once, before the sources
-    nav = navigation(options, nav)
+    fov = field_of_view(options) if fov is None else float(fov)
+    mesh = functools.partial(MeshSpec, fov, max_view_angle=float(options.max_view_angle),
+                             epsg=None if options.crs is None else projected_epsg(options.crs))
     given_dem = None if options.dem is None else DemSpec.create(options.dem, options.dem_datum)
     terrain = None if given_dem is None else given_dem.open()   # opened once, here: its errors before the sources'
     # absolute paths: workers (maybe on another machine sharing the file system) open them again
@@ -160,9 +167,9 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
     if options.panels:   # the empirical line, fitted per flight on its selected bands (issue 34)
         from archive.render.empirical_line import panelled
 
-        sources = [panelled(s, dict(enumerate(cube_meshes(s, nav.fov_deg, resolve_ground_height(
-            options.ground_height, [s]), float(options.max_view_angle)))), b, options.panels)
-            for s, b in zip(sources, bands)]
+        flat = [mesh(float(resolve_ground_height(options.ground_height, [s]))) for s in sources]
+        sources = [panelled(s, dict(enumerate(spec_meshes(s, spec))), b, options.panels)
+                   for s, spec, b in zip(sources, flat, bands)]
     for s, b in zip(sources, bands):
         s.radiometry(0, b[:1], mode)  # mode problems (calibration, white reference) surface now
     if given_dem is not None:   # the DEM gives the ground: no flat height to settle
@@ -172,36 +179,33 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
         terrain = None if dem is None else dem.open()
     else:
         dem = None
+    meshes = None
     if dem is not None:
-        grounds = [None] * len(sources)
-        meshes = tuple(cube_meshes(s, nav.fov_deg, math.nan, float(options.max_view_angle), terrain=terrain,
-                                   gsd=float(options.gsd))
-                       for s in sources)
+        specs = [mesh(dem=dem, gsd=float(options.gsd))] * len(sources)
+        meshes = tuple(spec_meshes(s, spec, terrain) for s, spec in zip(sources, specs))
     elif mosaic:
-        grounds = [resolve_ground_height(options.ground_height, sources)] * len(sources)
+        specs = [mesh(float(resolve_ground_height(options.ground_height, sources)))] * len(sources)
     else:
-        grounds = [resolve_ground_height(options.ground_height, [s]) for s in sources]
-    params = RenderParams(gsd=float(options.gsd), ground_height=grounds[0], mode=mode,
-                          bands=tuple(bands[0]), overlap=options.overlap, navigation=nav)
-    return Inputs(tuple(sources), tuple(tuple(b) for b in bands), params, tuple(grounds), options.crs,
-                  float(options.max_view_angle), dem, meshes if dem is not None else None, grid)
+        specs = [mesh(float(resolve_ground_height(options.ground_height, [s]))) for s in sources]
+    params = RenderParams(gsd=float(options.gsd), mode=mode, bands=tuple(bands[0]), overlap=options.overlap,
+                          navigation=nav)
+    return Inputs(tuple(sources), tuple(tuple(b) for b in bands), params, tuple(specs), meshes, grid)
 
 
 @dataclass(frozen=True, eq=False)
 class OutputPlan:
     """One output, planned (metadata only): its sources, the :class:`~archive.graph.plan.RenderPlan`
-    (grid, cube jobs, band groups), the processing parameters, the ground height (m), the
-    wavelength (nm) of each output band (None when the cubes have none) and its spectral full width
-    at half maximum (``fwhm``, nm; None when the cubes have none)."""
+    (grid, cube jobs, band groups), the processing parameters, the
+    :class:`~archive.params.MeshSpec` of its meshes (field of view, flat ground or DEM, view-angle
+    limit, the grid's EPSG code), the wavelength (nm) of each output band (None when the cubes have
+    none) and its spectral full width at half maximum (``fwhm``, nm; None when the cubes have none)."""
 
     sources: tuple
     plan: RenderPlan
     params: RenderParams
-    ground_height: float
+    mesh_spec: MeshSpec
     wavelengths: list[float] | None
-    max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE
     left_out: dict | None = None  #: lines left out of the meshes, by reason ('no navigation', 'view angle')
-    dem: object = None  #: the :class:`archive.dem.DemSpec` the meshes follow (ground_height is then None)
     fwhm: list[float] | None = None
 
     @property
@@ -209,28 +213,22 @@ class OutputPlan:
         """Name of the data variable ('radiance', 'dn', ...)."""
         return variable_for_mode(self.params.mode)
 
-    @property
-    def mesh_spec(self) -> tuple:
-        """What the meshes were built from (for graph keys): with a DEM also the DEM (file, datum)
-        and the GSD (the segments follow it)."""
-        spec = (self.params.navigation, self.ground_height, self.max_view_angle, self.plan.grid.epsg)
-        return spec if self.dem is None else (*spec, self.dem, self.params.gsd)
-
     def layers_spec(self, rule_only: bool = False):
         """The :class:`~archive.provenance.ProvenanceSpec` of this output: every provenance layer,
         or with ``rule_only`` only the layer the overlap rule compares (:attr:`~archive.overlap.OverlapRule.key`)."""
         from archive.provenance import provenance_spec
 
-        return provenance_spec(self.plan, self.sources, [self.ground_height] * len(self.sources), self.dem,
+        return provenance_spec(self.plan, self.sources, self.mesh_spec,
                                (self.params.overlap.key,) if rule_only else None)
 
     @property
     def attrs(self) -> dict:
         """The output's attributes (mode, gsd, fov, ground height or DEM, sync offset, overlap, sources)."""
         offsets = list(dict.fromkeys(float(s.params.sync_offset) for s in self.sources))
-        ground = ({"ground_height_m": self.ground_height} if self.dem is None else
-                  {"dem": self.dem.path, "dem_datum": self.dem.datum or "declared"})
-        return {"mode": self.params.mode, "gsd_m": self.params.gsd, "fov_deg": self.params.navigation.fov_deg,
+        mesh = self.mesh_spec
+        ground = ({"ground_height_m": mesh.ground_height} if mesh.dem is None else
+                  {"dem": mesh.dem.path, "dem_datum": mesh.dem.datum or "declared"})
+        return {"mode": self.params.mode, "gsd_m": self.params.gsd, "fov_deg": mesh.fov_deg,
                 **ground, "sync_offset_s": offsets[0] if len(offsets) == 1 else offsets,
                 "overlap": self.params.overlap.name, "sources": [str(s.label) for s in self.sources]}
 
@@ -242,23 +240,22 @@ def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget:
     ``budget`` bytes of values per task; see :func:`archive.graph.build.with_task_groups`).
     InputError when the output or a task would be absurdly large."""
     from archive.graph.build import TASK_VALUES_BYTES, with_task_groups
-    from archive.graph.plan import MeshParams, band_groups, cube_meshes, plan_render
+    from archive.graph.plan import band_groups, plan_render, spec_meshes
 
     idx = list(range(len(inputs.sources))) if members is None else list(members)
     p = inputs.params
     sources = [inputs.sources[i] for i in idx]
     bands = [inputs.bands[i] for i in idx]
-    ground = inputs.grounds[idx[0]]
+    spec = inputs.mesh_specs[idx[0]]
     if inputs.meshes is None:
-        meshes = [cube_meshes(s, p.navigation.fov_deg, ground, inputs.max_view_angle) for s in sources]
+        meshes = [spec_meshes(s, spec) for s in sources]
     else:   # terrain meshes, built by open_inputs
         meshes = [list(inputs.meshes[i]) for i in idx]
-    plan = plan_render(sources, meshes, bands, p.gsd, crs=inputs.crs, grid=inputs.grid)
+    plan = plan_render(sources, meshes, bands, p.gsd, crs=spec.epsg, grid=inputs.grid)
     # the graph builds the meshes again in tasks on the workers (DESIGN 9: shipped from here, a
     # terrain flight's meshes made graphs of MBs); the plan keeps their windows only
-    plan = plan.without_meshes(MeshParams(p.navigation.fov_deg, math.nan if inputs.dem is not None else ground,
-                                          inputs.max_view_angle, plan.grid.epsg, inputs.dem,
-                                          p.gsd if inputs.dem is not None else None))
+    spec = spec.with_epsg(plan.grid.epsg)
+    plan = plan.without_meshes(spec)
     if band_group is None:
         plan = with_task_groups(plan, TASK_VALUES_BYTES if budget is None else budget)
     else:
@@ -275,8 +272,7 @@ def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget:
         for m in ms:
             for reason, n in (m.dropped or {}).items():
                 left_out[reason] = left_out.get(reason, 0) + int(n)
-    return OutputPlan(tuple(sources), plan, p, ground, out_wl, inputs.max_view_angle, left_out, inputs.dem,
-                      out_fwhm)
+    return OutputPlan(tuple(sources), plan, p, spec, out_wl, left_out, out_fwhm)
 
 
 def build_output(output: OutputPlan, target: Output):
@@ -297,7 +293,7 @@ def build_output(output: OutputPlan, target: Output):
     if target.provenance:
         layers_sink = target.layers_sink(layers)
     graph = build_render_graph(plan, list(output.sources), sink, mode=p.mode, overlap=p.overlap,
-                               mesh_spec=output.mesh_spec, layers=layers, layers_sink=layers_sink)
+                               layers=layers, layers_sink=layers_sink)
     return sink, graph
 
 
@@ -596,8 +592,7 @@ def planned_dataset(planned: OutputPlan):
     p, grid = planned.params, planned.plan.grid
     values, saturated = mosaic_arrays(planned.plan, list(planned.sources), mode=p.mode, overlap=p.overlap,
                                       layers=planned.layers_spec(rule_only=True)
-                                      if p.overlap.key is not None else None,
-                                      mesh_spec=planned.mesh_spec)
+                                      if p.overlap.key is not None else None)
     ds = mosaic_dataset(grid, values, saturated, planned.plan.bands[0], planned.wavelengths, planned.fwhm,
                         planned.variable, planned.attrs)
     if planned.wavelengths is not None and len(set(planned.wavelengths)) == len(planned.wavelengths):

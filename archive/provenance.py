@@ -43,6 +43,7 @@ from datetime import UTC, datetime, timedelta
 import numpy as np
 
 from archive.errors import InputError
+from archive.params import MeshSpec
 
 __all__ = ["LAYERS", "Layer", "ProvenanceSpec", "cube_layers", "layer_index", "provenance_spec",
            "sun_position"]
@@ -85,15 +86,16 @@ def layer_index(name: str) -> int:
 class ProvenanceSpec:
     """What the per-cube layers of one output need besides the cube: the output CRS, the time
     reference (``reference_gps``: GPS seconds on the sources' .lcf scale of ``reference_utc``), the
-    cube table (one dict per job, in job order), the ground (flat height per source, m, or a
-    :class:`archive.dem.DemSpec`) and the layers to compute (all of :data:`LAYERS`, or only the
+    cube table (one dict per job, in job order), the ground (``ground``: the flat height, m, None
+    with a DEM; or ``dem``, the :class:`archive.dem.DemSpec`: the render's
+    :class:`~archive.params.MeshSpec`'s) and the layers to compute (all of :data:`LAYERS`, or only the
     nadir rule's key)."""
 
     epsg: int
     reference_gps: float
     reference_utc: str
     cubes: tuple = field(default=(), compare=False)
-    grounds: tuple = ()
+    ground: float | None = None
     dem: object = None
     names: tuple[str, ...] = tuple(layer.name for layer in LAYERS)
 
@@ -103,12 +105,13 @@ class ProvenanceSpec:
         return f"seconds since {self.reference_utc}"
 
     def __dask_tokenize__(self):
-        return ("ProvenanceSpec", self.epsg, self.reference_gps, self.grounds, self.dem, self.names)
+        return ("ProvenanceSpec", self.epsg, self.reference_gps, self.ground, self.dem, self.names)
 
 
-def provenance_spec(plan, sources, grounds, dem=None, names: tuple[str, ...] | None = None) -> ProvenanceSpec:
-    """The :class:`ProvenanceSpec` of a render plan (:class:`archive.graph.plan.RenderPlan`):
-    time reference = the first line of the job, floored to the UTC second."""
+def provenance_spec(plan, sources, mesh: MeshSpec, names: tuple[str, ...] | None = None) -> ProvenanceSpec:
+    """The :class:`ProvenanceSpec` of a render plan (:class:`archive.graph.plan.RenderPlan`) whose
+    meshes ``mesh`` says how they are built (its flat ground or DEM): time reference = the first line
+    of the job, floored to the UTC second."""
     from archive.formats.lcf import gps_seconds_to_datetime
 
     first = min(float(sources[job.source].cubes[job.cube].first_time) for job in plan.jobs)
@@ -118,7 +121,7 @@ def provenance_spec(plan, sources, grounds, dem=None, names: tuple[str, ...] | N
     cubes = tuple({"index": j, "source": str(sources[job.source].id), "cube": sources[job.source].cubes[job.cube].base,
                    "cube_index": int(job.cube)} for j, job in enumerate(plan.jobs))
     return ProvenanceSpec(int(plan.grid.epsg), first - fraction, utc.strftime("%Y-%m-%dT%H:%M:%SZ"), cubes,
-                          tuple(None if g is None else float(g) for g in grounds), dem,
+                          None if mesh.ground_height is None else float(mesh.ground_height), mesh.dem,
                           tuple(layer.name for layer in LAYERS) if names is None else tuple(names))
 
 

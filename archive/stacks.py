@@ -125,15 +125,17 @@ class _Surveyed:
     bounds: tuple[float, float, float, float] | None = None
 
 
-def survey(options, nav, sources: Sequence[str], say=None, footprints: bool = True) -> list[_Surveyed]:
+def survey(options, nav, sources: Sequence[str], say=None, footprints: bool = True,
+           fov: float | None = None) -> list[_Surveyed]:
     """Open (and with ``footprints`` plan) each flight of ``sources`` alone, one at a time (metadata
-    only: poses, no pixel); in time order (first line, then name)."""
+    only: poses, no pixel), with the field of view ``fov`` (deg) decided for all of them; in time
+    order (first line, then name)."""
     from archive.pipeline import open_inputs, plan_output
 
     say = say or (lambda text: None)
     out = []
     for src in sources:
-        inputs = open_inputs(_alone(options, src), nav, say, mosaic=True)
+        inputs = open_inputs(_alone(options, src), nav, say, mosaic=True, fov=fov)
         first = min(float(s.line_times(c)[0]) for s in inputs.sources for c in range(len(s.cubes)))
         epsg = bounds = None
         if footprints:
@@ -144,11 +146,12 @@ def survey(options, nav, sources: Sequence[str], say=None, footprints: bool = Tr
     return sorted(out, key=lambda f: (f.first, f.name))
 
 
-def stack_grid(options, nav, flights: Sequence[_Surveyed], say=None) -> Grid:
+def stack_grid(options, nav, flights: Sequence[_Surveyed], say=None, fov: float | None = None) -> Grid:
     """The grid of a new stack of the surveyed ``flights`` (:func:`survey`): ``options.like``'s grid
     whole; else ``options.bounds`` or the union of the flights' footprints, pixel edges snapped
     outward to multiples of the GSD, in ``options.crs`` or the UTM zone most flights' grids are in
-    (ties: the lowest EPSG code; a flight of another zone is planned again in it)."""
+    (ties: the lowest EPSG code; a flight of another zone is planned again in it, with the field of
+    view ``fov``, deg)."""
     from archive.pipeline import open_inputs, plan_output
 
     say = say or (lambda text: None)
@@ -163,7 +166,7 @@ def stack_grid(options, nav, flights: Sequence[_Surveyed], say=None) -> Grid:
         box = f.bounds
         if f.epsg != epsg:   # a flight of another zone: its footprint in the stack's CRS
             alone = dataclasses.replace(_alone(options, f.source), crs=f"EPSG:{epsg}")
-            box = plan_output(open_inputs(alone, nav, say, mosaic=True)).plan.grid.bounds
+            box = plan_output(open_inputs(alone, nav, say, mosaic=True, fov=fov)).plan.grid.bounds
         boxes.append(box)
     b = np.array(boxes)
     union = (float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max()))
@@ -331,7 +334,7 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
     ArchiveError before anything is written for problems of the whole request."""
     from archive.cluster import flight_slots, start_cluster, task_budget, wait_for_writers
     from archive.outputs.publish import Output
-    from archive.pipeline import build_output, navigation, open_inputs, plan_output, progress_lines
+    from archive.pipeline import build_output, field_of_view, open_inputs, plan_output, progress_lines
 
     started = time.perf_counter()
     tell = tell or (lambda line: None)
@@ -348,7 +351,7 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
                          "leave --compression out with --stack")
     if options.archive is not None:   # recipes independent of the working directory
         options = dataclasses.replace(options, archive=os.fspath(Path(options.archive).absolute()))
-    nav = navigation(options, nav)   # one field of view for all the flights
+    fov = field_of_view(options)   # one field of view for all the flights
     Output(out, overwrite=True).check()   # a writable folder; temporaries of killed runs removed
     for tmp in out.parent.glob(f"..{out.name}.slice-*.zarr.partial-*"):   # and their slice stores
         Output(tmp.parent / tmp.name[1:].split(".partial-")[0], overwrite=True).check()
@@ -383,8 +386,8 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
         if _flight_name(s) in have:
             tell(f"skipped {_flight_name(s)}: in the stack already")
     # the flights to add, in time order (planned here one at a time, and again when rendered)
-    surveyed = survey(options, nav, todo, say, footprints=layout is None and options.like is None)
-    grid = layout.grid if layout is not None else stack_grid(options, nav, surveyed, say)
+    surveyed = survey(options, nav, todo, say, footprints=layout is None and options.like is None, fov=fov)
+    grid = layout.grid if layout is not None else stack_grid(options, nav, surveyed, say, fov)
     client = cluster = None
     added: list[str] = []
     left_out: list[str] = []
@@ -408,7 +411,8 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
                     while queue and len(inflight) < slots:
                         one = queue.popleft()
                         t0 = time.perf_counter()
-                        inputs = dataclasses.replace(open_inputs(_alone(options, one.source), nav, say, mosaic=True),
+                        inputs = dataclasses.replace(open_inputs(_alone(options, one.source), nav, say, mosaic=True,
+                                                                 fov=fov),
                                                      grid=GridRequest(grid))
                         try:
                             planned = plan_output(inputs, budget=budget)
@@ -616,14 +620,15 @@ def stack(options, *, band_group: int | None = None, quiet: bool = True):
     it (dask culls the other tiles' tasks; a tile no cube of a flight touches is NaN without GL)."""
     import xarray as xr
 
-    from archive.pipeline import client_budget, navigation, plan as plan_of, planned_dataset, progress_lines
+    from archive.pipeline import client_budget, field_of_view, plan as plan_of, planned_dataset, progress_lines
 
-    nav = navigation(options, options.check())   # one field of view for all the flights
+    nav = options.check()
+    fov = field_of_view(options)   # one field of view for all the flights
     if options.provenance:
         raise InputError("provenance", "a stack holds no provenance layers")
     sources = list(dict.fromkeys(options.sources))
-    surveyed = survey(options, nav, sources, progress_lines(quiet), footprints=options.like is None)
-    grid = stack_grid(options, nav, surveyed, progress_lines(quiet))
+    surveyed = survey(options, nav, sources, progress_lines(quiet), footprints=options.like is None, fov=fov)
+    grid = stack_grid(options, nav, surveyed, progress_lines(quiet), fov)
     budget = client_budget()
     steps = []
     for src in (f.source for f in surveyed):

@@ -72,8 +72,10 @@ def check_size(size, gsd: float) -> int:
     return int(value)
 
 
-def plan_tiles(options, nav, size: int, say: Callable[[str], None] | None = None) -> list[Tile]:
-    """The tiles of ``options.sources`` (metadata only: poses, no pixel): every tile of ``size`` m
+def plan_tiles(options, nav, size: int, say: Callable[[str], None] | None = None,
+               fov: float | None = None) -> list[Tile]:
+    """The tiles of ``options.sources`` (metadata only: poses, no pixel; the flights' meshes with the
+    field of view ``fov``, deg, decided for all of them): every tile of ``size`` m
     that some cube window of some flight touches, in the CRS ``options.crs`` or the UTM zone most
     flights are in; with ``options.bounds`` only the tiles meeting it. Row-major from the north-west."""
     from archive.pipeline import open_inputs, plan_output
@@ -83,7 +85,7 @@ def plan_tiles(options, nav, size: int, say: Callable[[str], None] | None = None
              for s in dict.fromkeys(options.sources)]
     zones: dict[str, int] = {}
     for one in alone:
-        zones[one.sources[0]] = plan_output(open_inputs(one, nav, say, mosaic=True)).plan.grid.epsg
+        zones[one.sources[0]] = plan_output(open_inputs(one, nav, say, mosaic=True, fov=fov)).plan.grid.epsg
     counts = list(zones.values())
     epsg = min(set(counts), key=lambda e: (-counts.count(e), e))
     touched: dict[tuple[int, int], list[str]] = {}
@@ -91,7 +93,7 @@ def plan_tiles(options, nav, size: int, say: Callable[[str], None] | None = None
         src = one.sources[0]
         if options.crs is None and zones[src] != epsg:
             one = dataclasses.replace(one, crs=f"EPSG:{epsg}")
-        plan = plan_output(open_inputs(one, nav, say, mosaic=True)).plan
+        plan = plan_output(open_inputs(one, nav, say, mosaic=True, fov=fov)).plan
         for job in plan.jobs:
             w, s, e, n = job.window.bounds
             for i in range(math.floor(w / size), math.ceil(e / size)):
@@ -128,10 +130,10 @@ def run_tiles(options, out, size, *, format: str = "zarr", overwrite: bool = Fal
         raise InputError("--tiles", "tiles have their own grids, edges on multiples of the tile side",
                          "leave --like out (--bounds selects the tiles)")
     size = check_size(size, options.gsd)
-    from archive.pipeline import navigation
+    from archive.pipeline import field_of_view
 
-    nav = navigation(options, options.check())   # one field of view for all the tiles
-    tiles = plan_tiles(options, nav, size)
+    nav = options.check()
+    tiles = plan_tiles(options, nav, size, fov=field_of_view(options))   # one field of view for all the tiles
     name = {s: Path(s).name if Path(s).is_dir() else str(s) for s in options.sources}
     units = []
     for tile in tiles:

@@ -56,7 +56,7 @@ def _calibrate(path: Path, truth) -> tuple[object, float]:
     from archive.sources import RawFlightSource
 
     t0 = time.perf_counter()
-    source = RawFlightSource(path, NavigationParams(fov_deg=truth.fov_deg))
+    source = RawFlightSource(path, NavigationParams())
     result = calibrate([source], truth.fov_deg, truth.ground_height + GROUND_ERROR)
     return result, time.perf_counter() - t0
 

@@ -44,8 +44,8 @@ def _row(label: str, ref_path: Path, path: Path, truth) -> str:
 
     t0 = time.perf_counter()
     cpu0 = time.process_time()
-    flight = RawFlightSource(path, NavigationParams(fov_deg=truth.fov_deg))
-    ref = RawFlightSource(ref_path, NavigationParams(fov_deg=truth.fov_deg))
+    flight = RawFlightSource(path, NavigationParams())
+    ref = RawFlightSource(ref_path, NavigationParams())
     r = coregister(flight, ref, truth.fov_deg, truth.ground_height)
     wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     want = [-v for v in truth.gnss_bias_m]
@@ -94,9 +94,9 @@ def _truth_row(label: str, path: Path, truth, params=None) -> str:
     from archive.sources import RawFlightSource
 
     cells = []
-    navs = [NavigationParams(fov_deg=truth.fov_deg)]
+    navs = [NavigationParams()]
     if params is not None:
-        navs.append(NavigationParams(fov_deg=truth.fov_deg, sync_offset=params.sync,
+        navs.append(NavigationParams(sync_offset=params.sync,
                                      boresight_deg=tuple(params.boresight_deg),
                                      position_offset_m=tuple(params.position_offset)))
     for nav in navs:

@@ -63,7 +63,7 @@ def main(argv=None) -> int:
                         cubes_per_pass=args.cubes, clouds=True)
     print(f"machine {machine()}; flight {flight}", flush=True)
 
-    params = NavigationParams(fov_deg=47.5)
+    params = NavigationParams()
     source = RawFlightSource(flight, params)
     meshes = cube_meshes(source, 47.5, 80.0)
     bands = list(range(args.bands))

@@ -98,9 +98,9 @@ def test_raw_and_memory_sources_carry_fwhm(flight):
     from archive.sources import MemoryFlightSource, RawFlightSource
 
     directory, bare = flight
-    raw = RawFlightSource(directory, NavigationParams(fov_deg=FOV))
+    raw = RawFlightSource(directory, NavigationParams())
     assert raw.fwhm == read_header(sorted(directory.glob("*.bil.hdr"))[0]).fwhm
-    assert RawFlightSource(bare, NavigationParams(fov_deg=FOV)).fwhm is None
+    assert RawFlightSource(bare, NavigationParams()).fwhm is None
     poses = [raw.poses(0)]
     data = [raw.read_bands(0, [0, 1, 2])]
     mem = MemoryFlightSource(data, poses, wavelengths=[400, 402, 404], fwhm=[2.5, 2.6, 2.7])
@@ -123,7 +123,7 @@ def test_wrong_length_fwhm_is_a_format_error_naming_file_and_key(flight, tmp_pat
     from archive.sources import RawFlightSource
 
     with pytest.raises(FormatError, match=re.escape(hdr.name)):
-        RawFlightSource(broken, NavigationParams(fov_deg=FOV))
+        RawFlightSource(broken, NavigationParams())
 
 
 def test_ingested_flight_keeps_its_fwhm(flight, scheduler, tmp_path):
@@ -134,10 +134,10 @@ def test_ingested_flight_keeps_its_fwhm(flight, scheduler, tmp_path):
     from archive.sources import RawFlightSource, open_source
 
     directory, bare = flight
-    raw = RawFlightSource(directory, NavigationParams(fov_deg=FOV))
+    raw = RawFlightSource(directory, NavigationParams())
     archive_dir = tmp_path / "archive"
     (result,) = ingest([str(directory)], archive_dir, FOV, progress=False)
-    col = open_source(result.cid, NavigationParams(fov_deg=FOV), archive=archive_dir)
+    col = open_source(result.cid, NavigationParams(), archive=archive_dir)
     assert col.fwhm == raw.fwhm and col.header(0).fwhm == raw.fwhm
     store = col.store
     np.testing.assert_array_equal(zarr.open_group(store, mode="r")["fwhm"][...], raw.fwhm)
@@ -158,11 +158,11 @@ def test_ingested_flight_keeps_its_fwhm(flight, scheduler, tmp_path):
         del cube["header"]["fwhm"]
     group.attrs.put(attrs)
     assert read_info(store).fwhm is None
-    assert open_source(result.cid, NavigationParams(fov_deg=FOV), archive=archive_dir).fwhm is None
+    assert open_source(result.cid, NavigationParams(), archive=archive_dir).fwhm is None
 
     # a flight without fwhm: a NaN array, read back as None
     (bare_result,) = ingest([str(bare)], tmp_path / "archive2", FOV, progress=False)
-    assert open_source(bare_result.cid, NavigationParams(fov_deg=FOV), archive=tmp_path / "archive2").fwhm is None
+    assert open_source(bare_result.cid, NavigationParams(), archive=tmp_path / "archive2").fwhm is None
 
 
 # --- the outputs -----------------------------------------------------------------------------------

@@ -40,11 +40,11 @@ def _render_shifts(directory, truth, params: Params | None) -> np.ndarray:
     (None: what the flight directory records, its navigation_params.json sidecar): (n, 2)
     Lucas-Kanade shifts (px) of the radiance mosaic against the truth on textured windows."""
     if params is None:
-        source = RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg, sync_offset=None,
+        source = RawFlightSource(directory, NavigationParams(sync_offset=None,
                                                               boresight_deg=None))
         ground = source.ground_height
     else:
-        source = RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg, sync_offset=params.sync,
+        source = RawFlightSource(directory, NavigationParams(sync_offset=params.sync,
                                                               boresight_deg=params.boresight_deg))
         ground = params.ground
     return render_shifts(source, truth, ground, BANDS // 2)
@@ -72,7 +72,7 @@ def two_passes(tmp_path_factory):
 
 def test_two_passes_recover_the_planted_errors(two_passes):
     directory, truth = two_passes
-    source = RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg))
+    source = RawFlightSource(directory, NavigationParams())
     result = calibrate([source], truth.fov_deg, truth.ground_height + 5.0)
     errors = _check(result, truth, observable_required=("pitch", "sync"))
     # sync is separated from pitch by the attitude wobble: well inside its 2 ms
@@ -138,7 +138,7 @@ def test_pitch_and_sync_of_straight_level_passes_are_reported_not_invented(tmp_p
     directory = tmp_path / "level"
     truth = simulate_flight(directory, cubes=4, cubes_per_pass=2, bands=BANDS, samples=128, lines=1000, seed=3,
                             boresight_deg=(0.6, -0.4, 0.8), sync_offset=0.3, wobble=False)
-    source = RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg))
+    source = RawFlightSource(directory, NavigationParams())
     result = calibrate([source], truth.fov_deg, truth.ground_height + 5.0)
     assert result.observable["pitch"] is False and "pitch" in result.held
     assert "sync" in result.held["pitch"]["with"]
@@ -180,7 +180,7 @@ def test_collection_apply_records_navigation_params(two_passes, tmp_path, capsys
 
     assert is_current(store)   # the overview previews drawn again under the recorded navigation
     # renders of the collection default to the recorded parameters, as to an ingest's
-    source = open_source(cid, NavigationParams(fov_deg=truth.fov_deg, sync_offset=None, boresight_deg=None),
+    source = open_source(cid, NavigationParams(sync_offset=None, boresight_deg=None),
                          archive=archive)
     assert source.params.sync_offset == pytest.approx(recorded["sync_offset"])
     assert source.ground_height == pytest.approx(attrs["ground_height"])
@@ -193,7 +193,7 @@ def test_dem_vertical_offset_over_hills(tmp_path):
     directory = tmp_path / "hills"
     truth = simulate_flight(directory, cubes=3, cubes_per_pass=1, bands=BANDS, samples=128, lines=800, seed=7,
                             boresight_deg=(0.5, -0.8, 0.6), sync_offset=0.25, terrain="hills")
-    source = RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg))
+    source = RawFlightSource(directory, NavigationParams())
     dem = open_dem(directory / "dem.tif")
     result = calibrate([source], truth.fov_deg, 5.0, dem=dem, dem_label="dem.tif")
     want = {**_truth_vector(truth), "ground": 0.0}
@@ -210,7 +210,7 @@ def test_dem_vertical_offset_over_hills(tmp_path):
 def test_no_overlap_is_refused(tmp_path):
     directory = tmp_path / "narrow"
     truth = simulate_flight(directory, cubes=2, cubes_per_pass=1, bands=2, samples=32, lines=300, fov_deg=20.0)
-    source = RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg))
+    source = RawFlightSource(directory, NavigationParams())
     with pytest.raises(InputError, match="no two passes of the flight overlap"):
         calibrate([source], truth.fov_deg, truth.ground_height)
 

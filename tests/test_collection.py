@@ -36,8 +36,8 @@ from archive.simulator.sensor import band_fwhm
 from archive.sources import MODES, RawFlightSource
 from helpers import FOV
 
-PARAMS = [NavigationParams(FOV),
-          NavigationParams(FOV, sync_offset=0.011, boresight_deg=(0.4, -0.7, 1.5), lever_arm_m=(0.1, -0.2, 0.3))]
+PARAMS = [NavigationParams(),
+          NavigationParams(sync_offset=0.011, boresight_deg=(0.4, -0.7, 1.5), lever_arm_m=(0.1, -0.2, 0.3))]
 
 
 def snapshot(path: Path) -> dict[str, bytes]:

@@ -52,7 +52,7 @@ def fields(tmp_path_factory):
 
 
 def _raw(truth) -> RawFlightSource:
-    return RawFlightSource(truth.directory, NavigationParams(fov_deg=truth.fov_deg))
+    return RawFlightSource(truth.directory, NavigationParams())
 
 
 def _check_estimates(position_offset, sync, truth) -> None:
@@ -108,7 +108,7 @@ def test_query_batch_coregisters_records_and_renders(fields, tmp_path, capsys):
     assert co["position_offset_m"] == pytest.approx(row["position_offset_m"], abs=1e-4)
     assert co["sigma"]["east"] > 0
     # renders of the collection use the recorded corrections (all cubes); the raw flight is still off
-    source = open_source(ids["biased"], NavigationParams(fov_deg=FOV, sync_offset=None, boresight_deg=None,
+    source = open_source(ids["biased"], NavigationParams(sync_offset=None, boresight_deg=None,
                                                          lever_arm_m=None), archive=archive)
     assert source.params.position_offset == pytest.approx(tuple(row["position_offset_m"]), abs=1e-4)
     recorded = render_shifts(source, truth, source.ground_height, BANDS // 2)
@@ -196,14 +196,15 @@ def test_raw_flight_apply_writes_the_offset_to_its_sidecar(fields, tmp_path):
 
     copy = tmp_path / "copy"
     shutil.copytree(fields["far"].directory, copy)
-    plain = RawFlightSource(copy, NavigationParams(fov_deg=FOV))
+    plain = RawFlightSource(copy, NavigationParams())
     params = Params(ground=80.0, east=1.25, north=-0.5, up=0.2)
     result = Calibration(params, Params(ground=80.0), ("east", "north", "up"), {"east": 0.01}, {"east": True}, {},
                          {}, {}, [], 0.28, reference="REF")
-    (path,) = apply([plain], result)
+    (path,) = apply([plain], result, FOV)
     record = json.loads(path.read_text())
     assert record["position_offset_m"] == [1.25, -0.5, 0.2] and record["relative_to"] == "REF"
-    moved = RawFlightSource(copy, NavigationParams(fov_deg=FOV, sync_offset=None, boresight_deg=None))
+    assert record["fov_deg"] == FOV   # the sidecar still records the field of view it was estimated with
+    moved = RawFlightSource(copy, NavigationParams(sync_offset=None, boresight_deg=None))
     for k in range(len(plain.cubes)):
         d = moved.poses(k).utm() - plain.poses(k).utm()
         assert d == pytest.approx(np.tile([1.25, -0.5, 0.2], (len(d), 1)), abs=1e-9)

@@ -40,7 +40,7 @@ def _geojson(path, truth, patches):
 def test_two_panels_give_reflectance_within_2_percent(tmp_path):
     directory = tmp_path / "flight"
     truth = simulate_flight(directory, cubes=2, bands=BANDS, samples=96, lines=150, seed=0, cubes_per_pass=2)
-    source = RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg))
+    source = RawFlightSource(directory, NavigationParams())
     meshes = dict(enumerate(cube_meshes(source, truth.fov_deg, truth.ground_height)))
     patches = truth.homogeneous_patches()
     # the brightest and the darkest patch seen as panels; the others are checked

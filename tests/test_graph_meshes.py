@@ -2,7 +2,7 @@
 
 A terrain flight's meshes are MBs (a 3-cube --dem render sent a 6-10 MiB graph); the graph now
 carries one small mesh task per cube (the source, the cube index and the plan's
-:class:`~archive.graph.plan.MeshParams`), whose mesh is the one the client planned the cube's window
+:class:`~archive.params.MeshSpec`), whose mesh is the one the client planned the cube's window
 with. Flights come from test_terrain.py's session cache (simulated once).
 """
 
@@ -80,9 +80,10 @@ def test_graph_carries_mesh_tasks_not_meshes(hills, tmp_path, terrain):
             assert max(len(pickle.dumps(m)) for m in client) / 1024 > SMALL_KIB
         # each task's mesh is the one the plan's window came from (same arrays, same CRS)
         source = planned.sources[0]
-        params = planned.plan.mesh_params
+        params = planned.plan.mesh_spec
+        assert params == planned.mesh_spec and params.epsg == planned.plan.grid.epsg
         flight = (list(inputs.meshes[0]) if terrain else
-                  cube_meshes(source, FOV, float(truth.ground_height), planned.max_view_angle))
+                  cube_meshes(source, FOV, float(truth.ground_height), planned.mesh_spec.max_view_angle))
         for j, job in enumerate(planned.plan.jobs):
             mesh = mesh_task(source, job.cube, params)
             assert mesh.epsg == planned.plan.grid.epsg

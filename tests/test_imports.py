@@ -582,29 +582,57 @@ def test_one_envi_header_writer():
     assert writers == {"archive.formats.envi"}, f"ENVI headers written outside archive.formats.envi: {writers}"
 
 
-def dummy_fovs(text: str) -> list[int]:
-    """Lines of ``text`` that give :class:`~archive.params.NavigationParams` a field of view holding a
-    number literal (``fov_deg=47.5``, ``fov or 47.5``, ``47.5 if fov is None else fov``, or positionally)."""
+def given_fovs(text: str) -> list[int]:
+    """Lines of ``text`` that give :class:`~archive.params.NavigationParams` a field of view (a
+    ``fov_deg`` keyword, or anything positional: its fields are keywords)."""
     bad = []
     for node in ast.walk(ast.parse(text)):
         if not (isinstance(node, ast.Call) and getattr(node.func, "id", getattr(node.func, "attr", None))
                 == "NavigationParams"):
             continue
-        given = [k.value for k in node.keywords if k.arg == "fov_deg"] + node.args[:1]
-        if any(isinstance(c, ast.Constant) and isinstance(c.value, int | float) and not isinstance(c.value, bool)
-               for g in given for c in ast.walk(g)):
+        if node.args or any(k.arg == "fov_deg" for k in node.keywords):
             bad.append(node.lineno)
     return bad
 
 
 def test_no_dummy_field_of_view():
-    """Issue 31: navigation parameters carry no field of view that nobody reads; a source is opened
-    with ``NavigationParams(sync_offset=...)`` and the field of view is the render's (--fov, else the
-    collections' record), never a number made up for the call."""
+    """Issue 31: navigation parameters carry no field of view (poses do not depend on it); a source is
+    opened with ``NavigationParams(sync_offset=...)`` and the field of view is the render's
+    :class:`~archive.params.MeshSpec`'s (--fov, else the collections' record), decided once."""
+    from dataclasses import fields
+
+    from archive.params import NavigationParams
+
+    assert "fov_deg" not in {f.name for f in fields(NavigationParams)}
     for line in ["NavigationParams(fov_deg=47.5)", "p.NavigationParams(fov_deg=fov or 47.5, sync_offset=None)",
-                 "NavigationParams(47.5 if f is None else f)", "NavigationParams(40)"]:
-        assert dummy_fovs(line), line
-    assert not dummy_fovs("NavigationParams(fov_deg=fov, sync_offset=0.0)")
-    assert not dummy_fovs("NavigationParams(sync_offset=0.5)")
-    bad = [f"{path.relative_to(ROOT)}:{n}" for path in modules().values() for n in dummy_fovs(path.read_text())]
-    assert not bad, "NavigationParams given a made-up field of view:\n" + "\n".join(bad)
+                 "NavigationParams(47.5 if f is None else f)", "NavigationParams(fov_deg=fov, sync_offset=0.0)"]:
+        assert given_fovs(line), line
+    assert not given_fovs("NavigationParams(sync_offset=0.5)")
+    files = [*modules().values(), *sorted((ROOT / "tests").glob("*.py")), *sorted((ROOT / "bench").glob("*.py"))]
+    bad = [f"{path.relative_to(ROOT)}:{n}" for path in files for n in given_fovs(path.read_text())]
+    assert not bad, "NavigationParams given a field of view:\n" + "\n".join(bad)
+
+
+def test_one_mesh_spec():
+    """Issue 31 item 2: the field of view, the ground (flat height or DEM), the view-angle limit and the
+    output CRS of the meshes are one :class:`~archive.params.MeshSpec`, decided once in
+    ``pipeline.open_inputs`` and passed whole: the records between the options and the graph hold no
+    copy of them, and the render plan's mesh tasks take the MeshSpec itself."""
+    from dataclasses import fields
+
+    import archive.graph.plan as graph_plan
+    from archive.params import MeshSpec, NavigationParams, RenderParams
+    from archive.pipeline import Inputs, OutputPlan
+    from archive.provenance import ProvenanceSpec
+
+    copies = {"fov", "fov_deg", "ground_height", "grounds", "max_view_angle", "dem", "crs", "epsg"}
+    for record in (NavigationParams, RenderParams, Inputs, OutputPlan, graph_plan.RenderPlan):
+        held = {f.name for f in fields(record)} & copies
+        assert not held, f"{record.__name__} holds its own {sorted(held)}: they are the MeshSpec's"
+    assert {f.name for f in fields(MeshSpec)} == {"fov_deg", "ground_height", "max_view_angle", "epsg", "dem", "gsd"}
+    assert {f.type for f in fields(Inputs) if f.name == "mesh_specs"} == {"tuple[MeshSpec, ...]"}
+    assert {f.type for f in fields(OutputPlan) if f.name == "mesh_spec"} == {"MeshSpec"}
+    assert {f.type for f in fields(graph_plan.RenderPlan) if f.name == "mesh_spec"} == {"MeshSpec | None"}
+    assert not hasattr(graph_plan, "MeshParams")
+    # the provenance layers take the ground from a MeshSpec too (one ground, not one per source)
+    assert "grounds" not in {f.name for f in fields(ProvenanceSpec)}

@@ -288,7 +288,7 @@ def _source(directory, truth, **kw):
     from archive.params import NavigationParams
     from archive.sources import RawFlightSource
 
-    return RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg, **kw))
+    return RawFlightSource(directory, NavigationParams(**kw))
 
 
 def test_poses_match_simulated_truth(cli_simulated):

@@ -20,7 +20,7 @@ import xarray as xr
 from archive.cli import main
 from archive.errors import InputError
 from archive.grid import Grid
-from archive.params import NavigationParams
+from archive.params import MeshSpec, NavigationParams
 from helpers import FOV
 
 GSD = 0.04  # ~1570 x 780 px: 2 output tiles of 1024 px, cube windows straddling the tile edge
@@ -54,7 +54,7 @@ def _direct_renders(flight, grid: Grid, bands):
     from archive.sources import RawFlightSource
 
     directory, truth = flight
-    src = RawFlightSource(directory, NavigationParams(fov_deg=FOV))
+    src = RawFlightSource(directory, NavigationParams())
     poses = [src.poses(i) for i in range(len(src.cubes))]
     out = {}
     for strip in truth.strips:
@@ -265,7 +265,7 @@ def test_ground_height_auto_reads_headers(flight, tmp_path):
     from archive.sources import RawFlightSource
 
     directory, truth = flight
-    nav = NavigationParams(fov_deg=FOV)
+    nav = NavigationParams()
     assert resolve_ground_height("auto", [RawFlightSource(directory, nav)]) == truth.ground_height
     assert resolve_ground_height("79", [RawFlightSource(directory, nav)]) == 79.0
     copy = _with_ground_elevation(directory, tmp_path, [81.5, 81.5, 90, 81.5])
@@ -277,7 +277,7 @@ def test_select_bands(flight):
     from archive.sources.select import select_bands
     from archive.sources import RawFlightSource
 
-    src = RawFlightSource(flight[0], NavigationParams(fov_deg=FOV))
+    src = RawFlightSource(flight[0], NavigationParams())
     assert select_bands(src) == list(range(6))
     assert select_bands(src, [1000, 400, 410]) == [5, 0]
     assert select_bands(src, None, "2,4") == [2, 4]
@@ -329,10 +329,10 @@ def test_graph_is_deterministic_and_annotated(flight, tmp_path):
     store = MosaicStore(str(tmp_path / "never-written.zarr"), "radiance")
 
     def build(bands):
-        src = RawFlightSource(directory, NavigationParams(fov_deg=FOV))
+        src = RawFlightSource(directory, NavigationParams())
         plan = plan_render([src], [cube_meshes(src, FOV, truth.ground_height)], [bands], GSD)
         return plan, build_render_graph(plan, [src], store, mode="radiance", overlap=LAST,
-                                        mesh_spec=(FOV, truth.ground_height))
+                                        mesh_spec=MeshSpec(FOV, truth.ground_height))
 
     plan, graph = build(list(range(6)))
     _, again = build(list(range(6)))

@@ -26,7 +26,7 @@ def _juvika(folder, sync: float) -> FlightNavigation:
         base = folder / f"Juvika_June2022_Pika_L_{k}"
         cubes.append(CubeNavigation(read_times(base.with_suffix(".bil.times")), read_lcf(base.with_suffix(".lcf")),
                                     None, str(base.with_suffix(".lcf"))))
-    return FlightNavigation(cubes, local_frame_for(cubes[0].lcf), NavigationParams(fov_deg=FOV, sync_offset=sync))
+    return FlightNavigation(cubes, local_frame_for(cubes[0].lcf), NavigationParams(sync_offset=sync))
 
 
 def test_juvika_pair_is_one_strip(resonon_samples):
@@ -156,11 +156,11 @@ def test_poses_at_cube_starts_with_sync_offsets(tmp_path_factory, sync):
     # cubes of 1 s (250 lines), longer than the largest offset: each cube start lies in the previous .lcf
     directory, truth = _simulate(tmp_path_factory, "sync", cubes=4, cubes_per_pass=2, sync_offset=sync, seed=4,
                                  lines=250, samples=32, bands=2)
-    params = NavigationParams(fov_deg=FOV, sync_offset=sync)
+    params = NavigationParams(sync_offset=sync)
     raw = open_source(directory, params)
     archive_dir = directory.parent / "archive"
     [result] = ingest([str(directory)], archive_dir, FOV, progress=False, sync_offset=sync)
-    col = open_source(result.cid, NavigationParams(fov_deg=FOV, sync_offset=None), archive=archive_dir)
+    col = open_source(result.cid, NavigationParams(sync_offset=None), archive=archive_dir)
     checked = 0
     for k, cube in enumerate(truth.cubes):
         p, q = raw.poses(k), col.poses(k)
@@ -303,7 +303,7 @@ def test_ground_height_auto(small, tmp_path):
     from archive.sources.ground import auto_ground_height
 
     directory, truth = small
-    params = NavigationParams(fov_deg=FOV)
+    params = NavigationParams()
     assert auto_ground_height([open_source(directory, params)]) == truth.ground_height
     # a collection keeps the height it was ingested with, whatever its headers say
     copy = tmp_path / "zero"
@@ -331,7 +331,7 @@ def test_signed_int16_cubes_render_their_negative_dn(small):
     from archive.sources import open_source
 
     directory, truth = small
-    src = open_source(directory, NavigationParams(fov_deg=FOV))
+    src = open_source(directory, NavigationParams())
     mesh = cube_meshes(src, FOV, truth.ground_height)[0]
     dn = src.read_bands(0, [0, 1]).astype(np.int16) - np.int16(500)   # dark-subtracted: negative DN
     assert dn.min() < 0
@@ -370,7 +370,7 @@ def test_lcf_rows_flagged_do_not_use_are_left_out(small, tmp_path):
     for r in rows[10:14]:                              # four rows with a broken fix, flagged 'do not use'
         r[4], r[5], r[9] = "200.0", "95.0", "0"
     lcf.write_text("\n".join("\t".join(r) for r in rows) + "\n")
-    params = NavigationParams(fov_deg=FOV)
+    params = NavigationParams()
     good, flagged = open_source(directory, params), open_source(copy, params)
     assert flagged.navigation.cubes[0].lcf.use is not None and (~flagged.navigation.cubes[0].lcf.use).sum() == 4
     np.testing.assert_allclose(flagged.poses(0).position, good.poses(0).position, atol=2e-3)

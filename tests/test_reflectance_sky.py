@@ -32,7 +32,7 @@ BANDS_USED = list(range(0, BANDS, 7))
 def flight(tmp_path_factory):
     directory = tmp_path_factory.mktemp("sky") / "flight"
     truth = simulate_flight(directory, cubes=4, bands=BANDS, samples=96, lines=120, seed=0, clouds=True)
-    source = RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg))
+    source = RawFlightSource(directory, NavigationParams())
     meshes = dict(enumerate(cube_meshes(source, truth.fov_deg, truth.ground_height)))
     bounds = np.array([m.bounds_utm() for m in meshes.values()])
     w, s, e, n = bounds[:, 0].min(), bounds[:, 1].min(), bounds[:, 2].max(), bounds[:, 3].max()
@@ -133,7 +133,7 @@ def _copy(flight, tmp_path, drop=(), garble=None):
     shutil.copytree(flight[0].directory, directory, ignore=shutil.ignore_patterns("truth", *drop))
     if garble:
         (directory / garble).write_bytes(b"ENVI\nbands = 2048\nlines = 1\n")
-    return RawFlightSource(directory, NavigationParams(fov_deg=flight[0].fov_deg))
+    return RawFlightSource(directory, NavigationParams())
 
 
 def test_missing_or_garbled_spectra_are_refused_by_name(flight, tmp_path):
@@ -187,7 +187,7 @@ def test_ingest_keeps_the_sky_and_the_collection_renders_the_same(flight, tmp_pa
     truth, source = flight[0], flight[1]
     ingest([str(truth.directory)], str(tmp_path / "arc"), truth.fov_deg, progress=False)
     (cid,) = [p.name[:-5] for p in (tmp_path / "arc" / "collections").glob("*.zarr")]
-    coll = open_source(cid, NavigationParams(fov_deg=truth.fov_deg), archive=tmp_path / "arc")
+    coll = open_source(cid, NavigationParams(), archive=tmp_path / "arc")
     names = {s["name"] for s in read_attrs(coll.store)["sources"]}
     assert {"downwelling.dcp", "sim_downwelling_1_pre.spec", "sim_downwelling_1_pre.spec.hdr"} <= names
     for k in range(len(source.cubes)):
@@ -196,7 +196,7 @@ def test_ingest_keeps_the_sky_and_the_collection_renders_the_same(flight, tmp_pa
         np.testing.assert_array_equal(a.response, b.response)
     plain = _copy(flight, tmp_path / "p", drop=("*.spec", "*.spec.hdr", "*.dcp"))
     ingest([str(plain.directory)], str(tmp_path / "arc2"), truth.fov_deg, progress=False)
-    coll = open_source(cid, NavigationParams(fov_deg=truth.fov_deg), archive=tmp_path / "arc2")
+    coll = open_source(cid, NavigationParams(), archive=tmp_path / "arc2")
     with pytest.raises(InputError, match="neither"):
         coll.radiometry(0, [0], "reflectance")
 
@@ -207,23 +207,23 @@ def test_a_dcp_kept_elsewhere(flight, tmp_path):
 
     src = _copy(flight, tmp_path / "a", drop=("*.dcp",))
     pack = shutil.copy(flight[0].directory / "downwelling.dcp", tmp_path / "elsewhere.dcp")
-    moved = open_source(src.directory, NavigationParams(fov_deg=flight[0].fov_deg), irradiance_calibration=pack)
+    moved = open_source(src.directory, NavigationParams(), irradiance_calibration=pack)
     a, b = moved.radiometry(1, [0, 9], "reflectance"), flight[1].radiometry(1, [0, 9], "reflectance")
     np.testing.assert_array_equal(a.gain, b.gain)
     np.testing.assert_array_equal(a.response, b.response)
     with pytest.raises(MissingInputError, match="nowhere.dcp"):
-        open_source(src.directory, NavigationParams(fov_deg=FOV), irradiance_calibration=tmp_path / "nowhere.dcp")
+        open_source(src.directory, NavigationParams(), irradiance_calibration=tmp_path / "nowhere.dcp")
     from archive.ingest.command import ingest
 
     (result,) = ingest([src.directory], tmp_path / "arc", FOV, progress=False, irradiance_calibration=pack)
-    coll = open_source(result.cid, NavigationParams(fov_deg=FOV), archive=tmp_path / "arc")
+    coll = open_source(result.cid, NavigationParams(), archive=tmp_path / "arc")
     np.testing.assert_array_equal(coll.radiometry(1, [0, 9], "reflectance").gain, b.gain)
 
 
 def test_two_packs_refused_only_for_reflectance(flight, tmp_path):
     src = _copy(flight, tmp_path / "a")
     shutil.copy(src.directory / "downwelling.dcp", src.directory / "other.dcp")
-    src = RawFlightSource(src.directory, NavigationParams(fov_deg=flight[0].fov_deg))
+    src = RawFlightSource(src.directory, NavigationParams())
     src.radiometry(0, [0], "radiance")
     with pytest.raises(InputError, match="2 downwelling calibrations.*--irradiance-calibration"):
         src.radiometry(0, [0], "reflectance")
@@ -237,7 +237,7 @@ def test_a_coloured_sky_costs_what_the_separable_error_says(tmp_path):
     directory = tmp_path / "flight"
     truth = simulate_flight(directory, cubes=2, bands=BANDS, samples=96, lines=120, cubes_per_pass=2, clouds=True,
                             cloud_colour=0.04)
-    source = RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg))
+    source = RawFlightSource(directory, NavigationParams())
     meshes = dict(enumerate(cube_meshes(source, truth.fov_deg, truth.ground_height)))
     bounds = np.array([m.bounds_utm() for m in meshes.values()])
     grid = Grid.from_bounds(truth.epsg, bounds[:, 0].min(), bounds[:, 1].min(), bounds[:, 2].max(),

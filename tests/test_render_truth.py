@@ -27,7 +27,7 @@ BANDS = 6
 def flight(tmp_path_factory):
     directory = tmp_path_factory.mktemp("truth") / "flight"
     truth = simulate_flight(directory, cubes=4, bands=BANDS, samples=128, lines=200, seed=0)
-    source = RawFlightSource(directory, NavigationParams(fov_deg=truth.fov_deg))
+    source = RawFlightSource(directory, NavigationParams())
     from archive.graph.plan import cube_meshes
 
     meshes = dict(enumerate(cube_meshes(source, truth.fov_deg, truth.ground_height)))

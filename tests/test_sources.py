@@ -44,7 +44,7 @@ from archive.sources import (
 from helpers import FOV
 
 CUBES, BANDS, SAMPLES, LINES = 2, 4, 48, 80
-PARAMS = NavigationParams(fov_deg=FOV)
+PARAMS = NavigationParams()
 WHITE = np.linspace(100.0, 200.0, BANDS)
 KINDS = ("raw", "collection", "memory")
 NAVIGATED = ("raw", "collection")  # the sources that compute poses from the flight's navigation
@@ -230,12 +230,12 @@ def test_tokenize_is_deterministic(source, kind, flight):
 
 @pytest.mark.parametrize("kind", NAVIGATED)
 def test_tokenize_depends_on_the_sync_offset(flight, kind):
-    shifted = open_kind(kind, flight, NavigationParams(fov_deg=FOV, sync_offset=0.008))
-    again = open_kind(kind, flight, NavigationParams(fov_deg=FOV, sync_offset=0.008))
+    shifted = open_kind(kind, flight, NavigationParams(sync_offset=0.008))
+    again = open_kind(kind, flight, NavigationParams(sync_offset=0.008))
     base = open_kind(kind, flight)
     assert tokenize(shifted) == tokenize(again)
     assert tokenize(shifted) != tokenize(base)
-    assert tokenize(open_kind(kind, flight, NavigationParams(fov_deg=FOV, sync_offset=0.15))) != tokenize(shifted)
+    assert tokenize(open_kind(kind, flight, NavigationParams(sync_offset=0.15))) != tokenize(shifted)
 
 
 def test_pickle_round_trip(source):
@@ -364,7 +364,7 @@ def test_numpy_indices_are_accepted(source):
 def test_sync_offset_same_from_raw_and_collection(flight, offset):
     """A flight opened with a sync offset behaves the same from its directory and its collection:
     the same poses (valid mask included) or the same error."""
-    params = NavigationParams(fov_deg=FOV, sync_offset=offset)
+    params = NavigationParams(sync_offset=offset)
 
     def poses_of(kind):
         src = open_kind(kind, flight, params)
@@ -395,16 +395,16 @@ def test_sync_offset_same_from_raw_and_collection(flight, offset):
 @pytest.mark.parametrize("kind", NAVIGATED)
 def test_sync_offset_and_lever_arm(flight, sources, kind):
     base = sources[kind]
-    shifted = open_kind(kind, flight, NavigationParams(fov_deg=FOV, sync_offset=0.008))
+    shifted = open_kind(kind, flight, NavigationParams(sync_offset=0.008))
     assert shifted.cubes[0].first_time == pytest.approx(base.cubes[0].first_time + 0.008)
     np.testing.assert_allclose(shifted.poses(0).position[:-2], base.poses(0).position[2:], atol=2e-3)
-    levered = open_kind(kind, flight, NavigationParams(fov_deg=FOV, lever_arm_m=(0.0, 0.0, 1.0)))
+    levered = open_kind(kind, flight, NavigationParams(lever_arm_m=(0.0, 0.0, 1.0)))
     # 1 m down in the body: ~1 m lower (D larger), tilted by the few degrees of roll/pitch
     delta = levered.poses(0).position - base.poses(0).position
     np.testing.assert_allclose(np.linalg.norm(delta, axis=1), 1.0, atol=1e-9)
     assert np.all(delta[:, 2] > 0.99)
     with pytest.raises(NavigationError, match=r"\.lcf" if kind == "raw" else "sim_Pika_L_1"):
-        open_kind(kind, flight, NavigationParams(fov_deg=FOV, sync_offset=1.0))
+        open_kind(kind, flight, NavigationParams(sync_offset=1.0))
 
 
 # --- raw directories ------------------------------------------------------------------------------

@@ -135,7 +135,7 @@ def test_terrain_mesh_bound_and_hits(hills, ridge):
 
     for (directory, truth), cube in ((hills, 0), (ridge, 3)):
         gsd = truth.nominal_gsd / 2
-        src = RawFlightSource(directory, NavigationParams(fov_deg=FOV))
+        src = RawFlightSource(directory, NavigationParams())
         poses = src.poses(cube)
         dem = open_dem(directory / "dem.tif")
         # no shutter, no neighbours: row k is line k at its pose

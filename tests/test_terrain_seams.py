@@ -129,7 +129,7 @@ def test_no_pixel_centre_lies_in_a_crack(flight, scale):
 
     directory, truth = flight
     gsd = truth.nominal_gsd * scale
-    source = RawFlightSource(directory, NavigationParams(fov_deg=FOV))
+    source = RawFlightSource(directory, NavigationParams())
     meshes = cube_meshes(source, FOV, 0.0, terrain=open_dem(directory / "dem.tif"), gsd=gsd)
     bounds = np.array([m.bounds_utm() for m in meshes])
     grid = Grid.from_bounds(meshes[0].epsg, *bounds[:, :2].min(axis=0), *bounds[:, 2:].max(axis=0), gsd)

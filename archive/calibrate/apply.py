@@ -49,9 +49,10 @@ def _note(result, previous: dict | None = None) -> dict:
     return note
 
 
-def apply(sources, result, archive=None) -> list[Path]:
-    """Record ``result`` (a :class:`~archive.calibrate.estimate.Calibration`) for every source;
-    returns the paths written."""
+def apply(sources, result, fov_deg: float, archive=None) -> list[Path]:
+    """Record ``result`` (a :class:`~archive.calibrate.estimate.Calibration`, estimated with the field
+    of view ``fov_deg``, degrees: a raw flight's sidecar records it) for every source; returns the
+    paths written."""
     written = []
     for source in sources:
         params = {"sync_offset": float(result.params.sync),
@@ -64,11 +65,11 @@ def apply(sources, result, archive=None) -> list[Path]:
             previous = (previous.attrs.get("navigation_calibration") if previous is not None else None) or {}
             written.append(_apply_collection(source, params, ground, _note(result, previous), archive))
         else:
-            written.append(_apply_raw(source, params, ground, result))
+            written.append(_apply_raw(source, params, ground, result, fov_deg))
     return written
 
 
-def _apply_raw(source, params: dict, ground, result) -> Path:
+def _apply_raw(source, params: dict, ground, result, fov_deg: float) -> Path:
     from archive.files import write_atomic
     from archive.sources.raw import NAVIGATION_SIDECAR
 
@@ -77,7 +78,7 @@ def _apply_raw(source, params: dict, ground, result) -> Path:
 
     previous = read_navigation_sidecar(source.directory).get("calibration") or {}
     note = _note(result, previous)
-    record = {**params, "ground_height": ground, "fov_deg": float(source.params.fov_deg), "calibration": note}
+    record = {**params, "ground_height": ground, "fov_deg": float(fov_deg), "calibration": note}
     if note.get("relative_to") is not None:
         record["relative_to"] = note["relative_to"]
     if result.dem is not None:
@@ -91,9 +92,8 @@ def _apply_collection(source, params: dict, ground, note: dict, archive) -> Path
     from archive.collection import record_navigation
     from archive.sources.collection import CollectionSource
 
-    nav = NavigationParams(fov_deg=source.params.fov_deg, sync_offset=params["sync_offset"],
-                           boresight_deg=tuple(params["boresight_deg"]), lever_arm_m=tuple(params["lever_arm_m"]),
-                           position_offset_m=tuple(params["position_offset_m"]))
+    nav = NavigationParams(sync_offset=params["sync_offset"], boresight_deg=tuple(params["boresight_deg"]),
+                           lever_arm_m=tuple(params["lever_arm_m"]), position_offset_m=tuple(params["position_offset_m"]))
     fresh = CollectionSource(source.store, source.id, nav)
     n = len(fresh.cubes)
     poses = [fresh.poses(i) for i in range(n)]

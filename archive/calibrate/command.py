@@ -24,7 +24,7 @@ def open_calibration_sources(names, archive=None, fov=None):
         raise InputError("calibrate", "no flight given", "name a raw flight directory or a collection id with --archive")
     opened = []
     for name in names:
-        params = NavigationParams(fov_deg=fov, sync_offset=None, boresight_deg=None, lever_arm_m=None)
+        params = NavigationParams(sync_offset=None, boresight_deg=None, lever_arm_m=None)
         opened.append(open_source(name, params, archive=archive))
     fovs = {fov} if fov is not None else {s.fov_deg for s in opened}
     if None in fovs:
@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     if args.apply:
         from archive.calibrate.apply import apply
 
-        applied = [str(p) for p in apply(sources, result, args.archive)]
+        applied = [str(p) for p in apply(sources, result, fov, args.archive)]
     if args.json:
         out = result.to_json()
         if applied is not None:
@@ -125,7 +125,7 @@ def run_reference(args: argparse.Namespace) -> int:
             if args.apply:
                 from archive.calibrate.apply import apply
 
-                applied = [str(p) for p in apply([source], result, args.archive)]
+                applied = [str(p) for p in apply([source], result, fov, args.archive)]
         except Exception as exc:  # noqa: BLE001 - in a batch a flight that fails costs only itself
             if not batch:
                 raise

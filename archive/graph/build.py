@@ -41,6 +41,7 @@ from dask.task_spec import DataNode, GraphNode, Task
 
 from archive.grid import boxes_intersect
 from archive.overlap import OverlapRule
+from archive.params import MeshSpec
 from archive.outputs.base import CHUNK
 from archive.graph.nodes import BANDS_PER_PASS, GL_RESOURCES, Node, Ref, RenderNodes, task_arg
 from archive.graph.plan import GROUP, RenderPlan, band_groups
@@ -260,11 +261,12 @@ def _ref(key: str | None) -> Ref | None:
 
 
 def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
-                       overlap: OverlapRule, mesh_spec: object = None, layers=None, layers_sink=None) -> RenderGraph:
+                       overlap: OverlapRule, mesh_spec: MeshSpec | None = None, layers=None, layers_sink=None) -> RenderGraph:
     """Dask graph rendering ``plan`` from ``sources`` into ``sink`` (:class:`~archive.outputs.zarr.MosaicStore`,
     :class:`~archive.outputs.envi.EnviSink` or :class:`~archive.outputs.cog.CogSink`).
 
-    mesh_spec: the parameters the meshes were built from (fov, ground height...), only for keys.
+    mesh_spec: the :class:`~archive.params.MeshSpec` of a plan that holds its meshes (only for keys;
+    default the plan's :attr:`~archive.graph.plan.RenderPlan.mesh_spec`).
     overlap: the rule mosaicking the cubes of a tile (:mod:`archive.overlap`).
     layers: a :class:`~archive.provenance.ProvenanceSpec` when per-cube provenance layers are needed:
     by a rule that compares one (its :attr:`~archive.overlap.OverlapRule.key`) and by ``layers_sink``, the sink the provenance layers

@@ -32,6 +32,7 @@ from archive.graph.plan import RenderPlan
 from archive.graph.tasks import assemble_task
 from archive.grid import boxes_intersect
 from archive.overlap import OverlapRule
+from archive.params import MeshSpec
 from archive.outputs.base import CHUNK
 
 __all__ = ["GLTask", "mosaic_arrays", "nan_tile", "tile_saturation", "tile_values", "zero_tile"]
@@ -95,13 +96,13 @@ def assemble_keyed(rule: OverlapRule, tile, nbands: int, boxes, *renders_and_key
 
 
 def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: OverlapRule,
-                  mesh_spec: object = None, layers=None):
+                  mesh_spec: MeshSpec | None = None, layers=None):
     """(values, saturated) lazy ``dask.array`` collections of ``plan`` rendered from ``sources``.
 
     values: (nbands, grid height, grid width) float32, NaN where no line covers a pixel, chunked
     (one band group, CHUNK, CHUNK); saturated: (grid height, grid width) uint8, chunked (CHUNK,
-    CHUNK). mesh_spec: the parameters the meshes were built from, only for keys (as in
-    :func:`~archive.graph.build.build_render_graph`); layers: the
+    CHUNK). mesh_spec: the :class:`~archive.params.MeshSpec` of a plan that holds its meshes, only
+    for keys (as in :func:`~archive.graph.build.build_render_graph`; default the plan's); layers: the
     :class:`~archive.provenance.ProvenanceSpec` of the layer the overlap rule compares (its only layer).
     """
     key_layer = overlap.key

@@ -69,13 +69,15 @@ class Node:
 class RenderNodes:
     """The nodes of rendering ``plan`` from ``sources``: what every graph builder asks for.
 
-    mode: radiometric mode of the renders; mesh_spec: the parameters the meshes were built from
-    (fov, ground height...; only for keys); layers: the :class:`~archive.provenance.ProvenanceSpec`
+    mode: radiometric mode of the renders; mesh_spec: the :class:`~archive.params.MeshSpec` the
+    meshes were built from (only for keys; default the plan's :attr:`~archive.graph.plan.RenderPlan.mesh_spec`,
+    which a plan holding its meshes lacks); layers: the :class:`~archive.provenance.ProvenanceSpec`
     of the per-cube layers (provenance, or the layer the overlap rule compares), or None.
     """
 
     def __init__(self, plan: RenderPlan, sources: Sequence, *, mode: str, mesh_spec: object = None, layers=None):
-        self.plan, self.sources, self.mode, self.mesh_spec, self.layers = plan, list(sources), mode, mesh_spec, layers
+        self.plan, self.sources, self.mode, self.layers = plan, list(sources), mode, layers
+        self.mesh_spec = plan.mesh_spec if mesh_spec is None else mesh_spec
         # every source's __dask_tokenize__ says what its renders depend on (files or stored content,
         # parameters), never its pixels
         self.tokens = [tokenize(s) for s in self.sources]
@@ -86,24 +88,24 @@ class RenderNodes:
 
     def data(self) -> dict[str, object]:
         """key -> value of every source of the plan, and of every cube mesh when the plan holds them
-        (no :attr:`~archive.graph.plan.RenderPlan.mesh_params`; else :meth:`meshes` builds them)."""
+        (no :attr:`~archive.graph.plan.RenderPlan.mesh_spec`; else :meth:`meshes` builds them)."""
         out: dict[str, object] = {self.source_key(i): s for i, s in enumerate(self.sources)}
-        if self.plan.mesh_params is None:
+        if self.plan.mesh_spec is None:
             out.update({self.mesh_key(j): job.mesh for j, job in enumerate(self.plan.jobs)})
         return out
 
     def mesh_key(self, j: int) -> str:
         job = self.plan.jobs[j]
-        return f"mesh-{tokenize(self.tokens[job.source], job.cube, self.mesh_spec, self.plan.mesh_params)}"
+        return f"mesh-{tokenize(self.tokens[job.source], job.cube, self.mesh_spec)}"
 
     def meshes(self) -> list[Node]:
         """One task per cube job building its mesh on a worker (:func:`~archive.graph.plan.mesh_task`,
-        any thread: CPU only) from the source and the plan's small ``mesh_params`` (a few hundred
+        any thread: CPU only) from the source and the plan's small ``mesh_spec`` (a few hundred
         bytes in the graph instead of the mesh); none when the plan holds its meshes."""
-        params = self.plan.mesh_params
-        if params is None:
+        spec = self.plan.mesh_spec
+        if spec is None:
             return []
-        return [Node(self.mesh_key(j), mesh_task, (Ref(self.source_key(job.source)), job.cube, params))
+        return [Node(self.mesh_key(j), mesh_task, (Ref(self.source_key(job.source)), job.cube, spec))
                 for j, job in enumerate(self.plan.jobs)]
 
     # ---- tasks ---------------------------------------------------------------------------------
@@ -130,7 +132,7 @@ class RenderNodes:
     def cube_layers(self, j: int, lookup: str) -> Node:
         """The provenance layers ``layers.names`` of cube job ``j`` on its window (CPU, from its lookup)."""
         job = self.plan.jobs[j]
-        ground = None if self.layers.dem is not None else self.layers.grounds[job.source]
+        ground = None if self.layers.dem is not None else self.layers.ground
         key = f"layers-{tokenize(self.tokens[job.source], job.cube, j, lookup, self.layers)}"
         return Node(key, layers_task, (Ref(self.source_key(job.source)), job.cube, j, Ref(lookup), self.layers,
                                        ground))

@@ -18,9 +18,10 @@ from archive.errors import InputError
 from archive.grid import Grid, GridRequest, aligned, boxes_intersect
 from archive.navigation import (DEFAULT_MAX_VIEW_ANGLE, frame_interval, joined, projected_epsg, to_lonlat,
                                 utm_epsg_for)
+from archive.params import MeshSpec
 
-__all__ = ["CubeJob", "MeshParams", "RenderPlan", "band_groups", "cube_mesh", "cube_meshes", "job_epsg", "mesh_task",
-           "plan_render", "strip_links"]
+__all__ = ["CubeJob", "RenderPlan", "band_groups", "cube_mesh", "cube_meshes", "job_epsg", "mesh_task",
+           "plan_render", "spec_meshes", "strip_links"]
 
 #: Bands drawn per render task (one RGBA texel fetch).
 GROUP = 4
@@ -32,7 +33,7 @@ class CubeJob:
 
     box: (row0, col0, height, width) of the window in output pixels (on a grid asked for on the GSD
     lattice it may reach past the grid: see :func:`plan_render`). mesh: None in a plan whose
-    meshes tasks build (:attr:`RenderPlan.mesh_params`).
+    meshes tasks build (:attr:`RenderPlan.mesh_spec`).
     """
 
     source: int
@@ -48,23 +49,24 @@ class RenderPlan:
 
     grid: output grid. jobs: cubes touching it. bands: per source, the source band index of each
     output band (all the same length). groups: (start, stop) output band ranges, one task each.
-    mesh_params: how tasks build the cube meshes on the workers (:func:`mesh_task`; the jobs then
-    hold no mesh: :meth:`without_meshes`), or None: the jobs' meshes go into the graph as values.
+    mesh_spec: the :class:`~archive.params.MeshSpec` tasks build the cube meshes from on the
+    workers (:func:`mesh_task`; the jobs then hold no mesh: :meth:`without_meshes`), or None: the
+    jobs' meshes go into the graph as values.
     """
 
     grid: Grid
     jobs: tuple[CubeJob, ...]
     bands: tuple[tuple[int, ...], ...]
     groups: tuple[tuple[int, int], ...]
-    mesh_params: MeshParams | None = None
+    mesh_spec: MeshSpec | None = None
 
-    def without_meshes(self, params: MeshParams) -> RenderPlan:
-        """This plan with its meshes left to tasks built from ``params`` (its ``epsg`` must be the
+    def without_meshes(self, spec: MeshSpec) -> RenderPlan:
+        """This plan with its meshes left to tasks built from ``spec`` (its ``epsg`` must be the
         grid's): the client keeps the windows, not the meshes."""
-        if int(params.epsg) != self.grid.epsg:
-            raise ValueError(f"meshes in EPSG:{params.epsg} for a grid in EPSG:{self.grid.epsg}")
+        if spec.epsg is None or int(spec.epsg) != self.grid.epsg:
+            raise ValueError(f"meshes in EPSG:{spec.epsg} for a grid in EPSG:{self.grid.epsg}")
         jobs = tuple(dataclasses.replace(job, mesh=None) for job in self.jobs)
-        return dataclasses.replace(self, jobs=jobs, mesh_params=params)
+        return dataclasses.replace(self, jobs=jobs, mesh_spec=spec)
 
     @property
     def nbands(self) -> int:
@@ -145,35 +147,29 @@ def cube_meshes(source, fov_deg: float, ground_height: float,
             for i in range(len(source.cubes))]
 
 
-@dataclass(frozen=True)
-class MeshParams:
-    """How the cube meshes of a plan are built, by one task per cube on the workers
-    (:func:`mesh_task`; the client keeps only what the plan needs of them): field of view (deg),
-    flat ground height (m; NaN with a DEM), view-angle limit (deg off nadir, None: none), the
-    output grid's EPSG code (meshes of another CRS are transformed into it), and with a DEM its
-    :class:`archive.dem.DemSpec` and the output GSD (m: the terrain segmentation follows it)."""
-
-    fov_deg: float
-    ground_height: float
-    max_view_angle: float | None
-    epsg: int
-    dem: object = None
-    gsd: float | None = None
-
-
 @functools.lru_cache(maxsize=8)
 def _opened_dem(spec):
     """A worker's opened DEM of ``spec`` (metadata only: heights are read per mesh), once per process."""
     return spec.open()
 
 
-def mesh_task(source, cube: int, params: MeshParams):
-    """Task body: the ground mesh of cube ``cube`` of ``source`` (:func:`cube_mesh`) in the output
-    grid's CRS ``params.epsg``: the mesh :func:`plan_render` planned the cube's window with."""
-    terrain = None if params.dem is None else _opened_dem(params.dem)
-    mesh = cube_mesh(source, cube, params.fov_deg, params.ground_height, params.max_view_angle, terrain=terrain,
-                     gsd=params.gsd)
-    return mesh if mesh.epsg == int(params.epsg) else mesh.to_epsg(int(params.epsg))
+def spec_meshes(source, spec: MeshSpec, terrain=None) -> list:
+    """:func:`cube_meshes` of every cube of ``source`` as ``spec`` says (field of view, flat ground or
+    DEM, view-angle limit; in the source's local frame): ``terrain`` is ``spec.dem`` opened, when
+    the caller has it (else it is opened here)."""
+    if spec.dem is not None and terrain is None:
+        terrain = _opened_dem(spec.dem)
+    return cube_meshes(source, spec.fov_deg, spec.flat_ground, spec.max_view_angle, terrain=terrain,
+                       gsd=spec.gsd if terrain is not None else None)
+
+
+def mesh_task(source, cube: int, spec: MeshSpec):
+    """Task body: the ground mesh of cube ``cube`` of ``source`` (:func:`cube_mesh`) as ``spec`` says,
+    in the output grid's CRS ``spec.epsg``: the mesh :func:`plan_render` planned the cube's window with."""
+    terrain = None if spec.dem is None else _opened_dem(spec.dem)
+    mesh = cube_mesh(source, cube, spec.fov_deg, spec.flat_ground, spec.max_view_angle, terrain=terrain,
+                     gsd=spec.gsd)
+    return mesh if mesh.epsg == int(spec.epsg) else mesh.to_epsg(int(spec.epsg))
 
 
 def job_epsg(meshes: Sequence[Sequence], crs: int | str | None = None) -> int:

@@ -71,8 +71,8 @@ def _ground_height(source: RawFlightSource, given: float | None) -> tuple[float,
     return auto_ground_height([source]), "header 'ground elevation'"
 
 
-def _terrain_record(src: RawFlightSource, dem_path, dem_datum: str | None, ground_height: float | None,
-                    arrays: dict, samples: int, poses: list) -> tuple[float, str, dict]:
+def _terrain_record(src: RawFlightSource, fov_deg: float, dem_path, dem_datum: str | None,
+                    ground_height: float | None, arrays: dict, samples: int, poses: list) -> tuple[float, str, dict]:
     """(ground height, its origin, the ``terrain`` attribute) of a flight ingested with a DEM: the
     footprint traced on the DEM (lon/lat rings, nominal GSD), the DEM's name and vertical datum."""
     from scipy.spatial.transform import Rotation
@@ -85,7 +85,7 @@ def _terrain_record(src: RawFlightSource, dem_path, dem_datum: str | None, groun
         raise InputError("--dem", f"--dem and --ground-height {ground_height:g} are exclusive: the DEM gives "
                          "the ground", "leave --ground-height out")
     dem = open_dem(dem_path, dem_datum)
-    dem.check_flight(poses, float(src.params.fov_deg))   # names all the ground it lacks under the swath
+    dem.check_flight(poses, float(fov_deg))   # names all the ground it lacks under the swath
     position = arrays["position"]
     frame = src.frame
     under = dem.heights_at(frame.epsg, position[:, 1] + frame.origin_e, position[:, 0] + frame.origin_n)
@@ -95,7 +95,7 @@ def _terrain_record(src: RawFlightSource, dem_path, dem_datum: str | None, groun
     ground = check_ground_height(float(np.nanmedian(under)), camera_altitudes(src), src.label,
                                  f"the median height of the DEM {dem.path} under the track")
     fp = flight_footprint(arrays["time"], position, Rotation.from_quat(arrays["attitude"]), frame,
-                          float(src.params.fov_deg), ground, samples, where=str(src.label), terrain=dem)
+                          float(fov_deg), ground, samples, where=str(src.label), terrain=dem)
     rings = [[[round(float(x), 9), round(float(y), 9)] for x, y in ring] for ring in fp.lonlat()]
     record = {**dem_record(dem), "gsd": fp.gsd, "footprint_lonlat": rings}
     return ground, f"DEM {dem.path.name} (median under the track)", record
@@ -133,7 +133,7 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
     Raises a clear ArchiveError naming the cube or file for a broken flight; writes nothing."""
     if not (np.isfinite(fov_deg) and 0 < fov_deg < 180):
         raise InputError("--fov", f"field of view {fov_deg} deg is not in (0, 180)", "47.5 for a Pika L")
-    nav = NavigationParams(fov_deg=float(fov_deg), sync_offset=float(sync_offset),
+    nav = NavigationParams(sync_offset=float(sync_offset),
                            boresight_deg=tuple(float(v) for v in boresight),
                            lever_arm_m=tuple(float(v) for v in lever_arm))
     src = RawFlightSource(directory, nav, calibration=calibration, irradiance_calibration=irradiance_calibration)
@@ -210,8 +210,8 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
     cid = collection_id(sensor, start)
     terrain = None
     if dem is not None:
-        ground, ground_source, terrain = _terrain_record(src, dem, dem_datum, ground_height, arrays, first.samples,
-                                                         poses)
+        ground, ground_source, terrain = _terrain_record(src, fov_deg, dem, dem_datum, ground_height, arrays,
+                                                         first.samples, poses)
     else:
         if dem_datum is not None:
             raise InputError("--dem-datum", "gives the vertical datum of a DEM, but no --dem was given",

@@ -25,8 +25,8 @@ class CollectionSource(NavigatedSource):
     Poses are recomputed from the stored raw navigation with ``params`` (sync offset, boresight,
     lever arm) by the same :class:`~archive.sources.navigation.FlightNavigation` as the raw
     source, so both give identical poses, DN and radiometry. ``read_bands`` reads only the chunks
-    of the cube's lines. ``fov_deg`` and ``ground_height`` are the ones ingested; ``params.fov_deg``
-    is the caller's; parameters left None (sync offset, boresight, lever arm) take the values
+    of the cube's lines. ``fov_deg`` and ``ground_height`` are the ones ingested; navigation
+    parameters left None (sync offset, boresight, lever arm) take the values
     given at ingest (attribute ``navigation_params``), else 0. Picklable. Use :func:`archive.sources.open_source` to open one by id.
     """
 

@@ -42,7 +42,7 @@ class MemoryFlightSource:
             raise InputError(id, f"{len(data)} cubes for {len(poses)} pose sets", "give one Poses per cube")
         self.id = id
         self.label = id
-        self.params = (params if params is not None else NavigationParams(fov_deg=fov_deg)).resolved()
+        self.params = (params if params is not None else NavigationParams()).resolved()
         self.fov_deg = fov_deg
         self.ground_height = ground_height
         self._data = [np.asarray(d) for d in data]

@@ -150,20 +150,21 @@ class Flight:
         if found is not None:
             self._geometries.move_to_end(key)
             return found
-        from archive.graph.plan import cube_meshes, job_epsg
+        from archive.graph.plan import job_epsg, spec_meshes
+        from archive.params import MeshSpec
         from archive.sources.select import resolve_ground_height
 
         source = self.source(sync_offset)
         posed = self._posed.get(sync_offset)
         if posed is None or posed.source is not source:
             posed = self._keep(self._posed, sync_offset, PosesKept(source), GEOMETRIES_KEPT)
-        if terrain is not None:
+        if terrain is not None:   # the meshes as 'archive render --dem' builds them (DEM moved by the offset)
             ground = 0.0 if ground_height is None else float(ground_height)
-            dem = dataclasses.replace(terrain[0], offset=ground).open()
-            meshes = cube_meshes(posed, self.fov, math.nan, terrain=dem, gsd=gsd)
+            spec = MeshSpec(self.fov, dem=dataclasses.replace(terrain[0], offset=ground), gsd=gsd)
+            meshes = spec_meshes(posed, spec, spec.dem.open())
         else:
             ground = resolve_ground_height("auto" if ground_height is None else ground_height, [source])
-            meshes = cube_meshes(posed, self.fov, ground)
+            meshes = spec_meshes(posed, MeshSpec(self.fov, float(ground)))
         epsg = job_epsg([meshes])
         utm = tuple(m if m.epsg == epsg else m.to_epsg(epsg) for m in meshes)
         mercator = tuple(m.to_epsg(MERCATOR_EPSG) for m in meshes)
@@ -245,7 +246,7 @@ class Flight:
         terrain = self.terrain() if geometry.gsd is not None else None
         dem = None if terrain is None else dataclasses.replace(terrain[0], offset=geometry.ground_height)
         # the time reference only shifts the sun layers, which are not asked for
-        spec = ProvenanceSpec(lookup.grid.epsg, 0.0, "1980-01-06T00:00:00Z", (), (geometry.ground_height,), dem,
+        spec = ProvenanceSpec(lookup.grid.epsg, 0.0, "1980-01-06T00:00:00Z", (), geometry.ground_height, dem,
                               ("view_zenith",))
         zenith = cube_layers(geometry.source, cube, 0, lookup, spec, geometry.ground_height)[0]
         self.lookup_cache.put(key, zenith, zenith.nbytes)

@@ -263,7 +263,7 @@ def _raw_feature(directory: Path, fov: float) -> dict:
     from archive.sources import open_source
     from archive.sources.ground import auto_ground_height
 
-    source = open_source(directory, NavigationParams(fov_deg=fov))
+    source = open_source(directory, NavigationParams())
     ground = auto_ground_height([source])
     poses = [source.poses(i) for i in range(len(source.cubes))]
     times = np.concatenate([p.time for p in poses])
