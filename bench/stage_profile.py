@@ -112,7 +112,9 @@ def install_stage_timers() -> list:
         ("archive.sources.raw", "RawFlightSource", "radiometry", "radiometry terms", False),
         ("archive.graph.tasks", "PackedLookup", "unpack", "lookup unpack", False),
         ("archive.graph.tasks", "PackedLookup", "gather_index", "lookup decode", False),
-        ("archive.graph.tasks", None, "last_values", "mosaic (last)", False),
+        ("archive.overlap", None, "last_values", "mosaic (last)", False),     # the rules' chunk writers
+        ("archive.overlap", None, "nadir_values", "mosaic (nadir)", False),
+        ("archive.graph.tasks", None, "last_values", "mosaic (last)", False),  # trees before archive.overlap
         ("archive.graph.tasks", None, "nadir_values", "mosaic (nadir)", False),
         ("archive.outputs.cog", None, "all_nan", "NaN checks", False),
         ("archive.outputs.tiff", None, "encode_tile", "compression (COG)", False),
