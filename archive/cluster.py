@@ -258,10 +258,11 @@ def warm_up() -> None:
     ~0.45 CPU-s) and make the process's GL context on its GL thread, deciding its band pass
     (:func:`archive.graph.tasks.band_pass_choice`, the same decision a render task makes). Never
     raises: a failure here is the first render task's to report, as it would have been."""
+    import importlib
+
     try:
-        import archive.outputs.registry   # noqa: F401  (the writers: Zarr, COG, ENVI)
-        import archive.render.gather   # noqa: F401
-        import archive.sources   # noqa: F401
+        for name in ("archive.outputs.registry", "archive.render.gather", "archive.sources"):   # writers, renderers, sources
+            importlib.import_module(name)
         from archive.graph.tasks import band_pass_choice
 
         band_pass_choice()

@@ -83,8 +83,11 @@ def test_workers_warm_up_before_any_task_and_keep_a_configured_preload(tmp_path)
     """A local cluster's workers import what the render tasks need and make their GL context while
     they start (``archive.cluster.dask_setup``, issue 37), with no task sent; a worker preload of the
     Dask configuration still runs too."""
+    import importlib
+
     import dask
-    import distributed  # noqa: F401  (its configuration defaults loaded before the set below, which drops what it adds)
+
+    importlib.import_module("distributed")   # its configuration defaults loaded before the set below, which drops what it adds
 
     from archive.cluster import start_cluster
 

@@ -14,7 +14,6 @@ from pathlib import Path
 import psutil
 
 from archive.cluster import phase
-from helpers import FOV
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 import timeline  # noqa: E402  (bench/timeline.py)
