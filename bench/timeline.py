@@ -326,6 +326,7 @@ def main(argv=None) -> int:
         if args.tmpfs:
             shutil.rmtree(folder, ignore_errors=True)
     if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(results, indent=1, default=str))
     return 0
 
