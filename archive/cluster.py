@@ -232,7 +232,8 @@ def _start_cluster(scheduler, workers: int | None, say, threads: int | None = No
     spreading = any(spread)
     # Each worker warms itself up while it starts (dask_setup below, a worker preload after any the
     # configuration names): the command is still importing and planning on one core meanwhile.
-    preload = [*(dask.config.get("distributed.worker.preload", None) or []), __name__]
+    configured = dask.config.get("distributed.worker.preload", None) or []
+    preload = [*([configured] if isinstance(configured, str) else configured), __name__]
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
         cluster = LocalCluster(n_workers=0 if spreading else workers,
                                threads_per_worker=threads or max(2, cores), processes=True,
