@@ -24,8 +24,8 @@ command process; the rest is the worker processes), **cores busy** = tree CPU / 
 did meanwhile: busy with other processes, **iowait** (idle with a task waiting on the disk), idle,
 steal. Then the whole run: its wall, its exact tree CPU (``getrusage`` of the reaped children), and
 cores x wall split into busy (ours), others, waiting on disk (iowait), idle (what our code left
-idle: serial phases) and steal. ``--tmpfs`` writes the output under ``/dev/shm`` (checked against
-the memory available first) so that the disk is out of the picture; ``--render-bands N`` renders the
+idle: serial phases) and steal; with ``--runs`` K > 1, the medians per phase and of the whole
+runs. ``--tmpfs`` writes the output under ``/dev/shm`` (checked against the memory available first) so that the disk is out of the picture; ``--render-bands N`` renders the
 first N bands only (the held-out shape at 100 bands: ~2.4 GB). The output is deleted after each run.
 
 The machine may be shared: other processes' CPU shows as "others"; wall and idle are then polluted,
@@ -235,6 +235,29 @@ def report(R: dict) -> list[str]:
     return rows
 
 
+def summary(results: list[dict]) -> list[str]:
+    """Markdown: per phase (by its end mark) the median wall and cores busy over several runs, and
+    the whole runs' medians."""
+    import statistics
+
+    names = list(dict.fromkeys(p["to"] for R in results for p in R["phases"]))
+    rows = [f"median of {len(results)} runs:", "",
+            "| phase (ends at) | wall s | cores busy | iowait | idle |", "|---|---|---|---|---|"]
+    for name in names:
+        ps = [p for R in results for p in R["phases"] if p["to"] == name]
+        rows.append(f"| {name} | {statistics.median(p['wall_s'] for p in ps):.2f} | "
+                    f"{100 * statistics.median(p['busy'] for p in ps):.0f} % | "
+                    f"{100 * statistics.median(p['iowait'] for p in ps):.0f} % | "
+                    f"{100 * statistics.median(p['idle'] for p in ps):.0f} % |")
+    med = {k: statistics.median(R["whole"][k] for R in results) for k in ("ours", "others", "iowait", "idle", "steal")}
+    rows += ["", f"whole run: {statistics.median(R['end'] - R['start'] for R in results):.2f} s, "
+             f"{statistics.median(R['tree_cpu_s'] for R in results):.2f} CPU-s, cores busy "
+             f"**{100 * statistics.median(R['busy'] for R in results):.0f} %**; busy (ours) {100 * med['ours']:.0f} %, "
+             f"others {100 * med['others']:.0f} %, iowait {100 * med['iowait']:.0f} %, idle {100 * med['idle']:.0f} %, "
+             f"steal {100 * med['steal']:.0f} %"]
+    return rows
+
+
 def analyse(R: dict) -> dict:
     """``R`` (from :func:`run_timeline`) with its phases and whole-run split added."""
     R["phases"] = phases(R)
@@ -325,6 +348,8 @@ def main(argv=None) -> int:
     finally:
         if args.tmpfs:
             shutil.rmtree(folder, ignore_errors=True)
+    if len(results) > 1:
+        print("\n" + "\n".join(summary(results)), flush=True)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(results, indent=1, default=str))
