@@ -19,14 +19,15 @@ ended, output published, main returned, atexit handlers run), and samples every 
   cutime + cstime, so that a child reaped meanwhile still counts), the command's own process apart.
 
 It prints, per phase (between two consecutive marks, process start and exit included): wall, tree
-CPU (command process / the rest: the scheduler and the nannies of a local cluster run in the
-command process; the rest is the worker processes), **cores busy** = tree CPU / wall / cores, and what the machine's cores
-did meanwhile: busy with other processes, **iowait** (idle with a task waiting on the disk), idle,
-steal. Then the whole run: its wall, its exact tree CPU (``getrusage`` of the reaped children), and
-cores x wall split into busy (ours), others, waiting on disk (iowait), idle (what our code left
-idle: serial phases) and steal; with ``--runs`` K > 1, the medians per phase and of the whole
-runs. ``--tmpfs`` writes the output under ``/dev/shm`` (checked against the memory available first) so that the disk is out of the picture; ``--render-bands N`` renders the
-first N bands only (the held-out shape at 100 bands: ~2.4 GB). The output is deleted after each run.
+CPU (command process / the rest: the scheduler and the nannies of a local cluster run in the command
+process; the rest is the worker processes), **cores busy** = tree CPU / wall / cores, and what the
+machine's cores did meanwhile: busy with other processes, **iowait** (idle with a task waiting on
+the disk), idle, steal. Then the whole run: its wall, its exact tree CPU (``getrusage`` of the
+reaped children), and cores x wall split into busy (ours), others, waiting on disk (iowait), idle
+(what our code left idle: serial phases) and steal; with ``--runs`` K > 1, the medians per phase and
+of the whole runs. ``--tmpfs`` writes the output under ``/dev/shm`` (checked against the memory
+available first) so that the disk is out of the picture; ``--render-bands N`` renders the first N
+bands only (the held-out shape at 100 bands: ~2.4 GB). The output is deleted after each run.
 
 The machine may be shared: other processes' CPU shows as "others"; wall and idle are then polluted,
 the structure (phases, one-core phases, the tail) still shows.
