@@ -186,6 +186,34 @@ def test_cog_layout_task_is_idempotent_and_names_a_missing_spool(tmp_path):
         sink.lay_out(2, 1, end)
 
 
+def test_cog_runs_copied_through_a_buffer_or_in_the_kernel_are_the_same_bytes(tmp_path, monkeypatch):
+    """Layout and assembly copy runs of spool files through one buffer per thread (pread + pwrite),
+    or by copy_file_range where the file system copies on the server: the same file either way,
+    runs longer than the buffer included."""
+    import archive.outputs.tiff as tiff
+
+    rng = np.random.default_rng(3)
+    sources = []
+    for k in range(3):
+        path = tmp_path / f"s{k}"
+        path.write_bytes(rng.integers(0, 256, 300_000 + k * 1000, np.uint8).tobytes())
+        sources.append(str(path))
+    runs = [(sources[0], 10, 70_000, 0), (sources[1], 0, 250_000, 70_000), (sources[2], 5, 1000, 320_000),
+            (sources[0], 200_000, 100_000, 321_000)]
+    expected = b"".join(open(p, "rb").read()[a:a + n] for p, a, n, _ in runs)
+    monkeypatch.setattr(tiff, "COPY_BUFFER", 64_000)   # runs span several buffers
+    for kernel in (False, True):
+        monkeypatch.setattr(tiff, "SERVER_COPY_FS", (tiff._fs_type(os.stat(tmp_path).st_dev),) if kernel else ())
+        for threads in (1, 3):
+            dest = tmp_path / f"d{kernel}{threads}"
+            fd = os.open(dest, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
+            try:
+                tiff._copy_runs(fd, runs, threads)
+            finally:
+                os.close(fd)
+            assert dest.read_bytes() == expected
+
+
 @pytest.mark.parametrize("shape", [(1024, 1024), (2, 513, 1023), (3, 3)])
 def test_overview_downsampling_is_the_mean_of_the_finite_pixels(shape):
     rng = np.random.default_rng(4)
