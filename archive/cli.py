@@ -536,9 +536,11 @@ def exit_now(code: int) -> NoReturn:
 
         phase("main-returned")
     shutdown = getattr(threading, "_shutdown", None)   # what Py_Finalize calls first
-    if shutdown is not None:
-        shutdown()
-    atexit._run_exitfuncs()
+    run_exitfuncs = getattr(atexit, "_run_exitfuncs", None)   # CPython's; elsewhere: the interpreter's own exit
+    if shutdown is None or run_exitfuncs is None:
+        sys.exit(code)
+    shutdown()
+    run_exitfuncs()
     if timeline:
         phase("atexit-done")
     for stream in (sys.stdout, sys.stderr):

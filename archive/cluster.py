@@ -294,9 +294,13 @@ def dask_setup(worker) -> None:
     threading.Thread(target=once_running, name="archive-warm-up", daemon=True).start()
     import atexit
 
+    run_exitfuncs = getattr(atexit, "_run_exitfuncs", None)   # CPython's; elsewhere the worker ends as usual
+    if run_exitfuncs is None:
+        return
+
     def exit_now() -> None:   # the worker process's last atexit handler to be registered runs first
         atexit.unregister(exit_now)
-        atexit._run_exitfuncs()   # the handlers registered before this one, as the interpreter would
+        run_exitfuncs()   # the handlers registered before this one, as the interpreter would
         closed = getattr(getattr(worker, "status", None), "name", "") == "closed"
         for stream in (sys.stdout, sys.stderr):
             try:
