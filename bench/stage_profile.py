@@ -18,7 +18,8 @@ under ``distributed.get_task_stream``, and writes OUT.json:
 - ``tasks``: per key prefix (lookup, render, write, blank, overview, saturated, gate, ...) count and
   summed task seconds from the task stream;
 - ``stages``: CPU-seconds (thread CPU time; for GL calls plus the llvmpipe threads' CPU while the
-  call ran: one GL call at a time per process) and calls of the wrapped functions: GL lookup, GL
+  call ran: one GL call at a time per process) and calls of the wrapped functions (a wrapped call
+  made inside another counts in the outer one's stage only, e.g. the COG layout's ``os.pwrite``): GL lookup, GL
   band passes, GL compute gather, CPU band gather, DN reads, mosaic, NaN checks, compression, overview downsampling,
   writes (``os.pwrite``, Zarr chunk files, COG spool files).
 
@@ -78,6 +79,8 @@ def install_stage_timers() -> list:
     lock = threading.Lock()
     sys._archive_stage_stats = stats
 
+    inside = threading.local()   # a timed call in progress in this thread: nested ones count in it
+
     def wrap(owner, attr: str, stage: str, gl: bool = False) -> bool:
         fn = getattr(owner, attr, None)
         if fn is None:
@@ -85,6 +88,15 @@ def install_stage_timers() -> list:
 
         @functools.wraps(fn)
         def timed(*args, **kwargs):
+            if getattr(inside, "stage", None) is not None:   # e.g. os.pwrite inside the COG layout
+                return fn(*args, **kwargs)
+            inside.stage = stage
+            try:
+                return timed_call(*args, **kwargs)
+            finally:
+                inside.stage = None
+
+        def timed_call(*args, **kwargs):
             if gl:
                 sys._archive_gl_tid = threading.get_native_id()
             lp = _llvmpipe_cpu() if gl else 0.0
