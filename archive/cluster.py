@@ -24,7 +24,7 @@ import numpy as np
 
 from archive.errors import ArchiveError, InputError, RenderError
 
-__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "ClusterClose", "ClusterStart", "SlurmJobs", "active_client", "check_gpu_workers", "execute",
+__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "MALLOC_TRIM_THRESHOLD", "ClusterClose", "ClusterStart", "SlurmJobs", "active_client", "check_gpu_workers", "execute",
            "flight_slots", "phase", "start_cluster", "warm_up", "start_slurm", "task_budget", "wait_for_writers"]
 
 
@@ -67,6 +67,14 @@ GL_SLOTS = 2
 #: temporary (each page faulted and zeroed by the kernel: COG writers spent more CPU in the kernel
 #: than in Python; a 300-band COG render went from 38 s to 23-25 s, bench/RESULTS.md).
 MALLOC_MMAP_THRESHOLD = 32 * 1024**2
+
+#: glibc's M_TRIM_THRESHOLD for local workers (bytes): free memory kept at the top of a heap before
+#: it is given back to the system. Dask's default (:data:`DASK_MALLOC_TRIM_THRESHOLD`, 64 KiB) gave
+#: back, after every COG tile, the ~1 MB output buffer of its Zstandard encoding, faulted in again
+#: for the next tile (issue 37); at the mmap threshold a heap keeps what one temporary needs. Up to
+#: this much more resident memory per malloc arena of a worker.
+MALLOC_TRIM_THRESHOLD = MALLOC_MMAP_THRESHOLD
+DASK_MALLOC_TRIM_THRESHOLD = 65536
 
 
 def positive(value, option: str, what: str) -> int | None:
@@ -224,6 +232,8 @@ def _start_cluster(scheduler, workers: int | None, say, threads: int | None = No
 
     environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ", None) or {})
     environ.setdefault("MALLOC_MMAP_THRESHOLD_", str(MALLOC_MMAP_THRESHOLD))
+    if str(environ.get("MALLOC_TRIM_THRESHOLD_", DASK_MALLOC_TRIM_THRESHOLD)) == str(DASK_MALLOC_TRIM_THRESHOLD):
+        environ["MALLOC_TRIM_THRESHOLD_"] = str(MALLOC_TRIM_THRESHOLD)   # Dask's default, not the user's: ours
     # Workers spread over the node's GPUs (archive.render.device.spread_environments): each worker's
     # own CUDA_VISIBLE_DEVICES entry or EGL device; nothing to spread on one GPU or none.
     from archive.render.device import egl_devices, spread_environments

@@ -402,13 +402,13 @@ def test_local_workers_start_with_the_malloc_threshold():
     import dask
     import distributed  # noqa: F401  (loads Dask's distributed config)
 
-    from archive.cluster import MALLOC_MMAP_THRESHOLD, start_cluster
+    from archive.cluster import MALLOC_MMAP_THRESHOLD, MALLOC_TRIM_THRESHOLD, start_cluster
 
     before = dict(dask.config.get("distributed.nanny.pre-spawn-environ"))
     client, cluster = start_cluster(None, 1, lambda text: None, threads=2)
     try:
-        seen = client.run(lambda: os.environ.get("MALLOC_MMAP_THRESHOLD_"))
-        assert list(seen.values()) == [str(MALLOC_MMAP_THRESHOLD)]
+        seen = client.run(lambda: (os.environ.get("MALLOC_MMAP_THRESHOLD_"), os.environ.get("MALLOC_TRIM_THRESHOLD_")))
+        assert list(seen.values()) == [(str(MALLOC_MMAP_THRESHOLD), str(MALLOC_TRIM_THRESHOLD))]
         assert all((w.get("resources") or {}).get("GPU") == 2 for w in client.scheduler_info()["workers"].values())
     finally:
         client.close()
