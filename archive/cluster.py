@@ -232,8 +232,12 @@ def _start_cluster(scheduler, workers: int | None, say, threads: int | None = No
 
     environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ", None) or {})
     environ.setdefault("MALLOC_MMAP_THRESHOLD_", str(MALLOC_MMAP_THRESHOLD))
-    if str(environ.get("MALLOC_TRIM_THRESHOLD_", DASK_MALLOC_TRIM_THRESHOLD)) == str(DASK_MALLOC_TRIM_THRESHOLD):
-        environ["MALLOC_TRIM_THRESHOLD_"] = str(MALLOC_TRIM_THRESHOLD)   # Dask's default, not the user's: ours
+    # Dask's nanny takes a variable from this process's environment before its configuration, and
+    # leaves its pre-spawn values there when it spawns: a 64 KiB trim threshold found in either is
+    # Dask's default (from its configuration, or an earlier cluster of this process), replaced by ours.
+    trim = os.environ.get("MALLOC_TRIM_THRESHOLD_", str(environ.get("MALLOC_TRIM_THRESHOLD_", "")))
+    if trim in ("", str(DASK_MALLOC_TRIM_THRESHOLD)):
+        environ["MALLOC_TRIM_THRESHOLD_"] = os.environ["MALLOC_TRIM_THRESHOLD_"] = str(MALLOC_TRIM_THRESHOLD)
     # Workers spread over the node's GPUs (archive.render.device.spread_environments): each worker's
     # own CUDA_VISIBLE_DEVICES entry or EGL device; nothing to spread on one GPU or none.
     from archive.render.device import egl_devices, spread_environments

@@ -393,7 +393,7 @@ def test_mosaic_rules_last_and_mean_with_saturation():
     assert np.isfinite(off[0, 6:10, 2:5]).all() and np.isfinite(off).sum() == 2 * 12
 
 
-def test_local_workers_start_with_the_malloc_threshold():
+def test_local_workers_start_with_the_malloc_threshold(monkeypatch):
     """glibc reads MALLOC_MMAP_THRESHOLD_ at process start: the local cluster's worker processes
     must be spawned with it (Dask's pre-spawn environment), and the command's own Dask config is left
     as it was."""
@@ -405,6 +405,8 @@ def test_local_workers_start_with_the_malloc_threshold():
     from archive.cluster import MALLOC_MMAP_THRESHOLD, MALLOC_TRIM_THRESHOLD, start_cluster
 
     before = dict(dask.config.get("distributed.nanny.pre-spawn-environ"))
+    # an earlier Dask cluster of this process (here: the session's) left Dask's 64 KiB in the environment
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", str(before.get("MALLOC_TRIM_THRESHOLD_", 65536)))
     client, cluster = start_cluster(None, 1, lambda text: None, threads=2)
     try:
         seen = client.run(lambda: (os.environ.get("MALLOC_MMAP_THRESHOLD_"), os.environ.get("MALLOC_TRIM_THRESHOLD_")))
