@@ -139,10 +139,6 @@ class MeshSpec:
         """This spec for an output grid in EPSG:``epsg``."""
         return dataclasses.replace(self, epsg=int(epsg))
 
-    def with_ground(self, ground_height: float) -> MeshSpec:
-        """This spec on flat ground at ``ground_height`` m (a flat spec's own source's ground)."""
-        return dataclasses.replace(self, ground_height=float(ground_height))
-
 
 def coregistration_properties(attrs: dict) -> dict:
     """STAC Item properties of a collection's recorded co-registration (its group attributes

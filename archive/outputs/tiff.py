@@ -79,15 +79,6 @@ def _codec(level: int = ZSTD_LEVEL):
 _buffers = threading.local()
 
 
-def _predictor_buffers(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """This thread's (h, 4, w) byte-plane and (h, 4 w) difference buffers, uint8, reused tile after
-    tile (a tile's encoded bytes are a copy: nothing refers to them once :func:`encode_tile` returns)."""
-    known = getattr(_buffers, "predictor", None)
-    if known is None or known[0].shape != (h, 4, w):
-        known = _buffers.predictor = (np.empty((h, 4, w), np.uint8), np.empty((h, 4 * w), np.uint8))
-    return known
-
-
 def float_predictor(tile: np.ndarray) -> np.ndarray:
     """TIFF's floating-point horizontal predictor (predictor 3, libtiff's ``fpDiff``) of a (h, w)
     float32 tile: (h, 4 w) uint8, each row's bytes in planes, most significant byte first (byte k
@@ -100,7 +91,8 @@ def float_predictor(tile: np.ndarray) -> np.ndarray:
     """
     h, w = tile.shape
     bits = np.asarray(tile, dtype="<f4").view("<u4")
-    planes, data = _predictor_buffers(h, w)
+    # this thread's buffers, reused tile after tile (the encoded bytes are a copy of them)
+    planes, data = _scratch("planes", (h, 4, w), np.uint8), _scratch("differences", (h, 4 * w), np.uint8)
     for k, shift in enumerate((24, 16, 8)):
         np.right_shift(bits, shift, out=planes[:, k, :], casting="unsafe")
     np.copyto(planes[:, 3, :], bits, casting="unsafe")   # the low byte: narrowing keeps it
@@ -202,8 +194,9 @@ def downsample2(block: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
 
 def _scratch(name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
     """This thread's scratch array ``name`` of ``shape`` (contents undefined), from a buffer kept
-    between calls: a fresh 2 MB temporary per chunk is trimmed back to the system and faulted in
-    again under the workers' malloc settings (``MALLOC_TRIM_THRESHOLD_``), ~0.4 ms per chunk."""
+    between calls (the predictor's byte planes, the overviews' sums): a fresh 1-2 MB temporary per
+    tile or chunk was given back to the system and faulted in again under Dask's malloc settings
+    (``MALLOC_TRIM_THRESHOLD_``), ~0.4 ms per chunk."""
     n = int(np.prod(shape)) * np.dtype(dtype).itemsize
     buffers = getattr(_buffers, "scratch", None)
     if buffers is None:
