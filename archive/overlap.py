@@ -298,8 +298,9 @@ class OverlapRule:
                     keys: Sequence[np.ndarray] | None, saturation: bool) -> np.ndarray | None:
         """Mosaic ``parts`` (capture order, ``keys`` as for :meth:`assemble`) onto a tile of
         ``height`` x ``width`` and write it band by band through ``writer`` (a sink's open tile
-        writer: ``buffer()``, its reusable (tile rows, tile cols) float32 buffer, at least the tile's
-        size, whose outside part stays NaN; ``write(band, buffer)``). Returns the tile's saturation
+        writer: ``buffer()``, before each band, a reusable (tile rows, tile cols) float32 buffer, at
+        least the tile's size, whose outside part the rule sets NaN; ``write(band, buffer)``, which
+        may go on reading it until a later ``buffer()`` returns it again). Returns the tile's saturation
         mask (height, width) bool when ``saturation``, else None.
 
         This one assembles the whole tile first (:meth:`assemble`); 'last' and 'nadir' write each
@@ -308,8 +309,8 @@ class OverlapRule:
         import numpy as np
 
         values, saturated = self.assemble(nbands, height, width, parts, keys)
-        buffer = writer.buffer()
         for b in range(nbands):
+            buffer = writer.buffer()
             buffer[:height, :width] = values[b]
             buffer[height:] = np.nan  # the grid's outside part (zarr's padding of edge chunks)
             buffer[:height, width:] = np.nan
@@ -355,9 +356,9 @@ class LastRule(OverlapRule):
     def write_bands(self, writer, nbands, height, width, parts, keys, saturation):
         """Each band mosaicked by :func:`last_values` straight into the writer's buffer (the
         outside part left NaN) and written from there: no tile is built."""
-        buffer = writer.buffer()
-        _check_buffer((height, width), buffer)
         for b in range(nbands):
+            buffer = writer.buffer()
+            _check_buffer((height, width), buffer)
             last_values(buffer, [(values[b], rows, cols) for values, _, rows, cols in parts])
             writer.write(b, buffer)
         return last_saturation(height, width, parts) if saturation else None
@@ -382,9 +383,10 @@ class NadirRule(OverlapRule):
             raise ValueError(f"the '{self.name}' rule needs the {self.key} of each of the {len(parts)} renders, "
                              f"got {None if keys is None else len(keys)}")
         winner = nadir_winners(height, width, [(k, rows, cols) for k, (_, _, rows, cols) in zip(keys, parts)])
-        buffer = writer.buffer()
-        buffer[...] = np.nan   # the grid's outside part (zarr's padding of edge chunks)
         for b in range(nbands):
+            buffer = writer.buffer()
+            buffer[height:] = np.nan   # the grid's outside part (zarr's padding of edge chunks)
+            buffer[:height, width:] = np.nan
             nadir_values(buffer[:height, :width], winner, [(values[b], rows, cols) for values, _, rows, cols in parts])
             writer.write(b, buffer)
         if not saturation:

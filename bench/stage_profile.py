@@ -1,6 +1,6 @@
 """One `archive render` with its task stream and CPU-seconds per stage (issue 20).
 
-    python bench/stage_profile.py OUT.json [--workers N] [--threads N] -- FLIGHT --out X.hdr --gsd ... (render args)
+    python bench/stage_profile.py OUT.json [--workers N] [--threads N] [--stream FILE] -- FLIGHT --out X.hdr --gsd ... (render args)
 
 Starts the local cluster exactly as the command does (:func:`archive.cluster.start_cluster`: the
 same worker processes, threads, GPU resources, LP_NUM_THREADS and malloc settings), installs stage
@@ -22,6 +22,9 @@ under ``distributed.get_task_stream``, and writes OUT.json:
   made inside another counts in the outer one's stage only, e.g. the COG layout's ``os.pwrite``): GL lookup, GL
   band passes, GL compute gather, CPU band gather, DN reads, mosaic, NaN checks, compression, overview downsampling,
   writes (``os.pwrite``, Zarr chunk files, COG spool files).
+
+``--stream FILE`` also writes the task stream itself, one line per task run: key prefix, worker
+thread id, start and stop (seconds from the first start), tab-separated.
 
 The wrappers are installed only in this benchmark's workers (``Client.run``), never in the package.
 """
@@ -202,6 +205,7 @@ def main(argv=None) -> int:
     ap.add_argument("json")
     ap.add_argument("--workers", type=int)
     ap.add_argument("--threads", type=int)
+    ap.add_argument("--stream", help="also write each task's prefix, thread, start and stop (s) here")
     args = ap.parse_args(argv[:split])
     render = argv[split + 1:]
 
@@ -278,6 +282,15 @@ def main(argv=None) -> int:
            "threads": threads, "tasks": tasks, "stages": stages, "load": os.getloadavg()}
     with open(args.json, "w") as fh:
         json.dump(out, fh, indent=1)
+    if args.stream:
+        t0 = min(starts, default=0.0)
+        with open(args.stream, "w") as fh:
+            for task in ts.data:
+                key = task["key"] if isinstance(task["key"], str) else str(task["key"][0])
+                for ss in task["startstops"]:
+                    if ss["action"] == "compute":
+                        fh.write(f"{key.split('-')[0]}\t{task.get('thread')}\t{ss['start'] - t0:.4f}\t"
+                                 f"{ss['stop'] - t0:.4f}\n")
     return code
 
 

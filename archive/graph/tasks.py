@@ -494,9 +494,12 @@ def blank_write_task(sink, band0: int, tile: Box, nbands: int):
     returns what the sink's tile writer passes on (None)."""
     test_hold_calls(TEST_HOLD_WRITES)
     with sink.open_tile(band0, tile, nbands) as writer:
-        buffer = writer.buffer()
-        buffer[...] = np.nan
+        filled: set[int] = set()   # the buffers set NaN (ENVI's come in turn; the others are one)
         for b in range(nbands):
+            buffer = writer.buffer()
+            if id(buffer) not in filled:
+                buffer[...] = np.nan
+                filled.add(id(buffer))
             writer.write(b, buffer)
         return writer.close()
 

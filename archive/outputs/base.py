@@ -73,9 +73,11 @@ class Sink:
 class TileWriter:
     """Writes one output tile (row0, col0, height, width) of ``nbands`` bands from band ``band0``.
 
-    ``buffer()`` is this thread's reusable (CHUNK, CHUNK) float32 buffer (an ENVI row strip's:
-    (CHUNK, strip width)); ``write(b, chunk)`` takes band ``band0 + b`` as such a float32
-    C-contiguous array whose part outside the grid is NaN; ``close()`` finishes the tile and returns
+    ``buffer()``, called before each band, is a reusable (CHUNK, CHUNK) float32 buffer of this
+    thread (an ENVI row strip's: (CHUNK, strip width)); ``write(b, chunk)`` takes band ``band0 + b``
+    as such a float32 C-contiguous array whose part outside the grid is NaN, and may go on reading it
+    (ENVI: written by another thread) until a later ``buffer()`` returns it again, so a caller fills
+    each band into the buffer ``buffer()`` just returned; ``close()`` finishes the tile and returns
     what the graph passes on (COG: the tile's first overview level; others: None). Usable as a
     context manager (closed on success only).
     """

@@ -4,6 +4,14 @@
 final size (no memory map); :func:`envi_header` is the one header builder (values and provenance
 layers); :data:`FORMAT` (:class:`EnviFormat`) is the format's entry of the registry (:mod:`archive.outputs.registry`):
 the data file and then the header (what readers open) are renamed into place, header last.
+
+The writes go through one thread per process (:data:`WRITER`): a file's buffered writes hold its
+inode's lock while they copy into the page cache, so two task threads writing one file took turns,
+the waiting one spinning on the lock, then asleep (the held-out flight: a task thread asleep on that
+lock in 4.0 of the task stream's 5.3 idle core-seconds, and the spinning 3 % of the machine's CPU
+samples; bench/RESULTS.md, issue 37). A task thread fills one of its :data:`WRITE_BUFFERS` strip
+buffers while earlier ones are being written, and waits only when all are; a tile's writer returns
+once its writes are in the file (or raises their error).
 """
 
 from __future__ import annotations
@@ -11,6 +19,8 @@ from __future__ import annotations
 import errno
 import os
 import sys
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,17 +30,79 @@ from archive.catalog.product import ENVI_MEDIA_TYPE, TEXT_MEDIA_TYPE
 from archive.errors import InputError
 from archive.formats.envi import header_text
 from archive.grid import Grid
-from archive.outputs.base import (CHUNK, OutputFormat, OutputMeta, Sink, TileWriter, check_bands, check_tile,
-                                  chunk_buffer)
+from archive.outputs.base import CHUNK, OutputFormat, OutputMeta, Sink, TileWriter, check_bands, check_tile
 from archive.outputs.layers import sibling_path
 
-__all__ = ["ENVI_STRIP_MAX", "FORMAT", "EnviFormat", "EnviSink", "envi_data_path", "envi_header", "map_info"]
+__all__ = ["ENVI_STRIP_MAX", "FORMAT", "WRITER", "WRITE_BUFFERS", "EnviFormat", "EnviSink", "envi_data_path",
+           "envi_header", "map_info"]
 
 
 #: Widest ENVI tile (px): tiles are CHUNK rows x up to this many columns. Mosaics up to this wide are
 #: written in whole-width row strips; wider ones in strips of this width, so that the renders a tile
 #: waits for stay those near it (a whole-width strip of a wide flight would touch every pass).
 ENVI_STRIP_MAX = 4 * CHUNK
+#: Strip buffers per task thread: one being filled while the others are written (each CHUNK rows x
+#: the strip's width x 4 B: 12 MB for the held-out flight's 2897 px).
+WRITE_BUFFERS = 3
+
+
+class _Writer:
+    """The process's one ENVI writing thread (started on first use, again in a forked child)."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._pool: ThreadPoolExecutor | None = None
+        self._pid = 0
+        self._local = threading.local()
+
+    def submit(self, fn, *args) -> Future:
+        """Run ``fn(*args)`` on the writing thread, after the writes submitted before."""
+        with self._lock:
+            if self._pool is None or self._pid != os.getpid():
+                self._pool = ThreadPoolExecutor(1, thread_name_prefix="archive-envi-write")
+                self._pid = os.getpid()
+            return self._pool.submit(fn, *args)
+
+    def buffer(self, width: int) -> tuple[int, np.ndarray, Future | None]:
+        """(slot, buffer, write): the calling thread's next (CHUNK, width) float32 strip buffer and
+        the write that last read it (None, or a Future the caller waits for before filling it; its
+        error, if any, is the tile's that submitted it, which waits for its own writes before it
+        ends: see :meth:`_EnviTileWriter.close`)."""
+        rings = getattr(self._local, "rings", None)
+        if rings is None:
+            rings = self._local.rings = {}
+        ring = rings.get(width)
+        if ring is None:
+            if len(rings) > 1:   # strips of several outputs' widths: keep the latest only
+                rings.clear()
+            ring = rings[width] = {"next": 0, "buffers": [], "pending": [None] * WRITE_BUFFERS}
+        slot = ring["next"]
+        ring["next"] = (slot + 1) % WRITE_BUFFERS
+        if slot == len(ring["buffers"]):
+            ring["buffers"].append(np.empty((CHUNK, width), np.float32))
+        return slot, ring["buffers"][slot], ring["pending"][slot]
+
+    def hold(self, width: int, slot: int, future: Future) -> None:
+        """Note that the write ``future`` reads buffer ``slot`` of the calling thread's ring."""
+        self._local.rings[width]["pending"][slot] = future
+
+
+#: The process's ENVI writing thread and its per-thread strip buffers.
+WRITER = _Writer()
+
+
+def _pwrite_all(fd: int, data, offset: int) -> None:
+    """``os.pwrite`` all of ``data`` (a buffer) at byte ``offset`` (a short write continues)."""
+    view = memoryview(data).cast("B")
+    while len(view):
+        done = os.pwrite(fd, view, offset)
+        view, offset = view[done:], offset + done
+
+
+def _pwrite_rows(fd: int, rows: np.ndarray, offset: int, stride: int) -> None:
+    """Write each row of ``rows`` (h, w) at ``offset + r * stride`` bytes."""
+    for r in range(rows.shape[0]):
+        _pwrite_all(fd, rows[r], offset + r * stride)
 
 
 @dataclass(frozen=True)
@@ -78,32 +150,61 @@ class EnviSink(Sink):
 
 
 class _EnviTileWriter(TileWriter):
+    """A tile's writer: ``buffer()`` hands out the thread's strip buffers in turn; ``write`` queues
+    the band's write on :data:`WRITER` (a buffer not handed out by ``buffer()`` is written at once);
+    ``close`` waits for the tile's writes and raises the first error."""
+
     def __init__(self, sink: EnviSink, band0: int, tile):
         super().__init__(band0, tile)
         self.sink = sink
         self.fd = os.open(sink.data, os.O_WRONLY)
+        self.width = sink.tile_size[1]
+        self.writes: list[Future] = []
+        self.lent: tuple[int, np.ndarray] | None = None
 
     def buffer(self) -> np.ndarray:
-        return chunk_buffer(self.sink.tile_size[1])
+        slot, buffer, pending = WRITER.buffer(self.width)
+        if pending is not None:
+            pending.exception()   # waits; a failed write is its own tile's error (raised by its close)
+        self.lent = (slot, buffer)
+        return buffer
 
     def write(self, b: int, chunk: np.ndarray) -> None:
         row0, col0, h, w = self.tile
         s = self.sink
+        lent, self.lent = self.lent, None
         if sys.byteorder != "little":
-            chunk = chunk.astype("<f4")
+            chunk, lent = chunk.astype("<f4"), None
         base = (((self.band0 + b) * s.height + row0) * s.width + col0) * 4
         if w == s.width:  # whole rows: one contiguous range
-            os.pwrite(self.fd, chunk[:h, :w] if w == chunk.shape[1] else np.ascontiguousarray(chunk[:h, :w]), base)
+            if w != chunk.shape[1]:
+                chunk, lent = np.ascontiguousarray(chunk[:h, :w]), None
+            args = (_pwrite_all, self.fd, chunk[:h], base)
+        else:
+            args = (_pwrite_rows, self.fd, chunk[:h, :w], base, s.width * 4)
+        if lent is None or lent[1] is not chunk:   # not the thread's strip buffer: written now
+            args[0](*args[1:])
             return
-        stride = s.width * 4
-        for r in range(h):
-            os.pwrite(self.fd, chunk[r, :w], base + r * stride)
+        future = WRITER.submit(*args)
+        WRITER.hold(self.width, lent[0], future)
+        self.writes.append(future)
+
+    def _finish(self) -> BaseException | None:
+        """Wait for the tile's writes and close the file; the first write's error, or None."""
+        try:
+            errors = [f.exception() for f in self.writes]
+        finally:
+            self.writes = []
+            os.close(self.fd)
+        return next((e for e in errors if e is not None), None)
 
     def close(self):
-        os.close(self.fd)
+        error = self._finish()
+        if error is not None:
+            raise error
 
     def abort(self) -> None:
-        os.close(self.fd)
+        self._finish()
 
 
 def map_info(grid: Grid) -> str:
