@@ -428,9 +428,24 @@ def write_level_part(data: str | os.PathLike, spools: dict[tuple[int, int, int, 
     fd = os.open(data, os.O_WRONLY)
     try:
         _copy_runs(fd, targets, threads)
+        _write_back(fd, start, end - start)
     finally:
         os.close(fd)
     return LevelPart(band0, start, end, off, cnt)
+
+
+def _write_back(fd: int, start: int = 0, length: int = 0) -> None:
+    """Start writing bytes start.. (``length`` 0: to the end) of ``fd`` to its disk now and drop
+    those already written from the page cache (``posix_fadvise`` DONTNEED; nothing where the
+    system has no such advice). For the full resolution laid out during the render: ``assemble``'s
+    ``FALLOC_FL_INSERT_RANGE`` first writes every dirty page of the file and waits (a 4 GB data file
+    left dirty: 0.85 s at the end of the render, on one core; bench/RESULTS.md, issue 37)."""
+    advise = getattr(os, "posix_fadvise", None)
+    if advise is not None:
+        try:
+            advise(fd, start, length, os.POSIX_FADV_DONTNEED)
+        except OSError:
+            pass
 
 
 _PART_MAGIC = b"APRT"
@@ -540,6 +555,12 @@ def assemble(dest: str | os.PathLike, spools: dict[tuple[int, int, int, int], st
     head += b"\0" * (data_start - len(head))
 
     targets = _place(runs, data_start)
+    if level0 is not None and insert:
+        fd = os.open(data0, os.O_RDONLY)
+        try:
+            _write_back(fd)   # the last band group's part, and the earlier ones written meanwhile dropped
+        finally:
+            os.close(fd)
     if level0 is not None and insert and _insert_front(data0, data0_at):
         fd = os.open(data0, os.O_WRONLY)
         try:
