@@ -1,10 +1,11 @@
 """Peak memory of `archive render` against flight length (issue 20 item 4), several runs per row.
 
     python bench/bench_memory.py [--flights 8x4,40x5] [--bands 32] [--formats hdr,zarr,tif] [--runs 2]
-                                 [--workdir DIR] [--worker-env KEY=VALUE,...] [--render-args ARGS] [--json FILE]
+                                 [--shape heldout|sidelap|tilted] [--workdir DIR] [--worker-env KEY=VALUE,...] [--render-args ARGS] [--json FILE]
 
 The flights of ``bench_outputs.py --scaling`` (``N``x``P``: N paper-size cubes, 900 samples x 1000
-lines, over P lawn-mower passes, ``--bands`` bands; simulated once into --workdir and reused), each
+lines, over P lawn-mower passes of ``bench_outputs.py``'s ``--shape``, ``--bands`` bands; simulated
+once into --workdir and reused), each
 rendered to every format ``--runs`` times through ``bench_outputs.render_cli`` (``archive render``
 via ``bench/stage_profile.py``: the command's own code on a local cluster started as the command
 starts it), rounds interleaved (every flight and format once, then again) so the machine's load
@@ -43,6 +44,8 @@ def main(argv=None) -> int:
     ap.add_argument("--formats", default="hdr,zarr,tif")
     ap.add_argument("--runs", type=int, default=2)
     ap.add_argument("--gsd", type=float, default=0.04)
+    ap.add_argument("--shape", choices=sorted(bo.SHAPES), default="heldout",
+                    help="the passes' heading and spacing (bench_outputs.py's shapes; tilted: issue 20's flights)")
     ap.add_argument("--workdir", default="/tmp/archive-bench-memory")
     ap.add_argument("--worker-env", default="", help="KEY=VALUE,... added to the workers' pre-spawn environment")
     ap.add_argument("--render-args", default="", help="more `archive render` arguments, e.g. '--bands 0,1,2' "
@@ -62,7 +65,7 @@ def main(argv=None) -> int:
     flights = []
     for spec in [v for v in args.flights.split(",") if v]:
         n, p = (int(x) for x in spec.split("x"))
-        d = bo.scaling_flight(work, n, p, args.bands, 900, 1000)
+        d = bo.scaling_flight(work, n, p, args.bands, 900, 1000, *bo.SHAPES[args.shape])
         flights.append((spec, n, d))
     print(f"code {R['code']}, worker env {extra or '-'}   [load {br.load()}]", flush=True)
     for run in range(args.runs):

@@ -61,8 +61,11 @@ TASK_VALUES_BYTES = 192 * 1024**2
 #: Most bands per render task (and per assembly / writer task).
 MAX_GROUP = 64
 #: Renders that may run ahead of the writers consuming earlier renders (in (group, capture)
-#: order): bounds the renders held in memory whatever the flight length and GPU speed.
-RENDERS_AHEAD = 3
+#: order): bounds the renders held in memory whatever the flight length and GPU speed. 6, not 3:
+#: the next band group's first renders then wait for the writers of the group's first strips only,
+#: not for most of them, so renders and writes overlap (held-out flight to ENVI: writers alone in
+#: 13-26 % of the task stream instead of 34-45 %; bench/RESULTS.md, issue 37).
+RENDERS_AHEAD = 6
 #: Lookups that band groups may share (held packed: 8 B per cube window pixel / LOOKUP_PACKING);
 #: beyond, one per group and cube.
 LOOKUP_BYTES = 256 * 1024**2
