@@ -290,11 +290,12 @@ def _spools(sink: CogSink) -> tuple[dict[tuple[int, int, int, int], str], list]:
 
 
 def assemble_cog(sink: CogSink, path: str | os.PathLike, grid: Grid, nbands: int, metadata: str,
-                 insert: bool = True) -> int:
+                 insert: bool = True, remove_spools: bool = False) -> int:
     """Lay the tiles of ``sink`` out as a COG at ``path`` (no decoding), with the ``GDAL_METADATA``
     ``metadata``; returns its size. The full resolution comes from the sink's data file where the
     graph laid it out (:meth:`CogSink.lay_out`; ``insert``: put the rest in front of it without
-    copying it, where the file system can), else from the spool files. RenderError when a tile is
+    copying it, where the file system can), else from the spool files (``remove_spools``: each
+    deleted once copied; the caller removes the spool afterwards). RenderError when a tile is
     missing."""
     from archive.codecs import compression
     from archive.outputs.tiff import assemble
@@ -306,7 +307,7 @@ def assemble_cog(sink: CogSink, path: str | os.PathLike, grid: Grid, nbands: int
                         transform=grid.transform, metadata=metadata,
                         area_tiles=[CHUNK // 512] + [1] * sink.overview_levels,
                         level0=(sink.data_path, parts) if parts else None, insert=insert,
-                        compression=c.cog_tag, predictor=c.cog_predictor)
+                        compression=c.cog_tag, predictor=c.cog_predictor, remove_spools=remove_spools)
     except ValueError as exc:
         raise RenderError(f"{path}: {exc}") from exc
 
@@ -349,14 +350,14 @@ class CogFormat(OutputFormat):
     @staticmethod
     def finish(temp, path: Path, sink: CogSink, meta: OutputMeta):
         cog = temp(path)
-        assemble_cog(sink, cog, meta.grid, meta.nbands, _cog_metadata(meta))
+        assemble_cog(sink, cog, meta.grid, meta.nbands, _cog_metadata(meta), remove_spools=True)
         remove_path(sink.spool)
         return [(cog, path)], lambda b, step: read_band(cog, meta.grid, b, step)
 
     def finish_layers(self, temp, path: Path, layers: CogSink, meta: OutputMeta, spec) -> list:
         sibling = self.sibling(path)
         cog = temp(sibling)
-        assemble_cog(layers, cog, meta.grid, len(spec.names), layers_cog_metadata(spec))
+        assemble_cog(layers, cog, meta.grid, len(spec.names), layers_cog_metadata(spec), remove_spools=True)
         remove_path(layers.spool)
         return [(cog, sibling)]
 
