@@ -73,8 +73,8 @@ class _Writer:
             rings = self._local.rings = {}
         ring = rings.get(width)
         if ring is None:
-            if len(rings) > 1:   # strips of several outputs' widths: keep the latest only
-                rings.clear()
+            if len(rings) > 1:   # strips of several outputs' widths: two kept at most (a write
+                rings.clear()    # still running holds its buffer: it ends before its tile does)
             ring = rings[width] = {"next": 0, "buffers": [], "pending": [None] * WRITE_BUFFERS}
         slot = ring["next"]
         ring["next"] = (slot + 1) % WRITE_BUFFERS
