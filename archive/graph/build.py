@@ -64,7 +64,8 @@ MAX_GROUP = 64
 #: order): bounds the renders held in memory whatever the flight length and GPU speed. 6, not 3:
 #: the next band group's first renders then wait for the writers of the group's first strips only,
 #: not for most of them, so renders and writes overlap (held-out flight to ENVI: writers alone in
-#: 13-26 % of the task stream instead of 34-45 %; bench/RESULTS.md, issue 37).
+#: 13-26 % of the task stream instead of 34-45 %; bench/RESULTS.md, issue 37). At most the plan's
+#: cubes: one band group ahead.
 RENDERS_AHEAD = 6
 #: Lookups that band groups may share (held packed: 8 B per cube window pixel / LOOKUP_PACKING);
 #: beyond, one per group and cube.
@@ -343,7 +344,10 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
 
     # Renders in (group, render order) order. Backpressure: render number s (and its lookup) waits for
     # the writers that render s - RENDERS_AHEAD completed (a token of them), so renders never run
-    # further ahead of the writers than that, however long the flight and however fast the GPU.
+    # further ahead of the writers than that, however long the flight and however fast the GPU; and
+    # never more than one band group ahead (a flight of fewer cubes than RENDERS_AHEAD: 6 renders of
+    # a 2-cube flight were 3 band groups, and a 500 MB worker was restarted).
+    ahead = max(1, min(RENDERS_AHEAD, len(order)))
     renders: dict[tuple[int, int], str] = {}
     writers: dict[tuple[int, int], str] = {}  # (tile number, group) -> values writer
     gates: list[str | None] = []
@@ -353,7 +357,7 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
         for s, j in enumerate(order):
             # the latest writers' token at or before s - RENDERS_AHEAD: each render waits at least
             # for what the render before it waited for
-            gate = next((t for t in reversed(gates[:max(0, len(gates) - RENDERS_AHEAD + 1)]) if t is not None),
+            gate = next((t for t in reversed(gates[:max(0, len(gates) - ahead + 1)]) if t is not None),
                         None)
             lk = lookup(j, g, gate)
             if layers is not None and g == 0:
