@@ -455,6 +455,20 @@ def client_budget() -> int | None:
     return task_budget(client)
 
 
+def _join_close(closing, out) -> None:
+    """Wait for the cluster's close (:class:`~archive.cluster.ClusterClose`, started once every task
+    had ended). Its failure (a worker process still alive after Dask's timeouts, a loaded machine:
+    seen once in the suite with the cores loaded) is one warning line on stderr, not the render's
+    error: the output was published, or the render's own error is the one to report, and the
+    outputs' temporaries are removed after this either way."""
+    try:
+        closing.join()
+    except Exception as exc:   # not KeyboardInterrupt and the like
+        why = " ".join(f"{type(exc).__name__}: {exc}".split()).rstrip(": ")
+        print(f"archive render: warning: {out}: the local Dask cluster did not close cleanly ({why}); "
+              "its worker processes were stopped", file=sys.stderr)
+
+
 def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str | os.PathLike | None = None,
                overwrite: bool = False, scheduler: str | None = None, workers: int | None = None,
                quiet: bool = True, threads: int | None = None) -> dict:
@@ -514,7 +528,7 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
         if cluster is not None:
             cluster.close()  # stops the worker processes, with any task still writing
         if closing is not None:
-            closing.join()
+            _join_close(closing, out)
         for output in outputs:
             output.cleanup()
         if remote is not None:

@@ -416,3 +416,29 @@ def test_local_workers_start_with_the_malloc_threshold(monkeypatch):
         client.close()
         cluster.close()
     assert dict(dask.config.get("distributed.nanny.pre-spawn-environ")) == before
+
+
+def test_a_cluster_that_does_not_close_in_time_is_a_warning_after_publishing(flight, scheduler, tmp_path, capsys,
+                                                                           monkeypatch, rendered):
+    """The cluster's close failing once every task ended (Dask's TimeoutError: a worker process still
+    alive, seen once with the cores loaded) leaves the published output as it is: exit code 0, one
+    warning line, the values those of the same render, no temporary or lock file left."""
+    import xarray as xr
+
+    from archive import cluster
+
+    join = cluster.ClusterClose.join
+
+    def late(self) -> None:
+        join(self)
+        raise TimeoutError()
+
+    monkeypatch.setattr(cluster.ClusterClose, "join", late)
+    out = tmp_path / "out" / "m.zarr"
+    capsys.readouterr()
+    assert _render(flight, out, scheduler=scheduler) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "warning" in err[0] and "did not close cleanly (TimeoutError)" in err[0], err
+    assert sorted(p.name for p in out.parent.iterdir()) == ["m.zarr", "m.zarr.json"]
+    with xr.open_zarr(out) as got:
+        np.testing.assert_array_equal(got["radiance"].values, rendered[1]["radiance"].values)
