@@ -558,12 +558,6 @@ def assemble(dest: str | os.PathLike, spools: dict[tuple[int, int, int, int], st
 
     targets = _place(runs, data_start)
     spent = frozenset(os.fspath(path) for path in spools.values()) if remove_spools else frozenset()
-    if level0 is not None and insert:
-        fd = os.open(data0, os.O_RDONLY)
-        try:
-            _write_back(fd)   # the last band group's part, and the earlier ones written meanwhile dropped
-        finally:
-            os.close(fd)
     if level0 is not None and insert and _insert_front(data0, data0_at):
         fd = os.open(data0, os.O_WRONLY)
         try:
@@ -589,6 +583,8 @@ def assemble(dest: str | os.PathLike, spools: dict[tuple[int, int, int, int], st
 #: (:func:`write_level_part`): ``FALLOC_FL_INSERT_RANGE`` works in whole file-system blocks.
 DATA_ALIGN = 65536
 _FALLOC_FL_INSERT_RANGE = 0x20
+#: File systems whose ``FALLOC_FL_INSERT_RANGE`` the COG's layout counts on (Linux: ext4, XFS).
+INSERT_RANGE_FS = ("ext4", "xfs")
 
 
 def _insert_front(path: str | os.PathLike, length: int) -> bool:
@@ -608,6 +604,11 @@ def _insert_front(path: str | os.PathLike, length: int) -> bool:
     fallocate.restype = ctypes.c_int
     fd = os.open(path, os.O_RDWR)
     try:
+        # the insert first writes every dirty page of the file and waits: the last band group's part
+        # goes to disk now, and the parts already written leave the page cache (nothing to shift).
+        # Only where the insert works: elsewhere the caller copies the file, from the page cache.
+        if _fs_type(os.fstat(fd).st_dev) in INSERT_RANGE_FS:
+            _write_back(fd)
         return fallocate(fd, _FALLOC_FL_INSERT_RANGE, 0, length) == 0
     finally:
         os.close(fd)
