@@ -395,7 +395,8 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
     from distributed import LocalCluster, as_completed
     from tqdm import tqdm
 
-    from archive.cluster import flight_slots, start_cluster, task_budget, wait_for_writers
+    from archive.cluster import (close_client, closed_or_warned, flight_slots, start_cluster, task_budget,
+                                 wait_for_writers)
     from archive.pipeline import progress_lines
 
     say = progress_lines(quiet)
@@ -507,9 +508,9 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
         planner.shutdown(wait=True, cancel_futures=True)   # no temporaries made after the clean-up below
         if not isinstance(cluster, LocalCluster) and any(f.status == "failed" for f in todo):
             wait_for_writers(client)   # a shared scheduler, or Slurm jobs that stop only when cancelled
-        client.close()
-        if cluster is not None:
-            cluster.close()  # stops the worker processes (cancels Slurm worker jobs), with any task still writing
+        # stops the worker processes (cancels Slurm worker jobs), with any task still writing; a close
+        # that fails is a warning, never the batch's error nor a reason to leave temporaries
+        closed_or_warned(lambda: close_client(client, cluster), "archive render", str(report.path.parent))
         for flight in todo:
             flight.output.cleanup()
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from archive.errors import ArchiveError, InputError, RenderError
 
-__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "MALLOC_TRIM_THRESHOLD", "ClusterClose", "ClusterStart", "SlurmJobs", "active_client", "check_gpu_workers", "execute",
+__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "MALLOC_TRIM_THRESHOLD", "ClusterClose", "ClusterStart", "close_client", "closed_or_warned", "SlurmJobs", "active_client", "check_gpu_workers", "execute",
            "flight_slots", "phase", "start_cluster", "warm_up", "start_slurm", "task_budget", "wait_for_writers"]
 
 
@@ -163,9 +163,7 @@ class ClusterClose:
 
     def _run(self, client, cluster) -> None:
         try:
-            client.close()
-            if cluster is not None:
-                cluster.close()
+            close_client(client, cluster)
             phase("cluster-closed")
         except BaseException as exc:   # raised again by join
             self._error = exc
@@ -174,6 +172,38 @@ class ClusterClose:
         self._thread.join()
         if self._error is not None:
             raise self._error
+
+
+def close_client(client, cluster) -> None:
+    """Close ``client``, then ``cluster`` (None: a shared scheduler's client, nothing more); the
+    cluster even when the client's close failed, so that its worker processes stop. Raises the first
+    error."""
+    error: BaseException | None = None
+    try:
+        client.close()
+    except BaseException as exc:
+        error = exc
+    if cluster is not None:
+        try:
+            cluster.close()  # stops the worker processes (cancels Slurm worker jobs), with any task still writing
+        except BaseException as exc:
+            error = error or exc
+    if error is not None:
+        raise error
+
+
+def closed_or_warned(close, command: str, what: str) -> None:
+    """Call ``close`` (:func:`close_client`, or :meth:`ClusterClose.join`), made only once nothing
+    more is expected of the cluster: every task ended, or the run failed. An Exception it raises (a
+    worker process still alive after Dask's timeouts on a loaded machine: Dask's TimeoutError) is
+    one warning line on stderr, ``{command}: warning: {what}: ...``, never the command's error: the
+    outputs were published, or the run's own error is the one to report, and the outputs'
+    temporaries are removed after this either way."""
+    try:
+        close()
+    except Exception as exc:   # not KeyboardInterrupt and the like
+        why = " ".join(f"{type(exc).__name__}: {exc}".split()).rstrip(": ")
+        print(f"{command}: warning: {what}: the Dask cluster did not close cleanly ({why})", file=sys.stderr)
 
 
 def start_cluster(scheduler, workers: int | None, say, threads: int | None = None):

@@ -38,7 +38,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from archive import storage
-from archive.cluster import ClusterClose, active_client, check_gpu_workers, execute, start_cluster, task_budget
+from archive.cluster import (ClusterClose, active_client, check_gpu_workers, close_client, closed_or_warned, execute,
+                             start_cluster, task_budget)
 from archive.errors import InputError
 from archive.files import wait_while_exists
 from archive.grid import GridRequest
@@ -455,20 +456,6 @@ def client_budget() -> int | None:
     return task_budget(client)
 
 
-def _join_close(closing, out) -> None:
-    """Wait for the cluster's close (:class:`~archive.cluster.ClusterClose`, started once every task
-    had ended). Its failure (a worker process still alive after Dask's timeouts, a loaded machine:
-    seen once in the suite with the cores loaded) is one warning line on stderr, not the render's
-    error: the output was published, or the render's own error is the one to report, and the
-    outputs' temporaries are removed after this either way."""
-    try:
-        closing.join()
-    except Exception as exc:   # not KeyboardInterrupt and the like
-        why = " ".join(f"{type(exc).__name__}: {exc}".split()).rstrip(": ")
-        print(f"archive render: warning: {out}: the local Dask cluster did not close cleanly ({why}); "
-              "its worker processes were stopped", file=sys.stderr)
-
-
 def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str | os.PathLike | None = None,
                overwrite: bool = False, scheduler: str | None = None, workers: int | None = None,
                quiet: bool = True, threads: int | None = None) -> dict:
@@ -523,12 +510,12 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
         if remote is not None:
             remote.upload()
     finally:
+        # a failed run's close (the worker processes stop, with any task still writing), or the
+        # close started once every task had ended: neither hides the run's error or outcome
         if client is not None:
-            client.close()
-        if cluster is not None:
-            cluster.close()  # stops the worker processes, with any task still writing
+            closed_or_warned(lambda: close_client(client, cluster), "archive render", str(out))
         if closing is not None:
-            _join_close(closing, out)
+            closed_or_warned(closing.join, "archive render", str(out))
         for output in outputs:
             output.cleanup()
         if remote is not None:

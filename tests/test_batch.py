@@ -342,3 +342,28 @@ def test_futures_followed_on_the_commands_client(flights, tmp_path, monkeypatch)
             assert distributed.default_client() is notebook
     assert batch["done"] == 2 and (tmp_path / "one.zarr").is_dir()
     assert len(loops) == 2 and all(loop is not notebook.loop for loop in loops)
+
+
+def test_a_cluster_that_does_not_close_is_a_warning_after_a_batch(flights, scheduler, tmp_path, capsys, monkeypatch):
+    """A batch whose client's close fails once every flight was published (Dask's TimeoutError on a
+    loaded machine) keeps its outcome: its flights done, one warning line naming the output folder,
+    no temporary left. The close's error used to be the batch's, and skipped that clean-up."""
+    import archive as api
+    from archive import cluster
+
+    close = cluster.close_client
+
+    def late(client, cluster) -> None:
+        close(client, cluster)
+        raise TimeoutError()
+
+    monkeypatch.setattr(cluster, "close_client", late)
+    _, archive, ids = flights
+    out = tmp_path / "batch"
+    capsys.readouterr()
+    summary = api.georectify(ids[:2], out, archive=archive, gsd=float(GSD), per_flight=True, scheduler=scheduler)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert summary["done"] == 2 and summary["failed"] == 0, summary
+    assert err == [f"archive render: warning: {out}: the Dask cluster did not close cleanly (TimeoutError)"], err
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [f"{i}.zarr{x}" for i in ids[:2] for x in ("", ".json")] + ["report.json"])

@@ -248,6 +248,42 @@ def test_failing_render_task_leaves_nothing(flight, scheduler, tmp_path, capsys)
     assert not out.parent.exists()
 
 
+def test_a_cluster_that_does_not_close_after_a_failed_render_keeps_the_renders_error(flight, scheduler, tmp_path,
+                                                                                    capsys, monkeypatch):
+    """A failed render whose client's close then fails too (Dask's TimeoutError on a loaded machine)
+    reports the render's own error and one warning line, and leaves nothing: the close's error used
+    to replace the render's, and skipped the removal of the output's temporaries."""
+    from archive import pipeline
+
+    close = pipeline.close_client
+    closes = []
+
+    def late(client, cluster) -> None:
+        close(client, cluster)
+        closes.append(client)
+        raise TimeoutError("no worker left in time")
+
+    monkeypatch.setattr(pipeline, "close_client", late)
+    broken = tmp_path / "flight"
+    shutil.copytree(flight[0], broken)
+    bil = sorted(broken.glob("*.bil"))[-1]   # int32 DN beyond 2^24: refused by the render task only
+    dn = np.fromfile(bil, "<u2").astype("<i4")
+    dn[100] = 2**25
+    dn.tofile(bil)
+    header = bil.with_name(bil.name + ".hdr")
+    header.write_text(header.read_text().replace("data type = 12", "data type = 3"))
+    out = tmp_path / "out" / "m.hdr"
+    rc = _render((broken, flight[1]), out, scheduler=scheduler)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc != 0 and len(closes) == 1, (rc, err)
+    warning = (f"archive render: warning: {out}: the Dask cluster did not close cleanly "
+               "(TimeoutError: no worker left in time)")
+    assert len(err) == 2 and warning in err, err   # printed while closing, before the error
+    (error,) = [line for line in err if line != warning]
+    assert "2^24" in error and bil.stem in error, err
+    assert not out.parent.exists()
+
+
 def test_scheduler_without_gpu_workers_is_refused(flight, tmp_path, capsys):
     from distributed import LocalCluster
 
