@@ -118,3 +118,83 @@ def test_file_truncated_after_opening_says_so(tmp_path):
     with pytest.raises(FormatError, match=r"t\.bil: data file ended at byte"):
         cube.bands([12, 13])
     assert not _open_fds_on(path)
+
+
+def _evict(path: Path, start: int = 0, length: int = 0) -> None:
+    """Drop the file's pages (all, or ``length`` bytes from ``start``) from the page cache, as the
+    kernel does to pages nobody touched (written back first: dirty pages are not dropped)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+        os.posix_fadvise(fd, start, length, os.POSIX_FADV_DONTNEED)
+    finally:
+        os.close(fd)
+
+
+def _nowait_refused(path: Path) -> bool:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.preadv(fd, [bytearray(1)], 0, os.RWF_NOWAIT)
+    except BlockingIOError:
+        return False
+    except OSError:
+        return True
+    finally:
+        os.close(fd)
+    return False
+
+
+@pytest.mark.parametrize("evicted", ["all", "middle"])
+def test_bil_lines_not_in_the_page_cache_are_asked_together(tmp_path, monkeypatch, evicted):
+    """A BIL cube whose pages left the page cache (all of them, or a range cutting lines in two):
+    the lines the cache lacks are asked of the disk together (one WILLNEED each, for the part not
+    read yet) before any is read whole, and the values are the file's bit for bit."""
+    data = _data("uint16", shape=(64, 300, 128))   # 16 KiB lines: many pages, several staging blocks
+    path = write_envi(tmp_path / "cold.bil", data, interleave="bil", header_offset=96)
+    if not hasattr(os, "RWF_NOWAIT") or _nowait_refused(path):
+        pytest.skip(f"{tmp_path}: the file system reads only blocking (RWF_NOWAIT refused)")
+    monkeypatch.setattr(pread, "STAGE_BYTES", 100 * 10 * 128 * 2)   # 100 lines of 10 bands per block
+    cube = EnviCube(path)
+    record = 64 * 128 * 2
+    advised: list[tuple[int, int]] = []
+    fadvise = os.posix_fadvise
+
+    def spy(fd, offset, length, advice):
+        if advice == os.POSIX_FADV_WILLNEED:
+            advised.append((offset, length))
+        return fadvise(fd, offset, length, advice)
+
+    monkeypatch.setattr(os, "posix_fadvise", spy)
+    if evicted == "all":
+        _evict(path)
+    else:   # bytes 0.5-4.5 MiB of 4.9 (lines 31-288): the page cache's folios wholly inside go,
+        _evict(path, 1 << 19, 1 << 22)   # at least the 2 MiB-aligned one (folios are 2 MiB at most)
+    got = cube.bands(list(range(20, 30)))
+    assert got.tobytes() == data[20:30].tobytes()
+    segment = 96 + 20 * 128 * 2   # where bands 20-29 start in line 0
+    if evicted == "all":   # every line asked, whole
+        assert sorted(advised) == [(segment + i * record, 10 * 128 * 2) for i in range(300)]
+    else:   # some lines of the evicted range, each from where the page cache's part of it ended
+        lines = sorted({(off - segment) // record for off, _ in advised})
+        assert lines and 31 <= lines[0] and lines[-1] <= 288, lines
+        assert all(0 < length <= 10 * 128 * 2 and off + length == segment + (off - segment) // record * record
+                   + 10 * 128 * 2 for off, length in advised)
+
+
+def test_bil_on_a_file_system_without_rwf_nowait(tmp_path):
+    """tmpfs refuses RWF_NOWAIT (EOPNOTSUPP): the lines are read one by one, the values the file's."""
+    shm = Path("/dev/shm")
+    if not shm.is_dir() or not os.access(shm, os.W_OK):
+        pytest.skip("no writable /dev/shm")
+    data = _data("int16", shape=(20, 40, 16))
+    folder = shm / f"archive-test-{os.getpid()}-{tmp_path.name}"
+    folder.mkdir()
+    try:
+        path = write_envi(folder / "t.bil", data, interleave="bil")
+        assert _nowait_refused(path)
+        for idx in SELECTIONS:
+            assert EnviCube(path).bands(idx).tobytes() == data[idx].tobytes()
+    finally:
+        import shutil
+
+        shutil.rmtree(folder)
