@@ -29,7 +29,7 @@ whole, instead of one synchronous disk read per line. A 15-band group of a paper
 evicted first: 28-39 ms instead of 74-90 ms (readahead on or off); in the page cache: 6.8-8.1 ms
 against 6.8-7.3. Held-out flight to Zarr, sampled thread states: task threads waiting in such reads
 while a core idled 0.2-0.7 core-seconds (2 runs), 0.3-1.0 with one read per line (2 runs, alternated).
-A file system without ``RWF_NOWAIT`` (tmpfs, NFS: EOPNOTSUPP) is read line by line, as before.
+A file system that refuses ``RWF_NOWAIT`` (EOPNOTSUPP: tmpfs, for one) is read line by line, as before.
 """
 
 from __future__ import annotations
