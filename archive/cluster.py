@@ -18,13 +18,19 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from archive.errors import ArchiveError, InputError, RenderError
 
-__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "MALLOC_TRIM_THRESHOLD", "ClusterClose", "ClusterStart", "close_client", "closed_or_warned", "SlurmJobs", "active_client", "check_gpu_workers", "execute",
+if TYPE_CHECKING:
+    from distributed import Client, SpecCluster
+
+__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "MALLOC_TRIM_THRESHOLD", "ClusterClose", "ClusterStart", "SlurmJobs", "active_client", "check_gpu_workers", "close_client",
+           "closed_or_warned", "execute",
            "flight_slots", "phase", "start_cluster", "warm_up", "start_slurm", "task_budget", "wait_for_writers"]
 
 
@@ -174,7 +180,7 @@ class ClusterClose:
             raise self._error
 
 
-def close_client(client, cluster) -> None:
+def close_client(client: Client, cluster: SpecCluster | None) -> None:
     """Close ``client``, then ``cluster`` (None: a shared scheduler's client, nothing more); the
     cluster even when the client's close failed, so that its worker processes stop. Raises the first
     error."""
@@ -192,7 +198,7 @@ def close_client(client, cluster) -> None:
         raise error
 
 
-def closed_or_warned(close, command: str, what: str) -> None:
+def closed_or_warned(close: Callable[[], None], command: str, what: str) -> None:
     """Call ``close`` (:func:`close_client`, or :meth:`ClusterClose.join`), made only once nothing
     more is expected of the cluster: every task ended, or the run failed. An Exception it raises (a
     worker process still alive after Dask's timeouts on a loaded machine: Dask's TimeoutError) is
