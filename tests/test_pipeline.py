@@ -229,18 +229,24 @@ def test_bad_inputs_fail_cleanly(case, flight, tmp_path, capsys):
         assert "use --gsd" in err
 
 
-def test_failing_render_task_leaves_nothing(flight, scheduler, tmp_path, capsys):
-    directory, _ = flight
+def _failing_flight(flight, tmp_path: Path) -> tuple[Path, Path]:
+    """(directory, failing cube) of a copy of ``flight`` whose last cube fails in its render task, after
+    others may have been written: int32 DN beyond 2^24 (float32 cannot hold them exactly), refused by
+    the render task only (signed int16 DN, what this used before, are rendered since signed cubes are
+    supported)."""
     broken = tmp_path / "flight"
-    shutil.copytree(directory, broken)
-    bil = sorted(broken.glob("*.bil"))[-1]  # the last cube fails, after others may have been written
-    # int32 DN beyond 2^24 (float32 cannot hold them exactly): refused by the render task only
-    # (signed int16 DN, what this test used before, are rendered since signed cubes are supported)
+    shutil.copytree(flight[0], broken)
+    bil = sorted(broken.glob("*.bil"))[-1]
     dn = np.fromfile(bil, "<u2").astype("<i4")
     dn[100] = 2**25
     dn.tofile(bil)
     header = bil.with_name(bil.name + ".hdr")
     header.write_text(header.read_text().replace("data type = 12", "data type = 3"))
+    return broken, bil
+
+
+def test_failing_render_task_leaves_nothing(flight, scheduler, tmp_path, capsys):
+    broken, bil = _failing_flight(flight, tmp_path)
     out = tmp_path / "out" / "m.tif"
     rc = _render((broken, flight[1]), out, "--quicklook", str(tmp_path / "out" / "q.png"), scheduler=scheduler)
     err = capsys.readouterr().err.strip()
@@ -264,14 +270,7 @@ def test_a_cluster_that_does_not_close_after_a_failed_render_keeps_the_renders_e
         raise TimeoutError("no worker left in time")
 
     monkeypatch.setattr(pipeline, "close_client", late)
-    broken = tmp_path / "flight"
-    shutil.copytree(flight[0], broken)
-    bil = sorted(broken.glob("*.bil"))[-1]   # int32 DN beyond 2^24: refused by the render task only
-    dn = np.fromfile(bil, "<u2").astype("<i4")
-    dn[100] = 2**25
-    dn.tofile(bil)
-    header = bil.with_name(bil.name + ".hdr")
-    header.write_text(header.read_text().replace("data type = 12", "data type = 3"))
+    broken, bil = _failing_flight(flight, tmp_path)
     out = tmp_path / "out" / "m.hdr"
     rc = _render((broken, flight[1]), out, scheduler=scheduler)
     err = capsys.readouterr().err.strip().splitlines()
