@@ -58,7 +58,29 @@ def machine() -> dict:
         if line.startswith("MemTotal"):
             mem = int(line.split()[1]) * 1024
     return {"cpu": cpu, "cores": os.cpu_count(), "ram_gb": round(mem / 1e9, 1),
-            "python": platform.python_version(), "kernel": platform.release()}
+            "python": platform.python_version(), "kernel": platform.release(), "page_reclaim": page_reclaim()}
+
+
+def page_reclaim() -> list[str]:
+    """What the machine does to memory behind a benchmark's back, which makes its I/O and CPU figures
+    vary from run to run (bench/RESULTS.md, issue 37): a DAMON scheme paging out what was not
+    accessed lately ("DAMON pageout": it drops page-cache folios, the input's among them, whatever
+    the free memory) and a virtio balloon reporting free pages to the host ("balloon free page
+    reporting": a page touched again is faulted in by the host first). Empty where neither is on or
+    they cannot be read."""
+    found = set()
+    try:
+        for action in Path("/sys/kernel/mm/damon/admin/kdamonds").glob("*/contexts/*/schemes/*/action"):
+            if action.read_text().strip() == "pageout" and \
+                    (action.parents[4] / "state").read_text().strip() == "on":
+                found.add("DAMON pageout")
+        for features in Path("/sys/bus/virtio/drivers/virtio_balloon").glob("virtio*/features"):
+            bits = features.read_text().strip()   # bit 5: VIRTIO_BALLOON_F_REPORTING
+            if len(bits) > 5 and bits[5] == "1":
+                found.add("balloon free page reporting")
+    except OSError:
+        pass
+    return sorted(found)
 
 
 def load() -> str:
