@@ -255,7 +255,10 @@ class StorePlan:
 
 
 def _create_arrays(store: Path, plan: StorePlan) -> None:
-    group = zarr.open_group(_zarr(store, read_only=False), mode="w", zarr_format=3)
+    # "w-", not "w": the store is new (open_partial removed any old one), and "w" makes zarr clear it,
+    # which for a local store removes the folder it has just created and makes it again; a SIGKILL
+    # in between left no partial store at all (seen once in CI: tests/test_collection.py's SIGKILL test)
+    group = zarr.open_group(_zarr(store, read_only=False), mode="w-", zarr_format=3)
     total = sum(plan.cube_lines)
     group.create_array(
         "dn", shape=(plan.bands, total, plan.samples), chunks=(1, plan.chunk_lines, plan.samples),

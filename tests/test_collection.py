@@ -252,6 +252,26 @@ def _chunk_count(partial: Path) -> int:
         return 0
 
 
+def test_a_new_partial_store_is_never_removed_once_it_appears(tmp_path, monkeypatch):
+    """Laying out a new partial store never removes its folder: zarr's mode "w" removed the folder
+    its store had just made and made it again, and a SIGKILL in between (test_sigkill_and_rerun
+    killing at the store's first appearance, once in CI) left no partial store."""
+    d = tmp_path / "raw"
+    truth = simulate_flight(d, cubes=2, bands=4, samples=32, lines=40, cubes_per_pass=2, seed=2)
+    removed: list[Path] = []
+    rmtree = shutil.rmtree
+
+    def spy(path, *args, **kwargs):
+        removed.append(Path(path))
+        return rmtree(path, *args, **kwargs)
+
+    monkeypatch.setattr(shutil, "rmtree", spy)
+    (r,) = ingest([str(d)], tmp_path / "root", FOV, ground_height=truth.ground_height, workers=1, progress=False)
+    partial = tmp_path / "root" / "collections" / f"{r.cid}.zarr.partial"
+    assert (tmp_path / "root" / "collections" / f"{r.cid}.zarr").is_dir() and not partial.exists()
+    assert partial not in removed, removed
+
+
 def test_sigkill_and_rerun(tmp_path):
     """SIGKILL `python -m archive ingest` at several moments; each rerun completes, and the final
     store equals a clean ingest byte for byte."""
