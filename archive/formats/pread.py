@@ -63,16 +63,16 @@ def _read_full(fd: int, buf: memoryview, offset: int, path) -> None:
         done += n
 
 
-def _read_lines(fd: int, view: memoryview, row: int, offsets: Sequence[int], path, nowait: list[bool]) -> None:
+def _read_lines(fd: int, view: memoryview, row: int, offsets: Sequence[int], path, nowait: bool) -> bool:
     """Fill ``view[i * row:(i + 1) * row]`` from ``offsets[i]`` for each line i: what the page cache
-    holds read at once (``RWF_NOWAIT``), the rest asked of the disk for all lines together (WILLNEED),
-    then read. ``nowait[0]``: whether to try ``RWF_NOWAIT`` (cleared for the rest of the file where its
-    file system refuses it)."""
-    flag = getattr(os, "RWF_NOWAIT", None) if nowait[0] else None
+    holds read at once (``RWF_NOWAIT``, where ``nowait``), the rest asked of the disk for all lines
+    together (WILLNEED), then read. Returns whether to try ``RWF_NOWAIT`` on the file's next lines
+    (False once its file system refused it)."""
+    flag = getattr(os, "RWF_NOWAIT", None) if nowait else None
     if flag is None:
         for i, off in enumerate(offsets):
             _read_full(fd, view[i * row:(i + 1) * row], off, path)
-        return
+        return nowait
     short: list[tuple[int, int]] = []   # (line, bytes already read)
     for i, off in enumerate(offsets):
         try:
@@ -82,7 +82,7 @@ def _read_lines(fd: int, view: memoryview, row: int, offsets: Sequence[int], pat
         except OSError as exc:
             if exc.errno not in (errno.EOPNOTSUPP, errno.EINVAL):
                 raise
-            nowait[0] = False    # this file system reads only blocking: this line on, as the short ones
+            nowait = False    # this file system reads only blocking: this line on, as the short ones
             short += [(j, 0) for j in range(i, len(offsets))]
             break
         if n < row:
@@ -94,6 +94,7 @@ def _read_lines(fd: int, view: memoryview, row: int, offsets: Sequence[int], pat
             break
     for i, n in short:
         _read_full(fd, view[i * row + n:(i + 1) * row], offsets[i] + n, path)
+    return nowait
 
 
 def _segments(wanted: Sequence[int], per_band: int) -> list[tuple[int, int]]:
@@ -123,7 +124,7 @@ def read_bands(path: str | os.PathLike, dtype: np.dtype, interleave: str, shape:
     if not wanted or out.size == 0:
         return out
     fd = os.open(path, os.O_RDONLY)
-    nowait = [True]   # RWF_NOWAIT until the file system refuses it
+    nowait = True   # RWF_NOWAIT until the file system refuses it
     try:
         if interleave == "bsq":   # a band is contiguous: one read each, straight into the output
             for b in wanted:
@@ -142,8 +143,9 @@ def read_bands(path: str | os.PathLike, dtype: np.dtype, interleave: str, shape:
                 view = memoryview(stage).cast("B")
                 for l0 in range(0, lines, block):
                     l1 = min(lines, l0 + block)
-                    _read_lines(fd, view, row, range(offset + l0 * record + a * samples * item,
-                                                     offset + l1 * record + a * samples * item, record), path, nowait)
+                    nowait = _read_lines(fd, view, row, range(offset + l0 * record + a * samples * item,
+                                                              offset + l1 * record + a * samples * item, record),
+                                         path, nowait)
                     for b in range(a, z):
                         for k in where.get(b, ()):
                             out[k, l0:l1] = stage[:l1 - l0, b - a]

@@ -355,7 +355,7 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
     assemblies = 0
     for g, (b0, b1) in enumerate(plan.groups):
         for s, j in enumerate(order):
-            # the latest writers' token at or before s - RENDERS_AHEAD: each render waits at least
+            # the latest writers' token at or before s - ahead: each render waits at least
             # for what the render before it waited for
             gate = next((t for t in reversed(gates[:max(0, len(gates) - ahead + 1)]) if t is not None),
                         None)
