@@ -17,7 +17,7 @@ from typing import NoReturn
 
 from archive import __version__
 from archive.api_errors import keep_cli_flags
-from archive.errors import ArchiveError
+from archive.errors import ArchiveError, file_system_refusal
 from archive.overlap import LAST, RULES
 from archive.params import DEFAULT_MAX_VIEW_ANGLE
 
@@ -588,6 +588,11 @@ def _main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"archive {args.command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:   # the file system said no: one line naming the path, never a traceback
+        if (line := file_system_refusal(exc)) is None:
+            raise
+        print(f"archive {args.command}: error: {line}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ and say what was expected and how to fix it.
 
 from __future__ import annotations
 
+import errno
 from os import PathLike
 
 
@@ -59,3 +60,26 @@ class NavigationError(InputError):
 
 class RenderError(ArchiveError, RuntimeError):
     """The OpenGL renderer could not start or failed."""
+
+
+#: errno -> (what the file system said, the fix), for :func:`file_system_refusal`.
+_REFUSALS = {
+    errno.EROFS: ("the file system is read-only", "run it where the archive or output is writable, or choose "
+                  "another output folder"),
+    errno.EACCES: ("permission denied", "run it as a user who may write there, or choose another folder"),
+    errno.EPERM: ("operation not permitted", "run it as a user who may write there, or choose another folder"),
+    errno.ENOSPC: ("no space left on the device", "free some space there (or choose another folder), then run "
+                   "it again"),
+    errno.EDQUOT: ("the disk quota is exceeded", "free some space there (or choose another folder), then run "
+                   "it again"),
+}
+
+
+def file_system_refusal(exc: OSError) -> str | None:
+    """The one line for an OSError of a full, read-only or forbidden file system (naming its path), else None."""
+    known = _REFUSALS.get(exc.errno)
+    if known is None:
+        return None
+    where = exc.filename if exc.filename is not None else "a file"
+    return f"{where}: {known[0]} ({known[1]})"
+

@@ -18,6 +18,11 @@ so that ``--like X.zarr`` takes its grid.
   reader sees the stack before or after the slice, never half of it). A new stack is made under a
   temporary name and renamed into place with its first slice; ``--overwrite`` builds the new stack
   under a temporary name and replaces the old one when complete.
+- **One writer.** A run holds the stack's lock (``.X.zarr.stack.lock`` beside it, :class:`~archive.files.FileLock`)
+  from its first check to its Item: a second run of the same ``--out`` (another query, another host on a
+  shared file system) is refused in one line naming the holder, before it reads or writes anything.
+  Every time step records the digest of the recipe that wrote it (request and flight: ``recipe``);
+  ``--resume`` refuses a stack holding a step of another recipe instead of keeping it.
 - **Complete and resumable.** The stack's STAC Item ``X.zarr.json`` (datacube ``cube:dimensions``)
   is written last and says the stack is complete; ``--resume`` adds the flights of the request the
   stack lacks (after new ingests, or a killed run), at the end of ``time``, on the stack's own grid
@@ -50,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from archive.errors import InputError
-from archive.files import host_name, path_exists, remove_path, replace_path
+from archive.files import FileLock, host_name, path_exists, remove_path, replace_path
 from archive.grid import Grid, GridRequest
 
 __all__ = ["STACK_ATTR", "StackFlight", "read_stack", "run_stack", "stack", "stack_grid", "survey"]
@@ -181,6 +186,27 @@ def _request_json(options) -> dict:
     from archive.batch import recipe_request
 
     return recipe_request(dataclasses.replace(options, sources=()))
+
+
+def step_recipe(request: dict, source: str) -> str:
+    """The digest (sha256 hex) of the recipe of one time step: the stack's ``request`` and the flight's
+    ``source``; recorded with the step (``recipe``) so that a resume keeps only steps of its own recipe."""
+    import hashlib
+
+    text = json.dumps({"request": request, "source": str(source)}, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _foreign_steps(flights: Sequence[StackFlight], request: dict) -> list[str]:
+    """The ids of the steps of ``flights`` whose recorded recipe is not ``request``'s (steps of a stack
+    written before recipes were recorded have none and are taken as the stack's request)."""
+    return [f.id for f in flights if "recipe" in f.attrs and f.attrs["recipe"] != step_recipe(request, f.source)]
+
+
+def stack_lock(out: Path) -> FileLock:
+    """The lock a stack's writer holds (``.<name>.stack.lock`` beside the store), not yet taken."""
+    return FileLock(out.with_name(f".{out.name}.stack.lock"), f"writing the stack {out.name}",
+                    what=f"stack {out}", fix="wait for that run to finish, then --resume")
 
 
 @dataclass
@@ -332,9 +358,8 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
     Returns ``{"out", "flights" (ids in the stack, time order), "added", "skipped", "left_out",
     "renders" (render tasks run), "width", "height", "gsd", "epsg", "bands", "seconds"}``.
     ArchiveError before anything is written for problems of the whole request."""
-    from archive.cluster import flight_slots, start_cluster, task_budget, wait_for_writers
     from archive.outputs.publish import Output
-    from archive.pipeline import build_output, field_of_view, open_inputs, plan_output, progress_lines
+    from archive.pipeline import field_of_view, progress_lines
 
     started = time.perf_counter()
     tell = tell or (lambda line: None)
@@ -353,6 +378,28 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
         options = dataclasses.replace(options, archive=os.fspath(Path(options.archive).absolute()))
     fov = field_of_view(options)   # one field of view for all the flights
     Output(out, overwrite=True).check()   # a writable folder; temporaries of killed runs removed
+    lock = stack_lock(out)
+    try:
+        lock.acquire()   # one writer at a time: a second is refused in one line naming the holder
+    except OSError as exc:
+        from archive.outputs.publish import unwritable_output
+
+        raise unwritable_output(out.parent, exc) from None
+    try:
+        return _run_stack_locked(options, out, nav, fov, say, tell, started, overwrite=overwrite, resume=resume,
+                                 scheduler=scheduler, workers=workers, threads=threads, quiet=quiet)
+    finally:
+        lock.release()
+
+
+def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *, overwrite: bool, resume: bool,
+                      scheduler, workers, threads, quiet: bool) -> dict:
+    """:func:`run_stack` once the stack's lock is held."""
+    from archive.cluster import close_client, closed_or_warned, flight_slots, start_cluster, task_budget, \
+        wait_for_writers
+    from archive.outputs.publish import Output
+    from archive.pipeline import build_output, open_inputs, plan_output
+
     for tmp in out.parent.glob(f"..{out.name}.slice-*.zarr.partial-*"):   # and their slice stores
         Output(tmp.parent / tmp.name[1:].split(".partial-")[0], overwrite=True).check()
     item_path = out.with_name(out.name + ".json")
@@ -374,6 +421,12 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
             if not overwrite:
                 raise InputError(out, f"the stack was made with another request ({_differences(stored or {}, request)})",
                                  "pass the same options to --resume it, or --overwrite to make it again")
+            layout, flights = None, []
+        foreign = _foreign_steps(flights, request) if layout is not None else []
+        if foreign:
+            if not overwrite:
+                raise InputError(out, f"time steps {', '.join(foreign[:3])} were written by another request",
+                                 "pass --overwrite to make the stack again")
             layout, flights = None, []
     fresh = layout is None
     target = out if not fresh else out.with_name(f".{out.name}.partial-{os.getpid()}@{host_name()}")
@@ -444,7 +497,8 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
                     renders += record.renders
                     start, end = _time_span(record.planned)
                     flight = StackFlight(record.flight.name, record.flight.source, start, end,
-                                         _flight_attrs(record.planned))
+                                         {**_flight_attrs(record.planned),
+                                          "recipe": step_recipe(request, record.flight.source)})
                     if fresh and not made_target:
                         _commit(target, layout, [flight], request)   # the store, with its first time step
                         made_target = True
@@ -481,10 +535,8 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
             target = out
         _write_item(out, layout, flights, options)
     finally:
-        if client is not None:
-            client.close()
-        if cluster is not None:
-            cluster.close()
+        if client is not None:   # a close that fails is one warning line, never the run's error
+            closed_or_warned(lambda: close_client(client, cluster), "archive render", f"stack {out}")
         if target != out:
             remove_path(target)
     g = layout.grid

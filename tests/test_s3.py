@@ -541,3 +541,31 @@ def test_an_archive_created_by_another_ingest_meanwhile_is_opened(s3_bucket, mon
     monkeypatch.setattr(storage, "exists", exists_as_before_the_other_put)
     root = roots.create_archive(url)
     assert str(root.path).rstrip("/") == url and len(calls) >= 2
+
+
+def test_small_arrays_in_a_bucket_are_checked_and_apply_is_refused_before_writing(s3_bucket, small_flight, tmp_path):
+    """Issue 50: a flipped value of a collection's navigation in the bucket is one line naming the array (not a
+    render on a wrong grid); ``calibrate --apply`` on an s3 archive is refused before anything is written."""
+    import zarr
+
+    from archive import storage
+    from archive.ingest.command import ingest
+
+    url = f"s3://{s3_bucket}/small-{uuid.uuid4().hex[:6]}"
+    (r,) = ingest([str(small_flight)], url, FOV, progress=False)
+    bucket, prefix = url[5:].split("/", 1)
+    before = sorted(_keys(bucket, prefix + "/"))
+    c = _cli("calibrate", r.cid, "--archive", url, "--apply", "--quiet")
+    err = c.stderr.strip().splitlines()
+    assert c.returncode != 0 and len(err) == 1 and "object storage" in err[0] and "--apply" in err[0], c.stderr
+    assert sorted(_keys(bucket, prefix + "/")) == before   # nothing written
+    store = f"{url}/collections/{r.cid}.zarr"
+    nav = zarr.open_array(storage.zarr_store(store, read_only=False), path="navigation", mode="r+")
+    values = nav[...]
+    values[3, 4] += 1e-6   # a latitude moved by a few cm: still decodable, still plausible
+    nav[...] = values
+    out = tmp_path / "o.tif"
+    c = _cli("render", r.cid, "--archive", url, "--gsd", "0.5", "--out", str(out), "--quiet")
+    err = c.stderr.strip().splitlines()
+    assert c.returncode != 0 and len(err) == 1 and f"{r.cid}: array navigation does not match" in err[0], c.stderr
+    assert not out.exists()

@@ -314,3 +314,99 @@ def test_outputs_recorded_before_the_grid_options_resume_as_the_same_recipe(fiel
     item_path.write_text(json.dumps(item))
     proc = cli(*batch, "--resume")
     assert "0 done, 1 skipped" in proc.stdout, proc.stdout
+
+
+# ---------------------------------------------------------------------------------------------
+# Two writers of one stack (issue 50)
+# ---------------------------------------------------------------------------------------------
+def _stack_args(archive: Path, when: str, out: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "archive", "render", "--archive", str(archive), "--query-datetime", when,
+            "--stack", "--gsd", GSD, "--out", str(out), "--quiet", *extra]
+
+
+def _steps(path: Path) -> dict[str, np.ndarray]:
+    with xr.open_zarr(path) as ds:
+        return {str(f): ds.radiance.isel(time=t).values for t, f in enumerate(ds.flight.values)}
+
+
+def test_a_second_writer_of_a_stack_is_refused_naming_the_holder(field, tmp_path):
+    """While one run writes a stack (held after its first slice), a run with another query into the same
+    --out is refused in one line naming the holder, and touches nothing; the first completes right
+    (without the lock, 7 of 12 such pairs left steps of the other flight or NaN: issue 50)."""
+    import os
+    import time
+
+    root, archive, ids = field
+    out, hold = tmp_path / "s.zarr", tmp_path / "hold"
+    hold.write_text("")
+    first = subprocess.Popen(_stack_args(archive, "2024-06-01/2024-07-01", out), stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True, env={**os.environ, "ARCHIVE_TEST_HOLD_AFTER": f"1:{hold}"})
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / ".zattrs").exists() or "archive_stack" not in (out / ".zattrs").read_text():
+            assert first.poll() is None and time.monotonic() < deadline, first.communicate()
+            time.sleep(0.2)
+        before = sorted(str(p.relative_to(out)) for p in out.rglob("*"))
+        second = subprocess.run(_stack_args(archive, "2024-06-19", out, "--resume"), capture_output=True, text=True,
+                                timeout=300)
+        assert second.returncode != 0
+        err = second.stderr.strip().splitlines()
+        assert len(err) == 1 and "locked" in err[0] and f"PID {first.pid}" in err[0] and "--resume" in err[0], err
+        assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == before   # nothing touched
+    finally:
+        hold.unlink()
+        stdout, stderr = first.communicate(timeout=300)
+    assert first.returncode == 0, stderr
+    one = tmp_path / "one.zarr"
+    cli("render", ids[1], "--archive", str(archive), "--like", str(out), "--out", str(one), "--quiet")
+    steps = _steps(out)
+    assert list(steps) == ids
+    np.testing.assert_array_equal(steps[ids[1]], values(one)[...])
+    assert not list(tmp_path.glob(".s.zarr.stack.lock*"))   # the lock given back
+
+
+@pytest.mark.parametrize("round_", range(2))
+def test_two_stacks_started_together_leave_only_their_own_steps(field, tmp_path, round_):
+    """Two runs with different queries started at once into one --out (repeated): one writes, the other is
+    refused (or, if it came after, finds the output there); every step of the stack holds its own flight's
+    values, those of the same request run alone."""
+    root, archive, ids = field
+    out = tmp_path / "race.zarr"
+    queries = ["2024-06-01/2024-07-01", "2024-06-19"]
+    if round_:
+        queries.reverse()
+    procs = [subprocess.Popen(_stack_args(archive, q, out), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for q in queries]
+    results = [(p.wait(timeout=300), *p.communicate()) for p in procs]
+    winners = [i for i, (rc, _, _) in enumerate(results) if rc == 0]
+    assert len(winners) == 1, results
+    (loser,) = [r for i, r in enumerate(results) if i not in winners]
+    assert len(loser[2].strip().splitlines()) == 1 and ("locked" in loser[2] or "exists already" in loser[2]), loser
+    alone = tmp_path / "alone.zarr"
+    subprocess.run(_stack_args(archive, queries[winners[0]], alone), check=True, timeout=300)
+    got, want = _steps(out), _steps(alone)
+    assert list(got) == list(want)
+    for cid in want:
+        np.testing.assert_array_equal(got[cid], want[cid], err_msg=cid)
+
+
+def test_resume_refuses_a_step_of_another_recipe(field, tmp_path):
+    """A step whose recorded recipe is not the request's (written by another run) is never kept by --resume."""
+    root, archive, ids = field
+    out = tmp_path / "r.zarr"
+    query = ["--archive", str(archive), "--query-datetime", "2024-06-01/2024-07-01"]
+    cli("render", *query, "--stack", "--gsd", GSD, "--out", str(out), "--quiet")
+    attrs = json.loads((out / ".zattrs").read_text())
+    meta = json.loads(attrs["archive_stack"])
+    assert all(len(f["recipe"]) == 64 for f in meta["flights"])
+    meta["flights"][1]["recipe"] = "0" * 64   # as if another request wrote that step
+    attrs["archive_stack"] = json.dumps(meta)
+    (out / ".zattrs").write_text(json.dumps(attrs))
+    zmeta = json.loads((out / ".zmetadata").read_text())
+    zmeta["metadata"][".zattrs"] = attrs
+    (out / ".zmetadata").write_text(json.dumps(zmeta))
+    proc = cli("render", *query, "--stack", "--gsd", GSD, "--out", str(out), "--resume", ok=False)
+    err = proc.stderr.strip()
+    assert len(err.splitlines()) == 1 and ids[1] in err and "another request" in err and "--overwrite" in err
+    cli("render", *query, "--stack", "--gsd", GSD, "--out", str(out), "--resume", "--overwrite", "--quiet")
+    assert json.loads(json.loads((out / ".zattrs").read_text())["archive_stack"])["flights"][1]["recipe"] != "0" * 64

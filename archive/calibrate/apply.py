@@ -52,7 +52,16 @@ def _note(result, previous: dict | None = None) -> dict:
 def apply(sources, result, fov_deg: float, archive=None) -> list[Path]:
     """Record ``result`` (a :class:`~archive.calibrate.estimate.Calibration`, estimated with the field
     of view ``fov_deg``, degrees: a raw flight's sidecar records it) for every source; returns the
-    paths written."""
+    paths written (a collection that records these estimates already is left as it is, with a line on
+    stderr). InputError before anything is written when a source is a collection in object storage."""
+    from archive import storage
+    from archive.errors import InputError
+
+    for source in sources:   # refused before anything is written (S3 has no rename to switch with)
+        if hasattr(source, "store") and storage.is_url(str(source.store)):
+            raise InputError(source.store, "calibrate --apply cannot update a collection in object storage",
+                             "leave --apply out and pass the estimates to render (--sync-offset, --boresight), or "
+                             "apply to a copy of the archive on a file system")
     written = []
     for source in sources:
         params = {"sync_offset": float(result.params.sync),
@@ -63,7 +72,14 @@ def apply(sources, result, fov_deg: float, archive=None) -> list[Path]:
         if hasattr(source, "store"):
             previous = getattr(source, "info", None)
             previous = (previous.attrs.get("navigation_calibration") if previous is not None else None) or {}
-            written.append(_apply_collection(source, params, ground, _note(result, previous), archive))
+            path = _apply_collection(source, params, ground, _note(result, previous), archive)
+            if path is None:   # the same estimates landed already (a rerun): nothing written twice
+                import sys
+
+                print(f"archive calibrate: {source.id}: these estimates are recorded already; nothing written",
+                      file=sys.stderr)
+            else:
+                written.append(path)
         else:
             written.append(_apply_raw(source, params, ground, result, fov_deg))
     return written
@@ -88,7 +104,7 @@ def _apply_raw(source, params: dict, ground, result, fov_deg: float) -> Path:
     return path
 
 
-def _apply_collection(source, params: dict, ground, note: dict, archive) -> Path:
+def _apply_collection(source, params: dict, ground, note: dict, archive) -> Path | None:
     from archive.collection import record_navigation
     from archive.sources.collection import CollectionSource
 
@@ -100,7 +116,8 @@ def _apply_collection(source, params: dict, ground, note: dict, archive) -> Path
     arrays = {"time": np.concatenate([fresh.line_times(i) for i in range(n)]),
               "position": np.concatenate([p.position for p in poses]),
               "attitude": np.concatenate([p.attitude.as_quat() for p in poses])}
-    record_navigation(source.store, params, arrays, ground_height=ground, note=note)
+    if not record_navigation(source.store, params, arrays, ground_height=ground, note=note):
+        return None
     if archive is not None:
         from archive.catalog.describe import catalog_collection
         from archive.catalog.root import open_root

@@ -34,6 +34,7 @@ import numpy as np
 
 from archive import storage
 from archive.catalog.root import ArchiveRoot, cache_index_path  # cache_index_path: re-exported
+from archive.collection import is_complete
 from archive.errors import FormatError, InputError
 
 SCHEMA_VERSION = "2"
@@ -261,7 +262,7 @@ def read_item_file(path: Path) -> dict:
 class Damaged:
     """A flight the catalog cannot describe: its id, why (one line), how to fix it, and the kind:
     ``item`` (its Item cannot be read), ``no-item`` (a store without an Item), ``no-store`` (an
-    Item whose store is gone)."""
+    Item whose store is gone), ``incomplete`` (an Item whose store lacks its completion marker)."""
 
     id: str
     reason: str
@@ -327,6 +328,11 @@ def scan_catalog(root: ArchiveRoot) -> tuple[list[IndexRow], list[Damaged], list
         if cid not in stores:
             damaged.append(Damaged(cid, f"collection store collections/{cid}.zarr is missing",
                                    "re-ingest the flight, or delete its Item", "no-store"))
+        elif not root.is_url and not is_complete(root.collections / f"{cid}.zarr"):
+            damaged.append(Damaged(cid, f"collection store collections/{cid}.zarr is incomplete (no completion "
+                                        "marker: an update of it was interrupted by an older version)",
+                                   f"re-ingest it from its raw files: archive ingest RAW_DIR --archive {root.path} "
+                                   "--overwrite", "incomplete"))
     known = set(items)
     for cid in stores:
         if cid not in known:

@@ -111,6 +111,16 @@ class ArchiveRoot:
                if p.name.endswith(".zarr") and p.is_dir()]
         return sorted(cid for cid in ids if is_complete(self.collections / f"{cid}.zarr"))
 
+    def incomplete_ids(self) -> list[str]:
+        """Ids of the stores ``collections/<id>.zarr`` on disk that lack their completion marker (an
+        update interrupted by an older version; partial ingests, ``<id>.zarr.partial``, are not these).
+        Local archives only (in object storage an ingest under way looks the same): [] for a URL."""
+        if self.is_url or not self.collections.is_dir():
+            return []
+        ids = [p.name[: -len(".zarr")] for p in self.collections.iterdir()
+               if p.name.endswith(".zarr") and not p.name.startswith(".") and p.is_dir()]
+        return sorted(cid for cid in ids if not is_complete(self.collections / f"{cid}.zarr"))
+
     def require_collection(self, cid: str) -> Path:
         """Path of a completed collection, or MissingInputError naming the id and the archive."""
         store = self.store(cid)
