@@ -17,7 +17,7 @@ from typing import NoReturn
 
 from archive import __version__
 from archive.api_errors import keep_cli_flags
-from archive.errors import ArchiveError, file_system_refusal
+from archive.errors import ArchiveError, file_system_refusal, warning_lines
 from archive.overlap import LAST, RULES
 from archive.params import DEFAULT_MAX_VIEW_ANGLE
 
@@ -54,8 +54,7 @@ def _triple(text: str) -> tuple[float, float, float]:
 
 
 def _command(sub, name: str, help: str, description: str) -> argparse.ArgumentParser:
-    """The parser of subcommand ``name`` (``sub``: what ``add_subparsers`` returned)."""
-    return sub.add_parser(name, help=help, description=description)
+    return sub.add_parser(name, help=help, description=description)   # ``sub``: what add_subparsers returned
 
 
 def _add_run_flags(p: argparse.ArgumentParser, overwrite: str) -> None:
@@ -576,6 +575,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
     module_name, func_name = HANDLERS[args.command].split(":")
     try:
         handler = getattr(importlib.import_module(module_name), func_name)
+        if argv is None:   # the program (not a caller in Python): warnings as clean lines
+            warning_lines(args.command)
         with keep_cli_flags():   # the library's messages name the flags typed here, not Python keywords
             code = int(handler(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, inside the try, not at interpreter exit

@@ -83,3 +83,26 @@ def file_system_refusal(exc: OSError) -> str | None:
     where = exc.filename if exc.filename is not None else "a file"
     return f"{where}: {known[0]} ({known[1]})"
 
+
+
+def warning_lines(command: str) -> None:
+    """Show this package's warnings as one clean line each on stderr, ``archive COMMAND: warning: ...``
+    (above a progress bar, never glued to it: through tqdm when it is loaded); other libraries' warnings
+    keep Python's format."""
+    import sys
+    import warnings
+
+    default = warnings.showwarning
+    package = __file__.rsplit("/", 1)[0]
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        if not str(filename).startswith(package):
+            return default(message, category, filename, lineno, file, line)
+        text = f"archive {command}: warning: {' '.join(str(message).split())}"
+        tqdm = sys.modules.get("tqdm")
+        if tqdm is not None:
+            tqdm.tqdm.write(text, file=sys.stderr)
+        else:
+            print(text, file=sys.stderr)
+
+    warnings.showwarning = show

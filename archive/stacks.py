@@ -54,6 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
+from archive import storage
 from archive.errors import InputError
 from archive.files import FileLock, host_name, path_exists, remove_path, replace_path
 from archive.grid import Grid, GridRequest
@@ -374,7 +375,7 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
     if options.compression != "fast":   # its slices and store are made with the default codecs
         raise InputError("--compression", "a stack is written with the default compression (fast)",
                          "leave --compression out with --stack")
-    if options.archive is not None:   # recipes independent of the working directory
+    if options.archive is not None and not storage.is_url(str(options.archive)):   # recipes independent of the cwd
         options = dataclasses.replace(options, archive=os.fspath(Path(options.archive).absolute()))
     fov = field_of_view(options)   # one field of view for all the flights
     Output(out, overwrite=True).check()   # a writable folder; temporaries of killed runs removed

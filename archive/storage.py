@@ -54,6 +54,8 @@ def location(loc: str | os.PathLike) -> Path | Any:
             return loc
         from upath import UPath
 
+        if not split_url(loc)[0]:
+            raise InputError(loc, "names no bucket", "write s3://BUCKET/PREFIX")
         return UPath(loc.rstrip("/"), use_listings_cache=False)
     return Path(loc)
 
@@ -133,10 +135,18 @@ def _store(bucket: str, prefix: str | None, pid: int, endpoint: str | None, key_
     if key_id is None:  # no keys in the environment: boto3's chain (profiles, SSO, instance roles)
         try:
             from obstore.auth.boto3 import Boto3CredentialProvider
-
-            return S3Store(bucket, client_options=client, credential_provider=Boto3CredentialProvider(), **options)
         except ImportError:  # boto3 absent: obstore's own environment lookup
             pass
+        else:
+            try:
+                provider = Boto3CredentialProvider()
+            except ValueError as exc:   # "Received None from session.get_credentials": none anywhere
+                if "credentials" not in str(exc):
+                    raise
+                raise InputError(f"s3://{bucket}", "object storage: no credentials found (none in the environment, "
+                                 "no profile, no instance role)", "set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, "
+                                 "or AWS_PROFILE") from None
+            return S3Store(bucket, client_options=client, credential_provider=provider, **options)
     return S3Store(bucket, client_options=client, **options)
 
 
@@ -176,15 +186,20 @@ def write_bytes(loc: Any, data: bytes | memoryview) -> None:
     """One PUT of ``data`` at the URL ``loc`` (atomic: readers see the old object or the new one)."""
     import obstore
 
+    from obstore.exceptions import NotFoundError
+
     bucket, key = split_url(loc)
-    with storage_errors(loc):
-        obstore.put(object_store(bucket), key, bytes(data))
+    try:
+        with storage_errors(loc):
+            obstore.put(object_store(bucket), key, bytes(data))
+    except (NotFoundError, FileNotFoundError):   # a PUT finds nothing only when the bucket is not there
+        raise StorageError(loc, "the bucket does not exist") from None
 
 
 def put_if_absent(loc: Any, data: bytes) -> bool:
     """PUT ``data`` at ``loc`` only if no object is there (``If-None-Match: *``); False when one was."""
     import obstore
-    from obstore.exceptions import AlreadyExistsError, PreconditionError
+    from obstore.exceptions import AlreadyExistsError, NotFoundError, PreconditionError
 
     bucket, key = split_url(loc)
     try:
@@ -192,6 +207,8 @@ def put_if_absent(loc: Any, data: bytes) -> bool:
             obstore.put(object_store(bucket), key, data, mode="create")
     except (AlreadyExistsError, PreconditionError):
         return False
+    except (NotFoundError, FileNotFoundError):   # a PUT finds nothing only when the bucket is not there
+        raise StorageError(loc, "the bucket does not exist") from None
     return True
 
 

@@ -303,3 +303,28 @@ def test_a_read_only_archive_is_searched_rendered_and_viewed(archive, tmp_path, 
     finally:
         stop_view(proc)
     assert _snapshot(archive_dir) == before  # nothing in the archive was written
+
+
+def test_catalog_add_on_a_read_only_archive_is_one_line(archive, tmp_path):
+    """Issue 50: ``catalog add`` on a read-only archive ended in a traceback (the catalog lock's OSError)."""
+    archive_dir, ids = archive
+    out = tmp_path / "o.tif"
+    code = main(["render", ids[0], "--archive", str(archive_dir), "--gsd", "0.5", "--out", str(out), "--quiet"])
+    assert code == 0
+    prefix = _readonly_prefix(archive_dir)
+    r = _run(prefix, "catalog", "add", "--archive", str(archive_dir), str(out) + ".json",
+             env={**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache")})
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode != 0 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert "read-only" in lines[0] and str(archive_dir.name) in lines[0], lines
+
+
+def test_catalog_list_leaves_out_an_item_truncated_since_the_index(archive, capsys):
+    """Issue 50: ``catalog list`` listed a truncated Item from the index as if it were sound."""
+    archive_dir, ids = archive
+    code, out, err = cli(capsys, "catalog", "list", "--archive", str(archive_dir))
+    assert code == 0 and all(i in out for i in ids)
+    _truncate(archive_dir / "catalog" / "items" / f"{ids[0]}.json")
+    code, out, err = cli(capsys, "catalog", "list", "--archive", str(archive_dir))
+    assert code == 0 and ids[0] not in out and ids[1] in out and out.strip().endswith("1 flight")
+    assert f"damaged flight {ids[0]}" in err and "unreadable STAC Item" in err, err

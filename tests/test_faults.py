@@ -174,3 +174,26 @@ def test_workers_that_always_die_at_start_are_one_line(small_archive, tmp_path):
     assert done.returncode == 2 and "the local Dask cluster did not start, 2 times: a worker process died" in line
     doc = json.loads((out / "report.json").read_text())
     assert doc["failed"] == 1 and "did not start" in doc["outputs"][0]["error"]
+
+
+def test_a_full_disk_line_names_the_path_and_the_flights_done_before(small_flight, tmp_path, small_disk):
+    """Issue 50: the line of an ingest stopped by a full disk names where the disk is full, and the flights of
+    the same command that were ingested before it."""
+    from archive.catalog.root import create_archive
+
+    other = tmp_path / "other"
+    done = cli("simulate", str(other), "--cubes", "1", "--lines", "200", "--samples", "64", "--bands", "8",
+               "--start", "2024-07-01T10:00:00Z", "--quiet")
+    assert done.returncode == 0, done.stderr
+    arc = tmp_path / "arc"
+    create_archive(arc)
+    collections = small_disk(arc / "collections", "8m")
+    first = cli("ingest", str(small_flight), "--archive", str(arc), "--fov", str(FOV), "--quiet")
+    assert first.returncode == 0, first.stderr
+    cid = first.stdout.split(":")[0]
+    fill(collections)
+    done = cli("ingest", str(small_flight), str(other), "--archive", str(arc), "--fov", str(FOV), "--quiet")
+    line = one_line(done.stderr)
+    assert done.returncode == 2 and "the disk is full while ingesting" in line, line
+    assert line.split(": ")[2].startswith(str(collections)), line   # where: a path on the full disk
+    assert f"ingested before it: {cid} (already ingested)" in line, line

@@ -306,3 +306,39 @@ def test_provenance_flags_the_sky_per_pixel(flight, tmp_path):
     median = np.median(load_clouds(flight[0].directory).factors)
     assert rel[covered].min() == pytest.approx(0.7 / median, rel=0.02)
     assert rel[covered].max() == pytest.approx(1.0 / median, rel=0.02)
+
+
+@pytest.mark.parametrize("damage", ["zero below 700 nm", "x1e-6", "x1e6", "a spike"])
+def test_impossible_sky_spectra_are_refused_naming_file_and_bands(flight, tmp_path, damage):
+    """Issue 50: well-formed spectra that no sky gives (none below 700 nm, a millionth or a million times
+    the light, one spike) are refused in one line naming the spectrum and the bands, instead of
+    reflectance off by orders of magnitude with exit 0."""
+    from archive.formats.spec import read_dcp, read_spec, write_spec
+
+    src = _copy(flight, tmp_path / "s")
+    name = "sim_downwelling_1_pre.spec"
+    spec = read_spec(src.directory / name)
+    (dcp,) = src.directory.glob("*.dcp")
+    offset = read_dcp(dcp).offset
+    signal = spec.values - offset   # what the calibration scales
+    wl = spec.wavelengths
+    if damage == "zero below 700 nm":
+        signal = np.where(wl < 700, 0.0, signal)
+    elif damage == "x1e-6":
+        signal = signal * 1e-6
+    elif damage == "x1e6":
+        signal = signal * 1e6
+    else:
+        signal = signal.copy()
+        signal[np.abs(wl - 625) < 25] *= 20   # a 50 nm wide spike near the camera's band at 625 nm
+    write_spec(src.directory / name, signal + offset, wl, spec.shutter_ms)
+    with pytest.raises(InputError, match=rf"{name}: gives a sky irradiance that makes no physical sense") as err:
+        RawFlightSource(src.directory, NavigationParams()).radiometry(1, BANDS_USED, "reflectance")
+    assert " nm: " in str(err.value)
+    out = tmp_path / "out.tif"
+    done = subprocess.run([sys.executable, "-m", "archive", "render", str(src.directory), "--fov", str(FOV),
+                           "--gsd", "1", "--mode", "reflectance", "--bands", "0,9", "--out", str(out)],
+                          capture_output=True, text=True, timeout=120)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode != 0 and len(lines) == 1 and name in lines[0], done.stderr
+    assert not out.exists()

@@ -264,6 +264,10 @@ def test_killed_ingest_is_resumed(s3_bucket, small_flight):
     assert len(chunks_then) == 3
     root = open_root(url)
     assert root.collection_ids() == []            # no completion marker: invisible
+    for args in (["catalog", "list", "--archive", url], ["verify", "--archive", url, "--quiet"]):
+        said = _cli(*args)   # the advice is what repairs it: the same ingest, not 'catalog rebuild' (issue 50)
+        text = said.stdout + said.stderr
+        assert "run the same 'archive ingest' again" in text and "catalog rebuild" not in text, (args, text)
     r = _cli("ingest", str(small_flight), "--archive", url, "--fov", str(FOV), "--quiet")
     assert r.returncode == 0 and ": resumed (" in r.stdout, (r.stdout, r.stderr)
     (cid,) = root.collection_ids()
@@ -569,3 +573,28 @@ def test_small_arrays_in_a_bucket_are_checked_and_apply_is_refused_before_writin
     err = c.stderr.strip().splitlines()
     assert c.returncode != 0 and len(err) == 1 and f"{r.cid}: array navigation does not match" in err[0], c.stderr
     assert not out.exists()
+
+
+def test_object_storage_mistakes_are_one_line(s3_archive, tmp_path):
+    """Issue 50: no credentials anywhere, a URL without a bucket, a batch into a bucket that does not exist:
+    one line each, naming the URL; a stack renders from an archive in a bucket."""
+    url, cid, _ = s3_archive
+    bare = {k: v for k, v in os.environ.items() if not k.startswith("AWS_")}
+    bare.update(AWS_ENDPOINT_URL=os.environ["AWS_ENDPOINT_URL"], HOME=str(tmp_path), AWS_CONFIG_FILE=str(tmp_path / "c"),
+                AWS_SHARED_CREDENTIALS_FILE=str(tmp_path / "k"), AWS_EC2_METADATA_DISABLED="true")
+    cases = [
+        (["catalog", "search", "--archive", url], bare, "no credentials found"),
+        (["catalog", "list", "--archive", "s3:///x"], None, "s3:///x: names no bucket"),
+        (["render", "--archive", url, "--query-datetime", "2024-06-01/2024-07-01", "--gsd", "0.5",
+          "--out", "s3://no-such-bucket-50/out"], None, "the bucket does not exist"),
+    ]
+    for args, env, said in cases:
+        done = subprocess.run([sys.executable, "-m", "archive", *args], capture_output=True, text=True, timeout=240,
+                              env=env)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode != 0 and len(lines) == 1 and said in lines[0] and "Traceback" not in done.stderr, \
+            (args, done.stderr)
+    out = tmp_path / "stack.zarr"
+    done = _cli("render", "--archive", url, "--query-datetime", "2024-06-01/2024-07-01", "--stack", "--gsd", "0.5",
+                "--out", str(out), "--quiet")
+    assert done.returncode == 0 and "1 added" in done.stdout, done.stderr

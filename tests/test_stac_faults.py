@@ -198,3 +198,29 @@ def test_fuzz_the_live_server_survives_and_answers_400(server):
             assert_alive(proc, base)
     assert_alive(proc, base)
     assert time.monotonic() - started < 240
+
+
+def test_clients_that_leave_mid_post_are_not_logged(archive_dir):
+    """Issue 50: a client that disconnects in the middle of a POST body (closed, or reset) costs nothing:
+    no traceback in the server's log, and the next client is answered."""
+    import socket
+    import struct
+    from urllib.parse import urlsplit
+
+    proc, base = start_view(archive_dir)
+    try:
+        where = urlsplit(base)
+        for reset in (False, True, False, True):
+            s = socket.create_connection((where.hostname, where.port))
+            if reset:   # RST instead of FIN
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+            s.sendall(b"POST /stac/search HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                      b"Content-Length: 5000\r\n\r\n{\"limit\": 1")
+            time.sleep(0.3)
+            s.close()
+        time.sleep(0.5)
+        assert_alive(proc, base)
+    finally:
+        stop_view(proc)
+    log = proc.stderr.read()
+    assert "Traceback" not in log and "Exception in ASGI" not in log, log

@@ -11,21 +11,20 @@ Endpoints (JSON; Items and ItemCollections ``application/geo+json``):
   ``limit`` (1..10000, larger values are clamped; default 10), ``sortby``, ``filter`` (+
   ``filter-lang`` cql2-text | cql2-json, :mod:`archive.catalog.cql`) and ``token`` (from a ``next`` link).
 
-Selection, order and paging are SQL on the index (:mod:`archive.catalog.index`); only the Items of
-the page are read from their files, their links made absolute (self, parent, collection, root) and
-asset hrefs absolute paths on this machine. ``bbox``, ``intersects`` and ``S_INTERSECTS`` test the
-footprints exactly; ``datetime`` selects flights whose [start, end] meets the interval, as
-``archive catalog search --datetime``. Paging: ``token`` is an offset into the sorted result.
-Errors are ``{"code", "description"}`` with a 4xx status.
+Selection, order and paging are SQL on the index (:mod:`archive.catalog.index`); only the page's
+Items are read from their files, links made absolute (self, parent, collection, root), asset hrefs
+absolute paths here. ``bbox``, ``intersects``, ``S_INTERSECTS`` test footprints exactly; ``datetime``
+selects flights whose [start, end] meets it. ``token``: an offset into the sorted result. Errors are
+``{"code", "description"}`` with a 4xx status; a client that disconnects mid-body is not logged.
 
 Untrusted input is bounded before it is parsed: a POST body (at most MAX_BODY_BYTES, JSON nested at
 most :data:`archive.catalog.cql.MAX_NESTING` deep), a filter (length, nesting, operator count:
 :func:`archive.catalog.cql.check_text`; the ``cql2`` parser is native code, whose stack overflow
 would end the process), numbers (finite, integers within 64 bits; ``limit`` a positive integer;
 ``token`` offsets at most MAX_OFFSET). Every parse or translate failure is a 400 with a message.
-The index is checked before use and rebuilt when it does not answer for the Items (in the user's
-cache folder for a read-only archive: :func:`archive.catalog.index.ensure_index`); an Item damaged
-since is left out of its page and listed under ``archive:damaged``.
+The index is checked and rebuilt when it does not answer for the Items (in the user's cache for a
+read-only archive: :func:`archive.catalog.index.ensure_index`); an Item damaged since is left out
+of its page and listed under ``archive:damaged``.
 """
 
 from __future__ import annotations
@@ -54,13 +53,8 @@ from archive.errors import InputError, MissingInputError
 API_VERSION = "v1.0.0"
 _STAC_API = f"https://api.stacspec.org/{API_VERSION}"
 CONFORMANCE = [
-    f"{_STAC_API}/core",
-    f"{_STAC_API}/collections",
-    f"{_STAC_API}/ogcapi-features",
-    f"{_STAC_API}/item-search",
-    f"{_STAC_API}/item-search#sort",
-    f"{_STAC_API}/item-search#filter",
-    f"{_STAC_API}/ogcapi-features#filter",
+    *(f"{_STAC_API}/{c}" for c in ("core", "collections", "ogcapi-features", "item-search", "item-search#sort",
+                                   "item-search#filter", "ogcapi-features#filter")),
     "http://www.opengis.net/spec/ogcapi-features-1/1.0/conf/core",
     "http://www.opengis.net/spec/ogcapi-features-1/1.0/conf/geojson",
     "http://www.opengis.net/spec/ogcapi-features-3/1.0/conf/filter",
@@ -526,6 +520,7 @@ def stac_routes(archive: ArchiveRoot | None, prefix: str = "/stac") -> list:
     """Starlette routes of the STAC API of ``archive`` under ``prefix`` (None: every route
     answers 404, the viewer serves raw directories only)."""
     from starlette.concurrency import run_in_threadpool
+    from starlette.requests import ClientDisconnect
     from starlette.responses import JSONResponse
     from starlette.routing import Route
 
@@ -546,6 +541,8 @@ def stac_routes(archive: ArchiveRoot | None, prefix: str = "/stac") -> list:
                 if request.method == "POST":
                     body = parse_body(await _read_body(request))
                 doc = await run_in_threadpool(fn, api, request, base, body)
+            except ClientDisconnect:   # the client left mid-body: nobody to answer, nothing to log
+                return answer(400, {"code": "ClientDisconnect", "description": "the client disconnected"})
             except MissingInputError as exc:
                 return answer(404, {"code": "NotFound", "description": str(exc)})
             except ArchiveError as exc:

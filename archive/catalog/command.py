@@ -31,21 +31,25 @@ def format_table(rows: list[IndexRow]) -> str:
 
 
 def _print(root: ArchiveRoot, rows: list[IndexRow], as_json: bool) -> None:
-    if as_json:
-        items = []
-        for r in rows:
-            path = root.path / r.item_path
-            try:
-                item = read_item_file(path)
-                item_summary(item, where=str(path))  # a flight's Item, not any JSON object
-            except FormatError as exc:  # damaged since the index was built: costs only this flight
-                print(f"archive catalog: warning: damaged flight {r.id} left out: {exc} (run 'archive catalog "
-                      "rebuild')", file=sys.stderr)
-                continue
-            items.append(item)
-        print(json.dumps(item_collection(items), indent=1))
-    else:
-        print(format_table(rows))
+    """Print ``rows`` (a table, or with ``as_json`` their Items as a FeatureCollection). Each row's Item is
+    read again first (every Item in JSON, the local Items for the table: a file read each, no request to a
+    bucket): one damaged since the index was built is left out with a warning line, never listed as sound."""
+    items, kept = [], []
+    for r in rows:
+        if not as_json and root.is_url:
+            kept.append(r)
+            continue
+        path = root.path / r.item_path
+        try:
+            item = read_item_file(path)
+            item_summary(item, where=str(path))  # a flight's Item, not any JSON object
+        except FormatError as exc:  # damaged since the index was built: costs only this flight
+            print(f"archive catalog: warning: damaged flight {r.id} left out: {exc} (run 'archive catalog "
+                  "rebuild')", file=sys.stderr)
+            continue
+        items.append(item)
+        kept.append(r)
+    print(json.dumps(item_collection(items), indent=1) if as_json else format_table(kept))
 
 
 def _warn_damaged(root: ArchiveRoot, index) -> None:

@@ -336,8 +336,13 @@ def scan_catalog(root: ArchiveRoot) -> tuple[list[IndexRow], list[Damaged], list
     known = set(items)
     for cid in stores:
         if cid not in known:
-            damaged.append(Damaged(cid, f"collection collections/{cid}.zarr has no STAC Item (an ingest may be "
-                                        "under way)", kind="no-item"))
+            if is_complete(root.collections / f"{cid}.zarr"):
+                damaged.append(Damaged(cid, f"collection collections/{cid}.zarr has no STAC Item (an ingest may be "
+                                            "under way)", kind="no-item"))
+            else:   # a killed ingest's (in object storage its partial store has its final name): rebuild cannot help
+                damaged.append(Damaged(cid, f"collection collections/{cid}.zarr is not complete (an ingest of it is "
+                                            "under way, or was killed)", "run the same 'archive ingest' again: it "
+                                       "resumes where it stopped", kind="no-item"))
     return rows, damaged, items, stores
 
 

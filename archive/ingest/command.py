@@ -376,14 +376,21 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
         # the same flight waits here, then finds it ingested.
         lock = store_lock(root.store(plan.cid), f"ingest of {plan.cid}")
         try:
-            lock.acquire(wait=math.inf, notify=lambda line: print(f"archive ingest: {line}", file=sys.stderr))
-        except OSError as exc:
-            raise InputError(root.collections, f"cannot write there ({exc.strerror or exc})",
-                             "ingest into an archive you can write to") from None
-        try:
-            results.append(_ingest_one(root, plan, directory, overwrite, workers, progress))
-        finally:
-            lock.release()
+            try:
+                with _disk_full_is_an_error(root, plan.cid):
+                    lock.acquire(wait=math.inf, notify=lambda line: print(f"archive ingest: {line}", file=sys.stderr))
+            except OSError as exc:
+                raise InputError(root.collections, f"cannot write there ({exc.strerror or exc})",
+                                 "ingest into an archive you can write to") from None
+            try:
+                results.append(_ingest_one(root, plan, directory, overwrite, workers, progress))
+            finally:
+                lock.release()
+        except DiskFullError as exc:   # the flights of this command done before it are named too
+            if not results:
+                raise
+            done = ", ".join(f"{r.cid} ({r.status})" for r in results)
+            raise DiskFullError(exc.where, f"{exc.problem}; ingested before it: {done}", exc.fix) from None
     if not root.is_url:   # archive/previews.py reads local stores only: an archive in object storage has none yet
         add_previews(root, [r.cid for r in results])   # the viewer's overviews (issue 36); after every lock is released
     return results
@@ -504,9 +511,39 @@ def _disk_full_is_an_error(root: ArchiveRoot, cid: str) -> Iterator[None]:
     except Exception as exc:
         if not _disk_full(exc):
             raise
-        raise InputError(root.path, f"the disk is full while ingesting {cid} ({type(exc).__name__}: "
-                         f"{' '.join(str(exc).split())})",
-                         "free some space, then run the same ingest again: it resumes where it stopped") from None
+        where = _full_path(exc) or _full_folder(root) or root.path
+        raise DiskFullError(where, f"the disk is full while ingesting {cid} into {root.path} ({type(exc).__name__}: "
+                            f"{' '.join(str(exc).split())})",
+                            "free some space, then run the same ingest again: it resumes where it stopped") from None
+
+
+def _full_folder(root: ArchiveRoot) -> Path | None:
+    """The first of the archive's folders (collections, catalog, the archive) whose file system has no
+    free block left (a local archive; None when none, or in object storage)."""
+    if root.is_url:
+        return None
+    for folder in (root.collections, root.path / "catalog", root.path):
+        try:
+            if os.statvfs(folder).f_bavail == 0:
+                return folder
+        except OSError:
+            continue
+    return None
+
+
+class DiskFullError(InputError):
+    """An ingest stopped by a full disk or quota (its partial store stays, for the rerun to resume)."""
+
+
+def _full_path(exc: BaseException) -> str | None:
+    """The file named by the OSError in ``exc``'s chain (where the disk was full), if any."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and exc.filename is not None:
+            return str(exc.filename)
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def run(args: argparse.Namespace) -> int:

@@ -254,8 +254,8 @@ class Output:
 
 def unwritable_output(where: Path, exc: OSError) -> InputError:
     """The one-line error for an output folder that cannot be written (``exc``: why)."""
-    return InputError(where, f"cannot write there ({exc.strerror or exc})",
-                      "choose an output folder you can write to")
+    why = storage.reason(exc) or exc.strerror or " ".join(str(exc).split())[:200]   # a server's answer: one line
+    return InputError(where, f"cannot write there ({why})", "choose an output folder you can write to")
 
 
 def _check_writable(folder: Path) -> None:

@@ -28,7 +28,8 @@ from archive.errors import InputError
 from archive.formats.spec import IrradianceCalibration, Spectrum
 
 __all__ = ["CubeIrradiance", "FRAUNHOFER_NM", "LOW_IRRADIANCE", "SEPARABLE_WARN", "SHIFT_WARN_NM",
-           "SkyIrradiance", "band_weights", "fraunhofer_shift", "separable", "to_bands"]
+           "SkyIrradiance", "band_weights", "fraunhofer_shift", "implausible_bands", "separable", "sun_panel_radiance",
+           "to_bands"]
 
 #: Solar absorption lines (nm) used to check the spectrometer's wavelengths (air wavelengths).
 FRAUNHOFER_NM = (430.78, 486.13, 518.36, 589.30, 656.28, 686.72, 760.30)
@@ -40,6 +41,42 @@ SEPARABLE_WARN = 0.005
 LOW_IRRADIANCE = 0.25
 #: QA: a change of X within a cube beyond this fraction flags the cube "irradiance changed".
 CHANGE_WARN = 0.10
+#: Physical sense of X per band, as fractions of :func:`sun_panel_radiance` (a white panel facing the sun
+#: above the atmosphere): below LOW the sky is darker than deep twilight, above HIGH brighter than the sun.
+PLAUSIBLE_LOW, PLAUSIBLE_HIGH = 1e-3, 1.5
+#: A band whose X exceeds SPIKE x the median of its neighbours (5 bands each side) is a spike: the sky has
+#: no emission lines (absorption dips, O2 and water, are real and allowed).
+SPIKE = 3.0
+
+
+def sun_panel_radiance(bands_nm: Sequence[float]) -> np.ndarray:
+    """(bands,) radiance of a white Lambertian panel facing the sun above the atmosphere, microflicks:
+    the sun as a 5772 K black body seen at 1 au (B(lambda, T) * (R_sun / au)^2), the upper bound of any
+    downwelling X (the atmosphere only takes away)."""
+    from scipy.constants import astronomical_unit, c, h, k
+
+    lam = np.asarray(bands_nm, float) * 1e-9
+    planck = 2 * h * c ** 2 / lam ** 5 / np.expm1(h * c / (lam * k * 5772.0))   # W m-2 sr-1 m-1
+    return planck * (6.957e8 / astronomical_unit) ** 2 * 1e-9 * 1e5   # per nm, in microflicks (1e-5 W m-2 sr-1 nm-1)
+
+
+def implausible_bands(x: np.ndarray, bands_nm: Sequence[float]) -> list[tuple[float, str]]:
+    """(band nm, why) for each band of X (bands,) that makes no physical sense: not finite, not within
+    [:data:`PLAUSIBLE_LOW`, :data:`PLAUSIBLE_HIGH`] x :func:`sun_panel_radiance`, or a spike."""
+    x = np.asarray(x, float)
+    sun = sun_panel_radiance(bands_nm)
+    out = []
+    for b, (v, top) in enumerate(zip(x, sun, strict=True)):
+        near = np.concatenate([x[max(0, b - 5):b], x[b + 1:b + 6]])
+        if not np.isfinite(v):
+            out.append((float(bands_nm[b]), "not a number"))
+        elif v < PLAUSIBLE_LOW * top:
+            out.append((float(bands_nm[b]), f"{v:.3g} below {PLAUSIBLE_LOW * top:.3g}"))
+        elif v > PLAUSIBLE_HIGH * top:
+            out.append((float(bands_nm[b]), f"{v:.3g} above the sun's {top:.3g}"))
+        elif near.size >= 2 and v > SPIKE * np.median(near):
+            out.append((float(bands_nm[b]), f"a spike ({v / np.median(near):.1f} x its neighbours)"))
+    return out
 
 
 def band_weights(wavelengths: np.ndarray, bands_nm: Sequence[float], fwhm_nm: Sequence[float] | None) -> np.ndarray:
@@ -129,9 +166,11 @@ class CubeIrradiance:
     lines_found: int
 
 
-def to_bands(spectrum: Spectrum, calibration: IrradianceCalibration, bands_nm, fwhm_nm) -> tuple[np.ndarray, float | None, int]:
+def to_bands(spectrum: Spectrum, calibration: IrradianceCalibration, bands_nm,
+             fwhm_nm) -> tuple[np.ndarray, float | None, int]:
     """One raw spectrum as X (bands,) on the camera bands, with its wavelength check
-    (:func:`fraunhofer_shift`; corrected and warned about beyond :data:`SHIFT_WARN_NM`)."""
+    (:func:`fraunhofer_shift`; corrected and warned about beyond :data:`SHIFT_WARN_NM`) and its physical
+    sense (:func:`implausible_bands`: InputError naming the file and the bands)."""
     x = calibration.white_radiance(spectrum)
     wl = spectrum.wavelengths
     shift, found = fraunhofer_shift(wl, x)
@@ -142,7 +181,15 @@ def to_bands(spectrum: Spectrum, calibration: IrradianceCalibration, bands_nm, f
     if not np.all(np.isfinite(x)) or np.median(x) <= 0:
         raise InputError(spectrum.path, "gives no positive irradiance (offset above the raw counts?)",
                          "check the spectrum and the .dcp (--irradiance-calibration)")
-    return band_weights(wl, bands_nm, fwhm_nm) @ x, shift, found
+    x_bands = band_weights(wl, bands_nm, fwhm_nm) @ x
+    bad = implausible_bands(x_bands, bands_nm)
+    if bad:
+        shown = "; ".join(f"{nm:.1f} nm: {why}" for nm, why in bad[:4]) + (f"; {len(bad) - 4} more" * (len(bad) > 4))
+        raise InputError(spectrum.path, f"gives a sky irradiance that makes no physical sense in {len(bad)} of "
+                         f"{len(list(bands_nm))} bands (X in microflicks: {shown})",
+                         "check the spectrum and the .dcp (--irradiance-calibration), or pass --white-reference, "
+                         "or render --mode radiance")
+    return x_bands, shift, found
 
 
 @dataclass(frozen=True, eq=False)
