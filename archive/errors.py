@@ -58,6 +58,11 @@ class NavigationError(InputError):
     """Navigation does not cover, or cannot be aligned with, the image lines."""
 
 
+class NoLineOnGrid(InputError):
+    """The requested grid (``--bounds``, ``--like``, a stack's) holds no line of the flights: a stack or a
+    tile leaves such a flight out, a single render refuses."""
+
+
 class RenderError(ArchiveError, RuntimeError):
     """The OpenGL renderer could not start or failed."""
 

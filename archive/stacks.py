@@ -41,11 +41,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import sys
 import time
-import warnings
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -55,48 +53,15 @@ from pathlib import Path
 import numpy as np
 
 from archive import storage
-from archive.errors import InputError
+from archive.errors import InputError, NoLineOnGrid
 from archive.files import FileLock, host_name, path_exists, remove_path, replace_path
 from archive.grid import Grid, GridRequest
+from archive.outputs.stack import STACK_ATTR, StackFlight, StackLayout, add_slice, commit_stack, read_stack
 
 __all__ = ["STACK_ATTR", "StackFlight", "read_stack", "run_stack", "stack", "stack_grid", "survey"]
 
-#: Root attribute of a stack store: {"flights": [per time step: id, start, end, ...], "request": {...}}.
-STACK_ATTR = "archive_stack"
-#: CF units of the ``time`` coordinate (int64).
-TIME_UNITS = "microseconds since 1970-01-01T00:00:00"
 #: The datacube STAC extension the stack's Item declares (when its schema is vendored).
 DATACUBE_EXTENSION = "https://stac-extensions.github.io/datacube/v2.2.0/schema.json"
-
-_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
-
-
-@dataclass(frozen=True)
-class StackFlight:
-    """One time step of a stack: the flight's ``id`` (collection id or directory name), its ``source``
-    (what the request names), UTC ``start``/``end`` of its lines (ISO 8601) and its processing
-    attributes (ground height or DEM, sync offset, cubes)."""
-
-    id: str
-    source: str
-    start: str
-    end: str
-    attrs: dict = dataclasses.field(default_factory=dict, compare=False)
-
-    def to_dict(self) -> dict:
-        return {"id": self.id, "source": self.source, "start": self.start, "end": self.end, **self.attrs}
-
-    @classmethod
-    def from_dict(cls, d: dict) -> StackFlight:
-        rest = {k: v for k, v in d.items() if k not in ("id", "source", "start", "end")}
-        return cls(str(d["id"]), str(d.get("source", d["id"])), str(d["start"]), str(d["end"]), rest)
-
-    @property
-    def microseconds(self) -> int:
-        """The flight's start as CF time: microseconds since 1970-01-01 UTC."""
-        when = datetime.fromisoformat(self.start.replace("Z", "+00:00"))
-        delta = when - _EPOCH
-        return (delta.days * 86400 + delta.seconds) * 1_000_000 + delta.microseconds
 
 
 def _flight_name(source: str) -> str:
@@ -210,138 +175,6 @@ def stack_lock(out: Path) -> FileLock:
                     what=f"stack {out}", fix="wait for that run to finish, then --resume")
 
 
-@dataclass
-class _Layout:
-    """What a stack store holds besides its slices: the grid, the bands (source indices,
-    wavelengths, fwhm, nm), the data variable, the root attributes and the Zarr version."""
-
-    grid: Grid
-    bands: tuple[int, ...]
-    wavelengths: tuple[float, ...] | None
-    fwhm: tuple[float, ...] | None
-    variable: str
-    attrs: dict
-    zarr_format: int
-
-    def arrays(self, flights: Sequence[StackFlight]) -> tuple[dict, list]:
-        """(root attributes, :class:`~archive.outputs.zarr_metadata.ArraySpec` list) of the store
-        holding ``flights`` as its time steps (no slice data: only the coordinates')."""
-        from archive.outputs.zarr import store_layout
-        from archive.outputs.zarr_metadata import ArraySpec
-
-        root, arrays = store_layout(self.grid, self.bands, self.wavelengths, self.fwhm, self.variable, self.attrs)
-        n = len(flights)
-        out = []
-        for spec in arrays:
-            if spec.name in (self.variable, "saturated"):
-                attrs = dict(spec.attrs)
-                if spec.name == self.variable:
-                    attrs["coordinates"] = " ".join(sorted(attrs.get("coordinates", "").split() + ["flight"]))
-                else:
-                    attrs["coordinates"] = "flight"
-                spec = dataclasses.replace(spec, shape=(n, *spec.shape), chunks=(1, *spec.chunks),
-                                           dims=("time", *spec.dims), attrs=attrs)
-            out.append(spec)
-        ids = [f.id for f in flights]
-        width = max([len(i) for i in ids] + [1])
-        out.append(ArraySpec("time", np.dtype(np.int64), (n,), (n,), ("time",),
-                             {"units": TIME_UNITS, "calendar": "proleptic_gregorian", "standard_name": "time",
-                              "long_name": "start of the flight (its first line), UTC", "axis": "T"},
-                             data=np.array([f.microseconds for f in flights], np.int64)))
-        out.append(ArraySpec("flight", np.dtype(f"<U{width}"), (n,), (n,), ("time",),
-                             {"long_name": "flight (collection id) of each time step"},
-                             data=np.array(ids, dtype=f"<U{width}")))
-        return dict(root), out
-
-
-def _chunk_files(store: Path, name: str, zarr_format: int, coords: tuple[int, ...]) -> Path:
-    """The file of chunk ``coords`` of array ``name`` of a store :mod:`archive.outputs.zarr_metadata`
-    wrote (v2: '.'-separated keys; v3: 'c/'-prefixed, '/'-separated)."""
-    key = ".".join(str(c) for c in coords) if zarr_format == 2 else "/".join(["c", *(str(c) for c in coords)])
-    return store / name / key
-
-
-def _commit(store: Path, layout: _Layout, flights: list[StackFlight], request: dict) -> None:
-    """Rewrite the metadata and coordinates of ``store`` for ``flights`` (its time steps): every
-    array's documents and coordinate chunks first, the root documents (consolidated metadata) last,
-    each file replaced atomically."""
-    from archive.outputs.zarr_metadata import write_store
-
-    root_attrs, arrays = layout.arrays(flights)
-    root_attrs[STACK_ATTR] = json.dumps({"variable": layout.variable, "flights": [f.to_dict() for f in flights],
-                                         "request": request})
-    tmp = store.with_name(f".{store.name}.partial-{os.getpid()}@{host_name()}.meta")
-    remove_path(tmp)
-    try:
-        with warnings.catch_warnings():   # Zarr v3: 'flight' is fixed-length UTF-32, not yet in the v3 spec
-            warnings.filterwarnings("ignore", message=".*does not have a Zarr V3 specification.*")
-            write_store(tmp, root_attrs, arrays, layout.zarr_format)
-        files = sorted(p for p in tmp.rglob("*") if p.is_file())
-        late = {".zmetadata", "zarr.json"}
-        ordered = ([p for p in files if p.parent != tmp] + [p for p in files if p.parent == tmp and p.name not in late]
-                   + [p for p in files if p.parent == tmp and p.name in late])
-        for src in ordered:
-            dest = store / src.relative_to(tmp)
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(src, dest)
-    finally:
-        remove_path(tmp)
-
-
-def _move_slice(slice_store: Path, store: Path, layout: _Layout, t: int, slice_format: int) -> None:
-    """Move the chunk files of a rendered single-flight store (``slice_store``: values (band, y, x)
-    and ``saturated`` (y, x)) into time step ``t`` of ``store``; chunks left at ``t`` by a killed
-    run are removed first (an all-NaN chunk is not written, so it must not be found there)."""
-    g = layout.grid
-    rows, cols = math.ceil(g.height / _chunk()), math.ceil(g.width / _chunk())
-    for name, nb in ((layout.variable, len(layout.bands)), ("saturated", None)):
-        for b in range(nb or 1):
-            for r in range(rows):
-                for c in range(cols):
-                    src_coords = (r, c) if nb is None else (b, r, c)
-                    src = _chunk_files(slice_store, name, slice_format, src_coords)
-                    dest = _chunk_files(store, name, layout.zarr_format, (t, *src_coords))
-                    if path_exists(dest):
-                        remove_path(dest)
-                    if src.exists():
-                        dest.parent.mkdir(parents=True, exist_ok=True)
-                        os.replace(src, dest)
-
-
-def _chunk() -> int:
-    from archive.outputs.base import CHUNK
-
-    return CHUNK
-
-
-def read_stack(path: str | os.PathLike) -> tuple[_Layout, list[StackFlight], dict | None]:
-    """(layout, flights, request) of an existing stack store; InputError when ``path`` is no stack."""
-    import zarr
-
-    from archive.outputs.like import read_grid
-
-    path = Path(path)
-    try:
-        group = zarr.open_group(path, mode="r")
-        attrs = dict(group.attrs)
-    except Exception as exc:  # noqa: BLE001 - any unreadable store is the same user error
-        raise InputError(path, f"is not a readable Zarr store ({type(exc).__name__})",
-                         "pass --overwrite to replace it, or choose another --out") from None
-    if STACK_ATTR not in attrs:
-        raise InputError(path, "is a Zarr store but not a stack (no archive_stack attribute)",
-                         "pass --overwrite to replace it, or choose another --out")
-    meta = json.loads(attrs[STACK_ATTR])
-    flights = [StackFlight.from_dict(d) for d in meta["flights"]]
-    grid = read_grid(path)
-    variable = str(meta["variable"])
-    wavelengths = tuple(float(v) for v in group["wavelength"][:]) if "wavelength" in group else None
-    fwhm = tuple(float(v) for v in group["fwhm"][:]) if "fwhm" in group else None
-    bands = tuple(int(v) for v in group["band"][:])
-    keep = {k: v for k, v in attrs.items() if k not in (STACK_ATTR, "archive_grid", "Conventions", "zarr_conventions")
-            and not k.startswith(("proj:", "spatial:"))}
-    zarr_format = 2 if (path / ".zgroup").exists() else 3
-    return _Layout(grid, bands, wavelengths, fwhm, variable, keep, zarr_format), flights, meta.get("request")
-
 
 # ---------------------------------------------------------------------------------------------
 # Writing a stack
@@ -409,7 +242,7 @@ def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *
     if existing and not (resume or overwrite):
         raise InputError(out, "output exists already", "pass --resume to add the flights the stack lacks, or "
                          "--overwrite to make it again")
-    layout: _Layout | None = None
+    layout: StackLayout | None = None
     flights: list[StackFlight] = []
     if existing and resume:
         try:
@@ -470,16 +303,14 @@ def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *
                                                      grid=GridRequest(grid))
                         try:
                             planned = plan_output(inputs, budget=budget)
-                        except InputError as exc:
-                            if "holds no line" not in exc.problem:
-                                raise
+                        except NoLineOnGrid:
                             left_out.append(one.name)
                             tell(f"left out {one.name}: no line of it on the stack's grid")
                             if bar is not None:
                                 bar.update(1)
                             continue
                         if layout is None:
-                            layout = _Layout(grid, tuple(planned.plan.bands[0]),
+                            layout = StackLayout(grid, tuple(planned.plan.bands[0]),
                                              None if planned.wavelengths is None else tuple(planned.wavelengths),
                                              None if planned.fwhm is None else tuple(planned.fwhm),
                                              planned.variable, _stack_attrs(planned.attrs), options.zarr_format)
@@ -501,11 +332,11 @@ def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *
                                          {**_flight_attrs(record.planned),
                                           "recipe": step_recipe(request, record.flight.source)})
                     if fresh and not made_target:
-                        _commit(target, layout, [flight], request)   # the store, with its first time step
+                        commit_stack(target, layout, [flight], request)   # the store, with its first time step
                         made_target = True
-                    _move_slice(Path(record.sink.path), target, layout, len(flights), layout.zarr_format)
+                    add_slice(Path(record.sink.path), target, layout, len(flights), layout.zarr_format)
                     flights.append(flight)
-                    _commit(target, layout, flights, request)
+                    commit_stack(target, layout, flights, request)
                     record.output.cleanup()
                     if fresh and target != out and not overwrite:
                         replace_path(target, out)   # a new stack appears with its first slice: resumable
@@ -607,7 +438,7 @@ def _flight_attrs(planned) -> dict:
     return json.loads(json.dumps(out, default=str))
 
 
-def _check_like(layout: _Layout, planned, name: str) -> None:
+def _check_like(layout: StackLayout, planned, name: str) -> None:
     """InputError unless flight ``name`` gives the stack's bands and variable."""
     wl = None if planned.wavelengths is None else tuple(planned.wavelengths)
     if tuple(planned.plan.bands[0]) != layout.bands or wl != layout.wavelengths:
@@ -618,7 +449,7 @@ def _check_like(layout: _Layout, planned, name: str) -> None:
                          "pass --mode for every flight (a flight without calibration renders raw DN)")
 
 
-def _write_item(out: Path, layout: _Layout, flights: list[StackFlight], options) -> None:
+def _write_item(out: Path, layout: StackLayout, flights: list[StackFlight], options) -> None:
     """The stack's STAC Item ``<out>.json`` (written last): a product Item of the grid and bands,
     the time span of its flights, and the datacube extension's ``cube:dimensions``/``cube:variables``."""
     from archive.catalog.product import product_item, render_command
@@ -688,10 +519,8 @@ def stack(options, *, band_group: int | None = None, quiet: bool = True):
         try:
             planned = plan_of(_alone(options, src), band_group=band_group, budget=budget, quiet=quiet,
                               grid=GridRequest(grid))
-        except InputError as exc:
-            if "holds no line" in exc.problem:
-                continue   # left out, as the Zarr stack leaves it out
-            raise
+        except NoLineOnGrid:
+            continue   # left out, as the Zarr stack leaves it out
         steps.append((_time_span(planned)[0], _flight_name(src), planned.variable, planned_dataset(planned)))
     if not steps:
         raise InputError("stack", "no flight of the request has a line on the stack's grid",

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from archive.errors import InputError
+from archive.errors import InputError, NoLineOnGrid
 from archive.grid import Grid, GridRequest, aligned, boxes_intersect
 from archive.navigation import (DEFAULT_MAX_VIEW_ANGLE, frame_interval, joined, projected_epsg, to_lonlat,
                                 utm_epsg_for)
@@ -241,7 +241,7 @@ def plan_render(sources: Sequence, meshes: Sequence[Sequence], bands: Sequence[S
         option = "--like" if request.like is not None else "--bounds"
         w, s_, e, n = grid.bounds
         fw, fs, fe, fn = footprint
-        raise InputError(option, f"the grid W,S,E,N = {w:.0f},{s_:.0f},{e:.0f},{n:.0f} (EPSG:{epsg}) holds no line "
+        raise NoLineOnGrid(option, f"the grid W,S,E,N = {w:.0f},{s_:.0f},{e:.0f},{n:.0f} (EPSG:{epsg}) holds no line "
                          f"of the flights, which cover {fw:.0f},{fs:.0f},{fe:.0f},{fn:.0f}",
                          f"give {option} over the flights, or other flights")
     lengths = {len(b) for b in bands}

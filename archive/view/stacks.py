@@ -32,7 +32,7 @@ class StackView:
     def __init__(self, path: str | Path, name: str | None = None):
         import zarr
 
-        from archive.stacks import read_stack
+        from archive.outputs.stack import read_stack
 
         self.path = Path(path).absolute()
         if not self.path.exists():
