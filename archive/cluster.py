@@ -3,12 +3,11 @@
 - :func:`start_cluster`: ``--scheduler ADDRESS`` (checked for GPU workers), Dask workers as Slurm
   jobs (:class:`SlurmJobs`, ``--cluster slurm``: dask-jobqueue's SLURMCluster) or a local cluster of
   spawned, GPU-resourced worker processes (:data:`GL_SLOTS`, glibc's :data:`MALLOC_MMAP_THRESHOLD`);
-- :func:`execute`: computes the graph's writer tasks with a progress bar, maps a task's failure or a
-  dead worker to a :class:`~archive.errors.RenderError` (on a shared cluster, cancelling what is
-  left and waiting for running writers first);
-- :func:`task_budget`: bytes of values one render task may hold on these workers;
-- :func:`active_client`: the default distributed Client, if any (for lazy mosaics);
-- :func:`phase`: a command's phases as they pass, for ``bench/timeline.py`` (``ARCHIVE_TIMELINE``).
+- :func:`execute`: computes the graph's writer tasks with a progress bar, maps a task's failure or a dead
+  worker to a :class:`~archive.errors.RenderError` (a shared cluster: the rest cancelled, writers awaited);
+- :func:`task_budget`: bytes of values one render task may hold on these workers; :func:`active_client`:
+  the default distributed Client, if any (lazy mosaics); :func:`phase`: a command's phases as they
+  pass, for ``bench/timeline.py`` (``ARCHIVE_TIMELINE``).
 """
 
 from __future__ import annotations
@@ -29,14 +28,13 @@ from archive.errors import ArchiveError, InputError, RenderError
 if TYPE_CHECKING:
     from distributed import Client, SpecCluster
 
-__all__ = ["GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "MALLOC_TRIM_THRESHOLD", "ClusterClose", "ClusterStart", "SlurmJobs", "active_client", "check_gpu_workers", "close_client",
-           "closed_or_warned", "execute",
-           "flight_slots", "phase", "start_cluster", "warm_up", "start_slurm", "task_budget", "wait_for_writers"]
+__all__ = ["ClusterClose", "ClusterStart", "GL_SLOTS", "MALLOC_MMAP_THRESHOLD", "MALLOC_TRIM_THRESHOLD",
+           "SlurmJobs", "active_client", "check_gpu_workers", "close_client", "closed_or_warned", "execute",
+           "flight_slots", "phase", "start_cluster", "start_slurm", "task_budget", "wait_for_writers", "warm_up"]
 
 
-#: ``ARCHIVE_TIMELINE=PATH``: every :func:`phase` a command passes is appended to the text file PATH
-#: as a line ``NAME SECONDS`` (wall clock, ``time.time()``): what ``bench/timeline.py`` lays over its
-#: CPU samples. Unset (always, outside that bench), :func:`phase` costs one environment lookup.
+#: ``ARCHIVE_TIMELINE=PATH``: every :func:`phase` a command passes is appended to PATH as a line ``NAME
+#: SECONDS`` (wall clock): what ``bench/timeline.py`` lays over its CPU samples (unset: one env lookup).
 TIMELINE = "ARCHIVE_TIMELINE"
 
 
@@ -324,8 +322,8 @@ def warm_up() -> None:
     import importlib
 
     try:
-        for name in ("archive.outputs.registry", "archive.render.gather", "archive.sources"):   # writers, renderers, sources
-            importlib.import_module(name)
+        for name in ("archive.outputs.registry", "archive.render.gather", "archive.sources"):
+            importlib.import_module(name)   # writers, renderers, sources
         from archive.graph.tasks import band_pass_choice
 
         band_pass_choice()

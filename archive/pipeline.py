@@ -54,8 +54,8 @@ from archive.sources.select import check_same_bands, read_white_reference, resol
 if TYPE_CHECKING:
     from archive.graph.plan import RenderPlan
 
-__all__ = ["OUTPUT_BUDGET", "TASK_BUDGET_BYTES", "Inputs", "OutputPlan", "build_output", "check_size", "describe",
-           "client_budget", "field_of_view", "georectify", "mosaic", "open_inputs", "plan", "plan_output", "planned_dataset",
+__all__ = ["OUTPUT_BUDGET", "TASK_BUDGET_BYTES", "Inputs", "OutputPlan", "build_output", "check_size", "client_budget",
+           "describe", "field_of_view", "georectify", "mosaic", "open_inputs", "plan", "plan_output", "planned_dataset",
            "progress_lines", "publish"]
 
 #: Largest render task: cube window x 4 bands x float32 (plus its flags), bytes.
@@ -67,8 +67,7 @@ OUTPUT_BUDGET = 4e10
 # ---------------------------------------------------------------------------------------------
 # Open and plan
 # ---------------------------------------------------------------------------------------------
-def _nice(x: float) -> float:
-    """Round up to 1, 2 or 5 x 10^k."""
+def _nice(x: float) -> float:   # rounded up to 1, 2 or 5 x 10^k
     k = 10 ** math.floor(math.log10(x))
     return next(m * k for m in (1, 2, 5, 10) if m * k >= x)
 

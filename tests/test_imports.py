@@ -636,3 +636,10 @@ def test_one_mesh_spec():
     assert not hasattr(graph_plan, "MeshParams")
     # the provenance layers take the ground from a MeshSpec too (one ground, not one per source)
     assert "grounds" not in {f.name for f in fields(ProvenanceSpec)}
+
+
+def test_no_module_over_600_lines():
+    """The house's cap (issue 44): a module that grows past 600 lines is split along its seams."""
+    long = {str(p.relative_to(ROOT)): n for p in PACKAGE.rglob("*.py")
+            if (n := len(p.read_text().splitlines())) > 600}
+    assert not long, long

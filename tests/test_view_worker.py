@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from archive.view.server import view_generation
+from archive.view.jobs import view_generation
 from archive.view.worker import Cancelled, RenderThread
 
 

@@ -35,12 +35,13 @@ from archive.simulator.mount import Mount, camera_path
 from archive.simulator.scene import MATERIALS, Scene, material_spectra, random_waves
 from archive.simulator.sensor import (EXPOSURES, GAIN_CAL, SHUTTER_CAL, Radiometry, band_fwhm,
                                       make_radiometry, trace_abundance)
-from archive.simulator.terrain import TERRAINS, Terrain, make_terrain, write_dem
+from archive.simulator.summary import summary
+from archive.simulator.terrain import DEM_NAME, TERRAINS, Terrain, make_terrain, write_dem
 from archive.simulator.trajectory import (FRAMERATE, INS_RATE, Trajectory, convergence,
                                           Wobble, default_wobble, to_lonlat, to_utm, utm_epsg)
 from archive.simulator.turns import RAMP_S, banked_turn
 from archive.simulator.truth import CubeTruth, Truth, load_truth, save_truth
-from archive.simulator.writer import BilWriter, header_text, size_on_disk
+from archive.simulator.writer import BilWriter, header_text
 
 __all__ = ["simulate_flight", "run", "T_START_GPS", "CAMERA_CLOCK_START", "SEED_START_STEP_S", "start_gps"]
 
@@ -62,7 +63,6 @@ MAX_VALUES = 1 << 22           #: DN values (bands x lines x samples) per block 
 SHUTTER_STEPS = (3.0, 1.5, 3.9, 2.2)  #: ms, shutters cycled over cubes by ``shutter_steps`` (gain 0 dB)
 MAX_BANK_DEG = 70.0
 MIN_BANK_DEG = 10.0
-DEM_NAME = "dem.tif"           #: the DEM GeoTIFF written into a terrain flight's directory
 DEM_RESOLUTION = 0.1           #: m, its pixel side
 DEM_MARGIN = 10.0              #: m of DEM around the footprint's bounding box
 RECORD_TURN_FRACTION = 0.8     #: at most this fraction of a pass's recording is flown in the turn
@@ -541,52 +541,6 @@ def dem_bounds(truth: Truth, margin: float = DEM_MARGIN) -> tuple[float, float, 
             float(rings[:, 0].max() + margin), float(rings[:, 1].max() + margin))
 
 
-def summary(truth: Truth) -> str:
-    """A short human-readable summary of a simulated flight."""
-    lines = sum(c.lines for c in truth.cubes)
-    size = size_on_disk(truth.directory)
-    lon, lat = truth.site
-    return "\n".join([
-        f"simulated flight: {truth.directory}",
-        f"  cubes {len(truth.cubes)} ({len(truth.strips)} strips), lines {lines} "
-        f"({truth.cubes[0].lines} per cube), bands {truth.wavelengths.size} "
-        f"({truth.wavelengths[0]:.0f}-{truth.wavelengths[-1]:.0f} nm), samples {truth.samples}",
-        f"  size on disk {size / 1e6:.1f} MB",
-        f"  site {lat:.5f} N, {lon:.5f} E; EPSG:{truth.epsg}; grid convergence "
-        f"{math.degrees(truth.convergence):+.3f} deg",
-        f"  nominal GSD {truth.nominal_gsd * 100:.1f} cm across, "
-        f"{truth.flight.speed / truth.cubes[0].framerate * 100:.1f} cm along; field of view "
-        f"{truth.fov_deg:g} deg; ground {truth.ground_height:g} m (ellipsoid)",
-        *_recorder_summary(truth),
-        *([] if truth.terrain is None else [
-            f"  terrain: {truth.terrain.kind}, {truth.terrain.relief[0]:g}-{truth.terrain.relief[1]:g} m bounds "
-            f"(ellipsoid); DEM {truth.directory / DEM_NAME}"]),
-        f"  truth: {truth.directory / 'truth'}",
-    ])
-
-
-def _recorder_summary(truth: Truth) -> list[str]:
-    out = []
-    if truth.dropped_frames:
-        out.append(f"  dropped frames at cube switches: {truth.dropped_frames}")
-    if truth.sync_offset:
-        out.append(f"  sync offset (true): {truth.sync_offset:+g} s")
-    if truth.bank_deg:
-        out.append(f"  banked turns: {truth.bank_deg:g} deg" + (", recorded" if truth.record_turns else ""))
-    elif truth.record_turns:
-        out.append("  turns recorded")
-    if truth.pause_cube is not None:
-        out.append(f"  pause: {truth.pause_s:g} s before line {truth.pause_line} of cube "
-                   f"{truth.cubes[truth.pause_cube].base}")
-    if any(truth.gnss_bias_m):
-        out.append("  GNSS bias (true, recorded - true): {} m (dE, dN, dU)".format(
-            ",".join(f"{v:g}" for v in truth.gnss_bias_m)))
-    if truth.ground_changes:
-        out.append(f"  ground changed: {truth.ground_changes:.0%} painted with new patches")
-    if not truth.mount.identity:
-        out.append("  boresight (roll, pitch, yaw) {} deg, lever arm (x, y, z) {} m".format(
-            ",".join(f"{v:g}" for v in truth.boresight_deg), ",".join(f"{v:g}" for v in truth.lever_arm_m)))
-    return out
 
 
 def run(args: argparse.Namespace) -> int:

@@ -24,9 +24,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["TERRAINS", "Terrain", "make_terrain", "write_dem"]
+__all__ = ["DEM_NAME", "TERRAINS", "Terrain", "make_terrain", "write_dem"]
 
 TERRAINS = ("hills", "ridge")
+DEM_NAME = "dem.tif"   #: the DEM GeoTIFF written into a terrain flight's directory
 #: Where Debian's proj-data puts the geoid grids.
 _SYSTEM_PROJ = "/usr/share/proj"
 

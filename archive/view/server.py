@@ -51,7 +51,6 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import logging
-import math
 import socket
 import sys
 import time
@@ -63,9 +62,11 @@ from archive.catalog.root import ArchiveRoot
 from archive.errors import ArchiveError, InputError, MissingInputError, RenderError
 from archive.grid import Grid
 from archive.view.cache import ByteLRU
+from archive.view.jobs import (describe_job, outline_job, point_job, settled, stats_job, tile_job, values_body,
+                               values_job, values_window, view_generation)
 from archive.view.registry import FlightRegistry
 from archive.view.query import OVERLAPS, Stretch, overlap_choice, parse_bbox, parse_number, parse_query
-from archive.view.tiles import MAX_ZOOM, TILE, encode_values, mercator_box, tile_grid
+from archive.view.tiles import MAX_ZOOM, TILE, mercator_box, tile_grid
 from archive.view.worker import Cancelled, RenderThread
 
 __all__ = ["CACHE_SHARES", "OVERHEAD_MB", "cache_bytes", "check_host", "create_app", "is_loopback", "run", "serve", "view_generation"]
@@ -143,94 +144,6 @@ def resident_bytes() -> int | None:
     return None
 
 
-# ---- jobs run on the render thread -------------------------------------------------------------
-def _settled(fn, registry, *args, check):
-    """``fn(registry, *args, check)``, then the flights it used charged what they hold now
-    (:meth:`FlightRegistry.settle`): the open flights stay within their share of --cache-mb."""
-    try:
-        return fn(registry, *args, check)
-    finally:
-        registry.settle()
-
-
-def _tile_job(registry, cid, grid, query, check):
-    return registry.flight(cid).tile(grid, query, check)
-
-
-def _values_job(registry, cid, grid, query, scale, check):
-    flight = registry.flight(cid)
-    gsd = registry.feature(cid)["properties"].get("gsd")
-    return flight.band_values(grid, query, float(gsd) if gsd else None, scale, check)
-
-
-def _outline_job(registry, cid, query, check):
-    return registry.flight(cid).outline(query)
-
-
-def _point_job(registry, cid, lon, lat, gsd, query, check):
-    check()
-    flight = registry.flight(cid)
-    if gsd is None:
-        gsd = registry_gsd(registry, cid)
-    return flight.point(lon, lat, gsd, query)
-
-
-def _stats_job(registry, cid, box, query, percentiles, check):
-    flight = registry.flight(cid)
-    # the whole flight's statistics do not depend on where its pixels land: no meshes for them
-    geometry = None if box is None else flight.geometry(query.ground_height, query.sync_offset)
-    return flight.stats(box, flight.bands(query), flight.mode(query), flight.cube_range(query.cubes), geometry,
-                        percentiles)
-
-
-def _describe_job(registry, cid, check):
-    return registry.flight(cid).describe()
-
-
-def view_generation(header: str | None, now: float | None = None) -> float:
-    """The render priority of a request: its ``X-Generation`` header (milliseconds since the epoch
-    of the view change that asked for it, as the page sends), else (absent or not a number) the
-    time it arrived, in the same unit. The render thread draws the highest first: the latest view
-    before superseded ones still waiting."""
-    if header is not None:
-        try:
-            value = float(header)
-        except ValueError:
-            value = math.nan
-        if math.isfinite(value):
-            return value
-    return (time.time() if now is None else now) * 1000.0
-
-
-def values_window(planes) -> tuple[int, int, int, int]:
-    """(column, row, width, height) of the smallest window of (k, n, n) planes holding every finite
-    value (at least one pixel)."""
-    import numpy as np
-
-    finite = np.isfinite(planes).any(axis=0)
-    rows, cols = np.flatnonzero(finite.any(axis=1)), np.flatnonzero(finite.any(axis=0))
-    if not rows.size:
-        return 0, 0, 1, 1
-    return int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)
-
-
-def values_body(planes, key, headers: dict, window: tuple[int, int, int, int] | None) -> tuple[dict, bytes]:
-    """(headers, body) of a band-value tile: (k, n, n) ``planes`` and the (n, n) ``key`` (or None),
-    only their ``window`` (column, row, width, height; None: the whole tile, no X-Window header)."""
-    if window is not None:
-        c0, r0, w, h = window
-        planes = planes[:, r0:r0 + h, c0:c0 + w]
-        key = None if key is None else key[r0:r0 + h, c0:c0 + w]
-        headers = {**headers, "X-Window": ",".join(map(str, window))}
-    return headers, encode_values(planes, key)
-
-
-def registry_gsd(registry: FlightRegistry, cid: str) -> float:
-    """The nominal pixel size of a flight (its catalog entry), m."""
-    gsd = registry.feature(cid)["properties"].get("gsd")
-    if gsd:
-        return float(gsd)
-    raise InputError("gsd", f"no nominal pixel size is known for {cid}", "pass gsd=M")
 
 
 # ---- the app ----------------------------------------------------------------------------------
@@ -278,7 +191,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
     async def drawn(request, fn, *args):
         if await request.is_disconnected():
             raise Cancelled()
-        return await viewer.render.run(_settled, fn, *args, abandoned=request.is_disconnected,
+        return await viewer.render.run(settled, fn, *args, abandoned=request.is_disconnected,
                                        priority=view_generation(request.headers.get("x-generation")))
 
     def cid_of(request) -> str:
@@ -306,14 +219,14 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
         return cid_of(request), z, x, y, tile_grid(z, x, y), parse_query(request.query_params)
 
     async def describe(request):
-        return JSONResponse(await drawn(request, _describe_job, registry, cid_of(request)))
+        return JSONResponse(await drawn(request, describe_job, registry, cid_of(request)))
 
     async def tile(request):
         cid, z, x, y, grid, query = tile_request(request)
         key = (cid, z, x, y, query)
         png = viewer.tiles.get(key)
         if png is None:
-            png = await drawn(request, _tile_job, registry, cid, grid, query)
+            png = await drawn(request, tile_job, registry, cid, grid, query)
             viewer.tiles.put(key, png, len(png))
         return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=600"})
 
@@ -363,7 +276,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
         missing = [b for b in query.bands if found[b] is None]
         if empty is None and (missing or (keyed and found["key"] is None)):
             asked = dataclasses.replace(query, bands=tuple(missing or query.bands[:1]))
-            drawn_values = await drawn(request, _values_job, registry, cid, grid, asked, scale)
+            drawn_values = await drawn(request, values_job, registry, cid, grid, asked, scale)
             if drawn_values is None:
                 empty = True
                 viewer.tiles.put((cid, z, x, y, "empty", common, scale), True, 64)
@@ -446,7 +359,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
     async def outline(request):
         cid = cid_of(request)
         query = parse_query(request.query_params, channels=False)
-        return JSONResponse(await drawn(request, _outline_job, registry, cid, query))
+        return JSONResponse(await drawn(request, outline_job, registry, cid, query))
 
     async def point(request):
         cid = cid_of(request)
@@ -457,7 +370,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
             raise InputError("lon/lat", "both lon and lat (degrees) are required")
         gsd = parse_number(p, "gsd", 1e-3, 1e3)
         query = parse_query(p, channels=False)
-        return JSONResponse(await drawn(request, _point_job, registry, cid, lon, lat, gsd, query))
+        return JSONResponse(await drawn(request, point_job, registry, cid, lon, lat, gsd, query))
 
     async def stats(request):
         cid = cid_of(request)
@@ -479,7 +392,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
                                                                         (lo, hi))
             if found is not None:
                 return JSONResponse(found)
-        return JSONResponse(await drawn(request, _stats_job, registry, cid, box, query, (lo, hi)))
+        return JSONResponse(await drawn(request, stats_job, registry, cid, box, query, (lo, hi)))
 
     async def status(request):
         return JSONResponse(viewer.status())
