@@ -183,15 +183,13 @@ def _add_fov(p, note: str) -> None:
 
 def _add_render(sub) -> None:
     p = _command(sub, "render", "georectify flights into a mosaicked, georeferenced cube", (
-        "Georectify one or more flights by the inverse (mesh + OpenGL) method and write one "
-        "mosaic: Zarr (.zarr), Cloud-Optimized GeoTIFF (.tif) or ENVI BSQ (.hdr), float32 with NaN "
-        "where no line covers a pixel. SOURCE is a raw flight directory (rendered without "
-        "intermediate files). From Python: archive.georectify(sources, out, gsd=..., ...), keyword "
-        "names as these options (--ground-height is ground_height)."))
+        "Georectify one or more flights by the inverse (mesh + OpenGL) method and write one mosaic: Zarr (.zarr), "
+        "Cloud-Optimized GeoTIFF (.tif) or ENVI BSQ (.hdr), float32 with NaN where no line covers a pixel. SOURCE "
+        "is a raw flight directory (rendered without intermediate files). From Python: archive.georectify(sources, "
+        "out, gsd=..., ...), keyword names as these options (--ground-height is ground_height)."))
     _add_sources(p, "*", "optional with --query-*")
     p.add_argument("--out", required=True, metavar="PATH", help="output path ending in .zarr, .tif or .hdr")
-    p.add_argument("--gsd", type=float, metavar="M",
-                   help="output pixel size, metres (required unless --like gives it)")
+    p.add_argument("--gsd", type=float, metavar="M", help="output pixel size, metres (required unless --like gives it)")
     _add_fov(p, "required for raw sources; 47.5 for a Pika L and for 'archive simulate' flights")
     p.add_argument("--calibration", metavar="FILE.icp", help="radiometric calibration (default: the *.icp in the flight directory)")
     p.add_argument("--ground-height", default="auto", metavar="M|auto",
@@ -202,8 +200,8 @@ def _add_render(sub) -> None:
                        help="'all' bands (default) or 0-based band indices")
     p.add_argument("--mode", choices=["raw", "relative", "radiance", "reflectance"], default=None,
                    help="radiometric mode (default radiance; raw DN, with a note, when the flight has no calibration)")
-    p.add_argument("--white-reference", metavar="FILE",
-                   help="white reference for --mode reflectance: text file of two columns, wavelength (nm) and radiance")
+    p.add_argument("--white-reference", metavar="FILE", help="white reference for --mode reflectance: text file of "
+                   "two columns, wavelength (nm) and radiance")
     p.add_argument("--irradiance-calibration", metavar="FILE.dcp",
                    help="the downwelling spectrometer's calibration pack when it is not in the flight directory "
                         "(--mode reflectance without --white-reference divides by the flight's sky spectra)")
@@ -212,6 +210,10 @@ def _add_render(sub) -> None:
                         "'reflectance' (a number or a list) and 'wavelengths' (nm); two panels or more")
     p.add_argument("--sync-offset", type=float, default=None, metavar="S",
                    help="camera-to-navigation time offset, seconds (default: as ingested for a collection, else 0)")
+    p.add_argument("--navigation", metavar="FILE", help="georectify raw flights from this post-processed trajectory "
+                   "instead of their .lcf: an Applanix SBET (.out, .sbet) or a CSV/ASCII export with a header row")
+    p.add_argument("--navigation-columns", metavar="time=COL,lat=COL,...", help="a CSV export's column names when "
+                   "not Inertial Explorer's (GPSTime, Latitude, Longitude, H-Ell, Roll, Pitch, Heading; degrees)")
     _add_mounting(p, recorded=True)
     p.add_argument("--max-view-angle", type=float, default=DEFAULT_MAX_VIEW_ANGLE, metavar="DEG",
                    help="leave out lines whose field-of-view edge looks further than this off nadir, degrees "
@@ -219,8 +221,7 @@ def _add_render(sub) -> None:
     p.add_argument("--crs", metavar="EPSG:XXXX",
                    help="projected CRS of the output (default: the UTM zone holding most of the flights; "
                         "flights of other zones are rendered into it)")
-    _add_dem(p, "the meshes follow it instead of the flat ground; ground no line sees stays NaN; "
-                        "exclusive with a numeric --ground-height")
+    _add_dem(p, "the meshes follow it instead of the flat ground (no line sees: NaN); not with a numeric --ground-height")
     p.add_argument("--overlap", choices=list(RULES), default=LAST.name,
                    help="where lines overlap: the later line wins (default), the line seen closest to nadir "
                         "(smallest view zenith) wins, or the mean")
@@ -252,9 +253,9 @@ def _add_render(sub) -> None:
                    help="Dask scheduler address, e.g. tcp://host:8786 (default: a local cluster). Workers need "
                         "--nthreads <cores> --resources GPU=2 and the same file paths (shared file system); see docs/deploy.md")
     p.add_argument("--workers", type=_positive_int, metavar="N", help="local cluster worker processes (default: 1)")
-    p.add_argument("--threads", type=_positive_int, metavar="N",
-                   help="threads per local worker (default: the cores divided among the workers, at least 2): "
-                        "render tasks draw on the worker's GL thread while the others mosaic, compress and write")
+    p.add_argument("--threads", type=_positive_int, metavar="N", help="threads per local worker (default: the "
+                   "cores divided among the workers, at least 2): render tasks draw on the worker's GL thread while "
+                   "the others mosaic, compress and write")
     p.add_argument("--cluster", choices=["slurm"],
                    help="start the Dask workers as Slurm batch jobs (dask-jobqueue's SLURMCluster; its scheduler runs "
                         "in this command): --jobs jobs of one worker each, sized by the --job-* options or "
@@ -269,7 +270,6 @@ def _add_render(sub) -> None:
     j.add_argument("--job-walltime", metavar="HH:MM:SS", help="time limit of each worker job")
     j.add_argument("--job-gpus", type=int, choices=[0, 1], metavar="0|1",
                    help="GPUs per job (--gres=gpu:1): a worker draws on one GPU; more GPUs, more --jobs")
-    # Batch jobs over the catalog: every flight of --archive that matches, rendered in one graph.
     q = p.add_argument_group("batch jobs over the catalog of --archive (every given filter must match)")
     q.add_argument("--query-bbox", metavar="W,S,E,N", help="flights whose footprint meets this lon/lat box, degrees")
     q.add_argument("--query-datetime", metavar="A/B", help="flights flown in this ISO 8601 range ('..': open end)")

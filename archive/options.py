@@ -29,6 +29,14 @@ from archive.sources.select import parse_bands
 __all__ = ["DEFAULT_MAX_VIEW_ANGLE", "KEYWORDS", "RenderOptions", "check_gsd", "grid_request", "parse_bounds"]
 
 
+def _navigation_columns(text) -> str | None:
+    """``--navigation-columns`` checked (:func:`archive.formats.trajectory.parse_columns`), kept as given."""
+    from archive.formats.trajectory import parse_columns
+
+    parse_columns(text)
+    return None if text is None else str(text)
+
+
 def _parse_floats(text: str, option: str) -> list[float]:
     try:
         values = [float(v) for v in text.replace(" ", "").split(",") if v]
@@ -145,6 +153,8 @@ class RenderOptions:
     mode: str | None = None
     white_reference: str | None = None
     irradiance_calibration: str | None = None
+    navigation: str | None = None   #: a raw flight's post-processed trajectory (SBET, CSV) instead of its .lcf
+    navigation_columns: str | None = None   #: a CSV trajectory's column names, time=COL,lat=COL,...
     panels: str | None = None
     sync_offset: float | None = None
     boresight: tuple[float, float, float] | None = None
@@ -164,7 +174,7 @@ class RenderOptions:
     @classmethod
     def create(cls, sources, *, gsd=None, archive=None, fov=None, calibration=None, ground_height="auto",
                wavelengths=None, bands="all", mode=None, white_reference=None, irradiance_calibration=None,
-               panels=None, sync_offset=None,
+               navigation=None, navigation_columns=None, panels=None, sync_offset=None,
                boresight=None, lever_arm=None, overlap=LAST, crs=None,
                max_view_angle=DEFAULT_MAX_VIEW_ANGLE, dem=None, dem_datum=None, provenance=False,
                zarr_format=2, compression=None, bounds=None, align=False, like=None) -> RenderOptions:
@@ -187,6 +197,8 @@ class RenderOptions:
             wavelengths=_wavelength_list(wavelengths), bands=parse_bands(bands), mode=mode,
             white_reference=fspath(white_reference),
             irradiance_calibration=None if irradiance_calibration is None else os.path.abspath(irradiance_calibration),
+            navigation=None if navigation is None else os.path.abspath(navigation),
+            navigation_columns=_navigation_columns(navigation_columns),
             panels=None if panels is None else os.path.abspath(panels),
             sync_offset=_number(sync_offset, "--sync-offset", "seconds"),
             boresight=_triple(boresight, "--boresight"), lever_arm=_triple(lever_arm, "--lever-arm"),

@@ -1,8 +1,7 @@
 """Georectify flights on Dask: open -> plan -> build -> run -> publish, for every kind of output.
 
-A render is asked for by :class:`~archive.options.RenderOptions` (checked once, before anything
-starts: :meth:`~archive.options.RenderOptions.check`) and goes through the same steps whatever comes
-out:
+A render is asked for by :class:`~archive.options.RenderOptions` (checked once, before anything starts:
+:meth:`~archive.options.RenderOptions.check`) and goes through the same steps whatever comes out:
 
 1. open (:func:`open_inputs`): open the sources (:func:`archive.sources.open_source`), select the
    bands, settle the radiometric mode, and decide once how the meshes are built, the
@@ -41,6 +40,7 @@ from archive import storage
 from archive.cluster import (ClusterClose, active_client, check_gpu_workers, close_client, closed_or_warned, execute,
                              start_cluster, task_budget)
 from archive.errors import InputError
+from archive.formats.trajectory import parse_columns
 from archive.files import wait_while_exists
 from archive.grid import GridRequest
 from archive.navigation import projected_epsg
@@ -149,8 +149,8 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
 
     def opened(src, white=None):
         return open_source(Path(src).absolute() if Path(src).is_dir() else src, nav, calibration=options.calibration,
-                           white_reference=white, archive=archive,
-                           irradiance_calibration=options.irradiance_calibration)
+                           white_reference=white, archive=archive, irradiance_calibration=options.irradiance_calibration,
+                           navigation=options.navigation, navigation_columns=parse_columns(options.navigation_columns))
 
     sources = [opened(src) for src in options.sources]
     if options.white_reference:   # interpolated to each source's wavelengths: opened again with it
@@ -346,7 +346,7 @@ def input_versions(options, source: str) -> list[dict]:
     elif options.archive is not None:
         store = storage.location(options.archive) / "collections" / f"{source}.zarr"
         entries.append({"source": str(source), **(content_version(store) or {"version": None})})
-    for name in ("calibration", "white_reference", "dem", "irradiance_calibration", "panels"):
+    for name in ("calibration", "white_reference", "dem", "irradiance_calibration", "panels", "navigation"):
         value = getattr(options, name, None)
         if value:
             entries.append({"option": name, **_file_stamp(value)})

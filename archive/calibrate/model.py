@@ -140,7 +140,7 @@ class FlightModel:
         nav = source.navigation
         mids, groups = [], []
         for k, c in enumerate(nav.cubes):
-            start = np.asarray(c.camera_time, float) - float(c.camera_time[0]) + float(c.lcf.time[0]) - self._t0
+            start = np.asarray(c.camera_time, float) - float(c.camera_time[0]) + c.t0 - self._t0
             mid = start + (c.shutter_ms or 0.0) / 2000.0
             if groups:
                 prev = mids[-1]

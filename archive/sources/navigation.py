@@ -44,7 +44,7 @@ from archive.params import NavigationParams
 from archive.sources.base import check_cube
 
 __all__ = ["NAV_GAP", "NAV_TOLERANCE", "SYNC_TOLERANCE", "CubeNavigation", "FlightNavigation", "NavigatedSource",
-           "merge_tracks"]
+           "merge_tracks", "trajectory_cube"]
 
 #: Extrapolation allowed beyond the navigation without a sync offset, s.
 NAV_TOLERANCE = 0.02
@@ -62,13 +62,49 @@ class CubeNavigation:
 
     camera_time: (lines,) s, the camera clock (``.times``); lcf: the cube's ``.lcf`` samples;
     shutter_ms: exposure (ms, None if unknown); where: the name errors give (the ``.lcf`` path, or
-    the collection and cube).
+    the collection and cube); clock_t0: the ``.lcf`` time of the first line when ``lcf`` holds another
+    navigation source's samples (a post-processed trajectory, :func:`trajectory_cube`), else None (the
+    first row of ``lcf``).
     """
 
     camera_time: np.ndarray
     lcf: LcfData
     shutter_ms: float | None
     where: str
+    clock_t0: float | None = None
+
+    @property
+    def t0(self) -> float:
+        """The ``.lcf`` time of the cube's first line (before the sync offset), s."""
+        return float(self.lcf.time[0]) if self.clock_t0 is None else float(self.clock_t0)
+
+
+def trajectory_cube(cube: CubeNavigation, trajectory, gps_time: np.ndarray, sync: float) -> CubeNavigation:
+    """``cube`` navigated by a post-processed ``trajectory`` (:class:`~archive.formats.trajectory.Trajectory`,
+    its times ``gps_time`` on the ``.lcf`` scale) instead of its ``.lcf``: the trajectory's epochs around
+    the cube's lines (one beyond each end), in the ``.lcf``'s signs; the line times still come from the
+    ``.lcf``'s first row and the camera clock. NavigationError naming the trajectory, the gap and the
+    cube's lines it leaves out when it does not cover every line (``sync``: the sync offset, s)."""
+    t = line_times(cube.camera_time, cube.t0, sync)
+    half = 0.0 if cube.shutter_ms is None else cube.shutter_ms / 2000.0
+    lo, hi = float(t[0]), float(t[-1]) + half
+    where = str(trajectory.path)
+    inside = (t >= gps_time[0] - _SPAN_EPS) & (t <= gps_time[-1] + _SPAN_EPS)
+    gaps = np.flatnonzero(np.diff(gps_time) > NAV_GAP)
+    for g in gaps:   # a gap of the trajectory under the cube's lines
+        inside &= ~((t > gps_time[g] + _SPAN_EPS) & (t < gps_time[g + 1] - _SPAN_EPS))
+    if not inside.all() or hi > gps_time[-1] + NAV_TOLERANCE:
+        out = np.flatnonzero(~inside)
+        lines = f"lines {out[0]}-{out[-1]}" if out.size else f"line {len(t) - 1}"
+        span = f"{span_text(gps_time)}" + (f", with {gaps.size} gaps over {NAV_GAP:g} s" if gaps.size else "")
+        raise NavigationError(where, f"covers {span} but {cube.where.rsplit('/', 1)[-1]} needs {lo:.3f}-{hi:.3f} s: "
+                              f"{lines} of that cube have no pose", "give the trajectory of the whole flight")
+    a = max(int(np.searchsorted(gps_time, lo, "right")) - 2, 0)
+    b = min(int(np.searchsorted(gps_time, hi, "left")) + 2, len(gps_time))
+    part = slice(a, b)
+    lcf = LcfData(trajectory.path, gps_time[part], -trajectory.roll[part], trajectory.pitch[part],
+                  trajectory.heading[part], trajectory.lon[part], trajectory.lat[part], trajectory.height[part])
+    return CubeNavigation(cube.camera_time, lcf, cube.shutter_ms, where, clock_t0=cube.t0)
 
 
 def merge_tracks(tracks: Sequence[Track], where: Sequence[str]) -> Track:
@@ -127,11 +163,11 @@ class FlightNavigation:
     def line_times(self, cube: int) -> np.ndarray:
         """(lines,) exposure-start times of ``cube`` on the .lcf scale (sync offset included), s."""
         c = self.cubes[cube]
-        return line_times(c.camera_time, c.lcf.time[0], self.sync)
+        return line_times(c.camera_time, c.t0, self.sync)
 
     def first_time(self, cube: int) -> float:
         """Exposure start of ``cube``'s first line on the .lcf scale (sync offset included), s."""
-        return float(self.cubes[cube].lcf.time[0]) + self.sync
+        return self.cubes[cube].t0 + self.sync
 
     def locate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per time ``t`` (s): the navigation segment to interpolate/extrapolate in, and the

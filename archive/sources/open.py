@@ -22,21 +22,28 @@ def open_source(path_or_id: str | os.PathLike, params: NavigationParams,
                 calibration: str | os.PathLike | None = None,
                 white_reference: np.ndarray | None = None,
                 archive: str | os.PathLike | None = None,
-                irradiance_calibration: str | os.PathLike | None = None) -> FlightSource:
+                irradiance_calibration: str | os.PathLike | None = None,
+                navigation: str | os.PathLike | None = None, navigation_columns: dict | None = None) -> FlightSource:
     """A flight source: a raw flight directory, or a collection id in ``archive``.
 
     A directory wins over a collection of the same name. A collection carries its own calibration,
     so ``calibration`` must be None for one; likewise its downwelling spectra
-    (``irradiance_calibration``: a raw flight's ``.dcp`` kept elsewhere).
+    (``irradiance_calibration``: a raw flight's ``.dcp`` kept elsewhere). ``navigation``: a raw flight's
+    post-processed trajectory (SBET or CSV, :mod:`archive.formats.trajectory`; ``navigation_columns`` for a
+    CSV export's names) georectifies it instead of its ``.lcf``.
     """
     path = Path(path_or_id)
     if path.is_dir():
         return RawFlightSource(path.absolute(), params, calibration=calibration, white_reference=white_reference,
-                               irradiance_calibration=irradiance_calibration)
+                               irradiance_calibration=irradiance_calibration, navigation=navigation,
+                               navigation_columns=navigation_columns)
     if archive is not None and not path.exists():
         if calibration is not None:
             raise InputError("--calibration", f"collection {path_or_id} carries the calibration it was "
                              "ingested with", "leave out --calibration, or re-ingest with another .icp")
+        if navigation is not None:
+            raise InputError("--navigation", f"collection {path_or_id} is georectified from the navigation it was "
+                             "ingested with", "render its raw flight directory with --navigation FILE")
         if irradiance_calibration is not None:
             raise InputError("--irradiance-calibration", f"collection {path_or_id} carries the downwelling "
                              "irradiance it was ingested with", "leave it out, or re-ingest the flight")

@@ -16,13 +16,14 @@ from archive.formats.envi import EnviCube, EnviHeader
 from archive.formats.flight import CubeFiles, discover_flight
 from archive.formats.icp import Calibration, read_icp
 from archive.formats.lcf import read_lcf
+from archive.formats.trajectory import on_gps_scale, read_trajectory
 from archive.formats.times import read_times
 from archive.sources.irradiance import SkyIrradiance
 from archive.navigation import LocalFrame, local_frame_for
 from archive.params import NavigationParams
 from archive.sources.downwelling import DownwellingFiles
 from archive.sources.base import CubeInfo, Radiometry, band_list, check_mode, radiometry_for
-from archive.sources.navigation import CubeNavigation, FlightNavigation, NavigatedSource
+from archive.sources.navigation import CubeNavigation, FlightNavigation, NavigatedSource, trajectory_cube
 
 __all__ = ["NAVIGATION_SIDECAR", "RawFlightSource", "flight_id", "read_navigation_sidecar"]
 
@@ -75,7 +76,8 @@ class RawFlightSource(NavigatedSource):
 
     def __init__(self, directory: str | os.PathLike, params: NavigationParams,
                  calibration: str | os.PathLike | None = None, white_reference: np.ndarray | None = None,
-                 irradiance_calibration: str | os.PathLike | None = None):
+                 irradiance_calibration: str | os.PathLike | None = None,
+                 navigation: str | os.PathLike | None = None, navigation_columns: dict | None = None):
         flight = discover_flight(directory)
         self.directory = Path(flight.directory)
         self.label = str(self.directory)
@@ -116,6 +118,13 @@ class RawFlightSource(NavigatedSource):
                                  "a flight's cubes must share their bands")
         self.wavelengths: tuple[float, ...] | None = first.wavelengths
         self.fwhm: tuple[float, ...] | None = first.fwhm
+        self.id: str = flight_id(self.directory.name, float(nav[0].lcf.time[0]))
+        self.navigation_source = "lcf"
+        if navigation is not None:   # a post-processed trajectory instead of the recorder's .lcf
+            trajectory = read_trajectory(navigation, navigation_columns)
+            gps = on_gps_scale(trajectory, nav[0].lcf.time[0])
+            nav = [trajectory_cube(c, trajectory, gps, float(params.sync_offset or 0.0)) for c in nav]
+            self.navigation_source = str(Path(navigation).absolute())
         self.navigation = FlightNavigation(nav, frame, params)
         self.cubes: tuple[CubeInfo, ...] = tuple(
             CubeInfo(index=i, base=c.files.base, lines=c.header.lines, samples=c.header.samples,
@@ -123,7 +132,6 @@ class RawFlightSource(NavigatedSource):
                      gain_db=c.header.gain, framerate=c.header.framerate, bit_depth=c.header.bit_depth,
                      first_time=self.navigation.first_time(i))
             for i, c in enumerate(raw))
-        self.id: str = flight_id(self.directory.name, float(nav[0].lcf.time[0]))
         self.downwelling = DownwellingFiles.find(self.directory, [c.files.base for c in raw], irradiance_calibration)
         self._sky: SkyIrradiance | None = None
 
