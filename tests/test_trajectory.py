@@ -154,3 +154,23 @@ def test_bad_trajectories_are_refused_by_name(biased, tmp_path):
     assert proc.returncode != 0 and len(lines) == 1 and "short.csv" in lines[0], proc.stderr
     assert not (tmp_path / "x.tif").exists()
     assert issubclass(NavigationError, ArchiveError)
+
+
+def test_a_utc_time_column_gets_the_leap_seconds(biased, tmp_path):
+    """``utc=COL``: UTC seconds of week; GPS = UTC + 18 s in 2024: the same poses as the GPS export."""
+    from archive.formats.trajectory import parse_columns
+    from archive.sources.raw import RawFlightSource
+
+    directory, truth, files = biased
+    lines = files["csv"].read_text().splitlines()
+    rows = [x.split(",") for x in lines[1:]]
+    utc = tmp_path / "utc.csv"
+    utc.write_text("UTCTime,Latitude,Longitude,H-Ell,Roll,Pitch,Heading\n"
+                   + "".join(",".join([f"{float(r[0]) - 18.0:.5f}", *r[1:]]) + "\n" for r in rows))
+    cols = parse_columns("utc=UTCTime,lat=Latitude,lon=Longitude,height=H-Ell,roll=Roll,pitch=Pitch,heading=Heading")
+    err = _position_error(RawFlightSource(directory, NavigationParams(), navigation=utc, navigation_columns=cols),
+                          truth)
+    assert np.abs(err).max() < 0.02
+    wrong = parse_columns("time=UTCTime,lat=Latitude,lon=Longitude,height=H-Ell,roll=Roll,pitch=Pitch,heading=Heading")
+    with pytest.raises(NavigationError, match="have no pose"):   # read as GPS time: 18 s away from the lines
+        RawFlightSource(directory, NavigationParams(), navigation=utc, navigation_columns=wrong)

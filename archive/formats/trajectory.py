@@ -14,12 +14,14 @@
 
 Time is GPS seconds of week (a trajectory that crosses a week boundary is unwrapped) or full GPS
 seconds (since 1980-01-06), told apart by size; :func:`on_gps_scale` puts it on the ``.lcf``'s scale
-(the week taken from the flight's own clock). A file that is not monotonic in time or holds a NaN is
+(the week taken from the flight's own clock); a UTC column instead (``--navigation-columns utc=COL,...``)
+gets the leap seconds in force at the flight added. A file that is not monotonic in time or holds a NaN is
 refused naming the file and the row.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,24 +58,26 @@ class Trajectory:
     pitch: np.ndarray
     heading: np.ndarray
     week_seconds: bool
+    utc: bool = False   #: ``time`` is UTC (seconds of the UTC week, or since 1980-01-06 UTC): no leap seconds
 
 
 def parse_columns(text: str | None) -> dict[str, str] | None:
-    """``time=COL,lat=COL,...`` -> {name: column}; None for None. InputError naming the option."""
+    """``time=COL,lat=COL,...`` -> {name: column} (``utc=COL`` instead of ``time``: a UTC time column, kept
+    under the key ``utc``); None for None. InputError naming the option."""
     if text is None:
         return None
     out = {}
     for part in str(text).split(","):
         key, sep, value = part.partition("=")
         key = key.strip().lower()
-        if not sep or key not in COLUMNS or not value.strip():
+        if not sep or key not in (*COLUMNS, "utc") or not value.strip():
             raise InputError("--navigation-columns", f"{part.strip()!r} is not NAME=COLUMN with NAME one of "
-                             f"{', '.join(COLUMNS)}", "e.g. --navigation-columns time=GPS Time,lat=Latitude,...")
+                             f"{', '.join(COLUMNS)} (or utc)", "e.g. --navigation-columns time=GPS Time,lat=Latitude")
         out[key] = value.strip()
-    missing = [k for k in COLUMNS if k not in out]
-    if missing:
-        raise InputError("--navigation-columns", f"names no column for {', '.join(missing)}",
-                         "give all of " + ", ".join(f"{k}=COL" for k in COLUMNS))
+    missing = [k for k in COLUMNS if k not in out and not (k == "time" and "utc" in out)]
+    if missing or ("utc" in out and "time" in out):
+        raise InputError("--navigation-columns", f"names no column for {', '.join(missing)}" if missing else
+                         "names both time= and utc=", "give all of " + ", ".join(f"{k}=COL" for k in COLUMNS))
     return out
 
 
@@ -113,7 +117,10 @@ def _text(path: Path, columns: dict[str, str] | None) -> Trajectory:
     sep = next((s for s in (",", ";", "\t") if s in head), None)
     split = (lambda line: [v.strip() for v in line.split(sep)]) if sep else (lambda line: line.split())
     names = split(head)
-    wanted = columns or COLUMNS
+    wanted = dict(columns or COLUMNS)
+    utc = "utc" in wanted
+    if utc:
+        wanted = {"time": wanted.pop("utc"), **wanted}
     lower = [n.lower() for n in names]
     index = {}
     for key, name in wanted.items():
@@ -135,8 +142,9 @@ def _text(path: Path, columns: dict[str, str] | None) -> Trajectory:
     if not rows:
         raise FormatError(path, "holds no epochs after its header row")
     a = np.array(rows)
-    return _checked(path, a[:, 0], a[:, 1], a[:, 2], a[:, 3], np.radians(a[:, 4]), np.radians(a[:, 5]),
-                    np.mod(np.radians(a[:, 6]), 2 * np.pi), "line", first=start + 2)
+    out = _checked(path, a[:, 0], a[:, 1], a[:, 2], a[:, 3], np.radians(a[:, 4]), np.radians(a[:, 5]),
+                   np.mod(np.radians(a[:, 6]), 2 * np.pi), "line", first=start + 2)
+    return dataclasses.replace(out, utc=utc)
 
 
 def _checked(path: Path, t, lat, lon, h, roll, pitch, heading, unit: str, first: int = 1) -> Trajectory:
@@ -166,6 +174,13 @@ def on_gps_scale(trajectory: Trajectory, reference: float) -> np.ndarray:
     flight, e.g. its first ``.lcf`` row): the GPS week (or, for full seconds, the 1024-week rollover of
     an old recorder's clock) that puts the trajectory's start nearest the reference."""
     t = trajectory.time
+    if trajectory.utc:   # UTC -> GPS: the leap seconds in force at the flight (GPS - UTC, 18 s since 2017)
+        from datetime import timedelta
+
+        from archive.formats.lcf import GPS_EPOCH, gps_seconds_to_datetime
+
+        ref = float(reference)
+        t = t + ((GPS_EPOCH + timedelta(seconds=ref)) - gps_seconds_to_datetime(ref)).total_seconds()
     step = WEEK_S if trajectory.week_seconds else ROLLOVER_S
     return t + np.round((float(reference) - float(t[0])) / step) * step
 
