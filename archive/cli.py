@@ -20,6 +20,8 @@ from archive.api_errors import keep_cli_flags
 from archive.errors import ArchiveError, file_system_refusal, warning_lines
 from archive.overlap import LAST, RULES
 from archive.params import DEFAULT_MAX_VIEW_ANGLE
+from archive.simulator.arguments import add_simulate
+from archive.simulator.arguments import positive_int as _positive_int
 
 # command name -> "module:function" taking the parsed argparse.Namespace and returning an exit code
 HANDLERS = {
@@ -27,19 +29,12 @@ HANDLERS = {
     "render": "archive.render_command:run",
     "info": "archive.ingest.summary:run",
     "ingest": "archive.ingest.command:run",
-    "verify": "archive.ingest.command:run_verify",
+    "verify": "archive.ingest.verify:run_verify",
     "catalog": "archive.catalog.command:run",
     "view": "archive.view.server:run",
     "calibrate": "archive.calibrate.command:run",
     "doctor": "archive.doctor:run",
 }
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
-    return value
 
 
 def _triple(text: str) -> tuple[float, float, float]:
@@ -73,6 +68,13 @@ def _add_dem(p: argparse.ArgumentParser, use: str) -> None:
                         "(geoid heights are converted to ellipsoidal ones with PROJ's grids)")
 
 
+def _add_navigation(p: argparse.ArgumentParser, use: str) -> None:
+    p.add_argument("--navigation", metavar="FILE|NAME", help="a post-processed trajectory, an Applanix SBET "
+                   f"(.out, .sbet) or a CSV/ASCII export with a header row: {use}")
+    p.add_argument("--navigation-columns", metavar="time=COL,lat=COL,...", help="a CSV export's column names when "
+                   "not Inertial Explorer's (GPSTime, Latitude, Longitude, H-Ell, Roll, Pitch, Heading; degrees)")
+
+
 def _add_mounting(p: argparse.ArgumentParser, recorded: bool) -> None:
     """--boresight and --lever-arm (and --sync-offset for ingest)."""
     default = "default: as ingested for a collection, else 0" if recorded else "default 0"
@@ -81,93 +83,6 @@ def _add_mounting(p: argparse.ArgumentParser, recorded: bool) -> None:
                         f"down, +pitch: looks forward) ({default})")
     p.add_argument("--lever-arm", type=_triple, metavar="X,Y,Z",
                    help=f"camera position from the INS in the body frame (x forward, y right, z down), metres ({default})")
-
-
-def _add_simulate(sub) -> None:
-    p = _command(sub, "simulate", "write a simulated Resonon flight with its ground truth", (
-        "Write a simulated airborne pushbroom flight in the Resonon layout (<base>.bil, .bil.hdr, "
-        ".lcf, .bil.times per cube, plus calibration.icp) and its ground truth (truth/: scene, "
-        "true per-line poses, footprint). Lawn-mower passes at ~10 m/s, ~40 m above flat ground, "
-        "near Memphis (35.12 N, 89.94 W), 249 lines/s, INS at 200 Hz. Defaults are small (test "
-        "size); paper scale is --samples 900 --lines 1000 --bands 300 --cubes 40."))
-    p.add_argument("directory", metavar="DIR", help="output directory (created; must be empty unless --overwrite)")
-    p.add_argument("--cubes", type=_positive_int, default=4, help="number of cubes (default 4)")
-    p.add_argument("--bands", type=_positive_int, default=8, help="spectral bands per cube (default 8)")
-    p.add_argument("--samples", type=_positive_int, default=128, help="samples per line (default 128)")
-    p.add_argument("--lines", type=_positive_int, default=250, help="lines per cube (default 250)")
-    p.add_argument("--cubes-per-pass", type=_positive_int, default=2,
-                   help="cubes recorded back to back on each straight pass (default 2)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--scene-seed", type=int, metavar="K",
-                   help="seed of the ground (scene and targets) and of the camera's radiometry (default: --seed): "
-                        "flights of one --scene-seed fly over the same field, each with its own wobble, noise and "
-                        "start (e.g. --seed 1 --scene-seed 0 --start 2024-06-19T16:00:00Z flies seed 0's field a "
-                        "week later)")
-    p.add_argument("--start", metavar="ISO8601",
-                   help="UTC start of the flight (the first line follows 0.5 s later), e.g. 2024-06-12T16:00:00Z (default: 2024-06-12T16:00:00Z "
-                        "plus --seed minutes, so flights of different seeds get different ids)")
-    p.add_argument("--clouds", action="store_true",
-                   help="the sky's brightness drifts 30 %% within cubes; writes the kit's downwelling spectra "
-                        "(<set>_downwelling_<k>_pre.spec per cube, downwelling.dcp) and the truth (truth/clouds.json)")
-    p.add_argument("--lat", type=float, default=35.12, help="latitude of the site, degrees (default 35.12)")
-    p.add_argument("--lon", type=float, default=-89.94, help="longitude of the site, degrees (default -89.94)")
-    p.add_argument("--fov", type=float, default=47.5, help="across-track field of view, degrees (default 47.5)")
-
-    def numbers(count: int | None):
-        def parse(text: str) -> tuple[float, ...]:
-            try:
-                values = tuple(float(v) for v in text.replace(" ", "").split(","))
-            except ValueError:
-                values = ()
-            if not values or (count is not None and len(values) != count) \
-                    or not all(abs(v) < float("inf") for v in values):
-                what = f"{count} comma-separated numbers" if count else "comma-separated numbers"
-                raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
-            return values
-        return parse
-
-    r = p.add_argument_group("recorder realism (each off by default: an ideal recorder)")
-    r.add_argument("--dropped-frames", type=int, default=0, choices=range(11), metavar="N",
-                   help="frames dropped at each cube switch within a pass: the next cube starts N+1 frame "
-                        "intervals after the previous one's last line (default 0)")
-    shutter = r.add_mutually_exclusive_group()
-    shutter.add_argument("--shutters", type=numbers(None), metavar="MS,MS,...",
-                         help="shutter (ms) of each cube, cycled over cubes, gain 0 dB unless --gains "
-                              "(default: shutter and gain cycle over 3/0, 2.5/3, 3.9/0, 2.6/6 ms/dB)")
-    shutter.add_argument("--shutter-steps", action="store_true",
-                         help="shutters 3, 1.5, 3.9, 2.2 ms cycled over cubes at gain 0 dB")
-    r.add_argument("--gains", type=numbers(None), metavar="DB,DB,...", help="gain (dB) of each cube, cycled over cubes")
-    r.add_argument("--sync-offset", type=float, default=0.0, metavar="S",
-                   help="true camera-to-navigation offset, seconds: each .lcf starts S before its cube's first "
-                        "line, so 'archive render --sync-offset S' recovers the truth (default 0)")
-    r.add_argument("--bank-deg", type=float, metavar="D",
-                   help="coordinated turns between passes with a sustained bank of D degrees, 10..70 "
-                        "(default: flat half-circle turns)")
-    r.add_argument("--record-turns", action="store_true",
-                   help="keep recording into the turn after each pass (to the end of the sustained bank "
-                        "with --bank-deg): lines with huge view angles")
-    r.add_argument("--pause", type=float, default=0.0, metavar="S",
-                   help="the recorder stops S seconds before the middle line of one cube and continues in "
-                        "the same file (default 0: no pause)")
-    r.add_argument("--pause-cube", type=int, default=0, metavar="K", help="0-based cube of --pause (default 0)")
-    r.add_argument("--boresight", type=numbers(3), metavar="ROLL,PITCH,YAW",
-                   help="true camera mounting angles, degrees, aerospace signs (default 0,0,0)")
-    r.add_argument("--lever-arm", type=numbers(3), metavar="X,Y,Z",
-                   help="true camera position from the INS in the body frame, metres (default 0,0,0)")
-    r.add_argument("--gnss-bias", type=numbers(3), metavar="DE,DN,DU",
-                   help="the .lcf records every position this far off the truth, metres (grid east, north, up): "
-                        "the GNSS bias of a kit without RTK (default 0,0,0)")
-    p.add_argument("--scene-from", metavar="FLIGHT_DIR",
-                   help="fly over exactly the ground of an earlier simulated flight (its truth's scene), whatever "
-                        "this flight's heading or shape")
-    p.add_argument("--ground-changes", type=float, default=0.0, metavar="F",
-                   help="paint this fraction (0..0.9) of the ground with new material patches (default 0)")
-    p.add_argument("--heading", type=float, metavar="DEG",
-                   help="grid heading of the even passes, degrees clockwise from grid north (default 20)")
-    p.add_argument("--terrain", choices=["hills", "ridge"],
-                   help="terrain instead of flat ground: 'hills' (>= 10 m relief) or 'ridge' (with ground hidden "
-                        "from some lines); writes dem.tif (ellipsoidal heights) beside the flight")
-    _add_run_flags(p, "replace DIR if it exists")
 
 
 def _add_sources(p, nargs: str, note: str) -> None:
@@ -210,10 +125,8 @@ def _add_render(sub) -> None:
                         "'reflectance' (a number or a list) and 'wavelengths' (nm); two panels or more")
     p.add_argument("--sync-offset", type=float, default=None, metavar="S",
                    help="camera-to-navigation time offset, seconds (default: as ingested for a collection, else 0)")
-    p.add_argument("--navigation", metavar="FILE", help="georectify raw flights from this post-processed trajectory "
-                   "instead of their .lcf: an Applanix SBET (.out, .sbet) or a CSV/ASCII export with a header row")
-    p.add_argument("--navigation-columns", metavar="time=COL,lat=COL,...", help="a CSV export's column names when "
-                   "not Inertial Explorer's (GPSTime, Latitude, Longitude, H-Ell, Roll, Pitch, Heading; degrees)")
+    _add_navigation(p, "georectify raw flights from it instead of their .lcf; for a collection: lcf or the name "
+                       "of a track it was ingested with (default: its default source)")
     _add_mounting(p, recorded=True)
     p.add_argument("--max-view-angle", type=float, default=DEFAULT_MAX_VIEW_ANGLE, metavar="DEG",
                    help="leave out lines whose field-of-view edge looks further than this off nadir, degrees "
@@ -262,8 +175,8 @@ def _add_render(sub) -> None:
                         "dask-jobqueue's 'jobqueue: slurm:' configuration; see docs/deploy.md")
     j = p.add_argument_group("--cluster slurm: the worker jobs (an option left out: the 'jobqueue: slurm:' "
                              "configuration of ~/.config/dask/jobqueue.yaml, /etc/dask or $DASK_CONFIG)")
-    j.add_argument("--jobs", type=_positive_int, metavar="N",
-                   help="worker jobs kept running (default 1; a job that ends early is submitted again)")
+    j.add_argument("--jobs", type=_positive_int, metavar="N", help="worker jobs kept running (default 1; a job that "
+                   "ends early is submitted again)")
     j.add_argument("--job-queue", metavar="PARTITION", help="Slurm partition of the worker jobs")
     j.add_argument("--job-cores", type=_positive_int, metavar="N", help="CPUs per job: the worker's threads")
     j.add_argument("--job-memory", metavar="SIZE", help="memory per job, e.g. 16GB: the worker's memory limit")
@@ -299,15 +212,14 @@ def _add_render(sub) -> None:
 
 def _add_info(sub) -> None:
     p = _command(sub, "info", "check a raw flight directory (or a collection) and print its summary", (
-        "Read every cube of a raw flight directory (headers, .times, .lcf, calibration), check "
-        "that each is complete and that navigation covers every line, and print a summary: cubes, "
-        "lines, bands, wavelengths, time span, UTM zone, ground track length and altitude."))
+        "Read every cube of a raw flight directory (headers, .times, .lcf, calibration), check that each is "
+        "complete and that navigation covers every line, and print a summary: cubes, lines, bands, wavelengths, "
+        "time span, UTM zone, ground track length and altitude."))
     p.add_argument("directory", metavar="DIR", help="raw flight directory, or a collection id with --archive")
-    p.add_argument("--archive", metavar="ARCHIVE", default=None,
-                   help="archive holding the collection DIR names (its DEM, if ingested with --dem, is used "
-                        "unless --dem is given)")
-    p.add_argument("--fov", type=float, default=None, metavar="DEG",
-                   help="field of view used for the swath width (default: the collection's, else 47.5)")
+    p.add_argument("--archive", metavar="ARCHIVE", default=None, help="archive holding the collection DIR names "
+                   "(its DEM, if ingested with --dem, is used unless --dem is given)")
+    p.add_argument("--fov", type=float, default=None, metavar="DEG", help="field of view used for the swath width "
+                   "(default: the collection's, else 47.5)")
     p.add_argument("--sync-offset", type=float, default=0.0, metavar="S", help="camera-to-navigation time offset, seconds (default 0)")
     _add_dem(p, "also check that it covers the swath and report the terrain under the flight")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -315,11 +227,11 @@ def _add_info(sub) -> None:
 
 def _add_ingest(sub) -> None:
     p = _command(sub, "ingest", "ingest raw flights into chunked Zarr collections and catalog them", (
-        "Check each raw flight directory completely, then store it as ARCHIVE/collections/<id>.zarr "
-        "(Zarr v3: DN chunked one band of one cube per chunk and compressed, per-line times and poses, "
-        "the raw navigation, calibration, header metadata, source checksums) and describe it by a STAC "
-        "Item in the archive's catalog. The id is <sensor>_<UTC start>. Ingesting a flight again is a "
-        "no-op; an interrupted ingest resumes when rerun. The archive is created if needed."))
+        "Check each raw flight directory completely, then store it as ARCHIVE/collections/<id>.zarr (Zarr v3: DN "
+        "chunked one band of one cube per chunk and compressed, per-line times and poses, the raw navigation, "
+        "calibration, header metadata, source checksums) and describe it by a STAC Item in the archive's catalog. "
+        "The id is <sensor>_<UTC start>. Ingesting a flight again is a no-op; an interrupted ingest resumes when "
+        "rerun. The archive is created if needed."))
     p.add_argument("directories", nargs="+", metavar="RAW_DIR", help="raw flight directory")
     p.add_argument("--archive", required=True, metavar="ARCHIVE", help="archive directory (created if absent or empty)")
     p.add_argument("--fov", required=True, type=float, metavar="DEG",
@@ -328,12 +240,12 @@ def _add_ingest(sub) -> None:
     p.add_argument("--irradiance-calibration", metavar="FILE.dcp",
                    help="the downwelling spectrometer's calibration pack (default: the *.dcp in the flight directory); "
                         "a flight's <set>_downwelling_<k>_pre.spec spectra are kept in the collection")
-    p.add_argument("--ground-height", type=float, metavar="M",
-                   help="ground height, metres above the ellipsoid, for the catalog footprint "
-                        "(default: the header's 'ground elevation')")
+    p.add_argument("--ground-height", type=float, metavar="M", help="ground height, metres above the ellipsoid, "
+                   "for the catalog footprint (default: the header's 'ground elevation')")
     _add_dem(p, "the catalog footprint follows the terrain; exclusive with --ground-height")
     p.add_argument("--sync-offset", type=float, default=0.0, metavar="S",
                    help="camera-to-navigation time offset, seconds (default 0); recorded, used by renders of the collection")
+    _add_navigation(p, "stored with the flight as a named track (the file's stem), its default navigation source")
     _add_mounting(p, recorded=False)
     p.add_argument("--workers", type=_positive_int, metavar="N", help="threads writing chunks (default: CPU count)")
     _add_run_flags(p, "re-ingest flights that are already in the archive")
@@ -477,7 +389,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"archive {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    _add_simulate(sub)
+    add_simulate(sub)
     _add_render(sub)
     _add_info(sub)
     _add_ingest(sub)

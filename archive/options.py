@@ -29,6 +29,13 @@ from archive.sources.select import parse_bands
 __all__ = ["DEFAULT_MAX_VIEW_ANGLE", "KEYWORDS", "RenderOptions", "check_gsd", "grid_request", "parse_bounds"]
 
 
+def _navigation(value) -> str | None:
+    """``--navigation``: a trajectory file (made absolute), or a navigation source's name ('lcf', a track)."""
+    if value is None:
+        return None
+    return os.path.abspath(value) if os.path.exists(value) or os.sep in str(value) else str(value)
+
+
 def _navigation_columns(text) -> str | None:
     """``--navigation-columns`` checked (:func:`archive.formats.trajectory.parse_columns`), kept as given."""
     from archive.formats.trajectory import parse_columns
@@ -197,7 +204,7 @@ class RenderOptions:
             wavelengths=_wavelength_list(wavelengths), bands=parse_bands(bands), mode=mode,
             white_reference=fspath(white_reference),
             irradiance_calibration=None if irradiance_calibration is None else os.path.abspath(irradiance_calibration),
-            navigation=None if navigation is None else os.path.abspath(navigation),
+            navigation=_navigation(navigation),
             navigation_columns=_navigation_columns(navigation_columns),
             panels=None if panels is None else os.path.abspath(panels),
             sync_offset=_number(sync_offset, "--sync-offset", "seconds"),

@@ -174,3 +174,59 @@ def test_a_utc_time_column_gets_the_leap_seconds(biased, tmp_path):
     wrong = parse_columns("time=UTCTime,lat=Latitude,lon=Longitude,height=H-Ell,roll=Roll,pitch=Pitch,heading=Heading")
     with pytest.raises(NavigationError, match="have no pose"):   # read as GPS time: 18 s away from the lines
         RawFlightSource(directory, NavigationParams(), navigation=utc, navigation_columns=wrong)
+
+
+def _values(path: Path) -> np.ndarray:
+    import rasterio
+
+    with rasterio.open(path) as ds:
+        return ds.read()
+
+
+def test_ingest_stores_the_trajectory_as_the_default_source(biased, tmp_path):
+    """``ingest --navigation FILE``: a checksummed track beside the .lcf, the collection's default source; a
+    render of the collection equals the raw flight's render from the same file, ``--navigation lcf`` the raw
+    flight's .lcf render, bit for bit; an unknown source is one line naming the ones there."""
+    import zarr
+
+    from archive.collection import verify_store
+
+    directory, truth, files = biased
+    archive = tmp_path / "arc"
+
+    def cli(*args):
+        done = subprocess.run([sys.executable, "-m", "archive", *args], capture_output=True, text=True, timeout=300)
+        return done
+
+    done = cli("ingest", str(directory), "--archive", str(archive), "--fov", str(FOV), "--navigation",
+               str(files["sbet"]), "--quiet")
+    assert done.returncode == 0, done.stderr
+    cid = done.stdout.split(":")[0]
+    store = archive / "collections" / f"{cid}.zarr"
+    group = zarr.open_group(store, mode="r")
+    assert group.attrs["navigation_tracks"]["default"] == "flight" and "track_flight" in group
+    assert verify_store(store) == []
+    assert any(s["name"] == "flight.out" for s in group.attrs["sources"])   # the file's sha256 recorded
+    common = ["--gsd", "0.5", "--quiet"]
+    raw_ppk, raw_lcf = tmp_path / "raw_ppk.tif", tmp_path / "raw_lcf.tif"
+    assert cli("render", str(directory), "--fov", str(FOV), "--navigation", str(files["sbet"]), "--out", str(raw_ppk),
+               *common).returncode == 0
+    assert cli("render", str(directory), "--fov", str(FOV), "--like", str(raw_ppk), "--out", str(raw_lcf),
+               *common).returncode == 0
+    col, col_lcf = tmp_path / "col.tif", tmp_path / "col_lcf.tif"
+    assert cli("render", cid, "--archive", str(archive), "--like", str(raw_ppk), "--out", str(col),
+               *common).returncode == 0
+    done = cli("render", cid, "--archive", str(archive), "--navigation", "lcf", "--like", str(raw_ppk),
+               "--out", str(col_lcf), *common)
+    assert done.returncode == 0, done.stderr
+    np.testing.assert_array_equal(_values(col), _values(raw_ppk))
+    np.testing.assert_array_equal(_values(col_lcf), _values(raw_lcf))
+    assert not np.array_equal(_values(col), _values(col_lcf), equal_nan=True)   # the bias shows
+    done = cli("render", cid, "--archive", str(archive), "--navigation", "rtk", "--gsd", "0.5",
+               "--out", str(tmp_path / "x.tif"))
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode != 0 and len(lines) == 1 and "has no navigation source 'rtk'" in lines[0], done.stderr
+    assert "lcf, flight" in lines[0]
+    # the ingest again without the trajectory: refused, not silently kept
+    done = cli("ingest", str(directory), "--archive", str(archive), "--fov", str(FOV), "--quiet")
+    assert done.returncode != 0 and "another navigation source" in done.stderr, done.stderr

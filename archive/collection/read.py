@@ -17,7 +17,7 @@ from archive import storage
 from archive.collection.update import settle
 from archive.collection.layout import (COMPLETE, FORMAT, FORMAT_VERSION, NAV_COLUMNS, array_digest, chunk_digest,
                                        chunk_path, location, root_json, zarr_target)
-from archive.errors import FormatError, MissingInputError
+from archive.errors import FormatError, InputError, MissingInputError
 from archive.formats.envi import EnviHeader, header_from_metadata
 from archive.formats.lcf import LcfData
 from archive.navigation import LocalFrame
@@ -219,6 +219,19 @@ def read_downwelling(store: str | os.PathLike) -> np.ndarray | None:
     if "downwelling" not in group:
         return None
     return np.asarray(checked_array(store, group, "downwelling"), np.float64)
+
+
+def read_track(store: str | os.PathLike, name: str) -> np.ndarray:
+    """(epochs, 7) the post-processed trajectory ``name`` an ingest stored (``track_<name>``: time on the
+    ``.lcf`` scale, roll (``.lcf`` sign), pitch, yaw from true north (rad), lon, lat (deg), height (m)),
+    checked against its digest. InputError naming the collection's tracks when it has no such one."""
+    group = zarr.open_group(zarr_target(store), mode="r")
+    tracks = (dict(group.attrs).get("navigation_tracks") or {}).get("tracks") or {}
+    if name not in tracks or f"track_{name}" not in group:
+        cid = location(store).name.removesuffix(".zarr")
+        raise InputError("--navigation", f"collection {cid} has no navigation source {name!r} (it has: "
+                         f"{', '.join(['lcf', *tracks])})", "pass --navigation lcf or one of its tracks")
+    return np.asarray(checked_array(store, group, f"track_{name}"), float)
 
 
 class StoredCalibration:

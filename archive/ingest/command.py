@@ -31,16 +31,16 @@ import numpy as np
 
 import archive
 from archive import storage
-from archive.catalog.root import ArchiveRoot, check_collection_id, create_archive, open_root
+from archive.catalog.root import ArchiveRoot, check_collection_id, create_archive
 from archive.errors import ArchiveError, InputError
 from archive.collection import (FORMAT, FORMAT_VERSION, NAV_COLUMNS, StorePlan, chunk_tasks, finish_store,
                                 frame_to_attrs, hash_file_task, is_complete, open_partial, publish, read_attrs,
-                                sha256_file, store_lock, verify_store, write_chunk)
+                                sha256_file, store_lock, write_chunk)
 from archive.formats.icp import response as exposure_response
+from archive.formats.trajectory import parse_columns
 from archive.formats.lcf import gps_seconds_to_datetime
 from archive.ingest.previews import add_previews
 from archive.params import NavigationParams
-from archive.previews import verify_previews
 from archive.sources.ground import auto_ground_height, camera_altitudes, check_ground_height
 from archive.sources.raw import RawFlightSource
 
@@ -106,6 +106,19 @@ def _dem_of(terrain: dict | None) -> tuple[str, str] | None:
     return None if not terrain else (str(terrain.get("dem_path")), str(terrain.get("datum")))
 
 
+def _track(src: RawFlightSource, arrays: dict, dims: dict) -> str:
+    """Add the source's trajectory, over the flight's lines and 2 s beyond, to ``arrays`` as ``track_<name>``
+    ((epochs, 7) in the ``.lcf``'s columns and signs); returns the name (the file's stem, made safe)."""
+    t = src.trajectory
+    name = re.sub(r"[^A-Za-z0-9_-]", "_", Path(t.path).stem)[:64] or "track"
+    name = "ppk" if name == "lcf" else name
+    keep = (t.time >= arrays["time"][0] - 2.0) & (t.time <= arrays["time"][-1] + 2.0)
+    arrays[f"track_{name}"] = np.stack([t.time, -t.roll, t.pitch, t.heading, t.lon, t.lat, t.height],
+                                       axis=-1)[keep].astype(np.float64)
+    dims[f"track_{name}"] = (f"{name}_epoch", "column")
+    return name
+
+
 def _jsonable(value):
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
@@ -121,8 +134,12 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
                    boresight: tuple[float, float, float] = (0.0, 0.0, 0.0),
                    lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0),
                    dem: str | os.PathLike | None = None, dem_datum: str | None = None,
-                   irradiance_calibration: str | os.PathLike | None = None) -> StorePlan:
+                   irradiance_calibration: str | os.PathLike | None = None,
+                   navigation: str | os.PathLike | None = None, navigation_columns: dict | None = None) -> StorePlan:
     """Read and check a raw flight (everything but the pixels) and return what its store will hold.
+    ``navigation``: a post-processed trajectory (SBET, CSV: :mod:`archive.formats.trajectory`) stored as
+    the track named by its file's stem beside the ``.lcf`` (``track_<name>``, checksummed like every array)
+    and made the collection's default navigation source (the stored poses follow it).
     ``sync_offset`` (s), ``boresight`` (roll, pitch, yaw degrees) and ``lever_arm`` (x, y, z metres,
     body frame) are recorded as the collection's navigation parameters (renders use them unless
     given others) and shape the stored poses and the catalog footprint.
@@ -136,7 +153,8 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
     nav = NavigationParams(sync_offset=float(sync_offset),
                            boresight_deg=tuple(float(v) for v in boresight),
                            lever_arm_m=tuple(float(v) for v in lever_arm))
-    src = RawFlightSource(directory, nav, calibration=calibration, irradiance_calibration=irradiance_calibration)
+    src = RawFlightSource(directory, nav, calibration=calibration, irradiance_calibration=irradiance_calibration,
+                          navigation=navigation, navigation_columns=navigation_columns)
     n = len(src.cubes)
     headers = [src.header(i) for i in range(n)]
     files = [src.files(i) for i in range(n)]
@@ -146,7 +164,7 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
             raise InputError(h.path, f"{h.samples} samples of {h.dtype}, but {first.path.name} has "
                              f"{first.samples} of {first.dtype}", "a flight's cubes must share samples and data type")
     times = [c.camera_time for c in src.navigation.cubes]  # as read and checked by the source
-    lcfs = [c.lcf for c in src.navigation.cubes]
+    lcfs = [c.lcf for c in src.recorded_navigation]   # the recorder's, whatever the poses follow
     poses = [src.poses(i) for i in range(n)]
     cal = src.calibration()
     darks, gains, gain_index = [], [], []
@@ -191,6 +209,7 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
         arrays["navigation_use"] = np.concatenate([np.ones(len(lcf.time), np.uint8) if lcf.use is None
                                                    else lcf.use.astype(np.uint8) for lcf in lcfs])
         dims["navigation_use"] = ("nav_sample",)
+    track = _track(src, arrays, dims) if src.trajectory is not None else None
     downwelling = None
     if src.downwelling.present:   # the sky spectrometer's X per cube on the bands (issue 34)
         sky = src.sky()           # a missing or garbled .spec / .dcp is refused here, naming it
@@ -226,6 +245,10 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
             names[str(p)] = p.name
     if src.calibration_path is not None:
         p = Path(src.calibration_path)
+        sources.append((str(p), p.stat().st_size))
+        names[str(p)] = p.name
+    if track is not None:   # the trajectory file checksummed like the cubes' files
+        p = Path(src.trajectory.path)
         sources.append((str(p), p.stat().st_size))
         names[str(p)] = p.name
     if downwelling is not None:   # checksummed like the cubes' files
@@ -270,6 +293,10 @@ def prepare_flight(directory: str | os.PathLike, fov_deg: float, calibration: st
         attrs["terrain"] = terrain
     if downwelling is not None:
         attrs["downwelling"] = downwelling
+    if track is not None:
+        attrs["navigation_tracks"] = {"default": track, "tracks": {track: {
+            "file": Path(src.trajectory.path).name, "columns": navigation_columns,
+            "layout": "time (.lcf scale), roll (.lcf sign), pitch, yaw (true north; rad), lon, lat (deg), alt (m)"}}}
     return StorePlan(cid=cid, arrays=arrays, attrs=attrs, data_files=[str(f.data) for f in files],
                      cube_lines=[h.lines for h in headers], bands=first.bands, samples=first.samples,
                      dtype=first.dtype.newbyteorder("<"), sources=sources, dims=dims)
@@ -355,15 +382,16 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
            overwrite: bool = False, workers: int | None = None, progress: bool = True,
            sync_offset: float = 0.0, boresight: tuple[float, float, float] = (0.0, 0.0, 0.0),
            lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.0), dem: str | os.PathLike | None = None,
-           dem_datum: str | None = None,
-           irradiance_calibration: str | os.PathLike | None = None) -> list[IngestResult]:
+           dem_datum: str | None = None, irradiance_calibration: str | os.PathLike | None = None,
+           navigation: str | os.PathLike | None = None, navigation_columns: dict | None = None) -> list[IngestResult]:
     """Ingest raw flight ``directories`` into the archive (created when absent). Every flight is
     checked before anything is written; see the module docstring. ``dem`` / ``dem_datum``: the
     catalog footprint follows that terrain (:func:`prepare_flight`). ``irradiance_calibration``: the
     downwelling spectrometer's ``.dcp`` when it is not in the flight directories (their spectra are
-    kept in the collection, issue 34)."""
+    kept in the collection, issue 34). ``navigation``: a post-processed trajectory stored with each flight
+    as its default navigation source (:func:`prepare_flight`)."""
     plans = [prepare_flight(d, fov_deg, calibration, ground_height, sync_offset, boresight, lever_arm,
-                            dem, dem_datum, irradiance_calibration)
+                            dem, dem_datum, irradiance_calibration, navigation, navigation_columns)
              for d in directories]
     pairs = _distinct_flights(list(directories), plans)
     root = _create_archive(archive_path)
@@ -462,6 +490,11 @@ def _check_ingested(root: ArchiveRoot, plan: StorePlan, directory: str) -> None:
     if any(recorded.get(k, 0.0 if k == "sync_offset" else [0.0] * 3) != v for k, v in wanted.items()):
         raise InputError(final, f"was ingested with other navigation parameters ({recorded or 'none'}, "
                          f"now {wanted})", "pass --overwrite to re-ingest with the new ones")
+    tracks = (attrs.get("navigation_tracks") or {}).get("default"), \
+        (plan.attrs.get("navigation_tracks") or {}).get("default")
+    if tracks[0] != tracks[1]:
+        raise InputError(final, f"was ingested with another navigation source ({tracks[0] or 'lcf'}, now "
+                         f"{tracks[1] or 'lcf'})", "pass --overwrite to re-ingest it so")
     old_dem = _dem_of(attrs.get("terrain"))
     if old_dem != _dem_of(plan.attrs.get("terrain")):
         new_dem = _dem_of(plan.attrs.get("terrain"))
@@ -553,48 +586,9 @@ def run(args: argparse.Namespace) -> int:
                      progress=not args.quiet, sync_offset=args.sync_offset,
                      boresight=args.boresight or (0.0, 0.0, 0.0), lever_arm=args.lever_arm or (0.0, 0.0, 0.0),
                      dem=getattr(args, "dem", None), dem_datum=getattr(args, "dem_datum", None),
-                     irradiance_calibration=getattr(args, "irradiance_calibration", None))
+                     irradiance_calibration=getattr(args, "irradiance_calibration", None),
+                     navigation=getattr(args, "navigation", None),
+                     navigation_columns=parse_columns(getattr(args, "navigation_columns", None)))
     for r in results:
         print(f"{r.cid}: {r.status} ({r.store})")
     return 0
-
-
-def run_verify(args: argparse.Namespace) -> int:
-    """CLI handler of ``archive verify``: exit 0 when every checked collection is intact, 1 if not."""
-    root = open_root(args.archive)
-    ids = [args.id] if args.id else root.collection_ids()
-    incomplete = [cid for cid in root.incomplete_ids() if not args.id or cid == args.id]
-    for cid in incomplete:   # named, never passed over: its readers call it "not found"
-        print(f"{cid}: INCOMPLETE: {root.store(cid)} has no completion marker (an update of it was interrupted "
-              f"by an older version); re-ingest it from its raw files: archive ingest RAW_DIR --archive {root.path} "
-              "--overwrite")
-    if args.id and incomplete:
-        return 1
-    if args.id:
-        root.require_collection(args.id)
-    from archive.catalog.health import catalog_problems
-
-    bad = len(incomplete)
-    for where, problem in catalog_problems(root):   # the catalog too: a damaged Item or index
-        if args.id and args.id not in Path(where).name and Path(where).name != "index.sqlite":
-            continue
-        if any(Path(where).name == f"{cid}.zarr" for cid in incomplete):
-            continue   # named above
-        bad += 1
-        print(f"{where}: DAMAGED: {problem}")
-    if not ids:
-        print(f"{root.path}: no collections")
-        return 1 if bad else 0
-    for cid in ids:
-        problems = verify_store(root.store(cid), progress=not args.quiet) + \
-            ([] if root.is_url else verify_previews(root.store(cid)))   # previews: local archives only (yet)
-        if problems:
-            bad += 1
-            print(f"{cid}: CORRUPT ({len(problems)} problems)")
-            for p in problems[:20]:
-                print(f"  {p}")
-            if len(problems) > 20:
-                print(f"  ... {len(problems) - 20} more")
-        else:
-            print(f"{cid}: OK")
-    return 1 if bad else 0

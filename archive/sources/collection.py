@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from archive.collection import CheckedDn, StoredCalibration, read_downwelling, read_info
+from archive.collection import CheckedDn, StoredCalibration, read_downwelling, read_info, read_track
 from archive.errors import InputError
 from archive.formats.envi import EnviHeader
 from archive.params import NavigationParams, recorded_navigation
@@ -31,7 +31,7 @@ class CollectionSource(NavigatedSource):
     """
 
     def __init__(self, store: str | os.PathLike, id: str, params: NavigationParams,
-                 white_reference: np.ndarray | None = None):
+                 white_reference: np.ndarray | None = None, navigation: str | None = None):
         info = read_info(store)
         self.store = info.store   # a Path, or a UPath for a collection in object storage
         self.label = str(self.store)
@@ -45,9 +45,14 @@ class CollectionSource(NavigatedSource):
         self.frame = info.frame
         self._headers = [c.header for c in info.cubes]
         self._line_offset = [c.line_offset for c in info.cubes]
-        self.navigation = FlightNavigation(
-            [CubeNavigation(c.camera_time, c.lcf, c.header.shutter, self._where(c.index, c.base))
-             for c in info.cubes], self.frame, params)
+        cubes = [CubeNavigation(c.camera_time, c.lcf, c.header.shutter, self._where(c.index, c.base))
+                 for c in info.cubes]
+        tracks = info.attrs.get("navigation_tracks") or {}
+        # the navigation source: None, the collection's default (a stored trajectory, else the .lcf); 'lcf'; a track
+        self.navigation_source = (tracks.get("default") or "lcf") if navigation is None else str(navigation)
+        if self.navigation_source != "lcf":
+            cubes = self._on_track(cubes, self.navigation_source, float(params.sync_offset or 0.0))
+        self.navigation = FlightNavigation(cubes, self.frame, params)
         self.wavelengths = self._headers[0].wavelengths
         self.fwhm = info.fwhm
         self.cubes = tuple(
@@ -59,6 +64,16 @@ class CollectionSource(NavigatedSource):
         self.has_calibration = self._calibration is not None
         self._dn = None
         self._stored_calibration = None   # opened on first use, per process (not pickled)
+
+    def _on_track(self, cubes: list[CubeNavigation], name: str, sync: float) -> list[CubeNavigation]:
+        """``cubes`` navigated by the stored trajectory ``name`` (:func:`archive.collection.read_track`)."""
+        from archive.formats.trajectory import Trajectory
+        from archive.sources.navigation import trajectory_cube
+
+        a = read_track(self.store, name)
+        track = Trajectory(Path(f"{self.store}#{name}"), a[:, 0], a[:, 5], a[:, 4], a[:, 6], -a[:, 1], a[:, 2],
+                           a[:, 3], week_seconds=False)
+        return [trajectory_cube(c, track, track.time, sync) for c in cubes]
 
     def __repr__(self) -> str:
         return f"CollectionSource({str(self.store)!r}, cubes={len(self.cubes)})"

@@ -35,20 +35,23 @@ def open_source(path_or_id: str | os.PathLike, params: NavigationParams,
     path = Path(path_or_id)
     if path.is_dir():
         return RawFlightSource(path.absolute(), params, calibration=calibration, white_reference=white_reference,
-                               irradiance_calibration=irradiance_calibration, navigation=navigation,
+                               irradiance_calibration=irradiance_calibration,
+                               navigation=None if str(navigation) == "lcf" else navigation,
                                navigation_columns=navigation_columns)
     if archive is not None and not path.exists():
         if calibration is not None:
             raise InputError("--calibration", f"collection {path_or_id} carries the calibration it was "
                              "ingested with", "leave out --calibration, or re-ingest with another .icp")
-        if navigation is not None:
-            raise InputError("--navigation", f"collection {path_or_id} is georectified from the navigation it was "
-                             "ingested with", "render its raw flight directory with --navigation FILE")
+        if navigation is not None and Path(navigation).is_file():
+            raise InputError("--navigation", f"collection {path_or_id} is georectified from the navigation sources it "
+                             "was ingested with", "pass --navigation lcf or a track's name, or ingest the flight "
+                             "again with --navigation FILE")
         if irradiance_calibration is not None:
             raise InputError("--irradiance-calibration", f"collection {path_or_id} carries the downwelling "
                              "irradiance it was ingested with", "leave it out, or re-ingest the flight")
         store = open_root(archive).require_collection(str(path_or_id))
-        return CollectionSource(store, str(path_or_id), params, white_reference=white_reference)
+        return CollectionSource(store, str(path_or_id), params, white_reference=white_reference,
+                                navigation=None if navigation is None else str(navigation))
     if path.exists():
         raise InputError(path, "is not a directory", "give a raw flight directory or a collection id with --archive")
     raise MissingInputError(path, "flight directory",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -120,11 +121,14 @@ class RawFlightSource(NavigatedSource):
         self.fwhm: tuple[float, ...] | None = first.fwhm
         self.id: str = flight_id(self.directory.name, float(nav[0].lcf.time[0]))
         self.navigation_source = "lcf"
+        self.recorded_navigation = tuple(nav)   #: the cubes' own .lcf (what an ingest stores as 'navigation')
+        self.trajectory = None   #: the post-processed trajectory, its times on the .lcf scale (``.time``)
         if navigation is not None:   # a post-processed trajectory instead of the recorder's .lcf
             trajectory = read_trajectory(navigation, navigation_columns)
             gps = on_gps_scale(trajectory, nav[0].lcf.time[0])
             nav = [trajectory_cube(c, trajectory, gps, float(params.sync_offset or 0.0)) for c in nav]
             self.navigation_source = str(Path(navigation).absolute())
+            self.trajectory = dataclasses.replace(trajectory, time=gps, week_seconds=False, utc=False)
         self.navigation = FlightNavigation(nav, frame, params)
         self.cubes: tuple[CubeInfo, ...] = tuple(
             CubeInfo(index=i, base=c.files.base, lines=c.header.lines, samples=c.header.samples,
