@@ -45,6 +45,19 @@ def wait_while_exists(path: str | os.PathLike) -> None:
         time.sleep(0.05)
 
 
+#: Test-only: ``ARCHIVE_TEST_KILL_AT=POINT`` makes the process SIGKILL itself when it reaches POINT (a writer's
+#: name for a moment of its commit: ``after-data``, ``apply-staged``, ...; never set outside tests).
+TEST_KILL_AT = "ARCHIVE_TEST_KILL_AT"
+
+
+def test_kill(point: str) -> None:
+    """A test hook: SIGKILL this process when :data:`TEST_KILL_AT` names ``point``."""
+    if os.environ.get(TEST_KILL_AT) == point:
+        import signal
+
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
 def test_hold(variable: str, reached: int) -> None:
     """A test hook (the environment ``variable`` is never set outside tests): with ``N`` or ``N:PATH``
     in it and ``reached`` >= N (flights done, tile writes started...), wait: until the process is

@@ -54,14 +54,11 @@ def apply(sources, result, fov_deg: float, archive=None) -> list[Path]:
     of view ``fov_deg``, degrees: a raw flight's sidecar records it) for every source; returns the
     paths written (a collection that records these estimates already is left as it is, with a line on
     stderr). InputError before anything is written when a source is a collection in object storage."""
-    from archive import storage
-    from archive.errors import InputError
+    from archive.collection import check_updatable
 
-    for source in sources:   # refused before anything is written (S3 has no rename to switch with)
-        if hasattr(source, "store") and storage.is_url(str(source.store)):
-            raise InputError(source.store, "calibrate --apply cannot update a collection in object storage",
-                             "leave --apply out and pass the estimates to render (--sync-offset, --boresight), or "
-                             "apply to a copy of the archive on a file system")
+    for source in sources:   # every collection refused before anything is written
+        if hasattr(source, "store"):
+            check_updatable(source.store)
     written = []
     for source in sources:
         params = {"sync_offset": float(result.params.sync),

@@ -60,20 +60,13 @@ def _ground(args: argparse.Namespace, sources) -> tuple:
     return None, None, auto_ground_height(sources)
 
 
-def _refuse_remote_apply(args: argparse.Namespace) -> None:
-    """InputError before any estimate or write: ``--apply`` to an archive in object storage."""
-    from archive import storage
-
-    if getattr(args, "apply", False) and args.archive is not None and storage.is_url(str(args.archive)):
-        raise InputError("--apply", f"cannot update collections in object storage ({args.archive}: no rename to "
-                         "switch their navigation with)", "leave --apply out and pass the estimates to render "
-                         "(--sync-offset, --boresight), or apply to a copy of the archive on a file system")
-
-
 def run(args: argparse.Namespace) -> int:
     from archive.calibrate.estimate import calibrate, parse_estimate
 
-    _refuse_remote_apply(args)
+    if getattr(args, "apply", False) and args.archive is not None:   # before any estimate
+        from archive.collection import check_updatable
+
+        check_updatable(args.archive)
     if getattr(args, "reference", None):
         return run_reference(args)
     if any(getattr(args, k, None) is not None for k in ("query_bbox", "query_datetime", "query_wavelength")):

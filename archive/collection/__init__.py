@@ -50,14 +50,15 @@ from archive.collection.layout import (COMPLETE, DN_CODEC, FORMAT, FORMAT_VERSIO
 from archive.collection.read import (CheckedDn, CollectionInfo, CorruptChunkError, StoredCalibration, StoredCube,
                                      StoredPoses, content_version, frame_from_attrs, frame_to_attrs, open_dn,
                                      read_attrs, read_downwelling, read_info, read_poses, read_track)
-from archive.collection.update import record_navigation, settle
+from archive.collection.update import check_updatable, record_navigation, settle
 from archive.collection.verify import verify_store
 from archive.collection.write import (TEST_HOLD_AFTER_CHUNKS, ChunkTask, StorePlan, chunk_tasks, finish_store,
                                       hash_file_task, open_partial, publish, store_lock, write_chunk)
 
-__all__ = ["COMPLETE", "DN_CODEC", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS", "SMALL_CODEC", "TEST_HOLD_AFTER_CHUNKS",
-           "CheckedDn", "ChunkTask", "CollectionInfo", "CorruptChunkError", "StorePlan", "StoredCalibration",
-           "StoredCube", "StoredPoses", "array_digest", "chunk_digest", "chunk_lines_for", "chunk_path", "chunk_tasks",
-           "content_version", "finish_store", "frame_from_attrs", "frame_to_attrs", "hash_file_task", "is_complete",
-           "open_dn", "open_partial", "publish", "read_attrs", "read_downwelling", "read_info", "read_poses",
-           "read_track", "record_navigation", "settle", "sha256_file", "store_lock", "verify_store", "write_chunk"]
+__all__ = ["COMPLETE", "DN_CODEC", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS", "SMALL_CODEC",
+           "TEST_HOLD_AFTER_CHUNKS", "CheckedDn", "ChunkTask", "CollectionInfo", "CorruptChunkError", "StorePlan",
+           "StoredCalibration", "StoredCube", "StoredPoses", "array_digest", "chunk_digest", "chunk_lines_for",
+           "chunk_path", "chunk_tasks", "check_updatable", "content_version", "finish_store", "frame_from_attrs",
+           "frame_to_attrs", "hash_file_task", "is_complete", "open_dn", "open_partial", "publish", "read_attrs",
+           "read_downwelling", "read_info", "read_poses", "read_track", "record_navigation", "settle",
+           "sha256_file", "store_lock", "verify_store", "write_chunk"]

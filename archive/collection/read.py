@@ -8,6 +8,7 @@ import json
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -236,22 +237,29 @@ def read_track(store: str | os.PathLike, name: str) -> np.ndarray:
 
 class StoredCalibration:
     """The calibration arrays of a collection (``dark`` [cube, band, sample], ``gain`` [set, band,
-    sample], ``gain_index`` [cube]), opened once: each :meth:`read` then reads only the two rows it
-    needs (opening the group costs more than reading a row: a reader of many cubes keeps one)."""
+    sample], ``gain_index`` [cube]), read whole and checked against their digests once per process for
+    the same recorded digests (:func:`_checked_calibration`: every render task unpickles its own source
+    and makes one of these; reading and hashing a paper flight's dark each time cost ~26 ms a task)."""
 
     def __init__(self, store: str | os.PathLike):
-        group = zarr.open_group(zarr_target(store), mode="r")
-        self.dark, self.gain = group["dark"], group["gain"]
-        attrs = dict(group.attrs)
-        for name in ("dark", "gain"):   # checked whole once (MBs); rows are then read as needed
-            checked_array(store, group, name, attrs)
-        self.gain_index = np.asarray(checked_array(store, group, "gain_index", attrs))
+        digests = dict(zarr.open_group(zarr_target(store), mode="r").attrs).get("array_sha256") or {}
+        self.dark, self.gain, self.gain_index = _checked_calibration(
+            str(store), *(digests.get(n) for n in ("dark", "gain", "gain_index")))
 
     def read(self, cube: int, bands: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
         """Stored dark and gain of ``bands`` of ``cube``: each (len(bands), samples) float32."""
         dark = self.dark[cube]
         gain = self.gain[int(self.gain_index[cube])]
         return dark[list(bands)], gain[list(bands)]
+
+
+@lru_cache(maxsize=2)
+def _checked_calibration(store: str, *digests: str | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(dark, gain, gain_index) of the collection ``store``, each checked (:func:`checked_array`); cached by
+    the store and the digests its attributes record (``digests``: a re-ingest or another store misses)."""
+    group = zarr.open_group(zarr_target(location(store)), mode="r")
+    attrs = dict(group.attrs)
+    return tuple(np.asarray(checked_array(location(store), group, n, attrs)) for n in ("dark", "gain", "gain_index"))
 
 
 def open_dn(store: str | os.PathLike):

@@ -16,6 +16,9 @@ The store is never without its completion marker and never left half rewritten:
    collection (:func:`settle`: every reader, ``verify``, ``catalog``, the next apply), which moves
    the files still in the folder: the renames are idempotent.
 
+Tests SIGKILL an update at ``apply-staged``, ``apply-journal`` and ``apply-moved``
+(:func:`archive.files.test_kill`).
+
 While the renames run (milliseconds) a reader may meet new arrays beside old digests; every small
 array is checked against its digest when read, so it is refused, never used. Collections in object
 storage are refused before anything is written (S3 has no rename to switch with).
@@ -26,7 +29,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
 from pathlib import Path
 
 import numpy as np
@@ -36,22 +38,12 @@ from archive import storage
 from archive.collection.layout import COMPLETE, array_digest, location, zarr_target
 from archive.collection.write import store_lock
 from archive.errors import FormatError, InputError
-from archive.files import LockHeldError, remove_path, write_atomic
+from archive.files import remove_path, test_kill, write_atomic
 
-__all__ = ["journal_path", "record_navigation", "settle"]
+__all__ = ["check_updatable", "journal_path", "record_navigation", "settle"]
 
 #: The arrays an update may replace.
 REPLACEABLE = ("time", "position", "attitude")
-#: Test-only: ``ARCHIVE_TEST_KILL_AT=apply-staged|apply-journal|apply-moved`` makes the process SIGKILL
-#: itself once the new files are staged / the journal is written / the first file is moved.
-TEST_KILL_AT = "ARCHIVE_TEST_KILL_AT"
-
-
-def _test_kill(point: str) -> None:
-    if os.environ.get(TEST_KILL_AT) == point:
-        os.kill(os.getpid(), signal.SIGKILL)
-
-
 def journal_path(store: Path) -> Path:
     """The journal of an update of ``store`` in flight: ``<id>.zarr.apply.json`` beside it."""
     return store.with_name(store.name + ".apply.json")
@@ -61,15 +53,13 @@ def _staging(store: Path) -> Path:
     return store.with_name(f".{store.name}.apply")
 
 
-def _roll_forward(store: Path) -> bool:
+def _roll_forward(store: Path) -> None:
     """Finish an update whose journal exists (the caller holds the lock); remove the staging folder of
-    one killed before its journal. Returns whether anything was left to do."""
+    one killed before its journal."""
     journal, staging = journal_path(store), _staging(store)
     if not journal.exists():
-        if staging.exists():
-            remove_path(staging)   # staged, never committed: the store is as it was
-            return True
-        return False
+        remove_path(staging)   # staged, never committed (or nothing): the store is as it was
+        return
     try:
         files = json.loads(journal.read_text())["files"]
     except (OSError, ValueError, KeyError, TypeError):
@@ -81,10 +71,9 @@ def _roll_forward(store: Path) -> bool:
         src = staging / rel
         if src.exists():
             os.replace(src, store / rel)
-            _test_kill("apply-moved")
+            test_kill("apply-moved")
     journal.unlink()
     remove_path(staging)
-    return True
 
 
 def settle(store: str | os.PathLike, wait: float = 60.0) -> None:
@@ -99,21 +88,24 @@ def settle(store: str | os.PathLike, wait: float = 60.0) -> None:
     cid = store.name.removesuffix(".zarr")
     lock = store_lock(store, f"finishing an interrupted navigation update of {cid}")
     try:
-        lock.acquire(wait=wait)
-    except (LockHeldError, OSError) as exc:
-        if isinstance(exc, LockHeldError):
-            raise
+        lock.acquire(wait=wait)   # a live updater's LockHeldError goes up as it is
+        try:
+            _roll_forward(store)
+        finally:
+            lock.release()
+    except OSError as exc:   # a read-only archive: the lock or the renames refused
         raise FormatError(store, f"collection {cid}: a navigation update (calibrate --apply) was interrupted and "
                           f"cannot be finished here ({exc.strerror or exc})",
                           "open the archive once where it is writable (e.g. 'archive verify') to finish it") from None
-    try:
-        _roll_forward(store)
-    except OSError as exc:
-        raise FormatError(store, f"collection {cid}: a navigation update (calibrate --apply) was interrupted and "
-                          f"cannot be finished here ({exc.strerror or exc})",
-                          "open the archive once where it is writable (e.g. 'archive verify') to finish it") from None
-    finally:
-        lock.release()
+
+
+def check_updatable(where) -> None:
+    """InputError unless ``where`` (a collection store, or the archive holding it) is on a file system: a
+    collection in object storage cannot be given new navigation (no rename to switch it with)."""
+    if storage.is_url(str(where)):
+        raise InputError(where, "calibrate --apply cannot update a collection in object storage (no rename to "
+                         "switch its navigation with)", "leave --apply out and pass the estimates to render "
+                         "(--sync-offset, --boresight), or apply to a copy of the archive on a file system")
 
 
 def record_navigation(store: str | os.PathLike, navigation_params: dict, arrays: dict[str, np.ndarray],
@@ -126,10 +118,7 @@ def record_navigation(store: str | os.PathLike, navigation_params: dict, arrays:
     Returns False, writing nothing, when the collection records exactly these already (an apply
     that landed, run again)."""
     store = location(store)
-    if storage.is_url(store):
-        raise InputError(store, "calibrate --apply cannot update a collection in object storage (no rename "
-                         "to switch its navigation with)", "apply to a copy of the archive on a file system, or "
-                         "pass the estimates to render (--sync-offset, --boresight)")
+    check_updatable(store)
     lock = store_lock(store, f"navigation update of {store.name.removesuffix('.zarr')}")
     lock.acquire(wait=float("inf"))
     try:
@@ -179,9 +168,9 @@ def _record(store: Path, navigation_params: dict, arrays: dict[str, np.ndarray],
     for rel in files:
         with open(staging / rel, "rb") as f:
             os.fsync(f.fileno())
-    _test_kill("apply-staged")
+    test_kill("apply-staged")
     write_atomic(journal_path(store), json.dumps({"files": files}) + "\n")   # the update has happened
-    _test_kill("apply-journal")
+    test_kill("apply-journal")
     _roll_forward(store)
     return True
 

@@ -520,31 +520,33 @@ def _already_ingested(root: ArchiveRoot, plan: StorePlan, directory: str) -> boo
         return False
 
 
-def _disk_full(exc: BaseException) -> bool:
-    """Whether ``exc`` (or what it wraps) says the disk or the quota is full."""
+def _disk_full(exc: BaseException) -> BaseException | None:
+    """The error in ``exc``'s chain (``exc`` or what it wraps) that says the disk or the quota is full, if any."""
     import sqlite3
 
     seen = set()
     while exc is not None and id(exc) not in seen:
         seen.add(id(exc))
         if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
-            return True
+            return exc
         if isinstance(exc, sqlite3.OperationalError) and "full" in str(exc).lower():
-            return True
+            return exc
         exc = exc.__cause__ or exc.__context__
-    return False
+    return None
 
 
 @contextmanager
 def _disk_full_is_an_error(root: ArchiveRoot, cid: str) -> Iterator[None]:
     """A full disk (or quota) while writing the store, its checksums or the catalog (SQLite) becomes
-    one line naming the archive; what was written stays as the partial store, which the rerun resumes."""
+    one line naming the full file (else the full folder) and the archive; what was written stays as the partial
+    store, which the rerun resumes."""
     try:
         yield
     except Exception as exc:
-        if not _disk_full(exc):
+        full = _disk_full(exc)
+        if full is None:
             raise
-        where = _full_path(exc) or _full_folder(root) or root.path
+        where = getattr(full, "filename", None) or _full_folder(root) or root.path   # the full file, else folder
         raise DiskFullError(where, f"the disk is full while ingesting {cid} into {root.path} ({type(exc).__name__}: "
                             f"{' '.join(str(exc).split())})",
                             "free some space, then run the same ingest again: it resumes where it stopped") from None
@@ -566,17 +568,6 @@ def _full_folder(root: ArchiveRoot) -> Path | None:
 
 class DiskFullError(InputError):
     """An ingest stopped by a full disk or quota (its partial store stays, for the rerun to resume)."""
-
-
-def _full_path(exc: BaseException) -> str | None:
-    """The file named by the OSError in ``exc``'s chain (where the disk was full), if any."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        seen.add(id(exc))
-        if isinstance(exc, OSError) and exc.filename is not None:
-            return str(exc.filename)
-        exc = exc.__cause__ or exc.__context__
-    return None
 
 
 def run(args: argparse.Namespace) -> int:

@@ -27,28 +27,17 @@ from __future__ import annotations
 
 import errno
 import os
-import signal
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from archive import storage
 from archive.errors import InputError, OutputExistsError
-from archive.files import FileLock, host_name, path_exists, pid_alive, remove_path, replace_path
+from archive.files import FileLock, host_name, path_exists, pid_alive, remove_path, replace_path, test_kill
 from archive.outputs.base import OutputMeta
 from archive.outputs.quicklook import quicklook_png
 from archive.outputs.registry import output_format
 
 __all__ = ["Output", "RemoteOutput", "unwritable_output"]
-
-
-#: Test-only: ``ARCHIVE_TEST_KILL_AT=after-data`` makes the process SIGKILL itself once an output's
-#: data is renamed into place and before its Item is written (never set outside tests).
-TEST_KILL_AT = "ARCHIVE_TEST_KILL_AT"
-
-
-def _test_kill(point: str) -> None:
-    if os.environ.get(TEST_KILL_AT) == point:
-        os.kill(os.getpid(), signal.SIGKILL)
 
 
 def _temp_owner(rest: str) -> tuple[int | None, str | None]:
@@ -234,7 +223,7 @@ class Output:
         remove_path(self.item_path)   # the old output is no longer complete from here on
         for tmp, final in moves:
             replace_path(tmp, final)
-        _test_kill("after-data")
+        test_kill("after-data")   # (tests: killed after the data is in place, before its Item)
 
     def cleanup(self) -> None:
         """Remove every temporary this output created (never the final paths); end its turn to publish."""
