@@ -8,10 +8,10 @@
     archive.georectify(["demo/flight"], "demo/mosaic.zarr", gsd=0.25, fov=47.5)  # what `archive render` does
 
 Render options are keywords named as the options of ``archive render`` (``--ground-height`` is
-``ground_height``; every name of :data:`archive.options.KEYWORDS`), made into one
-:class:`~archive.options.RenderOptions` (values may be Python values or the CLI's text:
+``ground_height``; every name of :data:`archive.run.options.KEYWORDS`), made into one
+:class:`~archive.run.options.RenderOptions` (values may be Python values or the CLI's text:
 ``wavelengths="650,550"``, ``bands="2,4"``). Errors are :class:`~archive.errors.ArchiveError`
-subclasses with the CLI's one-line messages. The command itself is :mod:`archive.render_command`.
+subclasses with the CLI's one-line messages. The command itself is :mod:`archive.run.command`.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from archive.catalog.root import ArchiveRoot
 from archive.errors import InputError
 
 if TYPE_CHECKING:
-    from archive.cluster import SlurmJobs
+    from archive.run.cluster import SlurmJobs
 
 __all__ = ["Archive", "georectify", "mosaic", "open_archive", "plan", "stack"]
 
@@ -37,7 +37,7 @@ Source = str | os.PathLike
 def _render_keywords(*more: str):
     """The keywords of a rendering function: the render options and ``more``."""
     def valid() -> tuple[str, ...]:
-        from archive.options import KEYWORDS
+        from archive.run.options import KEYWORDS
 
         return (*KEYWORDS, "band_group", "quiet", *more)
     return valid
@@ -110,9 +110,9 @@ def open_archive(path: Source) -> Archive:
 # Rendering
 # ---------------------------------------------------------------------------------------------
 def _options(sources, options: dict):
-    """The :class:`~archive.options.RenderOptions` of an API call (an opened :class:`Archive` stands
+    """The :class:`~archive.run.options.RenderOptions` of an API call (an opened :class:`Archive` stands
     for its path). TypeError for a keyword that is no render option."""
-    from archive.options import RenderOptions
+    from archive.run.options import RenderOptions
 
     if isinstance(options.get("archive"), ArchiveRoot):
         path = options["archive"].path
@@ -122,10 +122,10 @@ def _options(sources, options: dict):
 
 @python_errors("archive.plan", _render_keywords())
 def plan(sources: Source | Sequence[Source], *, band_group: int | None = None, quiet: bool = True, **options):
-    """The plan of a mosaic of ``sources`` (:class:`archive.pipeline.OutputPlan`: opened sources,
+    """The plan of a mosaic of ``sources`` (:class:`archive.run.pipeline.OutputPlan`: opened sources,
     grid, cube meshes and windows, band groups), from metadata only: no pixel read, no GL.
     Keywords as :func:`mosaic`."""
-    from archive import pipeline
+    from archive.run import pipeline
 
     return pipeline.plan(_options(sources, options), band_group=band_group, quiet=quiet)
 
@@ -135,7 +135,7 @@ def mosaic(sources: Source | Sequence[Source], *, band_group: int | None = None,
     """A lazy ``xarray.Dataset`` of the mosaic of ``sources``: nothing is rendered until computed.
 
     sources: raw flight directories and/or collection ids of ``archive`` (one, or a list).
-    Render options (:class:`~archive.options.RenderOptions`, the names of ``archive render``'s
+    Render options (:class:`~archive.run.options.RenderOptions`, the names of ``archive render``'s
     options): gsd (required): output pixel size, m; archive: the archive of the collection ids (a
     path or an opened :class:`Archive`); fov: field of view, degrees (required for raw directories;
     a collection's is the one ingested); calibration: .icp for raw sources; ground_height: m above
@@ -165,7 +165,7 @@ def mosaic(sources: Source | Sequence[Source], *, band_group: int | None = None,
     there is one) and gives the values :func:`georectify` writes, bit for bit. Computing some bands
     renders only their band groups.
     """
-    from archive import pipeline
+    from archive.run import pipeline
 
     return pipeline.mosaic(_options(sources, options), band_group=band_group, quiet=quiet)
 
@@ -203,7 +203,7 @@ def stack(ids_or_query, *, band_group: int | None = None, quiet: bool = True, **
     each flight's first line (UTC, datetime64[ns]) in time order, ``flight`` its id. Computing a
     window (``.sel(x=slice(...), y=slice(...))``, one ``time``) renders only its tiles.
     """
-    from archive.stacks import stack as lazy_stack
+    from archive.run.stacks import stack as lazy_stack
 
     return lazy_stack(_options(_stack_sources(ids_or_query, options), options), band_group=band_group,
                       quiet=quiet)
@@ -221,28 +221,28 @@ def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: So
     renders, assemblies, seconds, graph_seconds, left_out, provenance).
 
     Render options as :func:`mosaic`, plus provenance: also write the per-pixel provenance layers
-    (:mod:`archive.provenance`: variables of a Zarr output, a sibling ``<stem>_provenance.tif`` /
+    (:mod:`archive.geometry.provenance`: variables of a Zarr output, a sibling ``<stem>_provenance.tif`` /
     ``.hdr`` beside a COG / ENVI output; needs overlap 'last' or 'nadir'). And: quicklook: also
-    write an RGB .png; scheduler: a Dask scheduler address, or an :class:`archive.cluster.SlurmJobs`
+    write an RGB .png; scheduler: a Dask scheduler address, or an :class:`archive.run.cluster.SlurmJobs`
     (workers as Slurm jobs, ``--cluster slurm``) (default: a local cluster of ``workers`` processes, 1,
     of ``threads`` threads each, default the cores); overwrite: replace an existing
     output; quiet: no progress bar or notes; per_flight: one output per source,
     ``out/<name>.<format>`` (then the summary holds ``outputs``, and ``out/report.json`` the batch
-    report; each flight succeeds or fails alone, :mod:`archive.batch`); resume: skip per-flight
+    report; each flight succeeds or fails alone, :mod:`archive.run.batch`); resume: skip per-flight
     outputs that are complete with the same recipe (with ``stack``: add the flights the stack lacks);
     tell: called with one line per finished flight; stack: one Zarr ``out`` (time, band, y, x) of
-    all sources on one aligned grid (:mod:`archive.stacks`; the summary holds ``flights``,
+    all sources on one aligned grid (:mod:`archive.run.stacks`; the summary holds ``flights``,
     ``added``, ``skipped``, ``left_out``); tiles: a tile side in metres: one output per tile of the
     output CRS that a source touches, ``out/<EPSG>_<E0>_<N0>.<format>``, each the mosaic of its
-    sources, tiles as the units of a batch (:mod:`archive.tiles`).
+    sources, tiles as the units of a batch (:mod:`archive.run.tiling`).
     Nothing is left at ``out`` when anything fails; the output's STAC Item, ``<out>.json``, is
     written last.
     """
-    from archive import pipeline
+    from archive.run import pipeline
 
     request = _options(sources, options)
     if stack:
-        from archive.stacks import run_stack
+        from archive.run.stacks import run_stack
 
         if quicklook:
             raise InputError("--quicklook", "a stack has no quicklook", "leave --quicklook out with --stack")
@@ -254,14 +254,14 @@ def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: So
         return run_stack(request, out, overwrite=overwrite, resume=resume, scheduler=scheduler, workers=workers,
                          threads=threads, quiet=quiet, tell=tell)
     if tiles is not None:   # each tile a job of its own, in waves
-        from archive.tiles import run_tiles
+        from archive.run.tiling import run_tiles
 
         if quicklook:
             raise InputError("--quicklook", "only one quicklook per command", "leave it out with --tiles")
         return run_tiles(request, out, tiles, format=format, overwrite=overwrite, resume=resume, scheduler=scheduler,
                          workers=workers, threads=threads, quiet=quiet, tell=tell)
     if per_flight:   # each flight a job of its own, in waves
-        from archive.batch import run_batch
+        from archive.run.batch import run_batch
 
         if quicklook:
             raise InputError("--quicklook", "only one quicklook per command", "add --mosaic, or leave it out")

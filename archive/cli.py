@@ -26,14 +26,14 @@ from archive.simulator.arguments import positive_int as _positive_int
 # command name -> "module:function" taking the parsed argparse.Namespace and returning an exit code
 HANDLERS = {
     "simulate": "archive.simulator.command:run",
-    "render": "archive.render_command:run",
+    "render": "archive.run.command:run",
     "info": "archive.ingest.summary:run",
     "ingest": "archive.ingest.command:run",
     "verify": "archive.ingest.verify:run_verify",
     "catalog": "archive.catalog.command:run",
     "view": "archive.view.server:run",
     "calibrate": "archive.calibrate.command:run",
-    "doctor": "archive.doctor:run",
+    "doctor": "archive.run.doctor:run",
 }
 
 
@@ -441,9 +441,9 @@ def exit_now(code: int) -> NoReturn:
     import atexit
     import threading
 
-    timeline = os.environ.get("ARCHIVE_TIMELINE")   # bench/timeline.py (archive.cluster.phase)
+    timeline = os.environ.get("ARCHIVE_TIMELINE")   # bench/timeline.py (archive.run.cluster.phase)
     if timeline:
-        from archive.cluster import phase
+        from archive.run.cluster import phase
 
         phase("main-returned")
     shutdown = getattr(threading, "_shutdown", None)   # what Py_Finalize calls first

@@ -2,12 +2,12 @@
 
 A rule is resolved once from its name (``archive render --overlap``, ``overlap=`` of the API and the
 viewer) by :func:`overlap_rule` into one of the module's singletons, :data:`LAST`, :data:`NADIR` and
-:data:`MEAN`, and handed on whole: :class:`~archive.options.RenderOptions` holds it, the graph
+:data:`MEAN`, and handed on whole: :class:`~archive.run.options.RenderOptions` holds it, the graph
 builders, the task bodies and the viewer ask it, and nobody tests its name again (rio-tiler's
 ``MosaicMethodBase`` instances; STYLE 16 and 18). A rule owns:
 
 - its ``name`` and ``label`` (the CLI's choices and the viewer's list, :data:`RULES`);
-- what it needs: ``needs``, the provenance layer it compares (:mod:`archive.provenance`;
+- what it needs: ``needs``, the provenance layer it compares (:mod:`archive.geometry.provenance`;
   ``view_zenith`` for 'nadir'), and ``key``, that layer or None;
 - what it gives: ``wins`` ('last': the latest capture; 'lowest': the one with the lowest key; None:
   the pixel mixes captures), hence ``single_source`` (whether provenance layers can be written);

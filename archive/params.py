@@ -102,7 +102,7 @@ class RenderParams:
 
 @dataclass(frozen=True)
 class MeshSpec:
-    """How the cube meshes of a render are built: decided once (:func:`archive.pipeline.open_inputs`)
+    """How the cube meshes of a render are built: decided once (:func:`archive.run.pipeline.open_inputs`)
     and passed whole (inputs, output plan, render plan, mesh tasks, graph keys, provenance layers).
 
     fov_deg: across-track field of view of the camera, degrees.
@@ -112,7 +112,7 @@ class MeshSpec:
     epsg: EPSG code of the output grid (meshes of another CRS are transformed into it); None: not
         decided yet (``--crs`` not given: the plan takes the UTM zone holding most of the flights,
         :meth:`with_epsg`).
-    dem: the :class:`archive.dem.DemSpec` the meshes follow instead of flat ground, else None.
+    dem: the :class:`archive.terrain.dem.DemSpec` the meshes follow instead of flat ground, else None.
     gsd: with a DEM, the output pixel size (metres) the terrain segmentation follows; else None.
 
     A frozen dataclass of plain values (and a DemSpec, itself one): it tokenizes by value, so graph
@@ -123,7 +123,7 @@ class MeshSpec:
     ground_height: float | None = None
     max_view_angle: float | None = DEFAULT_MAX_VIEW_ANGLE
     epsg: int | None = None
-    dem: object = None   #: an archive.dem.DemSpec (not imported: params is below the terrain layer)
+    dem: object = None   #: an archive.terrain.dem.DemSpec (not imported: params is below the terrain layer)
     gsd: float | None = None
 
     def __post_init__(self):

@@ -13,7 +13,7 @@ flight once (warm-up: imports, GL context, page cache), then the timed run rende
 band-pixels/s and the ratio to one worker. The GL renderer is whatever EGL gives the workers
 (Mesa llvmpipe on a CPU machine, the NVIDIA driver on a GPU machine: printed).
 
-overhead: the graph ``archive.georectify`` builds (:func:`archive.pipeline.build_output` on the plan of
+overhead: the graph ``archive.georectify`` builds (:func:`archive.run.pipeline.build_output` on the plan of
 :func:`archive.api.plan`) for a paper-size flight description (default 40 cubes x 1000 lines, 300
 bands, 4 cm): the flight's geometry is simulated with few samples and one band (the graph depends on
 the footprints, the grid and the number of band groups, not on the pixels); the plan asks for 300
@@ -85,7 +85,7 @@ def _graph(planned, store_path: Path):
     """The render graph ``archive.georectify`` builds for ``planned``, into a new store at ``store_path``
     (created under its temporary name and removed again: the overhead bench never writes it)."""
     from archive.outputs.publish import Output
-    from archive.pipeline import build_output
+    from archive.run.pipeline import build_output
 
     output = Output(store_path, overwrite=True)
     try:

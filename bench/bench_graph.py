@@ -3,7 +3,7 @@
     python bench/bench_graph.py FLIGHT [FLIGHT ...] [--band-group N ...] [--format tif] [--gsd 0.04]
 
 Per flight and band-group size: plans the render (``archive.api.plan``, as ``archive render``
-does), builds its graph (``archive.pipeline.build_output``: the output's sink, made under its
+does), builds its graph (``archive.run.pipeline.build_output``: the output's sink, made under its
 temporary name and removed after) and materialises it as ``client.compute`` would
 (``dask.base.collections_to_expr(writes).optimize()``: the task dict and the per-key
 annotations sent to the scheduler). Prints the tasks, the writes, the seconds and the process's RSS
@@ -32,7 +32,7 @@ def measure(flight: Path, group: int | None, suffix: str, gsd: float, work: Path
 
     from archive.api import plan
     from archive.outputs.publish import Output
-    from archive.pipeline import build_output
+    from archive.run.pipeline import build_output
     from archive.simulator.command import GROUND_HEIGHT
 
     proc = psutil.Process()

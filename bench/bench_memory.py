@@ -15,7 +15,7 @@ workers), wall, load average before and after. Only this part of ``bench_outputs
 300-band flight, no I/O floor, no GDAL.
 
 ``--worker-env`` adds variables to the workers' pre-spawn environment (Dask's
-``distributed.nanny.pre-spawn-environ``, where :func:`archive.cluster.start_cluster` puts
+``distributed.nanny.pre-spawn-environ``, where :func:`archive.run.cluster.start_cluster` puts
 ``MALLOC_MMAP_THRESHOLD_``), e.g. ``--worker-env MALLOC_ARENA_MAX=2`` to try glibc settings without
 changing the package. ``PYTHONPATH=<another checkout>`` runs that checkout's code (its own
 ``bench/`` is not needed: the flights and this driver are the same).

@@ -2,7 +2,7 @@
 
     python bench/stage_profile.py OUT.json [--workers N] [--threads N] [--stream FILE] -- FLIGHT --out X.hdr --gsd ... (render args)
 
-Starts the local cluster exactly as the command does (:func:`archive.cluster.start_cluster`: the
+Starts the local cluster exactly as the command does (:func:`archive.run.cluster.start_cluster`: the
 same worker processes, threads, GPU resources, LP_NUM_THREADS and malloc settings), installs stage
 timers in the workers, runs ``archive.cli.main(render args + --scheduler ADDRESS)`` in this process
 under ``distributed.get_task_stream``, and writes OUT.json:
@@ -212,7 +212,7 @@ def main(argv=None) -> int:
     from distributed import get_task_stream
 
     from archive.cli import main as cli_main
-    from archive.cluster import start_cluster
+    from archive.run.cluster import start_cluster
 
     t0 = time.perf_counter()
     client, cluster = start_cluster(None, args.workers, lambda *a, **k: None, args.threads)

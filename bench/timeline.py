@@ -8,7 +8,7 @@
 Runs ``python -m archive render FLIGHT --out X ...`` as a user runs it (no ``--scheduler``: the
 command starts its own LocalCluster; the flight of ``bench_outputs.py``'s ``--shape``, simulated once
 into --workdir and reused) with ``ARCHIVE_TIMELINE`` set, so that the command appends its phases to a
-file (:func:`archive.cluster.phase`: command parsed, pipeline imported, inputs opened and the cluster
+file (:func:`archive.run.cluster.phase`: command parsed, pipeline imported, inputs opened and the cluster
 wanted, cluster up, graph submitted, first and last writer task, the cluster's close started and
 ended, output published, main returned, atexit handlers run), and samples every ``--interval`` s
 (default 0.1):

@@ -349,7 +349,7 @@ def test_a_cluster_that_does_not_close_is_a_warning_after_a_batch(flights, sched
     loaded machine) keeps its outcome: its flights done, one warning line naming the output folder,
     no temporary left. The close's error used to be the batch's, and skipped that clean-up."""
     import archive as api
-    from archive import cluster
+    from archive.run import cluster
 
     close = cluster.close_client
 

@@ -188,7 +188,7 @@ def test_collection_apply_records_navigation_params(two_passes, tmp_path, capsys
 
 def test_dem_vertical_offset_over_hills(tmp_path):
     """Over a hills DEM the ground parameter is the DEM's vertical offset: a DEM 5 m too high is found."""
-    from archive.dem import open_dem
+    from archive.terrain.dem import open_dem
 
     directory = tmp_path / "hills"
     truth = simulate_flight(directory, cubes=3, cubes_per_pass=1, bands=BANDS, samples=128, lines=800, seed=7,

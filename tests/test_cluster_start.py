@@ -1,5 +1,5 @@
 """The local cluster started while ``archive render`` imports and plans (issue 37,
-:class:`archive.cluster.ClusterStart`) and closed while it publishes (:class:`ClusterClose`): a
+:class:`archive.run.cluster.ClusterStart`) and closed while it publishes (:class:`ClusterClose`): a
 command that fails before it needs workers leaves none running; an error starting them is the
 one-line error it was; a render through both gives its output and leaves no worker behind."""
 
@@ -11,7 +11,7 @@ import psutil
 import pytest
 
 from archive.cli import main
-from archive.cluster import ClusterStart
+from archive.run.cluster import ClusterStart
 from archive.errors import InputError
 from helpers import FOV
 
@@ -81,7 +81,7 @@ def _warm_facts() -> dict:
 
 def test_workers_warm_up_before_any_task_and_keep_a_configured_preload(tmp_path):
     """A local cluster's workers import what the render tasks need and make their GL context while
-    they start (``archive.cluster.dask_setup``, issue 37), with no task sent; a worker preload of the
+    they start (``archive.run.cluster.dask_setup``, issue 37), with no task sent; a worker preload of the
     Dask configuration still runs too."""
     import importlib
 
@@ -89,7 +89,7 @@ def test_workers_warm_up_before_any_task_and_keep_a_configured_preload(tmp_path)
 
     importlib.import_module("distributed")   # its configuration defaults loaded before the set below, which drops what it adds
 
-    from archive.cluster import start_cluster
+    from archive.run.cluster import start_cluster
 
     script = tmp_path / "mark_worker.py"
     script.write_text("import os\n\n\ndef dask_setup(worker):\n    os.environ['ARCHIVE_TEST_PRELOADED'] = 'yes'\n")

@@ -18,7 +18,7 @@ import xarray as xr
 from archive.cli import main
 from archive.codecs import COMPRESSIONS, DEFAULT_COMPRESSION, compression
 from archive.errors import InputError
-from archive.options import RenderOptions
+from archive.run.options import RenderOptions
 from archive.outputs.cog_check import check_cog
 from archive.outputs.tiff import decode_tile, encode_tile, float_predictor
 from helpers import FOV

@@ -96,7 +96,7 @@ def test_workers_spread_over_the_gpus():
 
 def test_a_local_cluster_gives_each_worker_its_gpu(monkeypatch):
     """A real local cluster of 2 worker processes on a node bound to GPUs 5 and 6: each worker gets one."""
-    from archive.cluster import start_cluster
+    from archive.run.cluster import start_cluster
 
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "5,6")
     client, cluster = start_cluster(None, 2, lambda text: None, threads=1)

@@ -188,7 +188,7 @@ def test_values_pool_gives_large_buffers_back_to_the_system():
     import subprocess
     import sys
 
-    from archive.cluster import MALLOC_MMAP_THRESHOLD
+    from archive.run.cluster import MALLOC_MMAP_THRESHOLD
 
     env = {**os.environ, "MALLOC_MMAP_THRESHOLD_": str(MALLOC_MMAP_THRESHOLD)}
     done = subprocess.run([sys.executable, "-c", _GIVEN_BACK], env=env, capture_output=True, text=True, timeout=120)

@@ -22,9 +22,9 @@ SMALL_KIB = 32
 
 
 def _build(directory, tmp_path, **options):
-    from archive.options import RenderOptions
+    from archive.run.options import RenderOptions
     from archive.outputs.publish import Output
-    from archive.pipeline import build_output, open_inputs, plan_output
+    from archive.run.pipeline import build_output, open_inputs, plan_output
 
     request = RenderOptions(sources=(str(directory),), gsd=GSD, fov=FOV, **options)
     inputs = open_inputs(request, request.check(), mosaic=True)

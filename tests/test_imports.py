@@ -256,19 +256,17 @@ LAYERS = [
     ("foundation", ("archive.errors", "archive.storage", "archive.files", "archive.codecs", "archive.overlap",
                     "archive.params", "archive.grid")),   # storage: where archives live (local paths, s3:// URLs)
     ("formats", ("archive.formats",)),
-    ("geometry", ("archive.navigation", "archive.provenance")),
+    ("geometry", ("archive.geometry",)),
     ("store", ("archive.collection",)),
-    ("terrain", ("archive.dem", "archive.surface")),   # a collection records the DEM it was ingested with
+    ("terrain", ("archive.terrain",)),   # a collection records the DEM it was ingested with
     ("catalog", ("archive.catalog",)),
     ("sources", ("archive.sources",)),
     ("render", ("archive.render",)),
     ("writers", ("archive.outputs",)),
     ("graph", ("archive.graph",)),
-    ("commands", ("archive.options", "archive.cluster", "archive.pipeline", "archive.api", "archive.render_command",
-                  "archive.api_errors",
-                  "archive.ingest", "archive.simulator", "archive.view", "archive.calibrate", "archive.batch", "archive.stacks",
-                  "archive.tiles", "archive.previews",
-                  "archive.doctor")),
+    ("run", ("archive.run",)),   # options, the cluster, single renders, batches, tiles, stacks (one runner)
+    ("features", ("archive.run.command", "archive.api", "archive.api_errors", "archive.ingest", "archive.simulator", "archive.view",
+                  "archive.calibrate", "archive.previews")),
     ("entry", ("archive.cli", "archive.__main__")),
 ]
 #: Edges the layers allow that DESIGN 1 still forbids: (importer prefix, forbidden target prefixes, exempt
@@ -279,7 +277,7 @@ FORBIDDEN = [
     ("archive.formats.", ("archive.",), ("archive.errors", "archive.files", "archive.formats.")),
     ("archive.sources.", ("archive.catalog",), ()),
     ("archive.graph", ("archive.outputs.",), ("archive.outputs.base",)),
-    ("archive.view", ("archive.pipeline", "archive.cli", "archive.render_command", "archive.cluster"), ()),
+    ("archive.view", ("archive.run.pipeline", "archive.cli", "archive.run.command", "archive.run.cluster"), ()),
 ]
 #: The one module of sources/ that resolves collection ids through the archive (and the package
 #: __init__ that re-exports it).
@@ -287,13 +285,13 @@ OPENS = ("archive.sources.open", "archive.sources")
 
 
 def _layer(module: str) -> int | None:
-    """Index in LAYERS of ``module`` (the package ``archive`` itself: the top), None if unlisted."""
+    """Index in LAYERS of ``module`` by its longest listed prefix (the package ``archive`` itself: the top),
+    None if unlisted."""
     if module == "archive":
         return len(LAYERS) - 1
-    for i, (_, prefixes) in enumerate(LAYERS):
-        if any(module == p or module.startswith(p + ".") for p in prefixes):
-            return i
-    return None
+    found = [(len(p), i) for i, (_, prefixes) in enumerate(LAYERS) for p in prefixes
+             if module == p or module.startswith(p + ".")]
+    return max(found)[1] if found else None   # the longest prefix: run.command is a feature over run/
 
 
 def test_every_module_has_a_layer():
@@ -330,9 +328,9 @@ def test_the_layer_rules_catch_what_they_should():
     assert refused("archive.graph.build", "archive.outputs.cog")
     assert refused("archive.graph.lazy", "archive.outputs.zarr")
     assert not refused("archive.graph.build", "archive.outputs.base")
-    assert refused("archive.view.flights", "archive.pipeline") and refused("archive.view.server", "archive.cli")
+    assert refused("archive.view.flights", "archive.run.pipeline") and refused("archive.view.server", "archive.cli")
     assert refused("archive.catalog.index", "archive.sources.raw")
-    assert refused("archive.formats.lcf", "archive.navigation")
+    assert refused("archive.formats.lcf", "archive.geometry.navigation")
     assert refused("archive.sources.raw", "archive.catalog.root")
     assert not refused("archive.sources.open", "archive.catalog.root")
     assert refused("archive.outputs.zarr", "archive.graph.plan") and refused("archive.sources.raw", "archive.render.mesh")
@@ -622,8 +620,8 @@ def test_one_mesh_spec():
 
     import archive.graph.plan as graph_plan
     from archive.params import MeshSpec, NavigationParams, RenderParams
-    from archive.pipeline import Inputs, OutputPlan
-    from archive.provenance import ProvenanceSpec
+    from archive.run.pipeline import Inputs, OutputPlan
+    from archive.geometry.provenance import ProvenanceSpec
 
     copies = {"fov", "fov_deg", "ground_height", "grounds", "max_view_angle", "dem", "crs", "epsg"}
     for record in (NavigationParams, RenderParams, Inputs, OutputPlan, graph_plan.RenderPlan):

@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from archive.errors import RenderError
-from archive.navigation import LocalFrame, Poses
+from archive.geometry.navigation import LocalFrame, Poses
 from archive.render.mesh import build_mesh, mid_exposure
 from helpers import FOV
 

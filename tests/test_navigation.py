@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from archive.errors import NavigationError
 from archive.formats.lcf import LcfData
-from archive.navigation import (
+from archive.geometry.navigation import (
     LocalFrame,
     Track,
     boresight_rotation,

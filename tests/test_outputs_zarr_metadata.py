@@ -16,7 +16,7 @@ import pytest
 from archive.grid import Grid
 from archive.outputs.base import CHUNK
 from archive.outputs.zarr import MosaicStore, add_zarr_layers, geozarr_attrs, mosaic_dataset
-from archive.provenance import ProvenanceSpec
+from archive.geometry.provenance import ProvenanceSpec
 
 GRID = Grid(epsg=32616, gsd=0.1, x0=232051.0, y0=3890317.0, width=1100, height=1030)   # 2 x 2 chunks
 BANDS = [3, 5, 7, 9]

@@ -46,9 +46,9 @@ def test_rules_pickle_by_reference_and_tokenize_by_name():
 
 def test_options_hold_the_rule_and_records_keep_the_name(tmp_path):
     """RenderOptions holds the object; its JSON record (an Item's recipe) and its command line name it."""
-    from archive.batch import recipe_request
+    from archive.run.batch import recipe_request
     from archive.catalog.product import render_command
-    from archive.options import RenderOptions
+    from archive.run.options import RenderOptions
 
     options = RenderOptions.create(["flight"], gsd=0.5, fov=FOV, overlap="nadir")
     assert options.overlap is NADIR and RenderOptions.create(["flight"], gsd=0.5).overlap is LAST

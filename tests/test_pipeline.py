@@ -259,7 +259,7 @@ def test_a_cluster_that_does_not_close_after_a_failed_render_keeps_the_renders_e
     """A failed render whose client's close then fails too (Dask's TimeoutError on a loaded machine)
     reports the render's own error and one warning line, and leaves nothing: the close's error used
     to replace the render's, and skipped the removal of the output's temporaries."""
-    from archive import pipeline
+    from archive.run import pipeline
 
     close = pipeline.close_client
     closes = []
@@ -331,7 +331,7 @@ def test_write_graph_and_lazy_arrays_share_their_nodes(flight, tmp_path, overlap
     import archive
     from archive.api import plan
     from archive.outputs.publish import Output
-    from archive.pipeline import build_output
+    from archive.run.pipeline import build_output
 
     directory, truth = flight
     request = dict(gsd=GSD, fov=FOV, ground_height=truth.ground_height, overlap=overlap, band_group=4)
@@ -437,7 +437,7 @@ def test_local_workers_start_with_the_malloc_threshold(monkeypatch):
     import dask
     import distributed  # noqa: F401  (loads Dask's distributed config)
 
-    from archive.cluster import MALLOC_MMAP_THRESHOLD, MALLOC_TRIM_THRESHOLD, start_cluster
+    from archive.run.cluster import MALLOC_MMAP_THRESHOLD, MALLOC_TRIM_THRESHOLD, start_cluster
 
     before = dict(dask.config.get("distributed.nanny.pre-spawn-environ"))
     # an earlier Dask cluster of this process (here: the session's) left Dask's 64 KiB in the environment
@@ -460,7 +460,7 @@ def test_a_cluster_that_does_not_close_in_time_is_a_warning_after_publishing(fli
     warning line, the values those of the same render, no temporary or lock file left."""
     import xarray as xr
 
-    from archive import cluster
+    from archive.run import cluster
 
     join = cluster.ClusterClose.join
 

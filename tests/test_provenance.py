@@ -22,7 +22,7 @@ import xarray as xr
 from archive.cli import main
 from archive.formats.envi import EnviCube
 from archive.formats.lcf import gps_seconds_to_datetime
-from archive.provenance import LAYERS, sun_position
+from archive.geometry.provenance import LAYERS, sun_position
 from archive.simulator.scene import points_in_polygon
 from helpers import FOV
 

@@ -131,8 +131,8 @@ def test_reingest_then_resume_renders_again(flights, tmp_path):
 def test_a_single_render_records_its_inputs(flights, tmp_path):
     """``archive render ID`` (not a batch) records the same ``archive:recipe.inputs`` a batch does: the
     collection's content version and navigation parameters, so a later batch --resume can judge it."""
-    from archive.options import RenderOptions
-    from archive.pipeline import recipe_inputs
+    from archive.run.options import RenderOptions
+    from archive.run.pipeline import recipe_inputs
 
     _, archive, ids = flights
     out = tmp_path / "one.tif"

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from archive.formats.lcf import read_lcf
 from archive.formats.times import read_times
-from archive.navigation import LocalFrame, Poses, frame_interval, joined, local_frame_for, strip_slices
+from archive.geometry.navigation import LocalFrame, Poses, frame_interval, joined, local_frame_for, strip_slices
 from archive.params import NavigationParams
 from archive.render.mesh import build_mesh
 from archive.sources.navigation import CubeNavigation, FlightNavigation
@@ -51,7 +51,7 @@ def test_juvika_sync_offset_interpolates_in_the_previous_lcf(resonon_samples):
     assert 5 <= early.sum() <= 6
     # ... and lie inside the merged navigation (_12's rows, then _13's): interpolated, not extrapolated
     assert np.all(nav.track.time[0] <= t) and np.all(t <= nav.track.time[-1])
-    from archive.navigation import interpolate_poses
+    from archive.geometry.navigation import interpolate_poses
 
     expected = interpolate_poses(nav.track, t[early], nav.frame)
     np.testing.assert_allclose(poses.position[early], expected.position, atol=1e-9)
@@ -189,7 +189,7 @@ def test_poses_at_cube_starts_with_sync_offsets(tmp_path_factory, sync):
 
 
 def test_turns_up_to_70_degrees_keep_the_output_bounded(tmp_path_factory):
-    from archive import pipeline
+    from archive.run import pipeline
 
     directory, truth = _simulate(tmp_path_factory, "turns", cubes=4, cubes_per_pass=2, lines=160, bank_deg=70.0,
                                  record_turns=True, seed=5)

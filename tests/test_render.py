@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from archive.errors import InputError
 from archive.grid import Grid
-from archive.navigation import LocalFrame, Poses
+from archive.geometry.navigation import LocalFrame, Poses
 from archive.render.context import get_context, gl_info
 from archive.render.mesh import build_mesh
 from archive.render.reference import reference_lookup, reference_values

@@ -76,15 +76,15 @@ def test_slurm_jobs_come_from_options_and_jobqueue_config(monkeypatch):
     import dask
     from dask_jobqueue import SLURMCluster
 
-    from archive.cluster import SlurmJobs
-    from archive.render_command import JOB_OPTIONS
+    from archive.run.cluster import SlurmJobs
+    from archive.run.command import JOB_OPTIONS
 
     assert set(JOB_OPTIONS.values()) == {f.name for f in __import__("dataclasses").fields(SlurmJobs)}
     from archive.cli import build_parser
 
     args = build_parser().parse_args(["render", "x", "--gsd", "1", "--out", "o.zarr", "--cluster", "slurm",
                                       "--jobs", "3", "--job-queue", "gpu", "--job-cores", "8", "--job-gpus", "1"])
-    from archive.render_command import _where
+    from archive.run.command import _where
 
     spec = _where(args)
     assert spec == SlurmJobs(jobs=3, queue="gpu", cores=8, gpus=1)
@@ -99,7 +99,7 @@ def test_slurm_jobs_come_from_options_and_jobqueue_config(monkeypatch):
 
     monkeypatch.setattr("dask_jobqueue.SLURMCluster", Fake)
     monkeypatch.setattr("shutil.which", lambda name: f"/usr/bin/{name}")
-    from archive.cluster import start_slurm
+    from archive.run.cluster import start_slurm
     from archive.errors import InputError
 
     with dask.config.set({"jobqueue.slurm.memory": "24GB", "jobqueue.slurm.account": "lab42",

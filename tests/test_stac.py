@@ -269,7 +269,7 @@ def rendered(tmp_path_factory):
     import archive
     from archive.api import plan
     from archive.formats.lcf import gps_seconds_to_datetime
-    from archive.options import RenderOptions
+    from archive.run.options import RenderOptions
 
     base = tmp_path_factory.mktemp("product")
     flight = base / "flight"
@@ -482,9 +482,9 @@ def test_product_items_of_every_format(tmp_path):
 # ---------------------------------------------------------------------------------------------
 def _round_trip(command: str):
     """The RenderOptions that ``archive render`` would build from ``command``."""
-    from archive.options import KEYWORDS
-    from archive.render_command import render_keywords
-    from archive.options import RenderOptions
+    from archive.run.options import KEYWORDS
+    from archive.run.command import render_keywords
+    from archive.run.options import RenderOptions
 
     args = build_parser().parse_args(shlex.split(command)[1:])
     keywords = render_keywords(args)
@@ -492,7 +492,7 @@ def _round_trip(command: str):
 
 
 def test_render_command_leaves_out_defaults(tmp_path):
-    from archive.options import RenderOptions
+    from archive.run.options import RenderOptions
 
     flight = tmp_path / "my flight"
     flight.mkdir()
@@ -505,7 +505,7 @@ def test_render_command_leaves_out_defaults(tmp_path):
 
 
 def test_render_command_round_trips_every_option(tmp_path, monkeypatch):
-    from archive.options import RenderOptions
+    from archive.run.options import RenderOptions
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "arc").mkdir()

@@ -128,7 +128,7 @@ def test_terrain_mesh_bound_and_hits(hills, ridge):
     """Along every segment, the mesh's map position of a ray (on the chord, perspective-correct) is
     within EDGE_ERROR_PX of the ray's first hit on the DEM; hits are first hits, to a millimetre; the
     DEM surface is the simulator's terrain to a few millimetres."""
-    from archive.dem import open_dem
+    from archive.terrain.dem import open_dem
     from archive.params import NavigationParams
     from archive.render.mesh import EDGE_ERROR_PX, build_mesh
     from archive.sources import RawFlightSource
@@ -186,7 +186,7 @@ def test_terrain_mesh_bound_and_hits(hills, ridge):
 def test_depth_test_keeps_the_nearest_fold():
     """Where one line's triangles fold over each other on the map, the nearer ground wins."""
     from archive.grid import Grid
-    from archive.navigation import LocalFrame
+    from archive.geometry.navigation import LocalFrame
     from archive.render.mesh import Mesh
     from archive.render.renderer import rasterize_lookup
 

@@ -63,7 +63,7 @@ def test_dem_in_lonlat_equals_the_utm_dem(hills, tmp_path):
 
 
 def test_geoid_dem_with_dem_datum_equals_its_ellipsoidal_twin(hills, tmp_path):
-    from archive.dem import open_dem
+    from archive.terrain.dem import open_dem
     from archive.simulator.terrain import write_dem
 
     directory, truth = hills
@@ -101,7 +101,7 @@ def _archive(*args: str) -> subprocess.CompletedProcess:
 def _egm2008_grid_missing() -> bool:
     from pyproj.transformer import TransformerGroup
 
-    from archive.dem import use_system_grids
+    from archive.terrain.dem import use_system_grids
 
     use_system_grids()
     import warnings

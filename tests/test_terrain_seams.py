@@ -121,7 +121,7 @@ def strips_of(source, meshes) -> list[list[int]]:
 
 @pytest.mark.parametrize("scale", [1.0, 0.5], ids=["nominal", "half"])
 def test_no_pixel_centre_lies_in_a_crack(flight, scale):
-    from archive.dem import open_dem
+    from archive.terrain.dem import open_dem
     from archive.graph.plan import cube_meshes
     from archive.grid import Grid
     from archive.params import NavigationParams

@@ -1,4 +1,4 @@
-"""``ARCHIVE_TIMELINE`` (issue 37): the phases ``archive render`` records (:func:`archive.cluster.phase`)
+"""``ARCHIVE_TIMELINE`` (issue 37): the phases ``archive render`` records (:func:`archive.run.cluster.phase`)
 when run as a user runs it, what ``bench/timeline.py`` makes of them and of its CPU samples, and the
 command's exit through :func:`archive.cli.exit_now` (the interpreter's finalization skipped, nothing
 else: atexit handlers run, no worker left behind)."""
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import psutil
 
-from archive.cluster import phase
+from archive.run.cluster import phase
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 import timeline  # noqa: E402  (bench/timeline.py)

@@ -45,7 +45,7 @@ def _ground(args: argparse.Namespace, sources) -> tuple:
         raise InputError("--dem", "a DEM and a numeric --ground-height exclude each other", "give one of them")
     dem, dem_label = None, None
     if args.dem is not None:
-        from archive.dem import open_dem
+        from archive.terrain.dem import open_dem
 
         dem = open_dem(args.dem, args.dem_datum)
         dem_label = str(args.dem)
@@ -104,7 +104,7 @@ def run_reference(args: argparse.Namespace) -> int:
     from archive.calibrate.coregister import COREGISTER_ESTIMATE, coregister
     from archive.calibrate.estimate import parse_estimate
     from archive.errors import ArchiveError
-    from archive.render_command import query_ids
+    from archive.run.command import query_ids
 
     estimate = parse_estimate(args.estimate, default=COREGISTER_ESTIMATE)
     names = list(args.sources or [])

@@ -69,7 +69,7 @@ def coregister(source, reference, fov_deg: float, ground: float, *, dem=None, de
     view ``fov_deg``.
 
     ground: the reference's ground height (m above the ellipsoid), or with ``dem`` (an opened
-    :class:`archive.dem.Dem`) the DEM's vertical offset (m), used for both flights. progress: a
+    :class:`archive.terrain.dem.Dem`) the DEM's vertical offset (m), used for both flights. progress: a
     callable taking a line of text, or None. Returns a :class:`Calibration` whose ``reference``,
     ``between_*`` and ``windows`` fields describe the registration between the two flights.
     InputError (one line, naming both flights) when they do not overlap, the overlap has too little

@@ -268,7 +268,7 @@ def calibrate(sources: Sequence, fov_deg: float, ground: float, *, dem=None, dem
     mounting and sync offset.
 
     ground: start ground height (m above the ellipsoid), or with ``dem`` (an opened
-    :class:`archive.dem.Dem`) the start vertical offset of the DEM (m). progress: a callable
+    :class:`archive.terrain.dem.Dem`) the start vertical offset of the DEM (m). progress: a callable
     taking a line of text, or None. InputError when there is nothing to measure (no overlap, too
     little texture, a flight too short)."""
     estimate = tuple(n for n in PARAM_NAMES if n in set(estimate))

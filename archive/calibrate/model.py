@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial.transform import Slerp
 
 from archive.errors import InputError
-from archive.navigation import boresight_rotation, frame_interval, joined
+from archive.geometry.navigation import boresight_rotation, frame_interval, joined
 from archive.sources.navigation import NAV_GAP
 
 __all__ = ["Params", "Pass", "FlightModel", "PARAM_NAMES"]

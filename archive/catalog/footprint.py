@@ -20,7 +20,7 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 from archive.errors import InputError
-from archive.navigation import DEFAULT_MAX_VIEW_ANGLE, ground_hits, strip_slices, view_angles
+from archive.geometry.navigation import DEFAULT_MAX_VIEW_ANGLE, ground_hits, strip_slices, view_angles
 
 # Outline growth beyond the hull, metres, on top of two along-track line steps.
 MARGIN_M = 0.5
@@ -91,7 +91,7 @@ def swath_edges(position: np.ndarray, attitude: Rotation, fov_deg: float, ground
 def terrain_swath_edges(position: np.ndarray, attitude: Rotation, fov_deg: float, frame, terrain,
                         where: str = "") -> tuple[np.ndarray, np.ndarray, float]:
     """:func:`swath_edges` on the terrain: the first hits of the two edge rays of every line on
-    ``terrain`` (an opened :class:`archive.dem.Dem`; errors name it and the ground it lacks).
+    ``terrain`` (an opened :class:`archive.terrain.dem.Dem`; errors name it and the ground it lacks).
     position: (lines, 3) camera N, E, D metres of ``frame``; returns (left, right) (lines, 2) N, E
     and the relief (m) between the highest and lowest of those hits."""
     t = np.tan(np.radians(fov_deg) / 2.0)
@@ -119,7 +119,7 @@ def terrain_swath_edges(position: np.ndarray, attitude: Rotation, fov_deg: float
 
 
 def strips(time: np.ndarray) -> list[slice]:
-    """Split line indices into strips (the project's one strip rule, :func:`archive.navigation.strip_slices`)."""
+    """Split line indices into strips (the project's one strip rule, :func:`archive.geometry.navigation.strip_slices`)."""
     return strip_slices(time)
 
 
@@ -138,7 +138,7 @@ def flight_footprint(time: np.ndarray, position: np.ndarray, attitude: Rotation,
                      ground_height: float, samples: int, where: str = "", terrain=None) -> Footprint:
     """Footprint of a flight: time (lines,) s; position (lines, 3) N, E, D m; attitude (lines,)
     camera -> NED; frame: the navigation LocalFrame; ground_height: m above the ellipsoid; terrain:
-    an opened :class:`archive.dem.Dem` the swath edges are traced to instead (ground_height unused)."""
+    an opened :class:`archive.terrain.dem.Dem` the swath edges are traced to instead (ground_height unused)."""
     ground_down = None if terrain is not None else frame.origin_alt - float(ground_height)
     # Lines the renderer leaves out (turns: too far off nadir) are left out of the footprint too.
     seen = view_angles(attitude, fov_deg) <= DEFAULT_MAX_VIEW_ANGLE

@@ -302,7 +302,7 @@ def _cli_value(name: str, value: Any) -> str:
 def render_command(request, out: str | os.PathLike, *, quicklook: str | os.PathLike | None = None,
                    provenance: bool = False, overwrite: bool = False) -> str:
     """The ``archive render`` command line (shell-quoted) that renders ``request`` (an
-    :class:`archive.options.RenderOptions`) into ``out`` again: SOURCE... then ``--out``, then
+    :class:`archive.run.options.RenderOptions`) into ``out`` again: SOURCE... then ``--out``, then
     one option per request field that differs from its default (``--ground-height``,
     ``--wavelengths``, ``--sync-offset``...; a field ``x_y`` is option ``--x-y``). Paths (sources
     that exist, ``out``, archive, calibration, white reference, DEM, quicklook) are made absolute;

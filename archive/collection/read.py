@@ -21,7 +21,7 @@ from archive.collection.layout import (COMPLETE, FORMAT, FORMAT_VERSION, NAV_COL
 from archive.errors import FormatError, InputError, MissingInputError
 from archive.formats.envi import EnviHeader, header_from_metadata
 from archive.formats.lcf import LcfData
-from archive.navigation import LocalFrame
+from archive.geometry.navigation import LocalFrame
 
 def frame_to_attrs(frame: LocalFrame) -> dict:
     """The ``frame`` group attribute of a local frame."""

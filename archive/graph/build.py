@@ -189,7 +189,7 @@ def task_group_size(plan: RenderPlan, budget: int = TASK_VALUES_BYTES) -> int:
     fewer than GROUP = 4); a render may hold ``budget`` bytes, and all renders held at once
     (:func:`renders_held`) HELD_VALUES_BYTES less the shared lookups (:func:`shared_lookup_bytes`,
     held all run; at most half of it), scaled down with ``budget`` (small workers get a tenth of
-    their memory as ``budget``, :func:`archive.cluster.task_budget`: the renders they hold at once
+    their memory as ``budget``, :func:`archive.run.cluster.task_budget`: the renders they hold at once
     shrink in proportion). Any size, not multiples of 4 only, so that the renders and lookups held
     stay near HELD_VALUES_BYTES (flat) whatever the flight's length."""
     biggest = max((job.window.width * job.window.height for job in plan.jobs), default=1)
@@ -272,7 +272,7 @@ def build_render_graph(plan: RenderPlan, sources: Sequence, sink, *, mode: str,
     mesh_spec: the :class:`~archive.params.MeshSpec` of a plan that holds its meshes (only for keys;
     default the plan's :attr:`~archive.graph.plan.RenderPlan.mesh_spec`).
     overlap: the rule mosaicking the cubes of a tile (:mod:`archive.overlap`).
-    layers: a :class:`~archive.provenance.ProvenanceSpec` when per-cube provenance layers are needed:
+    layers: a :class:`~archive.geometry.provenance.ProvenanceSpec` when per-cube provenance layers are needed:
     by a rule that compares one (its :attr:`~archive.overlap.OverlapRule.key`) and by ``layers_sink``, the sink the provenance layers
     are written into (one band per layer of ``layers.names``; ``None``: not written). Per cube, one
     layers task (CPU) computes them from the cube's lookup; per output tile one task assembles and

@@ -103,7 +103,7 @@ def mosaic_arrays(plan: RenderPlan, sources: Sequence, *, mode: str, overlap: Ov
     (one band group, CHUNK, CHUNK); saturated: (grid height, grid width) uint8, chunked (CHUNK,
     CHUNK). mesh_spec: the :class:`~archive.params.MeshSpec` of a plan that holds its meshes, only
     for keys (as in :func:`~archive.graph.build.build_render_graph`; default the plan's); layers: the
-    :class:`~archive.provenance.ProvenanceSpec` of the layer the overlap rule compares (its only layer).
+    :class:`~archive.geometry.provenance.ProvenanceSpec` of the layer the overlap rule compares (its only layer).
     """
     key_layer = overlap.key
     if key_layer is not None and layers is None:

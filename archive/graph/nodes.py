@@ -71,7 +71,7 @@ class RenderNodes:
 
     mode: radiometric mode of the renders; mesh_spec: the :class:`~archive.params.MeshSpec` the
     meshes were built from (only for keys; default the plan's :attr:`~archive.graph.plan.RenderPlan.mesh_spec`,
-    which a plan holding its meshes lacks); layers: the :class:`~archive.provenance.ProvenanceSpec`
+    which a plan holding its meshes lacks); layers: the :class:`~archive.geometry.provenance.ProvenanceSpec`
     of the per-cube layers (provenance, or the layer the overlap rule compares), or None.
     """
 

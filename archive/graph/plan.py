@@ -16,7 +16,7 @@ import numpy as np
 
 from archive.errors import InputError, NoLineOnGrid
 from archive.grid import Grid, GridRequest, aligned, boxes_intersect
-from archive.navigation import (DEFAULT_MAX_VIEW_ANGLE, frame_interval, joined, projected_epsg, to_lonlat,
+from archive.geometry.navigation import (DEFAULT_MAX_VIEW_ANGLE, frame_interval, joined, projected_epsg, to_lonlat,
                                 utm_epsg_for)
 from archive.params import MeshSpec
 
@@ -86,7 +86,7 @@ def _continues(source, poses: Sequence, i: int) -> bool:
 
 
 def strip_links(source, poses: Sequence) -> list[bool]:
-    """links[i]: cube i+1 continues cube i's strip (:func:`archive.navigation.joined`: it starts
+    """links[i]: cube i+1 continues cube i's strip (:func:`archive.geometry.navigation.joined`: it starts
     within MAX_JOIN_FRAMES frame intervals of cube i's last line)."""
     return [_continues(source, poses, i) for i in range(len(poses) - 1)]
 
@@ -111,7 +111,7 @@ def cube_mesh(source, cube: int, fov_deg: float, ground_height: float,
     ``max_view_angle`` degrees off nadir or without navigation are left out (see
     :func:`archive.render.mesh.build_mesh`). The mesh is in the source's local frame (its UTM zone).
 
-    terrain: an opened :class:`archive.dem.Dem` instead of the flat ``ground_height`` (m; then
+    terrain: an opened :class:`archive.terrain.dem.Dem` instead of the flat ``ground_height`` (m; then
     ``gsd``, the output pixel in metres, sets the across-track segmentation); poses: every cube's
     poses, when the caller has them (:func:`cube_meshes`)."""
     from archive.render.mesh import build_mesh
@@ -137,7 +137,7 @@ def cube_meshes(source, fov_deg: float, ground_height: float,
                 gsd: float | None = None) -> list:
     """:func:`cube_mesh` of every cube of ``source`` (in cube order).
 
-    terrain: an opened :class:`archive.dem.Dem` instead of the flat ``ground_height`` (then
+    terrain: an opened :class:`archive.terrain.dem.Dem` instead of the flat ``ground_height`` (then
     ``gsd``, the output pixel in metres, sets the across-track segmentation; one error names all the
     ground the DEM lacks under the flight)."""
     poses = [source.poses(i) for i in range(len(source.cubes))]

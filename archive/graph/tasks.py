@@ -172,7 +172,7 @@ OWN_MAPPING_BYTES = 1024**2
 def _new_buffer(n: int) -> np.ndarray:
     """A new (n,) float32 buffer: from numpy (glibc) when small, else an anonymous memory map of
     its own, unmapped (returned to the system) as soon as the pool drops it. glibc serves
-    allocations under its mmap threshold (32 MiB in our workers, :data:`archive.cluster.MALLOC_MMAP_THRESHOLD`)
+    allocations under its mmap threshold (32 MiB in our workers, :data:`archive.run.cluster.MALLOC_MMAP_THRESHOLD`)
     from its heaps, which keep the memory once freed: render values of 5 bands of a paper cube
     (32.2 MB) held the worker 0.1 GB higher than 6-band ones (38.6 MB, mapped) on the 40-cube flight."""
     if n * 4 < OWN_MAPPING_BYTES:
@@ -277,10 +277,10 @@ def lookup_task(mesh, window: Grid, samples: int, *after, count: bool = False):
 
 
 def layers_task(source, cube: int, job: int, lookup, spec, ground: float | None) -> np.ndarray:
-    """The provenance layers ``spec.names`` (:mod:`archive.provenance`) of one cube on its window,
+    """The provenance layers ``spec.names`` (:mod:`archive.geometry.provenance`) of one cube on its window,
     (layers, height, width) float32, NaN where not covered: CPU only, from the cube's lookup and
     navigation (no pixel is read). ground: the flat ground height of its mesh, m (None with a DEM)."""
-    from archive.provenance import cube_layers
+    from archive.geometry.provenance import cube_layers
 
     return cube_layers(source, cube, job, unpacked(lookup), spec, ground)
 

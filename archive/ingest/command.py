@@ -78,7 +78,7 @@ def _terrain_record(src: RawFlightSource, fov_deg: float, dem_path, dem_datum: s
     from scipy.spatial.transform import Rotation
 
     from archive.catalog.footprint import flight_footprint
-    from archive.dem import open_dem
+    from archive.terrain.dem import open_dem
     from archive.sources.ground import dem_record
 
     if ground_height is not None:

@@ -18,7 +18,7 @@ import numpy as np
 
 from archive.errors import InputError
 from archive.formats.lcf import gps_seconds_to_datetime
-from archive.navigation import frame_interval, joined, strip_slices
+from archive.geometry.navigation import frame_interval, joined, strip_slices
 from archive.params import NavigationParams
 from archive.sources import RawFlightSource
 
@@ -29,7 +29,7 @@ def _number(x: float | None, digits: int = 3) -> float | None:
 
 
 def terrain_summary(source: RawFlightSource, fov_deg: float, dem) -> dict[str, Any]:
-    """The terrain under a flight from ``dem`` (an opened :class:`archive.dem.Dem`): every line's
+    """The terrain under a flight from ``dem`` (an opened :class:`archive.terrain.dem.Dem`): every line's
     swath edges and 7 rays between traced to their first hits on it (an error names the DEM and the lon/lat box it does
     not cover, or its holes), the ground under the camera and the camera's height above it (m)."""
     t = math.tan(math.radians(fov_deg) / 2)
@@ -67,7 +67,7 @@ def terrain_summary(source: RawFlightSource, fov_deg: float, dem) -> dict[str, A
 
 def summarize(source: RawFlightSource, fov_deg: float, dem=None) -> dict[str, Any]:
     """Summary of a flight as plain JSON-able values (times s, lengths m, angles deg); with ``dem``
-    (an opened :class:`archive.dem.Dem`) also ``terrain`` (:func:`terrain_summary`)."""
+    (an opened :class:`archive.terrain.dem.Dem`) also ``terrain`` (:func:`terrain_summary`)."""
     cubes = []
     track_length = 0.0
     track_time = 0.0
@@ -201,7 +201,7 @@ def format_summary(s: dict[str, Any]) -> str:
 def run(args: argparse.Namespace) -> int:
     """``archive info DIR|ID [--archive A] [--fov DEG] [--sync-offset S] [--dem FILE] [--json]``; errors
     propagate as ArchiveError. A collection ingested with a DEM is summarised over it (``--dem`` wins)."""
-    from archive.dem import open_dem
+    from archive.terrain.dem import open_dem
     from archive.sources import open_source
     from archive.sources.ground import recorded_dem
 

@@ -1,4 +1,4 @@
-"""What the provenance layers (:mod:`archive.provenance`) of a render say in every output format.
+"""What the provenance layers (:mod:`archive.geometry.provenance`) of a render say in every output format.
 
 - Zarr output: extra (y, x) float32 variables of the same store, one per layer, chunked like the
   values (1024 x 1024), NaN fill, CF attributes (``units``, ``long_name``, ``grid_mapping``; the
@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from archive.provenance import LAYERS, ProvenanceSpec
+from archive.geometry.provenance import LAYERS, ProvenanceSpec
 
 __all__ = ["layer_attrs", "layers_cog_metadata", "layers_metadata", "sibling_path"]
 

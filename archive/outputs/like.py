@@ -65,7 +65,7 @@ def read_grid(path) -> Grid:
 def _grid_of(path, code: str, transform, shape) -> Grid:
     """A :class:`Grid` from a CRS code and a rasterio affine [a, b, c, d, e, f]; InputError unless
     north-up, square pixels, in a projected CRS in metres."""
-    from archive.navigation import projected_epsg
+    from archive.geometry.navigation import projected_epsg
 
     a, b, c, d, e, f = (float(v) for v in transform)
     if b != 0 or d != 0 or a <= 0 or not math.isclose(-e, a, rel_tol=1e-9):

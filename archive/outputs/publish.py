@@ -190,7 +190,7 @@ class Output:
 
     def layers_sink(self, spec):
         """Create the temporary provenance output of the layers ``spec`` (an
-        :class:`~archive.provenance.ProvenanceSpec`; after :meth:`sink`) and return its sink: layer
+        :class:`~archive.geometry.provenance.ProvenanceSpec`; after :meth:`sink`) and return its sink: layer
         variables of a Zarr store, or an ENVI / COG sink of one band per layer for the sibling file."""
         if self._sink is None or not self.provenance:
             raise RuntimeError(f"{self.path}: layers_sink needs provenance=True and the values sink first")

@@ -1,5 +1,5 @@
 """The time stack as an output format: one Zarr store whose data variable is (time, band, y, x),
-one time step per flight (see :mod:`archive.stacks` for how a stack is rendered and resumed).
+one time step per flight (see :mod:`archive.run.stacks` for how a stack is rendered and resumed).
 
 This module owns the store's layout: the arrays besides the slices (:class:`StackLayout`), the chunk
 files of a step (``chunk_file``: v2 '.'-separated keys, v3 'c/'-prefixed), the step's slice moved in

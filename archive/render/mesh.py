@@ -28,7 +28,7 @@ between consecutive cubes of a strip, a cube gets a closing row (the next cube's
 L = lines) and an opening row (the previous cube's last line, L = -1): the halves beyond
 L = lines - 0.5 and below L = -0.5 belong to the neighbours and are discarded by the renderer.
 The caller decides whether neighbours belong to the strip; rows are joined only when they follow
-within MAX_JOIN_FRAMES frame intervals (:func:`archive.navigation.joined`), each row is moved to
+within MAX_JOIN_FRAMES frame intervals (:func:`archive.geometry.navigation.joined`), each row is moved to
 mid-exposure with its OWN line's shutter (so that two cubes of different shutters meet exactly),
 and lines without navigation or looking further than ``max_view_angle`` off nadir are left out:
 the mesh is cut there (no quad spans a gap or a dropped line).
@@ -38,7 +38,7 @@ Terrain meshes (``build_mesh(..., terrain=dem, gsd=...)``)
 
 Segments: each row (line) is split into the same V - 1 across-track segments, at focal-plane
 coordinates u_0 = -t < u_1 < ... < u_{V-1} = +t shared by every row of the cube, and every vertex
-ray is intersected with the DEM (first hit, :meth:`archive.dem.Surface.intersect`). Quads join
+ray is intersected with the DEM (first hit, :meth:`archive.terrain.dem.Surface.intersect`). Quads join
 consecutive rows and neighbouring columns; the sample coordinate s = (u + t) / 2t is
 perspective-correct within a segment (lambda-weighted, as on flat ground).
 
@@ -77,7 +77,7 @@ trivially. Terrain meshes hold it so:
   0 with its opening row, its last line with its closing row).
 - The two rows of a seam are the same two image lines, at the same poses, in both cubes that share
   it. Their split and their ray hits are computed from those two rows only (their own DEM surface,
-  :meth:`archive.dem.Dem.surface_under` of just their rays, refined by the same rule as a cube's), so
+  :meth:`archive.terrain.dem.Dem.surface_under` of just their rays, refined by the same rule as a cube's), so
   both cubes get the same vertices, bit for bit, and the same quads between them: the half each cube
   draws (L below lines - 0.5, or from -0.5) meets the other half along the same line.
 - Where consecutive rows use different splits (a seam row next to a row on the cube's split), the
@@ -101,13 +101,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from archive.errors import InputError, RenderError
-from archive.navigation import DEFAULT_MAX_VIEW_ANGLE, frame_interval, ground_hits, joined, view_angles
+from archive.geometry.navigation import DEFAULT_MAX_VIEW_ANGLE, frame_interval, ground_hits, joined, view_angles
 from archive.render.terrain import (EDGE_ERROR_PX, GRAZING_DEG, MAX_COLUMNS, MAX_LEVELS,  # noqa: F401 (re-exported)
                                     OCCLUSION_PX, START_COLUMN, terrain_mesh)
 
 
 if TYPE_CHECKING:  # pragma: no cover
-    from archive.navigation import LocalFrame, Poses
+    from archive.geometry.navigation import LocalFrame, Poses
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,7 +177,7 @@ class Mesh:
         """The same mesh with its vertices transformed into the projected CRS ``epsg`` (a local
         frame about the vertices' mean, rounded to 1 m): how a flight of another UTM zone is
         rendered into a job's grid. Depths and line/sample coordinates are unchanged."""
-        from archive.navigation import LocalFrame, reproject
+        from archive.geometry.navigation import LocalFrame, reproject
 
         if int(epsg) == self.epsg:
             return self
@@ -295,7 +295,7 @@ def build_mesh(
     max_view_angle: degrees off nadir of a field-of-view edge beyond which a line is left out
     (None: no limit). Lines without navigation, beyond the limit, or whose edge rays miss the
     ground are left out; the mesh is cut there (:attr:`Mesh.breaks`) and ``dropped`` counts them.
-    terrain: None (flat ground at ``ground_height``) or a DEM (:class:`archive.dem.Dem`, anything with
+    terrain: None (flat ground at ``ground_height``) or a DEM (:class:`archive.terrain.dem.Dem`, anything with
     ``surface_under``): then the mesh follows the terrain (module docstring, "Terrain meshes"), ``gsd`` (the output
     pixel, m) setting how finely; ``ground_height`` is not used (NaN in the mesh).
     """

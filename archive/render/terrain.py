@@ -3,7 +3,7 @@
 See :mod:`archive.render.mesh` ("Terrain meshes", "Watertight seams") for the method; this module
 traces the rays, chooses each row's across-track split and triangulates the rows:
 
-- :class:`_Tracer` intersects the rays of rows with one DEM :class:`~archive.dem.Surface`, one
+- :class:`_Tracer` intersects the rays of rows with one DEM :class:`~archive.terrain.dem.Surface`, one
   focal-plane coordinate u at a time (cached);
 - :func:`_split` refines a column split for some rows (straight-edge and occlusion checks);
 - :func:`terrain_mesh` splits the cube's rows with its own split, the two rows of each cube seam with

@@ -246,7 +246,7 @@ class Trajectory:
 _OPTIONAL = ("bank_deg", "record_into_turn_s")
 
 
-# --- projection helpers (pyproj directly, independent of archive.navigation) ----------------------
+# --- projection helpers (pyproj directly, independent of archive.geometry.navigation) ----------------------
 def utm_epsg(lon: float, lat: float) -> int:
     """EPSG code of the WGS 84 / UTM zone holding (lon, lat) degrees (no Norway/Svalbard rules)."""
     zone = int(math.floor((lon + 180.0) / 6.0)) % 60 + 1

@@ -23,7 +23,7 @@ import numpy as np
 from archive.errors import InputError
 from archive.formats.envi import EnviHeader
 from archive.formats.icp import response
-from archive.navigation import LocalFrame, Poses, Track
+from archive.geometry.navigation import LocalFrame, Poses, Track
 from archive.params import NavigationParams
 
 __all__ = ["MODES", "CubeInfo", "FlightSource", "Radiometry", "band_list", "check_cube", "check_mode",

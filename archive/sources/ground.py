@@ -117,7 +117,7 @@ def recorded_dem(terrain: dict | None, where: str):
            "render flat")
     if not path.is_file():
         raise InputError(where, f"was ingested with the DEM {path}, which is no longer there", fix)
-    from archive.dem import DemSpec
+    from archive.terrain.dem import DemSpec
 
     spec = DemSpec.create(path, None if terrain.get("declared") else terrain.get("datum"))
     digest = terrain.get("sha256")

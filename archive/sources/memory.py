@@ -10,7 +10,7 @@ import numpy as np
 
 from archive.errors import InputError, NavigationError
 from archive.formats.envi import EnviHeader, header_from_metadata
-from archive.navigation import Poses, Track, interpolate_poses
+from archive.geometry.navigation import Poses, Track, interpolate_poses
 from archive.params import NavigationParams
 from archive.sources.base import CubeInfo, Radiometry, band_list, check_cube, check_mode, radiometry_for
 

@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 
 from archive.errors import InputError, NavigationError
 from archive.formats.lcf import LcfData
-from archive.navigation import (LocalFrame, Poses, Track, boresight_rotation, interpolate_poses, line_times,
+from archive.geometry.navigation import (LocalFrame, Poses, Track, boresight_rotation, interpolate_poses, line_times,
                                 offset_track, span_text, track_from_lcf)
 from archive.params import NavigationParams
 from archive.sources.base import check_cube

@@ -20,7 +20,7 @@ from archive.formats.lcf import read_lcf
 from archive.formats.trajectory import on_gps_scale, read_trajectory
 from archive.formats.times import read_times
 from archive.sources.irradiance import SkyIrradiance
-from archive.navigation import LocalFrame, local_frame_for
+from archive.geometry.navigation import LocalFrame, local_frame_for
 from archive.params import NavigationParams
 from archive.sources.downwelling import DownwellingFiles
 from archive.sources.base import CubeInfo, Radiometry, band_list, check_mode, radiometry_for

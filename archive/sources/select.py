@@ -1,6 +1,6 @@
 """What to take from opened sources: bands, ground height, white reference.
 
-Shared by the render pipeline (:mod:`archive.pipeline`), the lazy mosaics and the viewer
+Shared by the render pipeline (:mod:`archive.run.pipeline`), the lazy mosaics and the viewer
 (:mod:`archive.view.flights`): the same wavelength picks the same band, ``auto`` the same ground
 height, wherever a flight is drawn.
 """

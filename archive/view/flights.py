@@ -128,7 +128,7 @@ class Flight:
         return self._keep(self._sources, sync_offset, self.opener(params), GEOMETRIES_KEPT)
 
     def terrain(self):
-        """(the :class:`~archive.dem.DemSpec` of the DEM the collection was ingested with, its nominal
+        """(the :class:`~archive.terrain.dem.DemSpec` of the DEM the collection was ingested with, its nominal
         GSD m) or None for a flight drawn on flat ground (raw flights, collections ingested flat)."""
         from archive.sources.ground import recorded_dem
 
@@ -235,8 +235,8 @@ class Flight:
     def view_zenith(self, geometry: Geometry, cube: int, lookup) -> np.ndarray:
         """(height, width) float32 view zenith (deg) of the line each pixel of ``lookup.grid`` shows
         (NaN where not covered): the key of the 'nadir' rule, computed as ``archive render
-        --provenance`` does (:func:`archive.provenance.cube_layers`)."""
-        from archive.provenance import ProvenanceSpec, cube_layers
+        --provenance`` does (:func:`archive.geometry.provenance.cube_layers`)."""
+        from archive.geometry.provenance import ProvenanceSpec, cube_layers
 
         key = (self.id, "view_zenith", geometry.ground_height, geometry.source.params.sync_offset, geometry.gsd,
                cube, lookup.grid)

@@ -23,7 +23,7 @@ def point_spectrum(flight, lon: float, lat: float, gsd: float, query: ViewQuery)
     grid at ``gsd`` (UTM, corners on multiples of ``gsd``) holding the point, rendered alone
     by the same two passes (bit-identical values), with the cube, line and sample it shows."""
     from archive.formats.lcf import gps_seconds_to_datetime
-    from archive.navigation import project, to_lonlat
+    from archive.geometry.navigation import project, to_lonlat
     from archive.render.renderer import Lookup, rasterize_lookup, render_lookup
 
     geometry = flight.geometry(query.ground_height, query.sync_offset, gsd)

@@ -2,7 +2,7 @@
 shown one time step at a time, values read from the stack's Zarr (no rendering: what the page
 shows is what the stack holds).
 
-:class:`StackView` reads a stack written by ``archive render --stack`` (:mod:`archive.stacks`):
+:class:`StackView` reads a stack written by ``archive render --stack`` (:mod:`archive.run.stacks`):
 its description (:meth:`~StackView.info`: time steps, bands, grid and footprint), a Web-Mercator
 tile of one time step (:meth:`~StackView.values`: each tile pixel takes the value of the stack pixel
 under its centre, nearest neighbour, so every value shown is one of the Zarr's; :meth:`~StackView.png`

@@ -10,7 +10,7 @@ tile (``--bounds E0,N0,E0+SIZE,N0+SIZE --align``), with its STAC Item listing th
 (:func:`archive.graph.plan.plan_render`), so the tiles stitched together equal one render of their
 union with ``--bounds ... --align``, bit for bit: no seams, no tile-edge effects.
 
-Tiles are the units of a batch (:func:`archive.batch.run_batch`): each succeeds or fails alone,
+Tiles are the units of a batch (:func:`archive.run.batch.run_batch`): each succeeds or fails alone,
 ``DIR/report.json``, ``--resume`` (a tile whose flights changed is another recipe: ``--resume
 --overwrite`` renders those again and skips the others) and waves, as for flights.
 """
@@ -78,7 +78,7 @@ def plan_tiles(options, nav, size: int, say: Callable[[str], None] | None = None
     field of view ``fov``, deg, decided for all of them): every tile of ``size`` m
     that some cube window of some flight touches, in the CRS ``options.crs`` or the UTM zone most
     flights are in; with ``options.bounds`` only the tiles meeting it. Row-major from the north-west."""
-    from archive.pipeline import open_inputs, plan_output
+    from archive.run.pipeline import open_inputs, plan_output
 
     say = say or (lambda text: None)
     alone = [dataclasses.replace(options.with_sources([s]), bounds=None, align=False, like=None)
@@ -119,18 +119,18 @@ def run_tiles(options, out, size, *, format: str = "zarr", overwrite: bool = Fal
               scheduler=None, workers: int | None = None, threads: int | None = None, quiet: bool = True,
               tell: Callable[[str], None] | None = None) -> dict:
     """Render the tiles of ``options`` (:func:`plan_tiles`) into ``out/<EPSG>_<E0>_<N0>.<format>``, each
-    tile a unit of :func:`archive.batch.run_batch` (its summary, with ``tiles``: the tile names)."""
+    tile a unit of :func:`archive.run.batch.run_batch` (its summary, with ``tiles``: the tile names)."""
     from pathlib import Path
 
-    from archive.batch import run_batch
-    from archive.options import check_gsd
+    from archive.run.batch import run_batch
+    from archive.run.options import check_gsd
 
     check_gsd(options.gsd)
     if options.like is not None:
         raise InputError("--tiles", "tiles have their own grids, edges on multiples of the tile side",
                          "leave --like out (--bounds selects the tiles)")
     size = check_size(size, options.gsd)
-    from archive.pipeline import field_of_view
+    from archive.run.pipeline import field_of_view
 
     nav = options.check()
     tiles = plan_tiles(options, nav, size, fov=field_of_view(options))   # one field of view for all the tiles

@@ -10,7 +10,7 @@ so that ``--like X.zarr`` takes its grid.
 - **Grid.** One aligned grid (pixel edges on multiples of the GSD): the union of the flights'
   footprints in the UTM zone holding most flights (``--crs`` forces one), or ``--bounds`` (snapped
   outward), or ``--like`` (taken whole). Each slice is its flight rendered alone onto that grid, by
-  the same steps as ``archive render ID --like X.zarr`` (:func:`archive.pipeline.open_inputs`,
+  the same steps as ``archive render ID --like X.zarr`` (:func:`archive.run.pipeline.open_inputs`,
   ``plan_output``, ``build_output``): the same values, bit for bit.
 - **Slice by slice.** Chunks are (1 flight, 1 band, 1024, 1024): a flight is rendered into a
   temporary single-flight store, its chunk files are moved into the stack at its time index, then
@@ -29,7 +29,7 @@ so that ``--like X.zarr`` takes its grid.
   (a request with other options is refused unless ``--overwrite``). Flights that have no line on the
   grid are left out with a note.
 - **Memory.** Flights enter the scheduler in waves, as batches do: at most
-  :func:`archive.cluster.flight_slots` flights at once (each rendering into its own temporary
+  :func:`archive.run.cluster.flight_slots` flights at once (each rendering into its own temporary
   slice store), the next submitted when the earliest is committed; the client holds the plans of
   the wave only. Memory does not grow with the number of flights (bench/bench_stack.py).
 
@@ -101,7 +101,7 @@ def survey(options, nav, sources: Sequence[str], say=None, footprints: bool = Tr
     """Open (and with ``footprints`` plan) each flight of ``sources`` alone, one at a time (metadata
     only: poses, no pixel), with the field of view ``fov`` (deg) decided for all of them; in time
     order (first line, then name)."""
-    from archive.pipeline import open_inputs, plan_output
+    from archive.run.pipeline import open_inputs, plan_output
 
     say = say or (lambda text: None)
     out = []
@@ -123,11 +123,11 @@ def stack_grid(options, nav, flights: Sequence[_Surveyed], say=None, fov: float 
     outward to multiples of the GSD, in ``options.crs`` or the UTM zone most flights' grids are in
     (ties: the lowest EPSG code; a flight of another zone is planned again in it, with the field of
     view ``fov``, deg)."""
-    from archive.pipeline import open_inputs, plan_output
+    from archive.run.pipeline import open_inputs, plan_output
 
     say = say or (lambda text: None)
     if options.like is not None:
-        from archive.options import grid_request
+        from archive.run.options import grid_request
 
         return grid_request(options).like
     epsgs = [f.epsg for f in flights]
@@ -149,7 +149,7 @@ def stack_grid(options, nav, flights: Sequence[_Surveyed], say=None, fov: float 
 # ---------------------------------------------------------------------------------------------
 def _request_json(options) -> dict:
     """The stack's recipe: the request without its sources (a resume may add flights)."""
-    from archive.batch import recipe_request
+    from archive.run.batch import recipe_request
 
     return recipe_request(dataclasses.replace(options, sources=()))
 
@@ -193,7 +193,7 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
     "renders" (render tasks run), "width", "height", "gsd", "epsg", "bands", "seconds"}``.
     ArchiveError before anything is written for problems of the whole request."""
     from archive.outputs.publish import Output
-    from archive.pipeline import field_of_view, progress_lines
+    from archive.run.pipeline import field_of_view, progress_lines
 
     started = time.perf_counter()
     tell = tell or (lambda line: None)
@@ -229,10 +229,10 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
 def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *, overwrite: bool, resume: bool,
                       scheduler, workers, threads, quiet: bool) -> dict:
     """:func:`run_stack` once the stack's lock is held."""
-    from archive.cluster import close_client, closed_or_warned, flight_slots, start_cluster, task_budget, \
+    from archive.run.cluster import close_client, closed_or_warned, flight_slots, start_cluster, task_budget, \
         wait_for_writers
     from archive.outputs.publish import Output
-    from archive.pipeline import build_output, open_inputs, plan_output
+    from archive.run.pipeline import build_output, open_inputs, plan_output
 
     for tmp in out.parent.glob(f"..{out.name}.slice-*.zarr.partial-*"):   # and their slice stores
         Output(tmp.parent / tmp.name[1:].split(".partial-")[0], overwrite=True).check()
@@ -379,9 +379,9 @@ def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *
 
 
 def _test_hold(added: int) -> None:
-    """Test-only: with ``ARCHIVE_TEST_HOLD_AFTER=N[:PATH]`` (:data:`archive.batch.TEST_HOLD_AFTER`,
+    """Test-only: with ``ARCHIVE_TEST_HOLD_AFTER=N[:PATH]`` (:data:`archive.run.batch.TEST_HOLD_AFTER`,
     :func:`archive.files.test_hold`) a stack waits once N flights are committed (never set outside tests)."""
-    from archive.batch import TEST_HOLD_AFTER
+    from archive.run.batch import TEST_HOLD_AFTER
     from archive.files import test_hold
 
     test_hold(TEST_HOLD_AFTER, added)
@@ -504,7 +504,7 @@ def stack(options, *, band_group: int | None = None, quiet: bool = True):
     it (dask culls the other tiles' tasks; a tile no cube of a flight touches is NaN without GL)."""
     import xarray as xr
 
-    from archive.pipeline import client_budget, field_of_view, plan as plan_of, planned_dataset, progress_lines
+    from archive.run.pipeline import client_budget, field_of_view, plan as plan_of, planned_dataset, progress_lines
 
     nav = options.check()
     fov = field_of_view(options)   # one field of view for all the flights

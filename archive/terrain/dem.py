@@ -23,7 +23,7 @@ centres (a pixel covers its area: nodes up to half a pixel beyond the outer cent
 value). The geoid separation is added the same way (it varies over kilometres). The terrain is the
 bilinear interpolant of those nodes: :class:`Surface`.
 
-Ray hits: :mod:`archive.surface` (:meth:`Surface.intersect`).
+Ray hits: :mod:`archive.terrain.surface` (:meth:`Surface.intersect`).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from archive.errors import FormatError, InputError, MissingInputError
-from archive.surface import HIT_TOLERANCE, Surface, bilinear, flat_points  # noqa: F401 (re-exported)
+from archive.terrain.surface import HIT_TOLERANCE, Surface, bilinear, flat_points  # noqa: F401 (re-exported)
 
 __all__ = ["DATUMS", "Dem", "DemSpec", "Surface", "open_dem"]
 
@@ -423,7 +423,7 @@ class Dem:
 
     def check_flight(self, poses, fov_deg: float, rays: int = 9) -> None:
         """:meth:`check_covers` for the swath of every line of ``poses`` (a sequence of
-        :class:`archive.navigation.Poses` of one frame; lines without navigation skipped): ``rays``
+        :class:`archive.geometry.navigation.Poses` of one frame; lines without navigation skipped): ``rays``
         rays across each line's field of view, edges included."""
         t = math.tan(math.radians(fov_deg) / 2)
         origins, dirs = [], [[] for _ in range(rays)]

@@ -87,7 +87,7 @@ class ProvenanceSpec:
     """What the per-cube layers of one output need besides the cube: the output CRS, the time
     reference (``reference_gps``: GPS seconds on the sources' .lcf scale of ``reference_utc``), the
     cube table (one dict per job, in job order), the ground (``ground``: the flat height, m, None
-    with a DEM; or ``dem``, the :class:`archive.dem.DemSpec`: the render's
+    with a DEM; or ``dem``, the :class:`archive.terrain.dem.DemSpec`: the render's
     :class:`~archive.params.MeshSpec`'s) and the layers to compute (all of :data:`LAYERS`, or only the
     nadir rule's key)."""
 
@@ -152,7 +152,7 @@ def _line_geometry(source, cube: int, spec: ProvenanceSpec):
     the flight's own UTM zone (its local frame's: conformal, scale within 0.04 %, so its metres are
     ground metres whatever the output CRS), that zone's EPSG, the grid bearing of true north there
     (rad) and the sun's (zenith, azimuth), degrees."""
-    from archive.navigation import grid_convergence, to_lonlat
+    from archive.geometry.navigation import grid_convergence, to_lonlat
 
     info = source.cubes[cube]
     poses = source.poses(cube, delay=(info.shutter_ms or 0.0) / 2000.0)
@@ -222,7 +222,7 @@ def cube_layers(source, cube: int, job: int, lookup, spec: ProvenanceSpec, groun
         # another output CRS (--crs, a flight of another zone): the pixel centres in the flight's
         # zone, whose metres are ground metres (an output CRS's may not be: Web Mercator's are 1.2
         # ground metres at 35 degrees)
-        from archive.navigation import reproject
+        from archive.geometry.navigation import reproject
 
         e, n = reproject(grid.x0 + x[0, cols].astype(float), grid.y0 + y[rows, 0].astype(float),
                          spec.epsg, frame_epsg)

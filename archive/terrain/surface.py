@@ -1,7 +1,7 @@
 """Terrain surfaces in a flight's frame, and the first hits of rays on them.
 
 A :class:`Surface` holds heights (m above the ellipsoid) on a north-up grid of nodes of a UTM zone,
-bilinear in between; :meth:`archive.dem.Dem.surface` makes one from a DEM.
+bilinear in between; :meth:`archive.terrain.dem.Dem.surface` makes one from a DEM.
 
 Ray hits (:meth:`Surface.intersect`): the FIRST point where a ray meets the terrain, to 0.1 mm. A
 ray is marched from where it passes the highest node to where it passes the lowest, by steps that

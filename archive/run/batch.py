@@ -15,7 +15,7 @@
 - **Resume.** With ``resume``, a flight whose output is complete (its STAC Item, written last,
   exists) and whose recipe equals this request is skipped: the same options and sources
   (``archive:recipe.request``) AND the same inputs (``archive:recipe.inputs``: each source's content
-  version and navigation parameters, :func:`archive.pipeline.recipe_inputs`; a flight re-ingested with another sync
+  version and navigation parameters, :func:`archive.run.pipeline.recipe_inputs`; a flight re-ingested with another sync
   offset, or calibrated, is not the same recipe: its output is rendered again). An output without
   its Item (killed while publishing; a replaced output loses its old Item before its new data lands)
   is rendered again, and temporaries of killed runs are removed. A complete output made with other
@@ -25,7 +25,7 @@
   the same ``DIR`` stops at once with one line naming who holds it.
 - **Full disk.** A report that cannot be written (disk full) costs a warning while flights go on,
   and is written again at the next rewrite; if the last one fails, one line says so (exit non-zero).
-- **Waves.** At most :func:`archive.cluster.flight_slots` flights are in the scheduler at once (from
+- **Waves.** At most :func:`archive.run.cluster.flight_slots` flights are in the scheduler at once (from
   the workers' render slots and memory, counted again as workers come and go): the next flight is
   submitted when one finishes, so the tasks the scheduler holds, the submission time and the
   client's memory do not grow with the batch.
@@ -81,7 +81,7 @@ class Flight:
     left: int = 0
     started: float = 0.0
     remote: object = None   #: its :class:`~archive.outputs.publish.RemoteOutput` when --out is an s3:// folder
-    inputs: list | None = None   #: :func:`archive.pipeline.recipe_inputs` when the batch was decided (the Item records it)
+    inputs: list | None = None   #: :func:`archive.run.pipeline.recipe_inputs` when the batch was decided (the Item records it)
     note: str | None = None   #: why a complete output of the same request is rendered again
     properties: dict | None = None   #: more properties of its Item (a tile's ``archive:tile``)
 
@@ -252,17 +252,17 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
               units: Sequence[tuple[str, object, dict]] | None = None) -> dict:
     """Render every source of ``options`` into ``out/<name>.<format>``, each flight on its own (see
     the module's docstring). ``tell(line)`` gets one line per flight as it finishes; ``wave``: flights
-    in the scheduler at once (default :func:`archive.cluster.flight_slots`). Returns ``{"outputs":
+    in the scheduler at once (default :func:`archive.run.cluster.flight_slots`). Returns ``{"outputs":
     [per flight: id, status, path, error, seconds and, when done, the output's summary], "done",
     "skipped", "failed", "seconds", "graph_seconds", "submit_seconds" (opening, planning, building
     and submitting the flights), "report", "wave", "peak_tasks" (futures held at once)}``. Raises an
     ArchiveError before anything is rendered for problems of the whole request (``out``, ``format``,
     outputs that may not be replaced). ``units``: instead of one output per source, one output per
-    ``(name, request, Item properties)`` (a tile of :mod:`archive.tiles`: the mosaic of its sources)."""
+    ``(name, request, Item properties)`` (a tile of :mod:`archive.run.tiling`: the mosaic of its sources)."""
     from archive.outputs.publish import Output
     from archive.outputs.registry import format_named
-    from archive.options import check_gsd
-    from archive.pipeline import recipe_inputs
+    from archive.run.options import check_gsd
+    from archive.run.pipeline import recipe_inputs
 
     started = time.perf_counter()
     check_gsd(options.gsd)
@@ -395,9 +395,9 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
     from distributed import LocalCluster, as_completed
     from tqdm import tqdm
 
-    from archive.cluster import (close_client, closed_or_warned, flight_slots, start_cluster, task_budget,
+    from archive.run.cluster import (close_client, closed_or_warned, flight_slots, start_cluster, task_budget,
                                  wait_for_writers)
-    from archive.pipeline import progress_lines
+    from archive.run.pipeline import progress_lines
 
     say = progress_lines(quiet)
     client, cluster = start_cluster(scheduler, workers, say, threads)
@@ -517,7 +517,7 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
 
 @dataclass
 class _FlightJob:
-    """What :func:`archive.pipeline.publish` needs of a flight: output, plan, sink, options (and the
+    """What :func:`archive.run.pipeline.publish` needs of a flight: output, plan, sink, options (and the
     renderers the workers used)."""
 
     output: object
@@ -528,10 +528,10 @@ class _FlightJob:
 
 
 def _publish(flight: Flight, client) -> None:
-    """:func:`archive.pipeline.publish` of a flight, whose Item's recipe also records the inputs it
+    """:func:`archive.run.pipeline.publish` of a flight, whose Item's recipe also records the inputs it
     was rendered from (``archive:recipe.inputs``, what ``--resume`` compares besides the request):
     the data renamed into place (an old Item removed first), then the Item, last."""
-    from archive.pipeline import publish, worker_renderers
+    from archive.run.pipeline import publish, worker_renderers
 
     job = flight.job
     job.renderers = worker_renderers(client)   # [] when a worker cannot say: a record, never a failure
@@ -554,7 +554,7 @@ def _timed_prepare(flight: Flight, budget: int, say) -> tuple[_FlightJob, object
 
 def _prepare(flight: Flight, budget: int, say) -> tuple[_FlightJob, object]:
     """Open, plan and build one flight (metadata only; its sink created under temporary names)."""
-    from archive.pipeline import build_output, open_inputs, plan_output
+    from archive.run.pipeline import build_output, open_inputs, plan_output
 
     recipe = flight.recipe
     nav = recipe.check()

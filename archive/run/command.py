@@ -1,4 +1,4 @@
-"""``archive render``: the parsed options made into one :class:`~archive.options.RenderOptions`
+"""``archive render``: the parsed options made into one :class:`~archive.run.options.RenderOptions`
 (catalog queries resolved into collection ids) and written by :func:`archive.georectify`; prints a
 summary. Batch jobs over the catalog too (one output per flight unless ``--mosaic``).
 """
@@ -38,15 +38,15 @@ def query_ids(args: argparse.Namespace) -> list[str] | None:
 
 #: Options of ``archive render`` that say how to run, not what to render.
 RUN_KEYWORDS = ("quicklook", "scheduler", "workers", "threads", "overwrite", "quiet", "format", "resume")
-#: ``--cluster slurm``'s options (parser destinations) and the :class:`~archive.cluster.SlurmJobs` fields they set.
+#: ``--cluster slurm``'s options (parser destinations) and the :class:`~archive.run.cluster.SlurmJobs` fields they set.
 JOB_OPTIONS = {"jobs": "jobs", "job_queue": "queue", "job_cores": "cores", "job_memory": "memory",
                "job_walltime": "walltime", "job_gpus": "gpus"}
 
 
 def _where(args: argparse.Namespace):
-    """Where to run: ``--scheduler``'s address, a :class:`~archive.cluster.SlurmJobs` for
+    """Where to run: ``--scheduler``'s address, a :class:`~archive.run.cluster.SlurmJobs` for
     ``--cluster slurm``, or None (a local cluster)."""
-    from archive.cluster import SlurmJobs
+    from archive.run.cluster import SlurmJobs
 
     given = {field: getattr(args, dest, None) for dest, field in JOB_OPTIONS.items()}
     given = {field: value for field, value in given.items() if value is not None}
@@ -65,11 +65,11 @@ def _where(args: argparse.Namespace):
 
 def render_keywords(args: argparse.Namespace, scheduler=None) -> dict:
     """The :func:`archive.georectify` keywords of parsed ``archive render`` options: every render
-    option (:data:`archive.options.KEYWORDS`, the parser's destinations of the same names) and how
+    option (:data:`archive.run.options.KEYWORDS`, the parser's destinations of the same names) and how
     to run; catalog queries resolved (matching ids added to the sources; one output per flight
     unless ``--mosaic``). ``scheduler``: where to run instead of the options' (a
-    :class:`~archive.cluster.ClusterStart` already under way)."""
-    from archive.options import KEYWORDS
+    :class:`~archive.run.cluster.ClusterStart` already under way)."""
+    from archive.run.options import KEYWORDS
     from archive.outputs.registry import format_named
 
     format_named(args.format)   # an unknown --format: one line, before anything is opened
@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     """``archive render``: :func:`archive.georectify` with the parsed options; prints a one-paragraph
     summary (batch mode: one line per flight as it finishes, done / skipped / failed with its reason,
     then the totals; exit code 1 when a flight failed)."""
-    from archive.cluster import ClusterStart, SlurmJobs, phase
+    from archive.run.cluster import ClusterStart, SlurmJobs, phase
 
     phase("command")
     # The workers (or the connection to --scheduler) start now, while this process imports the
@@ -122,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _say(args: argparse.Namespace):
-    """The progress-line ``say`` of :func:`archive.pipeline.progress_lines` (stderr through
+    """The progress-line ``say`` of :func:`archive.run.pipeline.progress_lines` (stderr through
     ``tqdm.write``; nothing with --quiet), without importing the pipeline."""
     def say(text: str) -> None:
         if not args.quiet:
@@ -135,8 +135,8 @@ def _say(args: argparse.Namespace):
 
 def _run(args: argparse.Namespace, starting) -> int:
     from archive.api import georectify
-    from archive.cluster import phase
-    from archive.pipeline import describe
+    from archive.run.cluster import phase
+    from archive.run.pipeline import describe
 
     from tqdm import tqdm
 

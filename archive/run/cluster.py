@@ -541,7 +541,7 @@ def execute(client, graph, quiet: bool, shared: bool) -> None:
 
     phase("graph-submit")
     futures = client.compute(list(graph.writes))
-    done = as_completed(futures, loop=client.loop)   # not the default client's loop (archive.batch)
+    done = as_completed(futures, loop=client.loop)   # not the default client's loop (archive.run.batch)
     del futures  # only as_completed holds them: results are released as soon as they are counted
     try:
         with tqdm(total=len(graph), desc="render", unit="task", disable=quiet, file=sys.stderr) as bar:
@@ -576,7 +576,7 @@ def task_budget(client) -> int:
 
 
 def flight_slots(client, budget: int) -> int:
-    """Flights a batch keeps in the scheduler at once (its waves, :mod:`archive.batch`): the render
+    """Flights a batch keeps in the scheduler at once (its waves, :mod:`archive.run.batch`): the render
     slots of the workers (their 'GPU' resources), at least 2 so that one flight is planned and
     published while another renders, and at most what the workers' memory holds (a flight holds
     about ``RENDERS_AHEAD`` + 2 renders of ``budget`` bytes at a time)."""

@@ -1,6 +1,6 @@
 """The options of one render, typed and checked once: :class:`RenderOptions`.
 
-``archive render`` (:mod:`archive.render_command`), the library (:func:`archive.georectify`,
+``archive render`` (:mod:`archive.run.command`), the library (:func:`archive.georectify`,
 :func:`archive.mosaic`, :func:`archive.api.plan`) build the same object with
 :meth:`RenderOptions.create`, from Python values or the command line's text; its defaults are the
 defaults (:data:`~archive.params.DEFAULT_MAX_VIEW_ANGLE` for the view-angle limit). Checks that read
@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from archive.errors import InputError, MissingInputError
-from archive.navigation import projected_epsg
+from archive.geometry.navigation import projected_epsg
 from archive.overlap import LAST, RULES, OverlapRule, overlap_rule
 from archive.params import DEFAULT_MAX_VIEW_ANGLE, NavigationParams
 from archive.sources.base import MODES
@@ -138,9 +138,9 @@ class RenderOptions:
     'last' | 'nadir' | 'mean'); crs: the output's projected CRS (None: the UTM zone holding most
     of the flights); max_view_angle: degrees off nadir at the field-of-view edge beyond which lines
     are left out of the meshes (turns); dem: a DEM GeoTIFF (any CRS) the meshes follow instead of
-    the flat ground (exclusive with a numeric ground_height; :mod:`archive.dem`); dem_datum: its
+    the flat ground (exclusive with a numeric ground_height; :mod:`archive.terrain.dem`); dem_datum: its
     heights' vertical datum when its CRS does not declare one ('ellipsoid' | 'egm96' | 'egm2008');
-    provenance: also write the per-pixel provenance layers (:mod:`archive.provenance`; written
+    provenance: also write the per-pixel provenance layers (:mod:`archive.geometry.provenance`; written
     outputs only); zarr_format: 2 (default: what GDAL 3.10, hence QGIS 3.40 and rasterio, opens) or 3,
     the Zarr version of a .zarr output; compression: how Zarr chunks and COG tiles are compressed, a
     name of :data:`archive.codecs.COMPRESSIONS` ('fast', the default; 'small'; 'none').
@@ -222,9 +222,9 @@ class RenderOptions:
     def check(self) -> NavigationParams:
         """Checks that open no file (fast, before anything starts: no collection, DEM or output is
         read); the navigation parameters the sources are opened with. The meshes' field of view is
-        decided once, with the ground, in :func:`archive.pipeline.open_inputs` (the
+        decided once, with the ground, in :func:`archive.run.pipeline.open_inputs` (the
         :class:`~archive.params.MeshSpec`: ``fov``, else the one the collections were ingested with,
-        :func:`archive.pipeline.field_of_view`)."""
+        :func:`archive.run.pipeline.field_of_view`)."""
         check_gsd(self.gsd)
         if not self.sources:
             raise InputError("SOURCE", "nothing to render",
@@ -287,7 +287,7 @@ def grid_request(options: RenderOptions):
 
 def _check_dem(options: RenderOptions) -> None:
     """--dem / --dem-datum: exclusive with a numeric --ground-height (the DEM itself is opened, once,
-    by :func:`archive.pipeline.open_inputs`)."""
+    by :func:`archive.run.pipeline.open_inputs`)."""
     if options.dem is None:
         if options.dem_datum is not None:
             raise InputError("--dem-datum", "gives the vertical datum of a DEM, but no --dem was given",

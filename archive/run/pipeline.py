@@ -1,7 +1,7 @@
 """Georectify flights on Dask: open -> plan -> build -> run -> publish, for every kind of output.
 
-A render is asked for by :class:`~archive.options.RenderOptions` (checked once, before anything starts:
-:meth:`~archive.options.RenderOptions.check`) and goes through the same steps whatever comes out:
+A render is asked for by :class:`~archive.run.options.RenderOptions` (checked once, before anything starts:
+:meth:`~archive.run.options.RenderOptions.check`) and goes through the same steps whatever comes out:
 
 1. open (:func:`open_inputs`): open the sources (:func:`archive.sources.open_source`), select the
    bands, settle the radiometric mode, and decide once how the meshes are built, the
@@ -10,15 +10,15 @@ A render is asked for by :class:`~archive.options.RenderOptions` (checked once, 
    the graph's tasks build the meshes again on the workers: the plan keeps only the windows);
 3. build (:func:`build_output`): the output's sink under a temporary name
    (:mod:`archive.outputs`) and the render graph that writes it (:mod:`archive.graph.build`);
-4. run (:func:`archive.cluster.execute`): on a local cluster or ``scheduler`` (:mod:`archive.cluster`);
+4. run (:func:`archive.run.cluster.execute`): on a local cluster or ``scheduler`` (:mod:`archive.run.cluster`);
 5. publish (:func:`publish`): finish the output (ENVI header, COG layout), rename it into place,
    then write its STAC Item, last (an Item says the output is complete).
 
 :func:`georectify` runs all five (nothing is left at ``out`` when anything fails); :func:`mosaic`
 stops after planning and gives the plan as a lazy ``xarray.Dataset`` (:mod:`archive.graph.lazy`)
 computed on demand. Batch jobs (one output per source, each flight a job of its own, submitted in
-waves) are :mod:`archive.batch`'s, built from these steps. Band groups are sized from the workers'
-memory limits (:func:`archive.cluster.task_budget`).
+waves) are :mod:`archive.run.batch`'s, built from these steps. Band groups are sized from the workers'
+memory limits (:func:`archive.run.cluster.task_budget`).
 """
 
 from __future__ import annotations
@@ -37,14 +37,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from archive import storage
-from archive.cluster import (ClusterClose, active_client, check_gpu_workers, close_client, closed_or_warned, execute,
+from archive.run.cluster import (ClusterClose, active_client, check_gpu_workers, close_client, closed_or_warned, execute,
                              start_cluster, task_budget)
 from archive.errors import InputError
 from archive.formats.trajectory import parse_columns
 from archive.files import wait_while_exists
 from archive.grid import GridRequest
-from archive.navigation import projected_epsg
-from archive.options import RenderOptions, grid_request
+from archive.geometry.navigation import projected_epsg
+from archive.run.options import RenderOptions, grid_request
 from archive.outputs.base import variable_for_mode
 from archive.outputs.publish import Output
 from archive.outputs.zarr import mosaic_dataset
@@ -120,7 +120,7 @@ def field_of_view(options: RenderOptions) -> float:
 
 def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosaic: bool = True,
                 fov: float | None = None) -> Inputs:
-    """Open and check the sources of ``options`` (``nav`` from :meth:`~archive.options.RenderOptions.check`)
+    """Open and check the sources of ``options`` (``nav`` from :meth:`~archive.run.options.RenderOptions.check`)
     and decide, once, the :class:`~archive.params.MeshSpec` their meshes are built from.
 
     mosaic: all sources go into one output (same bands, one ground height); else each source is
@@ -134,7 +134,7 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
     from archive.graph.plan import spec_meshes
     from archive.sources import open_source
 
-    from archive.dem import DemSpec
+    from archive.terrain.dem import DemSpec
     from archive.sources.ground import sources_dem
 
     grid = grid_request(options)   # --like read once, before the sources
@@ -214,9 +214,9 @@ class OutputPlan:
         return variable_for_mode(self.params.mode)
 
     def layers_spec(self, rule_only: bool = False):
-        """The :class:`~archive.provenance.ProvenanceSpec` of this output: every provenance layer,
+        """The :class:`~archive.geometry.provenance.ProvenanceSpec` of this output: every provenance layer,
         or with ``rule_only`` only the layer the overlap rule compares (:attr:`~archive.overlap.OverlapRule.key`)."""
-        from archive.provenance import provenance_spec
+        from archive.geometry.provenance import provenance_spec
 
         return provenance_spec(self.plan, self.sources, self.mesh_spec,
                                (self.params.overlap.key,) if rule_only else None)
@@ -445,7 +445,7 @@ def progress_lines(quiet: bool):
 
 
 def client_budget() -> int | None:
-    """The render task budget (:func:`archive.cluster.task_budget`) of the active distributed Client
+    """The render task budget (:func:`archive.run.cluster.task_budget`) of the active distributed Client
     (its workers checked for the GPU resource), None without one: what a lazy mosaic or stack is
     planned with."""
     client = active_client()
@@ -460,7 +460,7 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
                quiet: bool = True, threads: int | None = None) -> dict:
     """Georectify ``options`` into ``out`` (.zarr, .tif or .hdr); returns a summary dict. Raises ArchiveError.
 
-    One output at ``out`` (batch jobs, one output per flight, are :func:`archive.batch.run_batch`'s).
+    One output at ``out`` (batch jobs, one output per flight, are :func:`archive.run.batch.run_batch`'s).
     The tasks run on ``scheduler`` (an address) or on a local cluster of ``workers`` processes of
     ``threads`` threads each (default: the cores). The graph's tile tasks write every format
     directly; :func:`publish` finishes each output and moves it into place.

@@ -1,0 +1,2 @@
+"""Running the pipeline: options, the cluster, single renders, per-flight batches, tiles and time
+stacks (docs/layout.md)."""
