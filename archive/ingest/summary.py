@@ -65,6 +65,15 @@ def terrain_summary(source: RawFlightSource, fov_deg: float, dem) -> dict[str, A
             "height_above_ground_min_m": _number(float(np.nanmin(above)), 2)}
 
 
+def ingest_id(source: RawFlightSource) -> str:
+    """The collection id ``archive ingest`` gives a raw flight (``<sensor>_<UTC start>``, e.g.
+    ``Pika-L-SIM_20240612T160000``): ``info`` names a flight as the archive will (issue 49 item 6)."""
+    from archive.ingest.command import collection_id, sensor_name
+
+    start = gps_seconds_to_datetime(float(source.line_times(0)[0]))   # with the sync offset, as ingest
+    return collection_id(sensor_name(source.header(0).metadata), start)
+
+
 def summarize(source: RawFlightSource, fov_deg: float, dem=None) -> dict[str, Any]:
     """Summary of a flight as plain JSON-able values (times s, lengths m, angles deg); with ``dem``
     (an opened :class:`archive.terrain.dem.Dem`) also ``terrain`` (:func:`terrain_summary`)."""
@@ -112,7 +121,7 @@ def summarize(source: RawFlightSource, fov_deg: float, dem=None) -> dict[str, An
     duration = end - start
     return {
         "directory": str(getattr(source, "directory", None) or getattr(source, "store", source.label)),
-        "id": source.id,
+        "id": ingest_id(source) if isinstance(source, RawFlightSource) else source.id,
         "cubes": len(source.cubes),
         "strips": strips,
         "lines": int(sum(c.lines for c in source.cubes)),
