@@ -503,3 +503,23 @@ def test_session_watch_sees_a_process_left_behind():
     alive = _still_alive(known)
     assert len(alive) == 1 and "time.sleep(60)" in " ".join(alive[0].cmdline())
     alive[0].kill()
+
+
+def test_bounds_in_degrees_are_named_and_converted(flight, tmp_path):
+    """``--bounds`` given as longitudes and latitudes (a user's first guess) is one line that says so
+    and gives the same box in the output CRS's metres, which then renders."""
+    import pyproj
+
+    lon, lat = -89.94, 35.12   # near the simulator's field (archive simulate --help): a box of ~550 x 670 m
+    box = f"{lon - 0.003:.6f},{lat - 0.003:.6f},{lon + 0.003:.6f},{lat + 0.003:.6f}"
+    out = tmp_path / "o.zarr"
+    done = _archive("render", str(flight), "--fov", str(FOV), "--gsd", "0.5", f"--bounds={box}", "--out", str(out),
+                    "--quiet")
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode != 0 and len(lines) == 1 and "these look like degrees" in lines[0], done.stderr
+    assert not out.exists()
+    metres = lines[0].rsplit(": ", 1)[1].rstrip(")")
+    w, s, e, n = (float(v) for v in metres.split(","))
+    to = pyproj.Transformer.from_crs(4326, int(lines[0].split("(EPSG:")[1].split(")")[0]), always_xy=True)
+    x, y = to.transform(lon, lat)
+    assert w < x < e and s < y < n and 400 < e - w < 700 and 500 < n - s < 800, (metres, x, y)

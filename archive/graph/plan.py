@@ -241,12 +241,31 @@ def plan_render(sources: Sequence, meshes: Sequence[Sequence], bands: Sequence[S
         option = "--like" if request.like is not None else "--bounds"
         w, s_, e, n = grid.bounds
         fw, fs, fe, fn = footprint
+        fix = f"give {option} over the flights, or other flights"
+        if request.like is None and request.bounds is not None and _looks_like_degrees(request.bounds):
+            fix = (f"these look like degrees: {option} takes metres in the output CRS (EPSG:{epsg}): "
+                   f"{_in_metres(request.bounds, epsg)}")
         raise NoLineOnGrid(option, f"the grid W,S,E,N = {w:.0f},{s_:.0f},{e:.0f},{n:.0f} (EPSG:{epsg}) holds no line "
-                         f"of the flights, which cover {fw:.0f},{fs:.0f},{fe:.0f},{fn:.0f}",
-                         f"give {option} over the flights, or other flights")
+                         f"of the flights, which cover {fw:.0f},{fs:.0f},{fe:.0f},{fn:.0f}", fix)
     lengths = {len(b) for b in bands}
     if len(lengths) != 1 or 0 in lengths:
         raise InputError(None, f"the sources select different numbers of bands ({sorted(lengths)})",
                          "render sources with the same bands together")
     return RenderPlan(grid, tuple(jobs), tuple(tuple(int(i) for i in b) for b in bands),
                       band_groups(lengths.pop(), group))
+
+
+def _looks_like_degrees(bounds: tuple[float, float, float, float]) -> bool:
+    """Whether W,S,E,N read as longitudes and latitudes (|lon| <= 180, |lat| <= 90, a box under 1 degree
+    wide): a user who gave ``--bounds`` in degrees instead of the output CRS's metres."""
+    w, s, e, n = bounds
+    return all(abs(v) <= 180 for v in (w, e)) and all(abs(v) <= 90 for v in (s, n)) and e - w < 1 and n - s < 1
+
+
+def _in_metres(bounds: tuple[float, float, float, float], epsg: int) -> str:
+    """The lon/lat box ``bounds`` (degrees, WGS 84) in EPSG ``epsg`` as the 'W,S,E,N' text --bounds takes."""
+    from pyproj import Transformer
+
+    to = Transformer.from_crs(4326, epsg, always_xy=True)
+    w, s, e, n = to.transform_bounds(*bounds)
+    return f"{w:.0f},{s:.0f},{e:.0f},{n:.0f}"
