@@ -163,6 +163,20 @@ class Grid:
             raise InputError("grid", "cannot intersect grids whose pixels are not aligned")
         return self.crop(*other.bounds)
 
+    def coarsened(self, factor: int, origin: tuple[float, float] = (0.0, 0.0)) -> Grid:
+        """The grid of ``factor`` x larger pixels covering this one, its pixel edges on
+        ``origin`` + multiples of the new pixel (x eastwards, y northwards; metres): the next level of
+        a pyramid (Web-Mercator zooms: ``origin=(-HALF_WORLD, HALF_WORLD)``, ``factor=2``)."""
+        if isinstance(factor, bool) or not isinstance(factor, int | np.integer) or factor < 1:
+            raise InputError("grid", f"a grid is coarsened by a whole factor >= 1, got {factor!r}")
+        gsd = self.gsd * int(factor)
+        west, south, east, north = self.bounds
+        c0 = math.floor((west - origin[0]) / gsd + _SNAP_TOLERANCE)
+        c1 = math.ceil((east - origin[0]) / gsd - _SNAP_TOLERANCE)
+        r0 = math.floor((origin[1] - north) / gsd + _SNAP_TOLERANCE)
+        r1 = math.ceil((origin[1] - south) / gsd - _SNAP_TOLERANCE)
+        return Grid(self.epsg, gsd, origin[0] + c0 * gsd, origin[1] - r0 * gsd, max(c1 - c0, 1), max(r1 - r0, 1))
+
     def __dask_tokenize__(self):
         return ("archive.grid.Grid", self.epsg, self.gsd, self.x0, self.y0, self.width, self.height)
 
@@ -226,3 +240,75 @@ def aligned(grid: Grid) -> bool:
     """Whether the pixel edges of ``grid`` lie on multiples of its GSD (within float noise)."""
     off = np.array([grid.x0, grid.y0]) / grid.gsd
     return bool(np.max(np.abs(off - np.round(off))) <= 1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# Web-Mercator (EPSG:3857) XYZ tiles as grids (the viewer's and the previews' tiles)
+# ---------------------------------------------------------------------------------------------
+#: Side of an XYZ tile, pixels.
+TILE = 256
+#: The sphere of Web Mercator, metres (mercantile's and PROJ's R).
+EARTH_RADIUS = 6378137.0
+#: Half the side of the Web-Mercator world square, metres (x and y run over +-HALF_WORLD).
+HALF_WORLD = math.pi * EARTH_RADIUS
+#: Deepest zoom served (2^30 tiles a side: 0.15 mm pixels at the equator).
+MAX_ZOOM = 30
+#: Largest side of a stats grid, pixels.
+STATS_SIDE = 512
+MERCATOR_EPSG = 3857
+#: Latitudes are clipped to this (degrees) before projecting: the square's edge is ~85.0511.
+MAX_LATITUDE = 85.06
+
+
+def zoom_gsd(z: int) -> float:
+    """Pixel size of zoom ``z`` tiles, metres of EPSG:3857."""
+    return 2.0 * HALF_WORLD / TILE / 2.0**z
+
+
+def tile_grid(z: int, x: int, y: int) -> Grid:
+    """The EPSG:3857 grid of tile ``z/x/y`` (x eastwards, y southwards from the north-west corner of
+    the world square, as Leaflet, OpenLayers and MapLibre number them; bounds from
+    :func:`mercantile.xy_bounds`); InputError unless 0 <= z <= MAX_ZOOM and x, y are tiles of that zoom."""
+    import mercantile
+
+    for name, value in (("z", z), ("x", x), ("y", y)):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer):
+            raise InputError(name, f"tile {name} must be an integer, got {value!r}")
+    if not 0 <= z <= MAX_ZOOM:
+        raise InputError("z", f"zoom {z} is out of range 0..{MAX_ZOOM}", "request a shallower tile")
+    n = 1 << int(z)
+    if not (0 <= x < n and 0 <= y < n):
+        raise InputError("x/y", f"tile {x}/{y} does not exist at zoom {z} (0..{n - 1})")
+    box = mercantile.xy_bounds(int(x), int(y), int(z))
+    return Grid(MERCATOR_EPSG, zoom_gsd(z), box.left, box.top, TILE, TILE)
+
+
+def lonlat_to_mercator(lon, lat) -> tuple[np.ndarray, np.ndarray]:
+    """Longitude, latitude (degrees, arrays) -> EPSG:3857 x, y (m): :func:`mercantile.xy`'s spherical
+    formulas on arrays, latitudes clipped to +-MAX_LATITUDE."""
+    lon = np.asarray(lon, float)
+    lat = np.clip(np.asarray(lat, float), -MAX_LATITUDE, MAX_LATITUDE)
+    x = EARTH_RADIUS * np.radians(lon)
+    y = EARTH_RADIUS * np.log(np.tan(np.pi / 4 + np.radians(lat) / 2))
+    return x, y
+
+
+def mercator_to_lonlat(x, y) -> tuple[np.ndarray, np.ndarray]:
+    """EPSG:3857 x, y (m, arrays) -> longitude, latitude (degrees): :func:`mercantile.lnglat` on arrays."""
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    return np.degrees(x / EARTH_RADIUS), np.degrees(2 * np.arctan(np.exp(y / EARTH_RADIUS)) - np.pi / 2)
+
+
+def mercator_box(west: float, south: float, east: float, north: float) -> tuple[float, float, float, float]:
+    """A W, S, E, N box in degrees as EPSG:3857 metres."""
+    x, y = lonlat_to_mercator([west, east], [south, north])
+    return (float(x[0]), float(y[0]), float(x[1]), float(y[1]))
+
+
+def bbox_grid(west: float, south: float, east: float, north: float, side: int = STATS_SIDE) -> Grid:
+    """An EPSG:3857 grid over the box (EPSG:3857 metres), its longer side ``side`` pixels."""
+    width, height = max(east - west, 1e-6), max(north - south, 1e-6)
+    gsd = max(width, height) / side
+    return Grid(MERCATOR_EPSG, gsd, west, north, max(1, math.ceil(width / gsd - 1e-9)),
+                max(1, math.ceil(height / gsd - 1e-9)))

@@ -276,9 +276,9 @@ def server_steps(archive: Path, cid: str) -> list[tuple[str, float, float]]:
     thread's calls for the tiles that cover the flight at the deepest zoom where it fits a 1400 x
     900 window (19 for the paper flight), with the server's default caches, one change after the
     other. [(step, wall s, CPU s of the process, worker threads included)]."""
-    from archive.view.query import parse_query
+    from archive.drawing.query import parse_query
     from archive.view.registry import FlightRegistry
-    from archive.view.tiles import TILE, tile_grid, zoom_gsd
+    from archive.grid import TILE, tile_grid, zoom_gsd
 
     registry = FlightRegistry(archive)
     flight = registry.flight(cid)

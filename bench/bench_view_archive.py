@@ -60,7 +60,7 @@ def make_flights_archive(workdir: Path, args: argparse.Namespace) -> tuple[Path,
 
     root = open_root(archive)
     if getattr(args, "no_previews", False):   # the baseline: every tile from the DN
-        from archive.previews import GROUP
+        from archive.drawing.preview_layout import GROUP
 
         for cid in root.collection_ids():
             shutil.rmtree(root.store(cid) / GROUP, ignore_errors=True)

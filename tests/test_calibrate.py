@@ -176,7 +176,7 @@ def test_collection_apply_records_navigation_params(two_passes, tmp_path, capsys
     assert attrs["ground_height"] == pytest.approx(truth.ground_height, abs=0.1)
     assert attrs["navigation_calibration"]["by"] == "archive calibrate"
     assert verify_store(store) == []
-    from archive.previews import is_current
+    from archive.drawing.preview_layout import is_current
 
     assert is_current(store)   # the overview previews drawn again under the recorded navigation
     # renders of the collection default to the recorded parameters, as to an ingest's

@@ -264,9 +264,10 @@ LAYERS = [
     ("render", ("archive.render",)),
     ("writers", ("archive.outputs",)),
     ("graph", ("archive.graph",)),
+    ("drawing", ("archive.drawing",)),   # the viewer's drawing engine: a flight's tiles, planes, points, previews
     ("run", ("archive.run",)),   # options, the cluster, single renders, batches, tiles, stacks (one runner)
     ("features", ("archive.run.command", "archive.api", "archive.api_errors", "archive.ingest", "archive.simulator", "archive.view",
-                  "archive.calibrate", "archive.previews")),
+                  "archive.calibrate")),
     ("entry", ("archive.cli", "archive.__main__")),
 ]
 #: Edges the layers allow that DESIGN 1 still forbids: (importer prefix, forbidden target prefixes, exempt
@@ -328,7 +329,8 @@ def test_the_layer_rules_catch_what_they_should():
     assert refused("archive.graph.build", "archive.outputs.cog")
     assert refused("archive.graph.lazy", "archive.outputs.zarr")
     assert not refused("archive.graph.build", "archive.outputs.base")
-    assert refused("archive.view.flights", "archive.run.pipeline") and refused("archive.view.server", "archive.cli")
+    assert refused("archive.drawing.flight", "archive.run.pipeline") and refused("archive.drawing.flight", "archive.view.registry")
+    assert refused("archive.view.registry", "archive.run.pipeline") and refused("archive.view.server", "archive.cli")
     assert refused("archive.catalog.index", "archive.sources.raw")
     assert refused("archive.formats.lcf", "archive.geometry.navigation")
     assert refused("archive.sources.raw", "archive.catalog.root")

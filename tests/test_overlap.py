@@ -64,7 +64,7 @@ def test_options_hold_the_rule_and_records_keep_the_name(tmp_path):
 def test_the_lists_come_from_the_registry(capsys):
     """The CLI's --overlap choices and the viewer's list (single-source rules only) are the registry's."""
     from archive.cli import build_parser
-    from archive.view.query import OVERLAPS
+    from archive.drawing.query import OVERLAPS
 
     parser = build_parser()
     for name in RULES:

@@ -1,4 +1,4 @@
-"""Overview previews made at ingest (issue 36, :mod:`archive.previews`): the levels drawn by the
+"""Overview previews made at ingest (issue 36, :mod:`archive.drawing.preview_layout`): the levels drawn by the
 viewer's renderer are bit for bit the band-value tiles the viewer draws from the DN at that zoom, the
 coarser ones the means of 2 x 2 pixels of the level above; the viewer answers zoomed-out tiles and
 the whole flight's statistics from them without opening the flight; ``archive verify`` checks their
@@ -15,7 +15,7 @@ import pytest
 
 from archive.catalog.root import open_root
 from archive.cli import main
-from archive.previews import GROUP, read_previews, verify_previews
+from archive.drawing.preview_layout import GROUP, read_previews, verify_previews
 from archive.view.registry import FlightRegistry
 from archive.view.server import create_app
 from helpers import FOV

@@ -334,7 +334,7 @@ def test_stac_api_and_viewer_over_an_s3_archive(s3_archive, small_archive):
 
     from archive.view.registry import FlightRegistry
     from archive.view.server import create_app
-    from archive.view.tiles import HALF_WORLD
+    from archive.grid import HALF_WORLD
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -24,10 +24,10 @@ from pyproj import Transformer
 import archive
 from archive.cli import main
 from archive.errors import InputError
-from archive.view.cache import ByteLRU
+from archive.drawing.cache import ByteLRU
 from archive.view.registry import FlightRegistry
 from archive.view.server import LOOPBACK_NAMES, check_host, create_app
-from archive.view.tiles import HALF_WORLD, tile_grid
+from archive.grid import HALF_WORLD, tile_grid
 from helpers import FOV, inside_geometry
 
 Z = 20  # ~0.12 m pixels here: the flight spans a few tiles
@@ -492,7 +492,7 @@ def _values(response, count: int, side: int = 256) -> np.ndarray:
 def test_band_values_are_what_the_png_tiles_stretch(client, demo):
     """The band-value tile (issue 22) holds the very values the PNG tile encodes: stretched with
     the flight's 2/98 % (the stats endpoint), they give the PNG's bytes; per band, cached per band."""
-    from archive.view.tiles import encode_png
+    from archive.drawing.png import encode_png
 
     _, cid, item = demo
     x, y = max(_tiles_over(item["bbox"], Z), key=lambda t: (_rgba(client.get(
@@ -561,7 +561,7 @@ def test_overview_values_are_means_over_the_pixel_footprint(client, demo):
     assert np.isfinite(coarse).sum() > 50
     # f the power of two nearest the ratio of the pixel sizes: the tiles of zoom z + log2(f) have
     # the flight's pixel size; their f x f blocks' means are the footprints' means
-    from archive.view.tiles import zoom_gsd
+    from archive.grid import zoom_gsd
 
     f = 2 ** round(np.log2(zoom_gsd(z) / item["properties"]["gsd"]))
     assert f >= 2
@@ -642,7 +642,7 @@ def test_overlap_rules_are_served_and_say_what_they_need(client, demo):
     """/api/collections serves the overlap rules the page offers (issue 31: the page hard-codes no
     rule name): each one's name, label, key plane and winner; a rule with a key plane gets it with its
     band values (X-Key names it), one without does not; the served names are those accepted."""
-    from archive.view.query import OVERLAPS
+    from archive.drawing.query import OVERLAPS
 
     _, cid, item = demo
     rules = client.get("/api/collections").json()["overlaps"]

@@ -1,4 +1,4 @@
-"""The viewer's band planes (:mod:`archive.view.planes`) on a fake source of known DN: a plane is
+"""The viewer's band planes (:mod:`archive.drawing.planes`) on a fake source of known DN: a plane is
 the DN in float32 (raw mode), a filtered plane the mean of the block around each pixel (cut at the
 edges), each plane is read once however many requests ask for it, and planes are made on worker
 threads, including those asked ahead, without deadlocking when a worker finishes at once."""
@@ -12,8 +12,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from archive.view.cache import ByteLRU
-from archive.view.planes import BandPlanes
+from archive.drawing.cache import ByteLRU
+from archive.drawing.planes import BandPlanes
 
 LINES, SAMPLES, BANDS = 40, 30, 3
 

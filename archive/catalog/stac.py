@@ -47,10 +47,14 @@ RAW_LEVEL = "L0"
 
 
 def software_version() -> str:
-    """This software's version (the installed distribution's, as ``archive.__version__``)."""
-    import archive
+    """This software's version: the installed distribution's, as ``archive.__version__`` reads it
+    (taken from the distribution's metadata, so that the catalog imports nothing of the package root)."""
+    from importlib.metadata import PackageNotFoundError, version
 
-    return archive.__version__
+    try:
+        return version("archive")
+    except PackageNotFoundError:  # running from a source tree without install
+        return "0.0.0+unknown"
 
 
 def eo_bands(wavelengths, fwhm=None, names=None) -> list[dict]:

@@ -1,4 +1,4 @@
-"""Making a collection's overview previews (issue 36; the layout is :mod:`archive.previews`'s): drawn
+"""Making a collection's overview previews (issue 36; the layout is :mod:`archive.drawing.preview_layout`'s): drawn
 with the viewer's renderer from the flight opened as ``archive view`` opens it, after the ingest
 published and cataloged it (:func:`add_previews`, ``archive ingest``'s hook)."""
 
@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterable
 import numpy as np
 
 from archive.overlap import LAST
-from archive.previews import FORMAT_VERSION, PERCENTILES, halve, is_current, plan_levels, rendered, write_previews
+from archive.drawing.preview_layout import FORMAT_VERSION, PERCENTILES, halve, is_current, plan_levels, rendered, write_previews
 
 __all__ = ["add_previews", "make_previews"]
 
@@ -22,8 +22,8 @@ def make_previews(archive_path: str | os.PathLike, cid: str) -> tuple[dict, dict
     collection ``cid`` of the archive at ``archive_path``, drawn with the viewer's renderer (OpenGL: pass 1) from a
     flight opened as ``archive view`` opens it."""
     from archive.collection import array_digest, content_version
-    from archive.view.cache import ByteLRU
-    from archive.view.flights import overview_level
+    from archive.drawing.cache import ByteLRU
+    from archive.drawing.flight import overview_level
     from archive.view.registry import FlightRegistry
 
     registry = FlightRegistry(archive_path, bands_cache=ByteLRU(256 << 20), lookup_cache=ByteLRU(64 << 20))

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from archive.catalog.root import open_root
 from archive.collection import verify_store
-from archive.previews import verify_previews
+from archive.drawing.preview_layout import verify_previews
 
 __all__ = ["run_verify"]
 

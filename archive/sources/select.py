@@ -1,7 +1,7 @@
 """What to take from opened sources: bands, ground height, white reference.
 
 Shared by the render pipeline (:mod:`archive.run.pipeline`), the lazy mosaics and the viewer
-(:mod:`archive.view.flights`): the same wavelength picks the same band, ``auto`` the same ground
+(:mod:`archive.drawing.flight`): the same wavelength picks the same band, ``auto`` the same ground
 height, wherever a flight is drawn.
 """
 

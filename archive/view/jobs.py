@@ -9,7 +9,7 @@ import time
 
 from archive.errors import InputError
 from archive.view.registry import FlightRegistry
-from archive.view.tiles import encode_values
+from archive.drawing.png import encode_values
 
 __all__ = ["describe_job", "outline_job", "point_job", "registry_gsd", "settled", "stats_job", "tile_job",
            "values_body", "values_job", "values_window", "view_generation"]

@@ -14,8 +14,8 @@ import numpy as np
 
 from archive.errors import ArchiveError, InputError, MissingInputError
 from archive.params import NavigationParams
-from archive.view.cache import ByteLRU
-from archive.view.flights import Flight
+from archive.drawing.cache import ByteLRU
+from archive.drawing.flight import Flight
 
 __all__ = ["BAND_WORKERS", "FLIGHTS_KEPT", "IDS_TTL_S", "FlightRegistry", "UnknownFlight"]
 
@@ -160,13 +160,13 @@ class FlightRegistry:
 
     # ---- overview previews (made at ingest) ----------------------------------------------
     def previews(self, cid: str):
-        """The current :class:`~archive.previews.Previews` of a checked catalog flight, None for a raw
+        """The current :class:`~archive.drawing.preview_layout.Previews` of a checked catalog flight, None for a raw
         flight or a collection without current ones (then tiles are drawn from the DN). Kept in the
         bands cache, charged their bytes, and read again when the collection or its previews change
         (their ``zarr.json``). Any thread (no OpenGL)."""
         if cid in self.raw or self.archive is None or getattr(self.archive, "is_url", False):
             return None   # (previews are made and read for local archives only, so far)
-        from archive.previews import GROUP, read_previews
+        from archive.drawing.preview_layout import GROUP, read_previews
 
         store = self.archive.store(cid)
         stamp = []

@@ -8,7 +8,7 @@ trace):
   the footprints (id, time range, wavelength range, bands, nominal gsd...), and ``damaged``: the
   flights the catalog cannot describe (``{id, reason, fix}``: an unreadable Item, a collection
   without an Item), each costing only itself; and ``overlaps``: the overlap rules the page offers
-  (``{name, label, key, wins}``, the first the default; :data:`archive.view.query.OVERLAPS`);
+  (``{name, label, key, wins}``, the first the default; :data:`archive.drawing.query.OVERLAPS`);
 - ``GET /api/collections/{id}`` what the page needs to build its controls (bands, modes, cubes,
   default ground height, lowest camera altitude);
 - ``GET /api/collections/{id}/tiles/{z}/{x}/{y}.png?wavelengths=R,G,B|band=I&mode=&stretch=&cubes=A-B
@@ -20,7 +20,7 @@ trace):
   page; 204 where no line covers the tile; ``scale`` > 1: a coarse (side 256 / scale) preview;
   ``window=1``: only the rows and columns of the tile that hold a value (header ``X-Window: column,row,
   width,height``; a flight a few pixels wide at an overview zoom sends kilobytes, not 0.8 MB); the
-  flight as ingested at a zoom at or above its ingest previews' finest (:mod:`archive.previews`):
+  flight as ingested at a zoom at or above its ingest previews' finest (:mod:`archive.drawing.preview_layout`):
   from them, without the render thread, header ``X-Source: previews``;
 - ``GET /api/values/batch?parts=ID/Z/X/Y/I,J,K;...&mode=&overlap=&window=1`` the band values of up to
   MAX_PARTS tiles of any flights in one response (one after the other; header ``X-Parts``: each
@@ -60,13 +60,12 @@ from pathlib import Path
 from archive.catalog.api import stac_routes
 from archive.catalog.root import ArchiveRoot
 from archive.errors import ArchiveError, InputError, MissingInputError, RenderError
-from archive.grid import Grid
-from archive.view.cache import ByteLRU
+from archive.drawing.cache import ByteLRU
+from archive.drawing.query import OVERLAPS, Stretch, overlap_choice, parse_bbox, parse_number, parse_query
+from archive.grid import MAX_ZOOM, TILE, Grid, mercator_box, tile_grid
 from archive.view.jobs import (describe_job, outline_job, point_job, settled, stats_job, tile_job, values_body,
                                values_job, values_window, view_generation)
 from archive.view.registry import FlightRegistry
-from archive.view.query import OVERLAPS, Stretch, overlap_choice, parse_bbox, parse_number, parse_query
-from archive.view.tiles import MAX_ZOOM, TILE, mercator_box, tile_grid
 from archive.view.worker import Cancelled, RenderThread
 
 __all__ = ["CACHE_SHARES", "OVERHEAD_MB", "cache_bytes", "check_host", "create_app", "is_loopback", "run", "serve", "view_generation"]
@@ -239,7 +238,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
     async def tile_values(request, cid, z, x, y, grid, query, scale: int, window: bool
                           ) -> tuple[dict, bytes | None]:
         """(headers, body) of the band values of one tile of one flight (float32 planes; see
-        :func:`archive.view.tiles.encode_values`), cached per band; body None where no line covers
+        :func:`archive.drawing.png.encode_values`), cached per band; body None where no line covers
         the tile (204)."""
         import dataclasses
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from archive.errors import InputError, MissingInputError
-from archive.view.tiles import MERCATOR_EPSG, TILE, tile_grid
+from archive.grid import MERCATOR_EPSG, TILE, tile_grid
 
 __all__ = ["StackView", "default_bands", "open_stacks", "parse_bands"]
 

@@ -9,8 +9,8 @@ import numpy as np
 
 from archive.grid import Grid
 from archive.overlap import OverlapRule, overlap_rule
-from archive.view.geometry import slice_radiometry
-from archive.view.query import ViewQuery
+from archive.drawing.placement import slice_radiometry
+from archive.drawing.query import ViewQuery
 
 __all__ = ["POINT_BAND_GROUP", "overlap_pick", "point_spectrum"]
 

@@ -11,7 +11,7 @@ flight directories named on the command line). :class:`Flight` holds one flight'
   then a vertical offset of the DEM (m, 0 = the DEM as it is);
 - lookups (pass 1 of the renderer: which line and sample each tile pixel sees) per cube and tile
   grid, shared by every band choice;
-- band planes (:class:`archive.view.planes.BandPlanes`, ``Flight.planes``): a band of a cube in a
+- band planes (:class:`archive.drawing.planes.BandPlanes`, ``Flight.planes``): a band of a cube in a
   mode, calibrated once for every (line, sample) as ``archive render`` does and kept, with its
   box-filtered levels for overview zooms (each value the mean of the 2^k x 2^k block of lines x
   samples around it), made on worker threads; a tile is then a gather through its lookup (no GL
@@ -38,11 +38,12 @@ from archive.errors import InputError
 from archive.grid import Grid
 from archive.overlap import LAST, OverlapRule, overlap_rule
 from archive.params import NavigationParams
-from archive.view.cache import ByteLRU
-from archive.view.geometry import Geometry, PosesKept, bounds_intersect, plane_index
-from archive.view.planes import BandPlanes
-from archive.view.query import ViewQuery
-from archive.view.tiles import MERCATOR_EPSG, bbox_grid, encode_png, transparent_png
+from archive.drawing.cache import ByteLRU
+from archive.drawing.placement import Geometry, PosesKept, bounds_intersect, plane_index
+from archive.drawing.planes import BandPlanes
+from archive.drawing.query import ViewQuery
+from archive.grid import MERCATOR_EPSG, bbox_grid
+from archive.drawing.png import encode_png, transparent_png
 
 __all__ = ["DEFAULT_RGB_NM", "Flight", "overview_level"]
 
@@ -101,9 +102,9 @@ class Flight:
 
     def nbytes(self) -> int:
         """The bytes of the arrays this flight holds besides the shared caches: its opened sources,
-        poses, meshes, radiometric terms and statistics (:func:`~archive.view.cache.held_bytes`),
+        poses, meshes, radiometric terms and statistics (:func:`~archive.drawing.cache.held_bytes`),
         plus 64 KiB for its Python objects. What the viewer charges an open flight."""
-        from archive.view.cache import held_bytes
+        from archive.drawing.cache import held_bytes
 
         return held_bytes(self._sources, self._geometries, self._posed, self._ranges,
                           self.planes.radiometry_kept) + (64 << 10)
@@ -434,8 +435,8 @@ class Flight:
         return None if self.wavelengths is None else [float(self.wavelengths[b]) for b in bands]
 
     def point(self, lon: float, lat: float, gsd: float, query: ViewQuery) -> dict:
-        """The full spectrum of the output pixel at (lon, lat) (:func:`archive.view.point.point_spectrum`)."""
-        from archive.view.point import point_spectrum
+        """The full spectrum of the output pixel at (lon, lat) (:func:`archive.drawing.point.point_spectrum`)."""
+        from archive.drawing.point import point_spectrum
 
         return point_spectrum(self, lon, lat, gsd, query)
 
@@ -443,7 +444,7 @@ class Flight:
         """GeoJSON MultiPolygon (lon, lat) of the cubes' ground meshes at the query's ground height,
         sync offset and cube range: one ring per cube, its left edge forwards and right edge back
         (at most OUTLINE_ROWS rows each)."""
-        from archive.view.tiles import mercator_to_lonlat
+        from archive.grid import mercator_to_lonlat
 
         geometry = self.geometry(query.ground_height, query.sync_offset)
         polygons = []

@@ -21,7 +21,7 @@ as the viewer's stats endpoint answers them).
 The levels are a pyramid of consecutive zooms: the finest is the deepest zoom whose pixel is at
 least MIN_FACTOR flight pixels and over which the flight spans at most MAX_SIDE pixels; each
 further level is one zoom out, down to MIN_SIDE pixels. A level whose pixel spans at most
-:data:`~archive.view.flights.MAX_MIP` flight pixels is drawn by the viewer's renderer (pass 1 of
+:data:`~archive.drawing.flight.MAX_MIP` flight pixels is drawn by the viewer's renderer (pass 1 of
 the inverse renderer, then the band planes of ``archive render``'s calibration box-filtered over
 the pixel's footprint): bit for bit the band-value tile the viewer draws from the DN at that zoom.
 Coarser levels are the means of the finite values of 2 x 2 pixels of the level above (a mipmap).
@@ -81,7 +81,7 @@ class PreviewLevel:
     def grid(self):
         """The EPSG:3857 :class:`~archive.grid.Grid` of this level."""
         from archive.grid import Grid
-        from archive.view.tiles import HALF_WORLD, MERCATOR_EPSG, zoom_gsd
+        from archive.grid import HALF_WORLD, MERCATOR_EPSG, zoom_gsd
 
         g = zoom_gsd(self.zoom)
         return Grid(MERCATOR_EPSG, g, -HALF_WORLD + self.column * g, HALF_WORLD - self.row * g, self.width,
@@ -96,7 +96,7 @@ class PreviewLevel:
 
 def _level_over(bounds: Sequence[float], zoom: int) -> PreviewLevel:
     """The level of ``zoom`` covering W, S, E, N (EPSG:3857 m), one pixel of margin."""
-    from archive.view.tiles import HALF_WORLD, zoom_gsd
+    from archive.grid import HALF_WORLD, zoom_gsd
 
     g = zoom_gsd(zoom)
     c0 = math.floor((bounds[0] + HALF_WORLD) / g) - 1
@@ -111,7 +111,7 @@ def _level_over(bounds: Sequence[float], zoom: int) -> PreviewLevel:
 def plan_levels(bounds: Sequence[float], flight_gsd: float) -> list[PreviewLevel]:
     """The levels (finest first) of a flight whose meshes span ``bounds`` (W, S, E, N EPSG:3857 m)
     at a nominal pixel of ``flight_gsd`` m (see the module docstring)."""
-    from archive.view.tiles import MAX_ZOOM, zoom_gsd
+    from archive.grid import MAX_ZOOM, zoom_gsd
 
     extent = max(bounds[2] - bounds[0], bounds[3] - bounds[1], 1e-6)
     finest = 0
@@ -127,8 +127,8 @@ def plan_levels(bounds: Sequence[float], flight_gsd: float) -> list[PreviewLevel
 def rendered(level: PreviewLevel, flight_gsd: float) -> bool:
     """Whether the viewer's renderer draws this level (its pixel spans at most MAX_MIP flight
     pixels), rather than the mean of the level above."""
-    from archive.view.flights import MAX_MIP
-    from archive.view.tiles import zoom_gsd
+    from archive.drawing.flight import MAX_MIP
+    from archive.grid import zoom_gsd
 
     return 2 ** max(0, round(math.log2(zoom_gsd(level.zoom) / flight_gsd))) <= MAX_MIP
 
@@ -230,7 +230,7 @@ class Previews:
         of a zoom at or above the finest level), NaN where no line covers; None when none does.
         At a stored level: its pixels; above the coarsest: the means of the finite values of the
         coarsest level's pixels in each of the grid's."""
-        from archive.view.tiles import HALF_WORLD, zoom_gsd
+        from archive.grid import HALF_WORLD, zoom_gsd
 
         zoom = round(math.log2(2 * HALF_WORLD / 256 / grid.gsd))
         use = zoom if zoom in self.levels else min(self.levels)

@@ -1,5 +1,5 @@
 """A viewed flight's geometry (its meshes at one ground height and sync offset) and the small
-array helpers its drawing uses (:mod:`archive.view.flights`)."""
+array helpers its drawing uses (:mod:`archive.drawing.flight`)."""
 
 from __future__ import annotations
 

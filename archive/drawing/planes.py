@@ -4,7 +4,7 @@ once and kept, and the same box-filtered for overview zooms; made on worker thre
 A plane holds the float32 values ``archive render`` gives those pixels:
 :func:`archive.render.gather.calibrate_plane`, the calibration of the CPU pass 2 of ``archive
 render`` on software GL (bit for bit llvmpipe's band pass), once per (line, sample) instead of per
-output pixel. A tile is then a gather through its lookup (:class:`archive.view.flights.Flight`). No
+output pixel. A tile is then a gather through its lookup (:class:`archive.drawing.flight.Flight`). No
 OpenGL here: planes are made on any thread.
 """
 
@@ -17,7 +17,7 @@ from concurrent.futures import Executor, Future
 
 import numpy as np
 
-from archive.view.cache import ByteLRU
+from archive.drawing.cache import ByteLRU
 
 __all__ = ["BandPlanes", "RADIOMETRY_KEPT"]
 
