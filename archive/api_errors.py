@@ -18,7 +18,7 @@ import re
 from collections.abc import Callable, Iterable, Iterator
 from typing import TypeVar
 
-from archive.errors import ArchiveError, InputError
+from archive.errors import ArchiveError, InputError, OutputExistsError
 
 __all__ = ["KeywordError", "keep_cli_flags", "python_errors", "python_words", "unknown_keyword"]
 
@@ -89,12 +89,18 @@ def python_errors(function: str, valid: Callable[[], Iterable[str]]) -> Callable
             try:
                 return func(*args, **kwargs)
             except InputError as exc:
-                if not _CLI["flags"] and exc.where is not None and exc.where.startswith("--"):
-                    keyword = python_words(exc.where.split()[0])
-                    exc.where = f"{function}({keyword.split('=')[0]}=...)"
+                if not _CLI["flags"]:   # "pass --overwrite" is "pass overwrite=True" in Python
+                    if exc.where is not None and exc.where.startswith("--"):
+                        keyword = python_words(exc.where.split()[0])
+                        exc.where = f"{function}({keyword.split('=')[0]}=...)"
                     exc.problem, exc.fix = python_words(exc.problem), python_words(exc.fix)
-                    text = f"{exc.where}: {exc.problem}" + (f" ({exc.fix})" if exc.fix else "")
+                    text = (f"{exc.where}: " if exc.where is not None else "") + f"{exc.problem}" + \
+                        (f" ({exc.fix})" if exc.fix else "")
                     exc.args = (text,)
+                raise
+            except OutputExistsError as exc:
+                if not _CLI["flags"]:
+                    exc.args = (python_words(str(exc)),)
                 raise
             except TypeError as exc:
                 if isinstance(exc, ArchiveError):

@@ -346,6 +346,8 @@ def _add_calibrate(sub) -> None:
                    help="start ground height, metres above the ellipsoid (default: as ingested, else the headers'; "
                         "with --reference: the reference's)")
     _add_dem(p, "estimate its vertical offset instead of a flat ground height; exclusive with --ground-height")
+    _add_navigation(p, "estimate from it instead of the .lcf; for a collection: lcf or a stored track's name "
+                    "(default: the collection's default source); with --reference, the flights' (not REF's)")
     p.add_argument("--estimate", default=None, metavar="LIST",
                    help="parameters to estimate, comma-separated: boresight (or roll, pitch, yaw), sync, ground, "
                         "position (or east, north, up; with --reference) (default boresight,sync,ground; with "

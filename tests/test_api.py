@@ -124,8 +124,9 @@ def test_render_from_python_writes_what_the_cli_writes(flight, cli_zarr, schedul
     assert written.rio.crs == cli_zarr.rio.crs and written.rio.transform() == cli_zarr.rio.transform()
     np.testing.assert_array_equal(_bits(written["radiance"].values), _bits(cli_zarr["radiance"].values[[1, 4]]))
     # the same keywords as the CLI's text, and the same refusal of an existing output
-    with pytest.raises(OutputExistsError):
+    with pytest.raises(OutputExistsError) as refused:
         archive.georectify(str(directory), out, gsd=GSD, fov=FOV, wavelengths="520,880", scheduler=scheduler)
+    assert "overwrite=True" in str(refused.value) and "--overwrite" not in str(refused.value), refused.value
     assert sorted(p.name for p in out.parent.iterdir()) == ["m.zarr", "m.zarr.json"]
 
 
@@ -143,6 +144,10 @@ def test_bad_keywords_fail_like_the_cli(flight, tmp_path):
     with pytest.raises(InputError, match=r"^archive\.georectify\(overlap=\.\.\.\)"):
         archive.georectify([directory], tmp_path / "x.zarr", gsd=GSD, fov=FOV, overlap="first")
     assert not (tmp_path / "x.zarr").exists()
+    # an error naming a path, whose fix names switches: the switches in Python's words
+    (tmp_path / "s.zarr").mkdir()
+    with pytest.raises(InputError, match=r"s\.zarr: output exists already \(pass resume=True .* overwrite=True"):
+        archive.georectify([directory], tmp_path / "s.zarr", gsd=GSD, fov=FOV, stack=True)
 
 
 @pytest.fixture(scope="module")

@@ -230,3 +230,20 @@ def test_ingest_stores_the_trajectory_as_the_default_source(biased, tmp_path):
     # the ingest again without the trajectory: refused, not silently kept
     done = cli("ingest", str(directory), "--archive", str(archive), "--fov", str(FOV), "--quiet")
     assert done.returncode != 0 and "another navigation source" in done.stderr, done.stderr
+
+
+def test_calibrate_estimates_from_the_trajectory(biased, tmp_path):
+    """``calibrate --navigation FILE`` opens the flight on the trajectory (every line where the truth
+    is, not the .lcf's biased positions); a missing file is one line naming it."""
+    from archive.calibrate.command import open_calibration_sources
+
+    directory, truth, files = biased
+    (lcf,), _ = open_calibration_sources([str(directory)], fov=FOV)
+    np.testing.assert_allclose(np.median(_position_error(lcf, truth), axis=0), BIAS, atol=0.05)
+    (ppk,), fov = open_calibration_sources([str(directory)], fov=FOV, navigation=files["sbet"])
+    assert fov == FOV and np.abs(_position_error(ppk, truth)).max() < 0.005
+    missing = tmp_path / "nowhere.out"
+    done = subprocess.run([sys.executable, "-m", "archive", "calibrate", str(directory), "--fov", str(FOV),
+                           "--navigation", str(missing)], capture_output=True, text=True, timeout=120)
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode != 0 and len(lines) == 1 and str(missing) in lines[0], done.stderr

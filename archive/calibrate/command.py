@@ -14,10 +14,13 @@ from archive.params import NavigationParams
 __all__ = ["run", "open_calibration_sources"]
 
 
-def open_calibration_sources(names, archive=None, fov=None):
+def open_calibration_sources(names, archive=None, fov=None, navigation=None, navigation_columns=None):
     """Opened sources of ``names`` (raw directories or collection ids of ``archive``) with the
     parameters they record (a collection's as ingested, a raw flight's sidecar), and the field of
-    view (``fov``, else the collections')."""
+    view (``fov``, else the collections'). ``navigation``: their georectification source
+    (``--navigation``: a raw flight's SBET/CSV trajectory, or ``lcf`` / a collection's track name;
+    default the flight's own default), ``navigation_columns`` a CSV export's column text."""
+    from archive.formats.trajectory import parse_columns
     from archive.sources import open_source
 
     if not names:
@@ -25,7 +28,8 @@ def open_calibration_sources(names, archive=None, fov=None):
     opened = []
     for name in names:
         params = NavigationParams(sync_offset=None, boresight_deg=None, lever_arm_m=None)
-        opened.append(open_source(name, params, archive=archive))
+        opened.append(open_source(name, params, archive=archive, navigation=navigation,
+                                  navigation_columns=parse_columns(navigation_columns)))
     fovs = {fov} if fov is not None else {s.fov_deg for s in opened}
     if None in fovs:
         raise InputError("--fov", "raw flights do not record their field of view",
@@ -75,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
     if any(n in estimate for n in ("east", "north", "up")):
         raise InputError("--estimate", "a position offset is relative to another flight: a flight's own overlaps "
                          "cannot see it", "add --reference REF (a flight over the same ground)")
-    sources, fov = open_calibration_sources(args.sources, args.archive, args.fov)
+    sources, fov = open_calibration_sources(args.sources, args.archive, args.fov, args.navigation,
+                                            args.navigation_columns)
     dem, dem_label, ground = _ground(args, sources)
     quiet = args.json or args.quiet
     result = calibrate(sources, fov, ground, dem=dem, dem_label=dem_label, estimate=estimate,
@@ -122,7 +127,8 @@ def run_reference(args: argparse.Namespace) -> int:
     outputs, failed = [], 0
     for name in names:
         try:
-            (source,), _ = open_calibration_sources([name], args.archive, fov)
+            (source,), _ = open_calibration_sources([name], args.archive, fov, args.navigation,
+                                                    args.navigation_columns)
             result = coregister(source, reference, fov, ground, dem=dem, dem_label=dem_label, estimate=estimate,
                                 progress=None if quiet or batch else (lambda text: print(text, file=sys.stderr)))
             applied = None
