@@ -112,7 +112,7 @@ def _add_render(sub) -> None:
     bands = p.add_mutually_exclusive_group()
     bands.add_argument("--wavelengths", metavar="NM,NM,...", help="render the bands nearest to these wavelengths")
     bands.add_argument("--bands", metavar="all|I,J,...", default="all",
-                       help="'all' bands (default) or 0-based band indices")
+                       help="'all' bands (default) or band indices counted from 0 (GDAL and QGIS count from 1: docs/numbering.md)")
     p.add_argument("--mode", choices=["raw", "relative", "radiance", "reflectance"], default=None,
                    help="radiometric mode (default radiance; raw DN, with a note, when the flight has no calibration)")
     p.add_argument("--white-reference", metavar="FILE", help="white reference for --mode reflectance: text file of "
