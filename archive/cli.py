@@ -155,7 +155,7 @@ def _add_render(sub) -> None:
     p.add_argument("--compression", choices=["fast", "small", "none"], default="fast",
                    help="Zarr chunks and COG tiles: fast (default: Blosc LZ4 + shuffle / ZSTD -3 + predictor), "
                         "small (Blosc Zstd 1 / ZSTD 1: ~7 %% fewer bytes for 1.4-5x the compression CPU), none "
-                        "(uncompressed); ENVI is never compressed. Measured table: README 'Compression'")
+                        "(uncompressed); ENVI is never compressed. Measured table: docs/outputs.md 'Compression'")
     p.add_argument("--provenance", action="store_true",
                    help="also write per-pixel provenance layers: source cube/line/sample, time, view and sun "
                         "angles, path length, overlap count (variables of a .zarr; <stem>_provenance.tif/.hdr "
