@@ -238,37 +238,8 @@ def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: So
     Nothing is left at ``out`` when anything fails; the output's STAC Item, ``<out>.json``, is
     written last.
     """
-    from archive.run import pipeline
+    from archive.run.runner import OutputKind, run
 
-    request = _options(sources, options)
-    if stack:
-        from archive.run.stacks import run_stack
-
-        if quicklook:
-            raise InputError("--quicklook", "a stack has no quicklook", "leave --quicklook out with --stack")
-        from archive.storage import is_url
-
-        if is_url(out):
-            raise InputError(out, "a stack cannot be written into object storage yet",
-                             "write it to a local or shared folder, then copy it")
-        return run_stack(request, out, overwrite=overwrite, resume=resume, scheduler=scheduler, workers=workers,
-                         threads=threads, quiet=quiet, tell=tell)
-    if tiles is not None:   # each tile a job of its own, in waves
-        from archive.run.tiling import run_tiles
-
-        if quicklook:
-            raise InputError("--quicklook", "only one quicklook per command", "leave it out with --tiles")
-        return run_tiles(request, out, tiles, format=format, overwrite=overwrite, resume=resume, scheduler=scheduler,
-                         workers=workers, threads=threads, quiet=quiet, tell=tell)
-    if per_flight:   # each flight a job of its own, in waves
-        from archive.run.batch import run_batch
-
-        if quicklook:
-            raise InputError("--quicklook", "only one quicklook per command", "add --mosaic, or leave it out")
-        return run_batch(request, out, format=format, overwrite=overwrite, resume=resume, scheduler=scheduler,
-                         workers=workers, threads=threads, quiet=quiet, tell=tell)
-    if resume:
-        raise InputError("--resume", "resumes batch jobs (one output per flight)",
-                         "leave it out: a single output is written whole or not at all")
-    return pipeline.georectify(request, out, quicklook=quicklook, overwrite=overwrite, scheduler=scheduler,
-                               workers=workers, quiet=quiet, threads=threads)
+    return run(OutputKind.of(per_flight=per_flight, stack=stack, tiles=tiles), _options(sources, options), out,
+               quicklook=quicklook, format=format, overwrite=overwrite, resume=resume, scheduler=scheduler,
+               workers=workers, threads=threads, quiet=quiet, tell=tell)

@@ -259,9 +259,9 @@ def test_a_cluster_that_does_not_close_after_a_failed_render_keeps_the_renders_e
     """A failed render whose client's close then fails too (Dask's TimeoutError on a loaded machine)
     reports the render's own error and one warning line, and leaves nothing: the close's error used
     to replace the render's, and skipped the removal of the output's temporaries."""
-    from archive.run import pipeline
+    from archive.run import cluster
 
-    close = pipeline.close_client
+    close = cluster.close_client
     closes = []
 
     def late(client, cluster) -> None:
@@ -269,7 +269,7 @@ def test_a_cluster_that_does_not_close_after_a_failed_render_keeps_the_renders_e
         closes.append(client)
         raise TimeoutError("no worker left in time")
 
-    monkeypatch.setattr(pipeline, "close_client", late)
+    monkeypatch.setattr(cluster, "close_client", late)
     broken, bil = _failing_flight(flight, tmp_path)
     out = tmp_path / "out" / "m.hdr"
     rc = _render((broken, flight[1]), out, scheduler=scheduler)

@@ -49,6 +49,7 @@ from pathlib import Path
 from archive import storage
 from archive.errors import ArchiveError, InputError
 from archive.files import FileLock, path_exists, remove_path, test_hold, write_atomic
+from archive.run.session import BatchSummary, Job, render_summary
 
 __all__ = ["LOCK", "REPORT", "Flight", "recipe_request", "run_batch"]
 
@@ -249,7 +250,7 @@ class _Report:
 def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, resume: bool = False,
               scheduler: str | None = None, workers: int | None = None, threads: int | None = None,
               quiet: bool = True, tell: Callable[[str], None] | None = None, wave: int | None = None,
-              units: Sequence[tuple[str, object, dict]] | None = None) -> dict:
+              units: Sequence[tuple[str, object, dict]] | None = None) -> BatchSummary:
     """Render every source of ``options`` into ``out/<name>.<format>``, each flight on its own (see
     the module's docstring). ``tell(line)`` gets one line per flight as it finishes; ``wave``: flights
     in the scheduler at once (default :func:`archive.run.cluster.flight_slots`). Returns ``{"outputs":
@@ -389,18 +390,34 @@ def _lock_directory(directory: Path) -> FileLock:
 def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler, workers, threads, quiet,
             wave) -> None:
     """Plan, submit (in waves), follow and publish ``todo``'s flights on a cluster."""
+    from archive.run.pipeline import progress_lines
+    from archive.run.session import Session
+
+    say = progress_lines(quiet)
+    # stops the worker processes (cancels Slurm worker jobs) at the end, once the writers of failed
+    # flights are done on a cluster that outlives us; a close that fails is a warning, never the
+    # batch's error nor a reason to leave temporaries
+    try:
+        with Session(scheduler, workers, threads, say, what=str(report.path.parent)) as session:
+            _follow(session, todo, report, tell, state, quiet=quiet, wave=wave)
+    finally:
+        for flight in todo:
+            flight.output.cleanup()
+
+
+def _follow(session, todo: list[Flight], report: _Report, tell, state: dict, *, quiet, wave) -> None:
+    """:func:`_render`'s loop on the session's cluster: plan ahead, submit in waves, publish each
+    flight as its last task ends."""
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
 
-    from distributed import LocalCluster, as_completed
+    from distributed import as_completed
     from tqdm import tqdm
 
-    from archive.run.cluster import (close_client, closed_or_warned, flight_slots, start_cluster, task_budget,
-                                 wait_for_writers)
     from archive.run.pipeline import progress_lines
 
     say = progress_lines(quiet)
-    client, cluster = start_cluster(scheduler, workers, say, threads)
+    client = session.client
     queue = deque(todo)
     prepared: deque = deque()   # (flight, its planning's concurrent future), in submission order
     planner = ThreadPoolExecutor(1, thread_name_prefix="archive-plan")
@@ -410,8 +427,8 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
     bar = tqdm(total=len(todo), desc="flights", unit="flight", disable=quiet, file=sys.stderr)
     tasks = {"done": 0, "submitted": 0}
     try:
-        budget = task_budget(client)
-        slots = wave or flight_slots(client, budget)
+        budget = session.budget
+        slots = wave or session.slots()
         state["wave"] = slots
         counted = time.monotonic()
         # on this client's event loop: as_completed() alone tracks the futures on the default client's
@@ -429,7 +446,7 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
             flight.status, flight.error = status, error
             flight.seconds = time.perf_counter() - flight.started
             if status == "failed":
-                client.cancel([f for f in flight.futures if not f.done()], force=True)
+                session.abandon(flight.futures, wait=False)   # its writers waited for at the end
                 flight.output.cleanup()
                 tell(f"failed {flight.name}: {error}")
             else:
@@ -473,7 +490,7 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
 
         while queue or prepared or active:
             if wave is None and time.monotonic() - counted > 5.0:   # workers come and go (Slurm jobs)
-                slots, counted = flight_slots(client, budget), time.monotonic()
+                slots, counted = session.slots(), time.monotonic()
                 state["wave"] = max(state["wave"], slots)
             plan_ahead()
             while prepared and len(active) < slots:
@@ -505,26 +522,7 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
         state["graph_seconds"] = time.perf_counter() - t0
     finally:
         bar.close()
-        planner.shutdown(wait=True, cancel_futures=True)   # no temporaries made after the clean-up below
-        if not isinstance(cluster, LocalCluster) and any(f.status == "failed" for f in todo):
-            wait_for_writers(client)   # a shared scheduler, or Slurm jobs that stop only when cancelled
-        # stops the worker processes (cancels Slurm worker jobs), with any task still writing; a close
-        # that fails is a warning, never the batch's error nor a reason to leave temporaries
-        closed_or_warned(lambda: close_client(client, cluster), "archive render", str(report.path.parent))
-        for flight in todo:
-            flight.output.cleanup()
-
-
-@dataclass
-class _FlightJob:
-    """What :func:`archive.run.pipeline.publish` needs of a flight: output, plan, sink, options (and the
-    renderers the workers used)."""
-
-    output: object
-    planned: object
-    sink: object
-    options: object
-    renderers: list | None = None
+        planner.shutdown(wait=True, cancel_futures=True)   # no temporaries made after the clean-up
 
 
 def _publish(flight: Flight, client) -> None:
@@ -545,14 +543,14 @@ def _publish(flight: Flight, client) -> None:
             flight.remote.cleanup()
 
 
-def _timed_prepare(flight: Flight, budget: int, say) -> tuple[_FlightJob, object, float]:
+def _timed_prepare(flight: Flight, budget: int, say) -> tuple[Job, object, float]:
     """:func:`_prepare` in the planner's thread; the flight's clock starts here. (job, graph, seconds)."""
     flight.started = time.perf_counter()
     job, graph = _prepare(flight, budget, say)
     return job, graph, time.perf_counter() - flight.started
 
 
-def _prepare(flight: Flight, budget: int, say) -> tuple[_FlightJob, object]:
+def _prepare(flight: Flight, budget: int, say) -> tuple[Job, object]:
     """Open, plan and build one flight (metadata only; its sink created under temporary names)."""
     from archive.run.pipeline import build_output, open_inputs, plan_output
 
@@ -563,14 +561,5 @@ def _prepare(flight: Flight, budget: int, say) -> tuple[_FlightJob, object]:
     else:
         planned = plan_output(open_inputs(recipe, nav, say, mosaic=False), [0], budget=budget)
     sink, graph = build_output(planned, flight.output)
-    flight.summary = _summary(planned, flight.output, graph)
-    return _FlightJob(flight.output, planned, sink, recipe), graph
-
-
-def _summary(planned, output, graph) -> dict:
-    g, plan = planned.plan.grid, planned.plan
-    return {"out": str(output.path), "width": g.width, "height": g.height, "gsd": g.gsd, "epsg": g.epsg,
-            "bands": plan.nbands, "wavelengths": planned.wavelengths, "mode": planned.params.mode,
-            "cubes": len(plan.jobs), "sources": len(planned.sources), "renders": graph.renders,
-            "assemblies": graph.assemblies, "left_out": dict(planned.left_out or {}),
-            "provenance": None if not output.provenance else str(output.provenance_path or output.path)}
+    flight.summary = render_summary(planned, flight.output, graph)
+    return Job(flight.output, planned, sink, recipe), graph

@@ -37,14 +37,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from archive import storage
-from archive.run.cluster import (ClusterClose, active_client, check_gpu_workers, close_client, closed_or_warned, execute,
-                             start_cluster, task_budget)
+from archive.run.cluster import active_client, check_gpu_workers, execute, task_budget
 from archive.errors import InputError
 from archive.formats.trajectory import parse_columns
 from archive.files import wait_while_exists
 from archive.grid import GridRequest
 from archive.geometry.navigation import projected_epsg
 from archive.run.options import RenderOptions, grid_request
+from archive.run.session import Job, RenderSummary, Session, render_summary
 from archive.outputs.base import variable_for_mode
 from archive.outputs.publish import Output
 from archive.outputs.zarr import mosaic_dataset
@@ -300,19 +300,6 @@ def build_output(output: OutputPlan, target: Output):
 # ---------------------------------------------------------------------------------------------
 # Run and publish
 # ---------------------------------------------------------------------------------------------
-@dataclass
-class _Job:
-    """One output of a command: its Output, plan, sink and graph, and the options that render it
-    alone again (its recipe)."""
-
-    output: Output
-    planned: OutputPlan
-    sink: object
-    graph: object
-    options: RenderOptions
-    renderers: list | None = None   # what the workers' GL contexts opened (worker_renderers)
-
-
 def _file_stamp(path: str | os.PathLike) -> dict:
     try:
         st = os.stat(path)
@@ -417,7 +404,7 @@ def product_item(planned: OutputPlan, output: Output, options: RenderOptions,
 TEST_HOLD_PUBLISH = "ARCHIVE_TEST_HOLD_PUBLISH"
 
 
-def publish(job: _Job, inputs: list[dict] | None = None, properties: dict | None = None) -> None:
+def publish(job: Job, inputs: list[dict] | None = None, properties: dict | None = None) -> None:
     """Finish a job's output (ENVI header, COG layout), rename it into place (its old Item removed
     first), then write its STAC Item beside it, ``<out>.json``, last: an Item says the output is
     complete. The Item's recipe records ``inputs`` (default :func:`recipe_inputs` of the job's
@@ -457,7 +444,7 @@ def client_budget() -> int | None:
 
 def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str | os.PathLike | None = None,
                overwrite: bool = False, scheduler: str | None = None, workers: int | None = None,
-               quiet: bool = True, threads: int | None = None) -> dict:
+               quiet: bool = True, threads: int | None = None) -> RenderSummary:
     """Georectify ``options`` into ``out`` (.zarr, .tif or .hdr); returns a summary dict. Raises ArchiveError.
 
     One output at ``out`` (batch jobs, one output per flight, are :func:`archive.run.batch.run_batch`'s).
@@ -484,55 +471,33 @@ def georectify(options: RenderOptions, out: str | os.PathLike, *, quicklook: str
                         quicklook=None if not quicklook else Path(quicklook).absolute(),
                         provenance=options.provenance)
     output.check()
-    outputs = [output]
-    client = cluster = closing = None
-    jobs: list[_Job] = []
+    job = None
     graph_seconds = 0.0
     try:
         inputs = open_inputs(options, nav, say, mosaic=True)
-        client, cluster = start_cluster(scheduler, workers, say, threads)
-        planned = plan_output(inputs, budget=task_budget(client))
-        sink, graph = build_output(planned, output)
-        jobs.append(_Job(output, planned, sink, graph, options))
-        t = time.perf_counter()
-        if len(graph):
-            execute(client, graph, quiet, shared=cluster is None)
-        graph_seconds = time.perf_counter() - t
-        renderers = worker_renderers(client)
-        closing = ClusterClose(client, cluster)   # every task ended: the workers stop while we publish
-        client = cluster = None
-        if os.environ.get(TEST_HOLD_PUBLISH):
-            wait_while_exists(os.environ[TEST_HOLD_PUBLISH])
-        for job in jobs:
-            job.renderers = renderers
+        # a failed run's close stops the worker processes, with any task still writing; the close
+        # begun once every task had ended runs while we publish: neither hides the run's outcome
+        with Session(scheduler, workers, threads, say, what=str(out)) as session:
+            planned = plan_output(inputs, budget=session.budget)
+            sink, graph = build_output(planned, output)
+            job = Job(output, planned, sink, options, graph)
+            t = time.perf_counter()
+            if len(graph):
+                execute(session.client, graph, quiet, shared=session.shared)
+            graph_seconds = time.perf_counter() - t
+            job.renderers = worker_renderers(session.client)
+            session.close_early()   # every task ended: the workers stop while we publish
+            if os.environ.get(TEST_HOLD_PUBLISH):
+                wait_while_exists(os.environ[TEST_HOLD_PUBLISH])
             publish(job)
-        if remote is not None:
-            remote.upload()
+            if remote is not None:
+                remote.upload()
     finally:
-        # a failed run's close (the worker processes stop, with any task still writing), or the
-        # close started once every task had ended: neither hides the run's error or outcome
-        if client is not None:
-            closed_or_warned(lambda: close_client(client, cluster), "archive render", str(out))
-        if closing is not None:
-            closed_or_warned(closing.join, "archive render", str(out))
-        for output in outputs:
-            output.cleanup()
+        output.cleanup()
         if remote is not None:
             remote.cleanup()
-    seconds = time.perf_counter() - started
-    summaries = []
-    for job in jobs:
-        g, plan = job.planned.plan.grid, job.planned.plan
-        summaries.append({
-            "out": str(out), "width": g.width, "height": g.height,
-            "gsd": g.gsd, "epsg": g.epsg, "bands": plan.nbands, "wavelengths": job.planned.wavelengths,
-            "mode": job.planned.params.mode, "cubes": len(plan.jobs), "sources": len(job.planned.sources),
-            "renders": job.graph.renders, "assemblies": job.graph.assemblies, "seconds": seconds,
-            "graph_seconds": graph_seconds, "left_out": dict(job.planned.left_out or {}),
-            "provenance": (None if not job.output.provenance else
-                           str(job.output.provenance_path or job.output.path)),
-        })
-    return summaries[0]
+    return render_summary(job.planned, job.output, job.graph, seconds=time.perf_counter() - started,
+                          graph_seconds=graph_seconds) | {"out": str(out)}
 
 
 def describe(s: dict) -> str:

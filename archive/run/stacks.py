@@ -57,6 +57,7 @@ from archive.errors import InputError, NoLineOnGrid
 from archive.files import FileLock, host_name, path_exists, remove_path, replace_path
 from archive.grid import Grid, GridRequest
 from archive.outputs.stack import STACK_ATTR, StackFlight, StackLayout, add_slice, commit_stack, read_stack
+from archive.run.session import StackSummary
 
 __all__ = ["STACK_ATTR", "StackFlight", "read_stack", "run_stack", "stack", "stack_grid", "survey"]
 
@@ -186,7 +187,7 @@ def _differences(stored: dict, wanted: dict) -> str:
 
 def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, scheduler=None,
               workers: int | None = None, threads: int | None = None, quiet: bool = True,
-              tell: Callable[[str], None] | None = None) -> dict:
+              tell: Callable[[str], None] | None = None) -> StackSummary:
     """Write (or, with ``resume``, complete) the stack of ``options.sources`` at ``out`` (a .zarr);
     see the module docstring. ``tell(line)`` gets one line per flight (done / skipped / left out).
     Returns ``{"out", "flights" (ids in the stack, time order), "added", "skipped", "left_out",
@@ -229,8 +230,7 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
 def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *, overwrite: bool, resume: bool,
                       scheduler, workers, threads, quiet: bool) -> dict:
     """:func:`run_stack` once the stack's lock is held."""
-    from archive.run.cluster import close_client, closed_or_warned, flight_slots, start_cluster, task_budget, \
-        wait_for_writers
+    from archive.run.session import Session
     from archive.outputs.publish import Output
     from archive.run.pipeline import build_output, open_inputs, plan_output
 
@@ -275,21 +275,21 @@ def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *
     # the flights to add, in time order (planned here one at a time, and again when rendered)
     surveyed = survey(options, nav, todo, say, footprints=layout is None and options.like is None, fov=fov)
     grid = layout.grid if layout is not None else stack_grid(options, nav, surveyed, say, fov)
-    client = cluster = None
+    session = None
     added: list[str] = []
     left_out: list[str] = []
     renders = 0
     made_target = False
     try:
         if todo:
-            client, cluster = start_cluster(scheduler, workers, say, threads)
-            budget = task_budget(client)
+            session = Session(scheduler, workers, threads, say, what=f"stack {out}").start()
+            client, budget = session.client, session.budget
             bar = None
             if not quiet:
                 from tqdm import tqdm
 
                 bar = tqdm(total=len(surveyed), desc="stack", unit="flight", file=sys.stderr)
-            slots = max(1, flight_slots(client, budget))
+            slots = max(1, session.slots())
             queue, inflight = deque(surveyed), deque()
             try:
                 while queue or inflight:
@@ -349,11 +349,8 @@ def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *
                         bar.update(1)
                     _test_hold(len(added))
             finally:
-                pending = [f for r in inflight for f in r.futures if not f.done()]
-                if pending:
-                    client.cancel(pending, force=True)
-                    if cluster is None:   # a shared scheduler: no chunk may land after the clean-up
-                        wait_for_writers(client)
+                if inflight:   # given up: on a cluster that outlives us, no chunk may land after the clean-up
+                    session.abandon([f for r in inflight for f in r.futures])
                 for record in inflight:
                     record.output.cleanup()
             if bar is not None:
@@ -367,8 +364,8 @@ def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *
             target = out
         _write_item(out, layout, flights, options)
     finally:
-        if client is not None:   # a close that fails is one warning line, never the run's error
-            closed_or_warned(lambda: close_client(client, cluster), "archive render", f"stack {out}")
+        if session is not None:   # a close that fails is one warning line, never the run's error
+            session.close()
         if target != out:
             remove_path(target)
     g = layout.grid
