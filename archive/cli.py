@@ -20,8 +20,10 @@ from archive.api_errors import keep_cli_flags
 from archive.errors import ArchiveError, file_system_refusal, warning_lines
 from archive.overlap import LAST, RULES
 from archive.params import DEFAULT_MAX_VIEW_ANGLE
+from archive.analysis.arguments import add_stats
 from archive.simulator.arguments import add_simulate
 from archive.simulator.arguments import positive_int as _positive_int
+from archive.watch.arguments import add_watch
 
 # command name -> "module:function" taking the parsed argparse.Namespace and returning an exit code
 HANDLERS = {
@@ -34,6 +36,8 @@ HANDLERS = {
     "view": "archive.view.server:run",
     "calibrate": "archive.calibrate.command:run",
     "doctor": "archive.run.doctor:run",
+    "stats": "archive.analysis.command:run",
+    "watch": "archive.watch.command:run",
 }
 
 
@@ -247,7 +251,9 @@ def _add_ingest(sub) -> None:
                    help="camera-to-navigation time offset, seconds (default 0); recorded, used by renders of the collection")
     _add_navigation(p, "stored with the flight as a named track (the file's stem), its default navigation source")
     _add_mounting(p, recorded=False)
-    p.add_argument("--workers", type=_positive_int, metavar="N", help="threads writing chunks (default: CPU count)")
+    from archive.ingest.arguments import add_cluster_options
+
+    add_cluster_options(p)   # --scheduler, --cluster slurm, --workers, --threads, --report, --compression, --checksum
     _add_run_flags(p, "re-ingest flights that are already in the archive")
 
 
@@ -327,6 +333,8 @@ def _add_view(sub) -> None:
                    help="also serve this time stack (archive render --stack; with --archive): the page shows one "
                         "time step at a time, a slider steps through its flights, values read from the Zarr "
                         "(repeatable)")
+    p.add_argument("--navigation", metavar="lcf|NAME", help="the navigation source drawn first: lcf (the recorder's "
+                   "real-time solution) or a stored trajectory's name (default: each collection's own); the page switches it")
 
 
 def _add_calibrate(sub) -> None:
@@ -400,6 +408,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_view(sub)
     _add_calibrate(sub)
     _add_doctor(sub)
+    add_stats(sub)
+    add_watch(sub)
     return parser
 
 

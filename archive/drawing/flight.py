@@ -3,7 +3,7 @@
 Which ids exist is :class:`archive.view.registry.FlightRegistry`'s (the archive's catalog, plus raw
 flight directories named on the command line). :class:`Flight` holds one flight's caches and does its drawing with the inverse renderer:
 
-- geometry per (ground height, sync offset): the opened source, its cube meshes (the same
+- geometry per (ground height, sync offset, navigation source, boresight): the opened source, its cube meshes (the same
   :func:`~archive.graph.plan.cube_meshes` as ``archive render``) transformed to EPSG:3857 for tiles
   and to the UTM zone of ``archive render`` (:func:`~archive.graph.plan.job_epsg`) for points. A
   collection ingested with a DEM is drawn on its terrain (the meshes of ``archive render --dem``:
@@ -45,7 +45,7 @@ from archive.drawing.query import ViewQuery
 from archive.grid import MERCATOR_EPSG, bbox_grid
 from archive.drawing.png import encode_png, transparent_png
 
-__all__ = ["DEFAULT_RGB_NM", "Flight", "overview_level"]
+__all__ = ["DEFAULT_RGB_NM", "Flight", "navigation_sources", "overview_level"]
 
 #: Wavelengths of the default (true colour) channels, nm.
 DEFAULT_RGB_NM = (640.0, 550.0, 460.0)
@@ -77,11 +77,16 @@ class Flight:
     parameters; fov: field of view (deg) for the meshes, None: the one the source records;
     bands_cache / lookup_cache: shared byte-bounded caches of cube bands and lookups; workers:
     threads that make several band planes at once (:meth:`BandPlanes.prepare`; None: one after
-    the other).
+    the other); navigation: the navigation source drawn when a query names none (``archive view
+    --navigation``: 'lcf' or a stored track's name) where the flight has it, else the flight's own
+    default (a collection's default track, else its ``.lcf``).
+
+    ``opener(params, navigation)`` is given the navigation source too ('lcf', a track's name, or None:
+    the source's default).
     """
 
     def __init__(self, cid: str, opener: Callable, fov: float | None, bands_cache: ByteLRU,
-                 lookup_cache: ByteLRU, workers: Executor | None = None):
+                 lookup_cache: ByteLRU, workers: Executor | None = None, navigation: str | None = None):
         self.id = cid
         self.opener = opener
         self.bands_cache = bands_cache
@@ -91,6 +96,14 @@ class Flight:
         self._ranges: OrderedDict = OrderedDict()
         self._posed: OrderedDict = OrderedDict()
         self._level = 1   # the overview level of the latest tile drawn
+        probe = self.opener(NavigationParams(sync_offset=None, boresight_deg=None, lever_arm_m=None), None)
+        own = getattr(probe, "navigation_source", None) or "lcf"   # the source's default
+        #: the navigation sources this flight can be drawn from ('lcf' first, then stored tracks)
+        self.navigation_sources = navigation_sources(probe)
+        #: the one drawn when a query names none
+        self.navigation = navigation if navigation in self.navigation_sources else own
+        if self.navigation == own:
+            self._sources[(None, own, None)] = probe
         first = self.source(None)
         self.fov = float(fov if fov is not None else (first.fov_deg or math.nan))
         if not (0 < self.fov < 180):
@@ -118,15 +131,30 @@ class Flight:
             cache.popitem(last=False)
         return value
 
-    def source(self, sync_offset: float | None):
-        """The source with this sync offset (s; None: as ingested, else 0)."""
-        found = self._sources.get(sync_offset)
+    def pose_key(self, sync_offset: float | None, navigation: str | None = None,
+                 boresight: tuple[float, float, float] | None = None) -> tuple:
+        """(sync offset, navigation source, boresight) as the caches key them: the navigation resolved
+        (None: :attr:`navigation`), InputError naming ``navigation`` for a source the flight lacks."""
+        if navigation is None:
+            navigation = self.navigation
+        elif navigation not in self.navigation_sources:
+            raise InputError("navigation", f"flight {self.id} has no navigation source {navigation!r} (it has: "
+                             f"{', '.join(self.navigation_sources)})", "pick one of those")
+        return (sync_offset, navigation, None if boresight is None else tuple(float(v) for v in boresight))
+
+    def source(self, sync_offset: float | None, navigation: str | None = None,
+               boresight: tuple[float, float, float] | None = None):
+        """The source with this sync offset (s; None: as ingested, else 0), navigation source
+        ('lcf', a stored track's name; None: :attr:`navigation`) and boresight ((roll, pitch, yaw)
+        degrees; None: as ingested)."""
+        key = self.pose_key(sync_offset, navigation, boresight)
+        found = self._sources.get(key)
         if found is not None:
-            self._sources.move_to_end(sync_offset)
+            self._sources.move_to_end(key)
             return found
-        # no field of view: sources do not use one (meshes take self.fov); boresight and lever arm: as ingested
-        params = NavigationParams(sync_offset=sync_offset, boresight_deg=None, lever_arm_m=None)
-        return self._keep(self._sources, sync_offset, self.opener(params), GEOMETRIES_KEPT)
+        # no field of view: sources do not use one (meshes take self.fov); the lever arm: as ingested
+        params = NavigationParams(sync_offset=sync_offset, boresight_deg=key[2], lever_arm_m=None)
+        return self._keep(self._sources, key, self.opener(params, key[1]), GEOMETRIES_KEPT)
 
     def terrain(self):
         """(the :class:`~archive.terrain.dem.DemSpec` of the DEM the collection was ingested with, its nominal
@@ -138,15 +166,22 @@ class Flight:
         spec = recorded_dem(record, self.id)
         return None if spec is None else (spec, float(record.get("gsd") or 0.05))
 
+    def view_geometry(self, query: ViewQuery, gsd: float | None = None) -> Geometry:
+        """:meth:`geometry` at the query's ground height, sync offset, navigation source and boresight."""
+        return self.geometry(query.ground_height, query.sync_offset, gsd, query.navigation, query.boresight)
+
     def geometry(self, ground_height: float | None, sync_offset: float | None,
-                 gsd: float | None = None) -> Geometry:
-        """Meshes at this ground height (None: auto) and sync offset (None: as ingested). Over a
-        DEM, ``ground_height`` is the DEM's vertical offset (m, None: 0) and ``gsd`` the output pixel
-        the terrain meshes are built for (None: the flight's nominal GSD)."""
+                 gsd: float | None = None, navigation: str | None = None,
+                 boresight: tuple[float, float, float] | None = None) -> Geometry:
+        """Meshes at this ground height (None: auto), sync offset (None: as ingested), navigation
+        source and boresight (:meth:`source`). Over a DEM, ``ground_height`` is the DEM's vertical
+        offset (m, None: 0) and ``gsd`` the output pixel the terrain meshes are built for (None: the
+        flight's nominal GSD)."""
         terrain = self.terrain()
         if terrain is not None:
             gsd = float(gsd if gsd is not None else terrain[1])
-        key = (ground_height, sync_offset, gsd if terrain is not None else None)
+        pose = self.pose_key(sync_offset, navigation, boresight)
+        key = (ground_height, pose, gsd if terrain is not None else None)
         found = self._geometries.get(key)
         if found is not None:
             self._geometries.move_to_end(key)
@@ -155,10 +190,10 @@ class Flight:
         from archive.params import MeshSpec
         from archive.sources.select import resolve_ground_height
 
-        source = self.source(sync_offset)
-        posed = self._posed.get(sync_offset)
+        source = self.source(*pose)
+        posed = self._posed.get(pose)
         if posed is None or posed.source is not source:
-            posed = self._keep(self._posed, sync_offset, PosesKept(source), GEOMETRIES_KEPT)
+            posed = self._keep(self._posed, pose, PosesKept(source), GEOMETRIES_KEPT)
         if terrain is not None:   # the meshes as 'archive render --dem' builds them (DEM moved by the offset)
             ground = 0.0 if ground_height is None else float(ground_height)
             spec = MeshSpec(self.fov, dem=dataclasses.replace(terrain[0], offset=ground), gsd=gsd)
@@ -172,7 +207,7 @@ class Flight:
         bounds = np.array([m.bounds_utm() if m.rows >= 2 else (np.nan,) * 4 for m in mercator], float)
         return self._keep(self._geometries, key,
                           Geometry(source, float(ground), int(epsg), utm, mercator, bounds,
-                                   gsd if terrain is not None else None), GEOMETRIES_KEPT)
+                                   gsd if terrain is not None else None, pose), GEOMETRIES_KEPT)
 
     def cube_range(self, cubes: tuple[int, int] | None) -> range:
         n = len(self.cubes)
@@ -230,7 +265,7 @@ class Flight:
             if found.box() is None:
                 return None, 64
             return found, found.line.nbytes + found.sample.nbytes
-        key = (self.id, geometry.ground_height, geometry.source.params.sync_offset, geometry.gsd, cube, grid)
+        key = (self.id, geometry.ground_height, geometry.pose, geometry.gsd, cube, grid)
         return self.lookup_cache.get_or_make(key, make)
 
     def view_zenith(self, geometry: Geometry, cube: int, lookup) -> np.ndarray:
@@ -239,8 +274,7 @@ class Flight:
         --provenance`` does (:func:`archive.geometry.provenance.cube_layers`)."""
         from archive.geometry.provenance import ProvenanceSpec, cube_layers
 
-        key = (self.id, "view_zenith", geometry.ground_height, geometry.source.params.sync_offset, geometry.gsd,
-               cube, lookup.grid)
+        key = (self.id, "view_zenith", geometry.ground_height, geometry.pose, geometry.gsd, cube, lookup.grid)
         found = self.lookup_cache.get(key)
         if found is not None:
             return found
@@ -337,7 +371,7 @@ class Flight:
 
     def _drawing(self, grid: Grid, query: ViewQuery):
         """(geometry, cube range, bands, mode, whether the cubes' meshes reach ``grid``) of a query."""
-        geometry = self.geometry(query.ground_height, query.sync_offset)
+        geometry = self.view_geometry(query)
         cubes = self.cube_range(query.cubes)
         union = geometry.union(cubes)
         drawn = union is not None and bounds_intersect(union, grid.bounds)
@@ -446,7 +480,7 @@ class Flight:
         (at most OUTLINE_ROWS rows each)."""
         from archive.grid import mercator_to_lonlat
 
-        geometry = self.geometry(query.ground_height, query.sync_offset)
+        geometry = self.view_geometry(query)
         polygons = []
         for c in self.cube_range(query.cubes):
             mesh = geometry.mercator[c]
@@ -462,7 +496,8 @@ class Flight:
 
     def describe(self) -> dict:
         """What the page needs to build its controls: cubes, bands, modes, default ground height
-        and the camera's lowest altitude (the ground-height slider's range)."""
+        and the camera's lowest altitude (the ground-height slider's range), the sync offset, the
+        navigation sources (the one drawn by default) and the boresight (roll, pitch, yaw deg) as ingested."""
         from archive.sources.ground import camera_altitudes
 
         geometry = self.geometry(None, None)
@@ -480,7 +515,18 @@ class Flight:
             "terrain": (None if geometry.gsd is None else
                         {"dem": Path(self.terrain()[0].path).name, "offset": geometry.ground_height}),
             "sync_offset": float(source.params.sync_offset),
+            "navigation": {"sources": list(self.navigation_sources), "default": self.navigation},
+            "boresight_deg": [float(v) for v in source.params.boresight_deg],
             "cubes": [{"index": c.index, "base": c.base, "lines": c.lines, "samples": c.samples}
                       for c in self.cubes],
             "bounds_3857": geometry.union(range(len(self.cubes))),
         }
+
+
+def navigation_sources(source) -> tuple[str, ...]:
+    """The navigation sources a flight source can be drawn from: 'lcf' (the recorder's real-time
+    solution), then the post-processed trajectories a collection stores (attribute
+    ``navigation_tracks``, :func:`archive.collection.read.read_track`); a raw flight: 'lcf' only."""
+    attrs = getattr(getattr(source, "info", None), "attrs", None) or {}
+    tracks = (attrs.get("navigation_tracks") or {}).get("tracks") or {}
+    return ("lcf", *sorted(str(name) for name in tracks if str(name) != "lcf"))

@@ -12,7 +12,7 @@ __all__ = ["Geometry", "PosesKept", "bounds_intersect", "plane_index", "slice_ra
 
 @dataclass(frozen=True, eq=False)
 class Geometry:
-    """A flight's meshes at one ground height and sync offset.
+    """A flight's meshes at one ground height, sync offset, navigation source and boresight.
 
     source: the opened flight source; ground_height: m above the ellipsoid (resolved);
     epsg: the UTM zone ``archive render`` uses for this flight; utm / mercator: per cube, its mesh
@@ -27,6 +27,8 @@ class Geometry:
     mercator: tuple
     bounds: np.ndarray
     gsd: float | None = None   #: terrain meshes: the output pixel they were built for (m); None: flat
+    #: (sync offset, navigation source, boresight) as asked (:meth:`Flight.pose_key`): the caches' key
+    pose: tuple = ()
 
     def union(self, cubes: range) -> tuple[float, float, float, float] | None:
         """W, S, E, N (EPSG:3857 m) of the cubes' meshes, None when none is drawable."""

@@ -26,7 +26,7 @@ def point_spectrum(flight, lon: float, lat: float, gsd: float, query: ViewQuery)
     from archive.geometry.navigation import project, to_lonlat
     from archive.render.renderer import Lookup, rasterize_lookup, render_lookup
 
-    geometry = flight.geometry(query.ground_height, query.sync_offset, gsd)
+    geometry = flight.view_geometry(query, gsd)
     cubes = flight.cube_range(query.cubes)
     mode = flight.mode(query)
     x, y = (float(v) for v in project(lon, lat, geometry.epsg))
@@ -68,6 +68,7 @@ def point_spectrum(flight, lon: float, lat: float, gsd: float, query: ViewQuery)
         "id": flight.id, "lon": lon, "lat": lat, "mode": mode, "gsd": gsd, "epsg": geometry.epsg,
         "pixel": {"x": cx, "y": cy, "lon": clon, "lat": clat},
         "ground_height": geometry.ground_height, "sync_offset": float(geometry.source.params.sync_offset),
+        "navigation": geometry.pose[1], "boresight_deg": [float(v) for v in geometry.source.params.boresight_deg],
         "wavelength": flight.wavelengths_of(range(nbands)),
         "values": [float(v) if np.isfinite(v) else None for v in values],
         "covered": hit is not None, "cube": None, "line": None, "sample": None, "time": None,

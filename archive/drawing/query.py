@@ -8,6 +8,7 @@ list is refused by its length, not read).
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -27,6 +28,10 @@ MAX_BANDS = 16
 #: Ground heights (m, ellipsoid) and sync offsets (s) outside these are refused outright.
 MAX_HEIGHT = 10_000.0
 MAX_SYNC_OFFSET = 10.0
+#: Boresight angles (deg, roll, pitch, yaw) outside +-this are refused outright.
+MAX_BORESIGHT = 45.0
+#: A navigation source's name: 'lcf' or a stored track's (letters, digits, '.', '_', '-').
+NAVIGATION_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 
 
 @dataclass(frozen=True)
@@ -165,6 +170,8 @@ class ViewQuery:
     calibration). stretch: :class:`Stretch`. cubes: (first, last) 0-based inclusive, None = all.
     ground_height: m above the ellipsoid (None: as ingested / the headers'). sync_offset: s (None:
     as ingested, else 0). overlap: how cubes that cover the same pixel combine (a name of :data:`OVERLAPS`).
+    navigation: the navigation source ('lcf' or a stored track's name; None: the viewer's default for
+    the flight). boresight: (roll, pitch, yaw) degrees, aerospace signs (None: as ingested).
     """
 
     wavelengths: tuple[float, ...] | None = None
@@ -176,6 +183,8 @@ class ViewQuery:
     ground_height: float | None = None
     sync_offset: float | None = None
     overlap: str = "last"
+    navigation: str | None = None
+    boresight: tuple[float, float, float] | None = None
 
     @property
     def channels(self) -> int:
@@ -216,7 +225,8 @@ def _band_indices(params: Mapping[str, str]) -> tuple[int, ...] | None:
 
 def parse_query(params: Mapping[str, str], channels: bool = True) -> ViewQuery:
     """The :class:`ViewQuery` of request parameters (``wavelengths``, ``band``, ``bands``, ``mode``,
-    ``stretch``, ``cubes``, ``ground_height``, ``sync_offset``, ``overlap``). channels: whether wavelengths /
+    ``stretch``, ``cubes``, ``ground_height``, ``sync_offset``, ``overlap``, ``navigation``, ``boresight``
+    (roll,pitch,yaw degrees)). channels: whether wavelengths /
     band / stretch are read (tiles and stats) or left out (point: every band)."""
     wavelengths = band = indices = None
     stretch = Stretch()
@@ -248,4 +258,25 @@ def parse_query(params: Mapping[str, str], channels: bool = True) -> ViewQuery:
         wavelengths=wavelengths, band=band, bands=indices if channels else None, mode=mode, stretch=stretch,
         cubes=_cubes(params), overlap=overlap,
         ground_height=parse_number(params, "ground_height", -MAX_HEIGHT, MAX_HEIGHT),
-        sync_offset=parse_number(params, "sync_offset", -MAX_SYNC_OFFSET, MAX_SYNC_OFFSET))
+        sync_offset=parse_number(params, "sync_offset", -MAX_SYNC_OFFSET, MAX_SYNC_OFFSET),
+        navigation=_navigation(params), boresight=_boresight(params))
+
+
+def _navigation(params: Mapping[str, str]) -> str | None:
+    text = _text(params, "navigation")
+    if text is not None and not NAVIGATION_NAME.fullmatch(text):
+        raise InputError("navigation", f"{text!r} is not a navigation source's name",
+                         "give lcf or the name of one of the flight's stored trajectories")
+    return text
+
+
+def _boresight(params: Mapping[str, str]) -> tuple[float, float, float] | None:
+    values = _numbers(params, "boresight", 3)
+    if values is None:
+        return None
+    if len(values) != 3:
+        raise InputError("boresight", f"expected 3 numbers ROLL,PITCH,YAW in degrees, got {len(values)}")
+    if not all(abs(v) <= MAX_BORESIGHT for v in values):
+        raise InputError("boresight", f"{','.join(f'{v:g}' for v in values)} is out of range: each angle within "
+                         f"+-{MAX_BORESIGHT:g} degrees")
+    return (float(values[0]), float(values[1]), float(values[2]))

@@ -49,7 +49,7 @@ def point_job(registry, cid, lon, lat, gsd, query, check):
 def stats_job(registry, cid, box, query, percentiles, check):
     flight = registry.flight(cid)
     # the whole flight's statistics do not depend on where its pixels land: no meshes for them
-    geometry = None if box is None else flight.geometry(query.ground_height, query.sync_offset)
+    geometry = None if box is None else flight.view_geometry(query)
     return flight.stats(box, flight.bands(query), flight.mode(query), flight.cube_range(query.cubes), geometry,
                         percentiles)
 

@@ -43,18 +43,26 @@ class FlightRegistry:
     and the raw flight ``directories`` (ids from their files; ``fov`` needed for those).
 
     ids are checked here (:meth:`check`) before anything opens a store: nothing else on disk is
-    reachable. :meth:`flight` opens flights lazily and keeps the last FLIGHTS_KEPT (call it from
+    reachable. ``navigation``: the navigation source drawn when a request names none ('lcf' or a stored
+    track's name, ``archive view --navigation``; a flight without it is drawn from its own default; None:
+    every flight's default). :meth:`flight` opens flights lazily and keeps the last FLIGHTS_KEPT (call it from
     the render thread); its flights share ``workers``, BAND_WORKERS threads making band planes
     (:meth:`close` stops them).
     """
 
     def __init__(self, archive=None, directories: Sequence = (), fov: float | None = None,
                  bands_cache: ByteLRU | None = None, lookup_cache: ByteLRU | None = None,
-                 flights_cache: ByteLRU | None = None):
+                 flights_cache: ByteLRU | None = None, navigation: str | None = None):
         from archive.api import open_archive
+        from archive.drawing.query import NAVIGATION_NAME
 
         self.archive = None if archive is None else open_archive(archive)
         self.fov = fov
+        if navigation is not None and not NAVIGATION_NAME.fullmatch(str(navigation)):
+            raise InputError("--navigation", f"{navigation!r} is not a navigation source's name",
+                             "the viewer draws from what a collection stores: pass lcf or a stored track's name "
+                             "(ingest a trajectory file with 'archive ingest --navigation FILE')")
+        self.navigation = None if navigation is None else str(navigation)
         self.bands_cache = bands_cache if bands_cache is not None else ByteLRU(256 << 20)
         self.lookup_cache = lookup_cache if lookup_cache is not None else ByteLRU(64 << 20)
         #: the opened flights, each charged :meth:`Flight.nbytes` (:meth:`settle`)
@@ -161,10 +169,11 @@ class FlightRegistry:
     # ---- overview previews (made at ingest) ----------------------------------------------
     def previews(self, cid: str):
         """The current :class:`~archive.drawing.preview_layout.Previews` of a checked catalog flight, None for a raw
-        flight or a collection without current ones (then tiles are drawn from the DN). Kept in the
+        flight, a collection without current ones, or a viewer started with ``--navigation`` (the previews
+        are drawn from the collection's default source; then tiles are drawn from the DN). Kept in the
         bands cache, charged their bytes, and read again when the collection or its previews change
         (their ``zarr.json``). Any thread (no OpenGL)."""
-        if cid in self.raw or self.archive is None or getattr(self.archive, "is_url", False):
+        if cid in self.raw or self.archive is None or getattr(self.archive, "is_url", False) or self.navigation:
             return None   # (previews are made and read for local archives only, so far)
         from archive.drawing.preview_layout import GROUP, read_previews
 
@@ -199,14 +208,15 @@ class FlightRegistry:
             if cid in self.raw:
                 directory = self.raw[cid][0]
 
-                def opener(params):
-                    return open_source(directory, params)
+                def opener(params, navigation):
+                    return open_source(directory, params, navigation=navigation)
             else:
                 archive = self.archive.path
 
-                def opener(params):
-                    return open_source(cid, params, archive=archive)
-            found = Flight(cid, opener, self.fov, self.bands_cache, self.lookup_cache, self.workers)
+                def opener(params, navigation):
+                    return open_source(cid, params, archive=archive, navigation=navigation)
+            found = Flight(cid, opener, self.fov, self.bands_cache, self.lookup_cache, self.workers,
+                           navigation=self.navigation)
         self._used[cid] = found
         return found
 

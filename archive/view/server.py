@@ -10,7 +10,10 @@ trace):
   without an Item), each costing only itself; and ``overlaps``: the overlap rules the page offers
   (``{name, label, key, wins}``, the first the default; :data:`archive.drawing.query.OVERLAPS`);
 - ``GET /api/collections/{id}`` what the page needs to build its controls (bands, modes, cubes,
-  default ground height, lowest camera altitude);
+  default ground height, lowest camera altitude, sync offset, ``navigation``: its navigation sources and
+  the one drawn by default, ``boresight_deg`` as ingested);
+- every request that draws (tiles, values, outline, point, stats) also takes ``navigation=lcf|NAME``
+  (a navigation source the flight has) and ``boresight=ROLL,PITCH,YAW`` (degrees; default: as ingested);
 - ``GET /api/collections/{id}/tiles/{z}/{x}/{y}.png?wavelengths=R,G,B|band=I&mode=&stretch=&cubes=A-B
   &ground_height=&sync_offset=`` a 256 x 256 EPSG:3857 tile drawn by the inverse renderer;
 - ``GET /api/collections/{id}/values/{z}/{x}/{y}?bands=I,J,K&mode=&cubes=&ground_height=&sync_offset=
@@ -147,10 +150,11 @@ def resident_bytes() -> int | None:
 
 # ---- the app ----------------------------------------------------------------------------------
 def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT_CACHE_MB << 20) * CACHE_SHARES["tiles"]),
-               allowed_hosts: tuple[str, ...] | None = None, stacks: dict | None = None):
+               allowed_hosts: tuple[str, ...] | None = None, stacks: dict | None = None, extra_routes: tuple = ()):
     """The Starlette application serving ``registry``'s flights. allowed_hosts: Host header names
     accepted (None: any), e.g. the loopback names when bound to loopback; stacks: the time stacks
-    served, by name (:func:`archive.view.stacks.open_stacks`)."""
+    served, by name (:func:`archive.view.stacks.open_stacks`); extra_routes: more Starlette routes
+    (``archive watch``'s ``/api/live``: :func:`archive.watch.live.live_routes`)."""
     from contextlib import asynccontextmanager
 
     from starlette.applications import Starlette
@@ -251,7 +255,8 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
         keyed = key_name is not None
         headers = {"Cache-Control": "private, max-age=600", "X-Bands": ",".join(map(str, query.bands)),
                    "X-Side": str(TILE // scale), "X-Key": key_name or ""}
-        if not keyed and query.cubes is None and query.ground_height is None and query.sync_offset is None:
+        if (not keyed and query.cubes is None and query.ground_height is None and query.sync_offset is None
+                and query.navigation is None and query.boresight is None):
             # the flight as ingested, zoomed out: its overview previews, without the DN (issue 36).
             # On the event loop: two stat() calls, then slices of arrays of a few KB (a level is read
             # once, ~1 ms); a thread hand-off per request cost more than that on loaded cores
@@ -459,6 +464,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
         Route("/api/stacks/{name}/values/{z:int}/{x:int}/{y:int}", stack_values),
         Route("/api/stacks/{name}/point", stack_point),
         *residual_routes(stack_of),   # /api/stacks/{name}/residual (archive.view.residual, issue 33)
+        *extra_routes,
         Mount("/static", StaticFiles(directory=str(static)), name="static"),
         *stac_routes(None if registry.archive is None else ArchiveRoot(registry.archive.path)),
     ]
@@ -517,7 +523,8 @@ def url_of(sock: socket.socket) -> str:
 
 
 def serve(registry: FlightRegistry, host: str = "127.0.0.1", port: int = 8000, *, allow_remote: bool = False,
-          cache_mb: int = DEFAULT_CACHE_MB, announce=print, ready=None, stacks: dict | None = None) -> None:
+          cache_mb: int = DEFAULT_CACHE_MB, announce=print, ready=None, stacks: dict | None = None,
+          extra_routes: tuple = ()) -> None:
     """Serve ``registry`` until interrupted. ``announce(text)`` is told the URL once listening;
     ``ready(server)`` (optional) gets the uvicorn Server (tests stop it with ``should_exit``)."""
     import uvicorn
@@ -525,7 +532,8 @@ def serve(registry: FlightRegistry, host: str = "127.0.0.1", port: int = 8000, *
     check_host(host, allow_remote)
     sock = _bind(host, int(port))
     allowed = (*LOOPBACK_NAMES, host) if is_loopback(host) else None
-    app = create_app(registry, tile_cache_bytes=cache_bytes(cache_mb)["tiles"], allowed_hosts=allowed, stacks=stacks)
+    app = create_app(registry, tile_cache_bytes=cache_bytes(cache_mb)["tiles"], allowed_hosts=allowed, stacks=stacks,
+                     extra_routes=tuple(extra_routes))
     config = uvicorn.Config(app, log_level="warning", access_log=False, lifespan="on",
                             timeout_graceful_shutdown=3)
     server = uvicorn.Server(config)
@@ -548,7 +556,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--cache-mb", f"must be a positive number of MiB, got {args.cache_mb}")
     limits = cache_bytes(args.cache_mb)
     registry = FlightRegistry(args.archive, args.directories, args.fov, bands_cache=ByteLRU(limits["bands"]),
-                              lookup_cache=ByteLRU(limits["lookups"]), flights_cache=ByteLRU(limits["flights"]))
+                              lookup_cache=ByteLRU(limits["lookups"]), flights_cache=ByteLRU(limits["flights"]),
+                              navigation=getattr(args, "navigation", None))
     count = len(registry.catalog_ids()) + len(registry.raw)
     from archive.view.stacks import open_stacks
 

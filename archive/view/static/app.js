@@ -8,6 +8,7 @@ import { applyHash, loadCatalog, refresh, showDisplay } from "./controls.js";
 import { map } from "./map.js";
 import { loadStacks } from "./stacks.js";
 import { $, viewer } from "./state.js";
+import "./live.js";   // archive watch: the live flights (does nothing under archive view)
 
 // ---- keyboard and narrow screens ------------------------------------------------------------
 $("panel-toggle").addEventListener("click", () => {

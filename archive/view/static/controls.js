@@ -1,5 +1,5 @@
 // archive view: the panel's controls (catalog list and filters, overlap rule, display, the open
-// flight's cubes, ground and sync sliders), what they ask for (the bands of each flight, the request
+// flight's cubes, ground, sync and boresight sliders, its navigation source), what they ask for (the bands of each flight, the request
 // parameters of its values, the overlap rule chosen: one of those the server offers), refresh():
 // every change makes a new spec of what the tiles show (tiles.js draws it), and the URL hash: the
 // state of the page, shareable; editing it updates the view.
@@ -43,8 +43,18 @@ export function flightParams(id, preview) {
     const sync = preview && preview.sync !== undefined ? preview.sync : p.sync;
     if (ground !== null && ground !== undefined) q.set("ground_height", String(ground));
     if (sync !== null && sync !== undefined) q.set("sync_offset", String(sync));
+    if (p.nav) q.set("navigation", p.nav);
+    const bs = boresightOf(p, preview);
+    if (bs) q.set("boresight", bs.map(String).join(","));
   }
   return q.toString();
+}
+
+// the boresight [roll, pitch, yaw] (degrees) of a flight's parameters, a slider preview's value in place
+export const ANGLES = ["roll", "pitch", "yaw"];
+function boresightOf(p, preview) {
+  if (!p.bs) return null;
+  return p.bs.map((v, i) => (preview && preview[ANGLES[i]] !== undefined ? preview[ANGLES[i]] : v));
 }
 
 // the parameters an outline depends on (not the mode or overlap rule)
@@ -58,12 +68,12 @@ function outlineParams(id) {
 // a ground-height or sync change keeps its stretch (and asks nothing)
 export function statsParams(id) {
   const q = new URLSearchParams(flightParams(id, null));
-  for (const name of ["ground_height", "sync_offset", "overlap"]) q.delete(name);
+  for (const name of ["ground_height", "sync_offset", "overlap", "navigation", "boresight"]) q.delete(name);
   return q.toString();
 }
 
 // a flight's box (lon/lat), padded: by half its size while its footprint may have moved (a new
-// ground height, sync offset or cube range whose outline has not arrived, a slider preview), else
+// ground height, sync offset, navigation source, boresight or cube range whose outline has not arrived, a slider preview), else
 // by a tenth (the outline samples the meshes' edges): tiles outside it are not asked for
 function flightBox(id, moving) {
   const f = viewer.byId.get(id);
@@ -273,6 +283,7 @@ function showOutputs() {
     const s = preview && preview.sync !== undefined ? preview.sync : p.sync;
     $("ground-out").textContent = `${Number(g).toFixed(1)} m`;
     $("sync-out").textContent = `${Number(s).toFixed(3)} s`;
+    (boresightOf(p, preview) || []).forEach((v, i) => showOutputsValue(ANGLES[i], v));
   }
   const r = viewer.current && viewer.current.ranges;
   const names = $("display").value === "grey" ? ["grey"] : ["R", "G", "B"];
@@ -287,7 +298,7 @@ async function openFlight(id, fit) {
   viewer.open = id;
   viewer.info = info;
   viewer.hidden.delete(id);
-  if (!viewer.params[id]) viewer.params[id] = { cubes: null, ground: info.ground_height, sync: info.sync_offset };
+  if (!viewer.params[id]) viewer.params[id] = asIngested(info);
   $("flight-title").textContent = id;
   setModes(info.modes, info.default_mode);
   fillBandOptions();
@@ -300,6 +311,13 @@ async function openFlight(id, fit) {
   drawFootprints();
   refresh();
 }
+
+// a flight's own parameters as ingested (the navigation source: the one drawn by default)
+function asIngested(info) {
+  return { cubes: null, ground: info.ground_height, sync: info.sync_offset, nav: info.navigation.default,
+           bs: info.boresight_deg.slice() };
+}
+const sameAngles = (a, b) => a.every((v, i) => Math.abs(v - b[i]) < 1e-9);
 
 function setSliders(info) {
   const p = viewer.params[info.id];
@@ -314,6 +332,16 @@ function setSliders(info) {
   const sync = $("sync");
   sync.min = (info.sync_offset - 0.25).toFixed(3); sync.max = (info.sync_offset + 0.25).toFixed(3);
   sync.value = p.sync;
+  const nav = $("navigation");
+  nav.replaceChildren(...info.navigation.sources.map((name) => Object.assign(document.createElement("option"), {
+    value: name, textContent: name === "lcf" ? "lcf (real-time)" : name })));
+  nav.value = p.nav;
+  nav.disabled = info.navigation.sources.length < 2;
+  ANGLES.forEach((name, i) => {
+    const el = $(`bs-${name}`);
+    el.min = (info.boresight_deg[i] - 2).toFixed(2); el.max = (info.boresight_deg[i] + 2).toFixed(2);
+    el.value = p.bs[i];
+  });
   const n = info.cubes.length;
   for (const el of [$("cube-first"), $("cube-last")]) { el.min = 1; el.max = n; }
   $("cube-first").value = p.cubes ? p.cubes[0] : 1;
@@ -366,7 +394,7 @@ export function startPreview(value) {
   viewer.preview = value;
   refresh();
 }
-for (const [id, name] of [["ground", "ground"], ["sync", "sync"]]) {
+for (const [id, name] of [["ground", "ground"], ["sync", "sync"], ["bs-roll", "roll"], ["bs-pitch", "pitch"], ["bs-yaw", "yaw"]]) {
   $(id).addEventListener("input", () => {
     viewer.previewNext = { [name]: Number($(id).value) };
     showOutputsValue(name, viewer.previewNext[name]);
@@ -378,18 +406,26 @@ for (const [id, name] of [["ground", "ground"], ["sync", "sync"]]) {
   });
   $(id).addEventListener("change", () => {
     viewer.preview = null; viewer.previewNext = null;
-    viewer.params[viewer.open][name] = Number($(id).value);
+    const p = viewer.params[viewer.open];
+    if (ANGLES.includes(name)) p.bs[ANGLES.indexOf(name)] = Number($(id).value);
+    else p[name] = Number($(id).value);
     flightChanged();
   });
 }
 function showOutputsValue(name, v) {
   if (name === "ground") $("ground-out").textContent = `${v.toFixed(1)} m`;
-  else $("sync-out").textContent = `${v.toFixed(3)} s`;
+  else if (name === "sync") $("sync-out").textContent = `${v.toFixed(3)} s`;
+  else $(`bs-${name}-out`).textContent = `${v.toFixed(2)}°`;
 }
+// the navigation source: a change redraws like a band change (the old picture stays until the new one is in)
+$("navigation").addEventListener("change", () => {
+  viewer.params[viewer.open].nav = $("navigation").value;
+  flightChanged();
+});
 
 $("reset").addEventListener("click", () => {
   const info = viewer.info;
-  viewer.params[info.id] = { cubes: null, ground: info.ground_height, sync: info.sync_offset };
+  viewer.params[info.id] = asIngested(info);
   setSliders(info);
   setModes(info.modes, info.default_mode);
   $("mode").value = info.default_mode;
@@ -436,6 +472,8 @@ function hashState() {
     if (p && viewer.info) {
       if (p.ground !== viewer.info.ground_height) s.set("ground", String(p.ground));
       if (p.sync !== viewer.info.sync_offset) s.set("sync", String(p.sync));
+      if (p.nav !== viewer.info.navigation.default) s.set("nav", p.nav);
+      if (p.bs && !sameAngles(p.bs, viewer.info.boresight_deg)) s.set("boresight", p.bs.map(String).join(","));
       const n = viewer.info.cubes.length;
       if (p.cubes && p.cubes.every(Number.isInteger) && 1 <= p.cubes[0] && p.cubes[0] <= p.cubes[1] && p.cubes[1] <= n) {
         s.set("cubes", `${p.cubes[0]}-${p.cubes[1]}`);
@@ -490,6 +528,11 @@ export async function applyHash(initial) {
     else if (!initial) p.ground = viewer.info.ground_height;
     if (s.has("sync") && isFinite(Number(s.get("sync")))) p.sync = Number(s.get("sync"));
     else if (!initial) p.sync = viewer.info.sync_offset;
+    if (s.has("nav") && viewer.info.navigation.sources.includes(s.get("nav"))) p.nav = s.get("nav");
+    else if (!initial) p.nav = viewer.info.navigation.default;
+    const bs = (s.get("boresight") || "").split(",").map(Number);
+    if (bs.length === 3 && bs.every(isFinite)) p.bs = bs;
+    else if (!initial) p.bs = viewer.info.boresight_deg.slice();
     const c = (s.get("cubes") || "").split("-").map(Number);
     p.cubes = c.length === 2 && c.every(Number.isInteger) ? c : null;
     setSliders(viewer.info);

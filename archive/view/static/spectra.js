@@ -47,7 +47,8 @@ function showPixel(p) {
   rows.push(["centre", `${p.pixel.lat.toFixed(7)}, ${p.pixel.lon.toFixed(7)}`],
             ["EPSG:" + p.epsg, `${p.pixel.x.toFixed(3)} E, ${p.pixel.y.toFixed(3)} N (${p.gsd} m)`],
             ["mode", p.mode + (p.saturated ? " (saturated)" : "")],
-            ["ground, sync", `${p.ground_height.toFixed(2)} m, ${p.sync_offset.toFixed(3)} s`]);
+            ["ground, sync", `${p.ground_height.toFixed(2)} m, ${p.sync_offset.toFixed(3)} s`],
+            ["navigation", `${p.navigation}, boresight ${p.boresight_deg.map((v) => v.toFixed(2)).join(", ")}°`]);
   $("pixel-info").replaceChildren(...rows.map(([k, v]) => {
     const tr = document.createElement("tr");
     const th = document.createElement("th"); th.textContent = k;

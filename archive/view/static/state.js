@@ -16,12 +16,13 @@ export const viewer = {
   // the hidden ids, each flight's outline as drawn now ({geometry, params}), the overlap rules the
   // server offers ({name, label, key, wins}, the first the default)
   map: null, features: [], byId: new Map(), order: [], hidden: new Set(), outlines: {}, overlaps: [],
-  // the open flight (its id, /api/collections/{id}) and every flight's own parameters ({cubes, ground, sync})
+  // the open flight (its id, /api/collections/{id}) and every flight's own parameters ({cubes, ground,
+  // sync, nav: the navigation source, bs: the boresight [roll, pitch, yaw] degrees})
   open: null, info: null, params: {},
   // spectra: pins, the last clicked point, the CSV of the pins
   pins: [], lastPoint: null, csv: null,
   // the picture: the spec every tile should show (current), the spec id of a refused request
-  // (failedSpec), the slider preview shown ({ground|sync: value}) and the one waiting (previewNext)
+  // (failedSpec), the slider preview shown ({ground|sync|roll|pitch|yaw: value}) and the one waiting (previewNext)
   current: null, failedSpec: null, preview: null, previewNext: null,
   // the stretch: the last ranges drawn, the view's 2-98 % (stretch "view")
   lastRanges: null, viewStretch: null,
@@ -74,6 +75,7 @@ export function status(text, isError = false) {
 
 // errors in words next to the control that caused them (the server names the parameter first)
 const ERROR_SLOTS = { cubes: "err-cubes", ground_height: "err-ground", sync_offset: "err-sync", mode: "err-mode",
+                      navigation: "err-navigation", boresight: "err-boresight",
                       bands: "err-bands", band: "err-bands", wavelengths: "err-bands", stretch: "err-stretch",
                       bbox: "err-filters", datetime: "err-filters", wavelength: "err-filters" };
 export function showError(message, slot) {
