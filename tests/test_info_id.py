@@ -10,7 +10,7 @@ from archive.cli import main
 from archive.ingest.summary import ingest_id
 from archive.params import NavigationParams
 from archive.sources import RawFlightSource
-from helpers import FOV, ingest_each
+from helpers import FOV, TINY_FLIGHT, ingest_each
 
 
 def _info_json(capsys, *argv: str) -> dict:
@@ -30,13 +30,14 @@ def test_info_names_a_raw_flight_as_ingest_does(tiny_flights, tmp_path, capsys):
     assert f"(id {cid})" in text and "flight-" not in text
 
 
-def test_info_name_follows_the_sync_offset_as_ingest(tiny_flights, tmp_path, capsys):
-    """The first line starts at 16:00:00.5; 0.6 s later is in the next second, for info and ingest alike."""
-    flight = tmp_path / "flight"
-    shutil.copytree(tiny_flights(1), flight)
+def test_info_name_follows_the_sync_offset_as_ingest(simulated, tmp_path, capsys):
+    """A recorder whose .lcf starts 0.6 s before the first line's true time (16:01:00.5): without the
+    sync offset the first line is at 16:00:59.9, with it at 16:01:00.5, for info and ingest alike."""
+    flight, _ = simulated(seed=1, sync_offset=0.6, **TINY_FLIGHT)
+    assert _info_json(capsys, str(flight))["id"] == "Pika-L-SIM_20240612T160059"
     summary = _info_json(capsys, str(flight), "--sync-offset", "0.6")
     (cid,) = ingest_each([flight], tmp_path / "archive", FOV, sync_offset=0.6)
-    assert summary["id"] == cid == "Pika-L-SIM_20240612T160101"
+    assert summary["id"] == cid == "Pika-L-SIM_20240612T160100"
 
 
 def test_a_header_without_a_sensor_is_named_flight(tiny_flights, tmp_path):
