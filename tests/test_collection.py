@@ -3,7 +3,6 @@ checksums, refusal of broken flights. Real files, real Zarr, simulated flights."
 
 from __future__ import annotations
 
-import hashlib
 import os
 import pickle
 import shutil
@@ -13,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import blake3
 import numcodecs
 import numpy as np
 import pytest
@@ -56,7 +56,7 @@ def flight(tmp_path_factory) -> tuple[Path, object]:
 def ingested(flight, tmp_path_factory):
     d, truth = flight
     archive_dir = tmp_path_factory.mktemp("arch") / "archive"
-    results = ingest([str(d)], archive_dir, FOV, ground_height=truth.ground_height, workers=2, progress=False)
+    results = ingest([str(d)], archive_dir, FOV, ground_height=truth.ground_height, threads=2, progress=False)
     assert [r.status for r in results] == ["ingested"]
     return archive_dir, results[0].cid
 
@@ -72,7 +72,7 @@ def test_id_and_layout(flight, ingested):
     dn = group["dn"]
     assert dn.shape == (6, 400, 64) and dn.chunks == (1, 100, 64) and dn.dtype == np.uint16
     blosc = dn.metadata.codecs[-1]
-    assert (blosc.cname.value, blosc.clevel, blosc.shuffle.value) == ("zstd", 3, "bitshuffle")
+    assert (blosc.cname.value, blosc.clevel, blosc.shuffle.value) == ("lz4", 9, "bitshuffle")
     # one chunk file per band per cube
     assert len(list((store / "dn" / "c").rglob("0"))) >= 6 * 4
     attrs = dict(group.attrs)
@@ -81,13 +81,17 @@ def test_id_and_layout(flight, ingested):
     assert attrs["archive:software"] == f"archive {archive.__version__}"
     assert attrs["fov_deg"] == FOV and attrs["ground_height"] == truth.ground_height
     assert attrs["sensor"] == "Pika L-SIM"
-    # sources: every raw file with its size and sha256
+    # sources: every raw file with its size and BLAKE3 (the default --checksum, recorded with its name)
     files = sorted(p for p in d.iterdir() if p.is_file())
     recorded = {s["name"]: s for s in attrs["sources"]}
     assert sorted(recorded) == sorted(p.name for p in files)
     for p in files:
         assert recorded[p.name]["size"] == p.stat().st_size
-        assert recorded[p.name]["sha256"] == hashlib.sha256(p.read_bytes()).hexdigest()
+        assert recorded[p.name]["blake3"] == blake3.blake3(p.read_bytes()).hexdigest()
+    assert attrs["archive:dn_checksum"] == "blake3" and "dn_blake3" in group and "dn_sha256" not in group
+    table = group["dn_blake3"][...]
+    assert table.shape == (6, 4, 32)
+    assert table[2, 1].tobytes() == blake3.blake3(np.ascontiguousarray(dn[2, 100:200], "<u2").tobytes()).digest()
     # header metadata kept whole
     assert attrs["cubes"][2]["header"]["imager serial number"] == "Pika L-SIM"
     assert attrs["cubes"][2]["line_offset"] == 200
@@ -177,7 +181,7 @@ def test_rerun_is_a_noop(flight, ingested, capsys):
 def test_deterministic_store_and_overwrite(flight, ingested, tmp_path):
     d, truth = flight
     archive_dir, cid = ingested
-    ingest([str(d)], tmp_path / "again", FOV, ground_height=truth.ground_height, workers=1, progress=False)
+    ingest([str(d)], tmp_path / "again", FOV, ground_height=truth.ground_height, threads=1, progress=False)
     assert snapshot(tmp_path / "again") == snapshot(archive_dir)
     (r,) = ingest([str(d)], tmp_path / "again", FOV, ground_height=truth.ground_height, overwrite=True,
                   progress=False)
@@ -266,7 +270,7 @@ def test_a_new_partial_store_is_never_removed_once_it_appears(tmp_path, monkeypa
         return rmtree(path, *args, **kwargs)
 
     monkeypatch.setattr(shutil, "rmtree", spy)
-    (r,) = ingest([str(d)], tmp_path / "root", FOV, ground_height=truth.ground_height, workers=1, progress=False)
+    (r,) = ingest([str(d)], tmp_path / "root", FOV, ground_height=truth.ground_height, threads=1, progress=False)
     partial = tmp_path / "root" / "collections" / f"{r.cid}.zarr.partial"
     assert (tmp_path / "root" / "collections" / f"{r.cid}.zarr").is_dir() and not partial.exists()
     assert partial not in removed, removed
@@ -280,7 +284,7 @@ def test_sigkill_and_rerun(tmp_path):
     cmd = [sys.executable, "-m", "archive", "ingest", str(d), "--fov", str(FOV),
            "--ground-height", str(truth.ground_height), "--quiet", "--workers", "1"]
     clean = tmp_path / "clean"
-    (r,) = ingest([str(d)], clean, FOV, ground_height=truth.ground_height, workers=2, progress=False)
+    (r,) = ingest([str(d)], clean, FOV, ground_height=truth.ground_height, threads=2, progress=False)
     expected = snapshot(clean)
     cid = r.cid
     total = 40 * 4

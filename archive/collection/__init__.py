@@ -8,7 +8,9 @@ Layout of ``<ARCHIVE>/collections/<id>.zarr`` (axis orders in brackets)::
 
     dn            [band, line, sample]  raw DN, all cubes' lines in capture order, native dtype
                   (uint16 for Resonon), one chunk = one band x CHUNK_LINES lines (see below)
-    dn_sha256     [band, chunk, 32]     sha256 of each decoded dn chunk (C order, little endian)
+    dn_blake3     [band, chunk, 32]     digest of each decoded dn chunk (C order, little endian) by the algorithm
+                  the attribute ``archive:dn_checksum`` names: ``dn_blake3`` (BLAKE3, the default) or
+                  ``dn_sha256`` (``--checksum sha256``, and every store of format 1, which has no attribute)
     time          [line]                line exposure start on the .lcf scale, ingest's sync offset (s)
     camera_time   [line]                the raw .bil.times values (camera clock, s)
     cube          [line]                cube index of each line
@@ -29,7 +31,8 @@ Layout of ``<ARCHIVE>/collections/<id>.zarr`` (axis orders in brackets)::
                   attribute ``downwelling`` names the spectra and the .dcp (also in ``sources``, hashed)
 
 Group attributes hold the id, software version, field of view, ground height, the local frame,
-every cube's full header metadata, the source files (name, size, sha256), calibration reference
+every cube's full header metadata, the source files (name, size, and their digest under the
+algorithm's name: ``blake3``, or ``sha256``), calibration reference
 exposure, sha256 of every small array, and LAST ``"archive:complete": true``.
 Every dimension name means one length, so ``xarray.open_zarr(store, consolidated=False)`` opens a
 collection as it is (stores ingested before 2026-11-24 named navigation's rows 'sample' too: open
@@ -44,21 +47,23 @@ chunks (concurrent partial writes into one chunk lose updates). Sharding would n
 are regular too, and per-band tasks would then share shards.
 """
 
-from archive.collection.layout import (COMPLETE, DN_CODEC, FORMAT, FORMAT_VERSION, NAV_COLUMNS, SMALL_CODEC,
-                                       array_digest, chunk_digest, chunk_lines_for, chunk_path, is_complete,
+from archive.collection.layout import (CHECKSUMS, COMPLETE, DEFAULT_CHECKSUM, DN_CODEC, DN_COMPRESSIONS, FORMAT,
+                                       FORMAT_VERSION, NAV_COLUMNS, SMALL_CODEC, array_digest, chunk_digest,
+                                       chunk_lines_for, chunk_path, digest_table, dn_checksum, file_digest, is_complete,
                                        sha256_file)
 from archive.collection.read import (CheckedDn, CollectionInfo, CorruptChunkError, StoredCalibration, StoredCube,
                                      StoredPoses, content_version, frame_from_attrs, frame_to_attrs, open_dn,
                                      read_attrs, read_downwelling, read_info, read_poses, read_track)
 from archive.collection.update import check_updatable, record_navigation, settle
 from archive.collection.verify import verify_store
-from archive.collection.write import (TEST_HOLD_AFTER_CHUNKS, ChunkTask, StorePlan, chunk_tasks, finish_store,
-                                      hash_file_task, open_partial, publish, store_lock, write_chunk)
+from archive.collection.write import (TEST_HOLD_AFTER_CHUNKS, ChunkGroup, ChunkTask, StorePlan, chunk_groups,
+                                      chunk_tasks, finish_store, hash_file_task, open_partial, publish, store_lock,
+                                      write_chunk, write_chunks)
 
-__all__ = ["COMPLETE", "DN_CODEC", "FORMAT", "FORMAT_VERSION", "NAV_COLUMNS", "SMALL_CODEC",
-           "TEST_HOLD_AFTER_CHUNKS", "CheckedDn", "ChunkTask", "CollectionInfo", "CorruptChunkError", "StorePlan",
+__all__ = ["CHECKSUMS", "COMPLETE", "DEFAULT_CHECKSUM", "DN_CODEC", "DN_COMPRESSIONS", "FORMAT", "FORMAT_VERSION",
+           "NAV_COLUMNS", "SMALL_CODEC", "TEST_HOLD_AFTER_CHUNKS", "CheckedDn", "ChunkGroup", "ChunkTask", "CollectionInfo", "CorruptChunkError", "StorePlan",
            "StoredCalibration", "StoredCube", "StoredPoses", "array_digest", "chunk_digest", "chunk_lines_for",
-           "chunk_path", "chunk_tasks", "check_updatable", "content_version", "finish_store", "frame_from_attrs",
+           "chunk_groups", "chunk_path", "chunk_tasks", "digest_table", "dn_checksum", "file_digest", "check_updatable", "content_version", "finish_store", "frame_from_attrs",
            "frame_to_attrs", "hash_file_task", "is_complete", "open_dn", "open_partial", "publish", "read_attrs",
            "read_downwelling", "read_info", "read_poses", "read_track", "record_navigation", "settle",
-           "sha256_file", "store_lock", "verify_store", "write_chunk"]
+           "sha256_file", "store_lock", "verify_store", "write_chunk", "write_chunks"]

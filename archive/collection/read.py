@@ -17,7 +17,7 @@ import zarr
 from archive import storage
 from archive.collection.update import settle
 from archive.collection.layout import (COMPLETE, FORMAT, FORMAT_VERSION, NAV_COLUMNS, array_digest, chunk_digest,
-                                       chunk_path, location, root_json, zarr_target)
+                                       chunk_path, digest_table, dn_checksum, location, root_json, zarr_target)
 from archive.errors import FormatError, InputError, MissingInputError
 from archive.formats.envi import EnviHeader, header_from_metadata
 from archive.formats.lcf import LcfData
@@ -273,7 +273,8 @@ class CorruptChunkError(FormatError):
 
 class CheckedDn:
     """The ``dn`` array of a collection, read whole chunk by whole chunk, each chunk's decoded values
-    checked against the sha256 recorded at ingest (``dn_sha256``) before any of them is used: a
+    checked against the digest recorded at ingest (``dn_blake3``, or ``dn_sha256`` in stores of format 1
+    and those ingested with ``--checksum sha256``: the algorithm the store records) before any of them is used: a
     flipped byte that the codec still decodes, a truncated or missing chunk file is a
     :class:`CorruptChunkError` naming the collection, band and lines. Every reader of DN (renders,
     :func:`archive.mosaic`, the viewer) goes through this (via the collection source)."""
@@ -282,10 +283,13 @@ class CheckedDn:
         self.store = location(store)
         group = zarr.open_group(zarr_target(self.store), mode="r")
         self.array = group["dn"]
-        if "dn_sha256" not in group:
-            raise CorruptChunkError(self.store, "collection has no dn chunk checksums (dn_sha256)",
+        #: the algorithm of the recorded chunk digests (:data:`archive.collection.layout.CHECKSUMS`)
+        self.checksum = dn_checksum(dict(group.attrs))
+        table = digest_table(self.checksum)
+        if table not in group:
+            raise CorruptChunkError(self.store, f"collection has no dn chunk checksums ({table})",
                                     self._fix())
-        self.digests = np.asarray(group["dn_sha256"][...])
+        self.digests = np.asarray(group[table][...])
         self.chunk = int(self.array.chunks[1])
         self.dtype = self.array.dtype
 
@@ -319,10 +323,10 @@ class CheckedDn:
                 if why is not None:
                     raise storage.StorageError(chunk_path(self.store, band, k), why) from None
                 raise self._fail(band, a, b, f"chunk cannot be decoded ({type(exc).__name__}: {exc})") from None
-            if chunk_digest(values) != self.digests[band, k].tobytes():
+            if chunk_digest(values, self.checksum) != self.digests[band, k].tobytes():
                 missing = not storage.exists(chunk_path(self.store, band, k))
                 raise self._fail(band, a, b, "chunk file is missing" if missing else
-                                 "chunk does not match its recorded sha256 (the stored bytes changed)")
+                                 f"chunk does not match its recorded {self.checksum} (the stored bytes changed)")
             lo, hi = max(a, line0), min(b, line1)
             out[lo - line0:hi - line0] = values[lo - a:hi - a]
         return out
@@ -342,7 +346,8 @@ class CheckedDn:
             except Exception:  # noqa: BLE001 - found again, and named, by read() below
                 block = None
             if block is not None and all(
-                    chunk_digest(block[i, k * c - a0:min((k + 1) * c, total) - a0]) == self.digests[b, k].tobytes()
+                    chunk_digest(block[i, k * c - a0:min((k + 1) * c, total) - a0], self.checksum)
+                    == self.digests[b, k].tobytes()
                     for i, b in enumerate(bands) for k in range(k0, k1)):
                 return np.ascontiguousarray(block[:, line0 - a0:line1 - a0])
         out = np.empty((len(bands), line1 - line0, int(self.array.shape[2])), self.dtype)

@@ -8,11 +8,13 @@ import zarr
 
 from archive import storage
 from archive.collection.update import settle
-from archive.collection.layout import array_digest, chunk_digest, chunk_path, is_complete, location, zarr_target
+from archive.collection.layout import (array_digest, chunk_digest, chunk_path, digest_table, dn_checksum, is_complete,
+                                       location, zarr_target)
 
 def verify_store(store: str | os.PathLike, progress: bool = False) -> list[str]:
-    """Recompute the sha256 of every dn chunk and every small array and compare with the recorded
-    ones. Returns the problems found (empty: OK)."""
+    """Recompute the digest of every dn chunk (by the algorithm the store records: BLAKE3, or sha256 in
+    stores of format 1) and the sha256 of every small array and compare with the recorded ones. Returns
+    the problems found (empty: OK)."""
     from tqdm import tqdm
 
     store = location(store)
@@ -31,7 +33,10 @@ def verify_store(store: str | os.PathLike, progress: bool = False) -> list[str]:
         if found != expected:
             problems.append(f"array {name}: checksum mismatch")
     dn = group["dn"]
-    table = group["dn_sha256"][...]
+    checksum = dn_checksum(attrs)
+    if digest_table(checksum) not in group:
+        return problems + [f"dn: no chunk checksums ({digest_table(checksum)})"]
+    table = group[digest_table(checksum)][...]
     chunk = dn.chunks[1]
     bands, total = dn.shape[0], dn.shape[1]
     nchunks = table.shape[1]
@@ -43,7 +48,7 @@ def verify_store(store: str | os.PathLike, progress: bool = False) -> list[str]:
                     problems.append(f"{where}: missing")
                 else:
                     try:
-                        if chunk_digest(dn[b, k * chunk:(k + 1) * chunk]) != table[b, k].tobytes():
+                        if chunk_digest(dn[b, k * chunk:(k + 1) * chunk], checksum) != table[b, k].tobytes():
                             problems.append(f"{where}: checksum mismatch")
                     except Exception as exc:  # noqa: BLE001 - undecodable chunk
                         problems.append(f"{where}: cannot be decoded ({type(exc).__name__})")

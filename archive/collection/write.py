@@ -17,8 +17,9 @@ import zarr
 
 from archive import storage
 from archive.codecs import numcodecs_blosc
-from archive.collection.layout import (COMPLETE, DN_CODEC, SMALL_CODEC, array_digest, blosc, chunk_digest,
-                                       chunk_lines_for, chunk_path, location, root_json, sha256_file, zarr_target)
+from archive.collection.layout import (CHECKSUM_ATTR, COMPLETE, DEFAULT_CHECKSUM, DN_CODEC, SMALL_CODEC, array_digest,
+                                       blosc, chunk_digest, chunk_lines_for, chunk_path, digest_table, file_digest,
+                                       location, root_json, zarr_target)
 from archive.files import FileLock, replace_path, test_hold_calls, write_atomic
 from archive.formats.envi import EnviCube
 
@@ -50,6 +51,40 @@ def chunk_tasks(data_files: Sequence[str], cube_lines: Sequence[int], bands: int
     return [ChunkTask(b, k, l0, l1, pieces) for b in range(bands) for k, l0, l1, pieces in layout]
 
 
+@dataclass(frozen=True)
+class ChunkGroup:
+    """The dn chunks of bands [band0, band1) over lines [line0, line1) of the collection (line chunk
+    ``chunk``), assembled from ``pieces`` = ((data file, first cube line, end cube line), ...) in order:
+    one task reads those bands of those lines at once (one ``preadv`` per line: a run of bands of a BIL
+    line, instead of one pass over the file per band) and writes each band's chunk."""
+
+    band0: int
+    band1: int
+    chunk: int
+    line0: int
+    line1: int
+    pieces: tuple[tuple[str, int, int], ...]
+
+
+#: Bytes of raw DN one :class:`ChunkGroup` reads at most (its band run sized to it: 64 MiB, ~34 bands of a
+#: 1000 x 900 uint16 cube; few enough tasks for a scheduler, little memory per task, long contiguous reads).
+GROUP_BYTES = 64 << 20
+
+
+def chunk_groups(data_files: Sequence[str], cube_lines: Sequence[int], bands: int, chunk_lines: int,
+                 samples: int, itemsize: int, group_bytes: int = GROUP_BYTES) -> list[ChunkGroup]:
+    """Every dn chunk of a flight in :class:`ChunkGroup` s, line chunk by line chunk (a cube's file read
+    front to back by its groups), each of at most ``group_bytes`` of raw DN (at least one band); the
+    bands split into runs of equal length (the last may be shorter)."""
+    per_band = max(1, chunk_lines * samples * itemsize)
+    runs = -(-bands // max(1, min(bands, group_bytes // per_band)))   # how many runs
+    size = -(-bands // runs)
+    groups = []
+    for t in chunk_tasks(data_files, cube_lines, 1, chunk_lines):   # band 0 of each line chunk: the layout
+        for b0 in range(0, bands, size):
+            groups.append(ChunkGroup(b0, min(b0 + size, bands), t.chunk, t.line0, t.line1, t.pieces))
+    return groups
+
 
 
 @lru_cache(maxsize=64)
@@ -61,32 +96,56 @@ def _cube(path: str, size: int, mtime_ns: int) -> EnviCube:
 #: the process is killed) once its store holds N dn chunks (kept from a resumed run or written), so
 #: that a test kills it mid-store at a moment it controls (never set outside tests).
 TEST_HOLD_AFTER_CHUNKS = "ARCHIVE_TEST_HOLD_AFTER_CHUNKS"
-def write_chunk(store: str, task: ChunkTask, chunk_lines: int, resume: bool) -> tuple[int, int, str]:
-    """Dask task body: read one band of the raw cubes for ``task``, write it as one dn chunk, and
-    return (band, chunk, hex sha256 of the chunk's values).
 
-    The chunk is encoded here with the store's codec (bytes little endian + Blosc, the same bytes
-    zarr writes, checked by the tests) and written under a temporary name then renamed, which runs
-    the compression in this worker thread instead of zarr's event loop. An edge chunk is padded
-    with the fill value 0 to ``chunk_lines`` lines, as Zarr stores it. With ``resume``, a chunk
-    already on disk that decodes to the same values is kept. Memory: one chunk and its encoding.
+
+def write_chunk(store: str, task: ChunkTask, chunk_lines: int, resume: bool, codec: dict = DN_CODEC,
+                checksum: str = "sha256") -> tuple[int, int, str]:
+    """Dask task body: read one band of the raw cubes for ``task``, write it as one dn chunk, and
+    return (band, chunk, hex digest of the chunk's values by ``checksum``); :func:`write_chunks` of one band."""
+    group = ChunkGroup(task.band, task.band + 1, task.chunk, task.line0, task.line1, task.pieces)
+    return write_chunks(store, group, chunk_lines, resume, codec, checksum)[0]
+
+
+def write_chunks(store: str, group: ChunkGroup, chunk_lines: int, resume: bool, codec: dict = DN_CODEC,
+                 checksum: str = "sha256") -> list[tuple[int, int, str]]:
+    """Dask task body: read bands [band0, band1) of the raw cubes' lines of ``group`` (one ``preadv`` per
+    line and piece), write each band as one dn chunk, and return [(band, chunk, hex digest of the chunk's
+    values by ``checksum``), ...].
+
+    A chunk is encoded here with the store's Blosc ``codec`` (bytes little endian + Blosc, the same bytes
+    zarr writes, checked by the tests) and written under a temporary name then renamed, which runs the
+    compression in this worker thread instead of zarr's event loop. An edge chunk is padded with the fill
+    value 0 to ``chunk_lines`` lines, as Zarr stores it. With ``resume``, a chunk already on disk that
+    decodes to the same values is kept. Memory: the group's raw DN (at most :data:`GROUP_BYTES`) and one
+    chunk's encoding.
     """
-    test_hold_calls(TEST_HOLD_AFTER_CHUNKS)
+    bands = list(range(group.band0, group.band1))
     parts = []
-    for path, a, b in task.pieces:
+    for path, a, b in group.pieces:
         st = os.stat(path)
-        parts.append(_cube(path, st.st_size, st.st_mtime_ns).band(task.band)[a:b])
-    data = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=0)
-    data = np.ascontiguousarray(data, dtype=data.dtype.newbyteorder("<"))
-    digest = chunk_digest(data)
-    codec = numcodecs_blosc(DN_CODEC["cname"], DN_CODEC["clevel"], DN_CODEC["shuffle"])
-    target = chunk_path(location(store), task.band, task.chunk)
+        parts.append(_cube(path, st.st_size, st.st_mtime_ns).bands(bands)[:, a:b])
+    block = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+    blosc_codec = numcodecs_blosc(codec["cname"], codec["clevel"], codec["shuffle"])
     url = storage.is_url(store)
+    out = []
+    for i, band in enumerate(bands):
+        test_hold_calls(TEST_HOLD_AFTER_CHUNKS)
+        data = np.ascontiguousarray(block[i], dtype=block.dtype.newbyteorder("<"))
+        out.append((band, group.chunk, _write_one(store, band, group.chunk, data, chunk_lines, resume, blosc_codec,
+                                                   checksum, url)))
+    return out
+
+
+def _write_one(store: str, band: int, chunk: int, data: np.ndarray, chunk_lines: int, resume: bool, codec,
+               checksum: str, url: bool) -> str:
+    """Write one dn chunk (band, chunk) of (lines, samples) little-endian ``data``; its hex digest."""
+    digest = chunk_digest(data, checksum)
+    target = chunk_path(location(store), band, chunk)
     if resume and (url or target.is_file()):
         try:
             old = np.frombuffer(codec.decode(storage.read_bytes(target)), data.dtype)
-            if chunk_digest(old[: data.size]) == digest:
-                return task.band, task.chunk, digest.hex()
+            if chunk_digest(old[: data.size], checksum) == digest:
+                return digest.hex()
         except Exception:  # noqa: BLE001 - a damaged chunk from a killed run is simply rewritten
             pass
     if data.shape[0] < chunk_lines:
@@ -95,15 +154,15 @@ def write_chunk(store: str, task: ChunkTask, chunk_lines: int, resume: bool) -> 
         data = padded
     if url:   # one PUT, straight from this worker (no staging): atomic per object
         storage.write_bytes(target, codec.encode(data))
-        return task.band, task.chunk, digest.hex()
+        return digest.hex()
     target.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(target, codec.encode(data))
-    return task.band, task.chunk, digest.hex()
+    return digest.hex()
 
 
-def hash_file_task(path: str) -> tuple[str, str]:
-    """Dask task body: (path, hex sha256)."""
-    return path, sha256_file(path)
+def hash_file_task(path: str, checksum: str = "sha256") -> tuple[str, str]:
+    """Dask task body: (path, hex digest of the file by ``checksum``)."""
+    return path, file_digest(path, checksum)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -129,6 +188,10 @@ class StorePlan:
     dtype: np.dtype
     sources: list[tuple[str, int]]
     dims: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    #: the dn chunks' Blosc codec ({cname, clevel, shuffle}: :data:`~archive.collection.layout.DN_COMPRESSIONS`)
+    dn_codec: dict = field(default_factory=lambda: dict(DN_CODEC))
+    #: the checksum of every dn chunk and raw source file (:data:`~archive.collection.layout.CHECKSUMS`)
+    checksum: str = DEFAULT_CHECKSUM
 
     @property
     def chunk_lines(self) -> int:
@@ -138,7 +201,7 @@ class StorePlan:
         """Identifies what is being written (sources, shapes, parameters, the small arrays' names: a
         partial store laid out by an older version without some array is not resumed), to resume safely."""
         text = json.dumps([self.cid, self.sources, self.cube_lines, self.bands, self.samples, self.dtype.str,
-                           self.attrs.get("fov_deg"), self.attrs.get("ground_height"), DN_CODEC,
+                           self.attrs.get("fov_deg"), self.attrs.get("ground_height"), self.dn_codec, self.checksum,
                            self.attrs.get("navigation_params"), sorted(self.arrays)], default=str)
         return hashlib.sha256(text.encode()).hexdigest()
 
@@ -151,7 +214,7 @@ def _create_arrays(store: Path, plan: StorePlan) -> None:
     total = sum(plan.cube_lines)
     group.create_array(
         "dn", shape=(plan.bands, total, plan.samples), chunks=(1, plan.chunk_lines, plan.samples),
-        dtype=plan.dtype, compressors=[blosc(DN_CODEC)], fill_value=0,
+        dtype=plan.dtype, compressors=[blosc(plan.dn_codec)], fill_value=0,
         dimension_names=("band", "line", "sample"), config={"write_empty_chunks": True})
     for name, values in plan.arrays.items():
         a = group.create_array(name, shape=values.shape, chunks=values.shape or (1,), dtype=values.dtype,
@@ -198,19 +261,21 @@ def open_partial(partial: Path, plan: StorePlan) -> bool:
 
 def finish_store(partial: Path, plan: StorePlan, chunk_digests: dict[tuple[int, int], str],
                  file_digests: dict[str, str]) -> None:
-    """Record checksums and metadata, then the completion marker (last write)."""
+    """Record checksums (``chunk_digests``: (band, chunk) -> hex, ``file_digests``: path -> hex, both by
+    ``plan.checksum``) and metadata, then the completion marker (last write)."""
     nchunks = -(-sum(plan.cube_lines) // plan.chunk_lines)
     table = np.zeros((plan.bands, nchunks, 32), np.uint8)
     for (b, k), hexd in chunk_digests.items():
         table[b, k] = np.frombuffer(bytes.fromhex(hexd), np.uint8)
     group = zarr.open_group(zarr_target(partial, read_only=False), mode="r+")
-    a = group.create_array("dn_sha256", shape=table.shape, chunks=table.shape, dtype=np.uint8,
+    a = group.create_array(digest_table(plan.checksum), shape=table.shape, chunks=table.shape, dtype=np.uint8,
                            compressors=[blosc(SMALL_CODEC)], fill_value=0, overwrite=True,
                            dimension_names=("band", "chunk", "byte"), config={"write_empty_chunks": True})
     a[...] = table
     attrs = dict(plan.attrs)
-    attrs["sources"] = [{"name": attrs["source_names"][path], "size": size, "sha256": file_digests[path]}
+    attrs["sources"] = [{"name": attrs["source_names"][path], "size": size, plan.checksum: file_digests[path]}
                         for path, size in plan.sources]
+    attrs[CHECKSUM_ATTR] = plan.checksum
     del attrs["source_names"]
     attrs["array_sha256"] = {name: array_digest(v) for name, v in sorted(plan.arrays.items())}
     attrs["archive:plan"] = plan.token()
