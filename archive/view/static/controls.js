@@ -1,75 +1,20 @@
 // archive view: the panel's controls (catalog list and filters, overlap rule, display, the open
-// flight's cubes, ground, sync and boresight sliders, its navigation source), what they ask for (the bands of each flight, the request
-// parameters of its values, the overlap rule chosen: one of those the server offers), refresh():
+// flight's cubes, ground, sync and boresight sliders, its navigation source; what they ask for is
+// params.js's), the overlap rule chosen (one of those the server offers), refresh():
 // every change makes a new spec of what the tiles show (tiles.js draws it), and the URL hash: the
 // state of the page, shareable; editing it updates the view.
 import { drawFootprints, geometryBox, inGeometry, map } from "./map.js";
+import { ANGLES, boresightOf, channelsNm, flightParams, nearestBand, outlineParams } from "./params.js";
 import { pinPoint } from "./spectra.js";
-import { $, PREVIEW_UP, clearErrors, fmt, geometryOf, getJSON, idPath, newGeneration, referenceFlight, showError, status,
+import { $, PREVIEW_UP, clearErrors, fmt, geometryOf, getJSON, idPath, newGeneration, on, referenceFlight, showError, status,
          viewer, visibleFlights } from "./state.js";
 import { markPlaceholders, pump, schedule, stretchRanges, viewRanges } from "./tiles.js";
-
-// ---- what the controls ask for ------------------------------------------------------------------
-// the band of a flight nearest a wavelength (nm; a band index where the flight has no wavelengths)
-export function nearestBand(feature, nm) {
-  const wl = feature.properties.wavelength;
-  if (!wl) return Math.max(0, Math.min(feature.properties.bands - 1, Math.round(nm)));
-  let best = 0;
-  for (let i = 1; i < wl.length; i++) if (Math.abs(wl[i] - nm) < Math.abs(wl[best] - nm)) best = i;
-  return best;
-}
-// the wavelengths shown: [grey] or [R, G, B] (nm)
-export function channelsNm() {
-  if ($("display").value === "grey") return [Number($("band-grey").value)];
-  return ["band-r", "band-g", "band-b"].map((id) => Number($(id).value));
-}
 
 // the overlap rule chosen ({name, label, key, wins} as /api/collections serves it); before the list
 // has arrived, a rule that picks the later flight and needs no key
 function overlapRule() {
   const name = $("overlap").value;
   return viewer.overlaps.find((r) => r.name === name) || viewer.overlaps[0] || { name, key: null, wins: "last" };
-}
-
-// the request parameters of one flight's values (everything but the bands)
-export function flightParams(id, preview) {
-  const q = new URLSearchParams();
-  q.set("mode", $("mode").value || "radiance");
-  q.set("overlap", $("overlap").value);
-  const p = viewer.params[id];
-  if (p) {
-    if (p.cubes) q.set("cubes", `${p.cubes[0] - 1}-${p.cubes[1] - 1}`);
-    const ground = preview && preview.ground !== undefined ? preview.ground : p.ground;
-    const sync = preview && preview.sync !== undefined ? preview.sync : p.sync;
-    if (ground !== null && ground !== undefined) q.set("ground_height", String(ground));
-    if (sync !== null && sync !== undefined) q.set("sync_offset", String(sync));
-    if (p.nav) q.set("navigation", p.nav);
-    const bs = boresightOf(p, preview);
-    if (bs) q.set("boresight", bs.map(String).join(","));
-  }
-  return q.toString();
-}
-
-// the boresight [roll, pitch, yaw] (degrees) of a flight's parameters, a slider preview's value in place
-export const ANGLES = ["roll", "pitch", "yaw"];
-function boresightOf(p, preview) {
-  if (!p.bs) return null;
-  return p.bs.map((v, i) => (preview && preview[ANGLES[i]] !== undefined ? preview[ANGLES[i]] : v));
-}
-
-// the parameters an outline depends on (not the mode or overlap rule)
-function outlineParams(id) {
-  const q = new URLSearchParams(flightParams(id, null));
-  q.delete("mode"); q.delete("overlap");
-  return q.toString();
-}
-
-// the whole flight's statistics depend on the mode and cube range, not on where its pixels land:
-// a ground-height or sync change keeps its stretch (and asks nothing)
-export function statsParams(id) {
-  const q = new URLSearchParams(flightParams(id, null));
-  for (const name of ["ground_height", "sync_offset", "overlap", "navigation", "boresight"]) q.delete(name);
-  return q.toString();
 }
 
 // a flight's box (lon/lat), padded: by half its size while its footprint may have moved (a new
@@ -394,6 +339,9 @@ export function startPreview(value) {
   viewer.preview = value;
   refresh();
 }
+// what tiles.js asks for (it imports nothing of this module): a new spec, the waiting slider preview
+on("refresh", () => refresh());
+on("preview", (value) => startPreview(value));
 for (const [id, name] of [["ground", "ground"], ["sync", "sync"], ["bs-roll", "roll"], ["bs-pitch", "pitch"], ["bs-yaw", "yaw"]]) {
   $(id).addEventListener("input", () => {
     viewer.previewNext = { [name]: Number($(id).value) };

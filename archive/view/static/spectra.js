@@ -1,6 +1,6 @@
 // archive view: pinned spectra of the open flight (the pixel of archive render's grid at the
 // flight's nominal GSD holding a click, float32 as render writes it), their chart, CSV and PNG.
-import { channelsNm, flightParams } from "./controls.js";
+import { channelsNm, flightParams } from "./params.js";
 import { map } from "./map.js";
 import { $, MAX_PINS, PALETTE, getJSON, idPath, newGeneration, status, viewer } from "./state.js";
 

@@ -87,3 +87,9 @@ export function clearErrors(...slots) {
   for (const slot of slots.length ? slots : Object.values(ERROR_SLOTS)) { $(slot).textContent = ""; delete viewer.errors[slot]; }
   if (!slots.length) { delete viewer.errors.status; if ($("status").classList.contains("error")) status(""); }
 }
+
+// ---- events between modules that must not import each other (tiles.js asks controls.js for a new
+// spec: "refresh", or to start the waiting slider preview: "preview") ---------------------------
+const listeners = new Map();
+export function on(name, fn) { listeners.set(name, [...(listeners.get(name) || []), fn]); }
+export function emit(name, ...args) { for (const fn of listeners.get(name) || []) fn(...args); }

@@ -3,14 +3,15 @@
 // changes among loaded bands need no request; a change that needs new values keeps the previous
 // picture until every tile in view has its replacement (double buffering).
 //
-// The spec (viewer.current, made by controls.js's refresh): what every tile should show, {flights:
+// The spec (viewer.current, made by controls.js's refresh, which this module asks for with emit("refresh"):
+// it imports nothing of controls.js): what every tile should show, {flights:
 // [{id, params, bands, up, box}], nm, ranges, keyed, lowest, data, id, grey}; keyed: the values come
 // with the overlap rule's per-pixel key plane; lowest: a pixel shows the flight of the lowest key,
 // else the later flight. The stretch is computed here too: from the reference flight's statistics
 // (asked once per flight, mode, cube range and bands), the view's values or the user's range.
-import { nearestBand, refresh, startPreview, statsParams } from "./controls.js";
 import { boxesMeet, map, tileBounds } from "./map.js";
-import { $, BATCH, CACHE_BYTES, TILE, clearErrors, generationHeaders, getJSON, idPath, referenceFlight, refusal, showError,
+import { nearestBand, statsParams } from "./params.js";
+import { $, BATCH, CACHE_BYTES, TILE, clearErrors, emit, generationHeaders, getJSON, idPath, referenceFlight, refusal, showError,
          status, viewer } from "./state.js";
 
 let scheduled = false;      // a pump() is due at the next animation frame
@@ -274,11 +275,11 @@ function settle(spec) {
   }
   if (viewer.settled) clearErrors("err-cubes", "err-ground", "err-sync", "err-mode", "err-bands");
   viewer.specId = spec.id;
-  if (viewer.preview && viewer.previewNext !== null) { startPreview(viewer.previewNext); }
+  if (viewer.preview && viewer.previewNext !== null) { emit("preview", viewer.previewNext); }
   if ($("stretch").value === "view" && !spec.viewStretchFresh) {
     spec.viewStretchFresh = true;
     const r = viewRanges(spec);
-    if (r && JSON.stringify(r) !== JSON.stringify(viewer.viewStretch)) { viewer.viewStretch = r; refresh(); }
+    if (r && JSON.stringify(r) !== JSON.stringify(viewer.viewStretch)) { viewer.viewStretch = r; emit("refresh"); }
   }
 }
 
@@ -377,7 +378,7 @@ const statsKey = (id, bands, kind) => `${id}|${statsParams(id)}|${bands}|${kind 
 function ensureRanges(spec) {
   const kind = $("stretch").value;
   if (kind === "view") {
-    if (!viewer.viewStretch) { viewer.viewStretch = viewRanges(spec) || null; if (viewer.viewStretch) refresh(); }
+    if (!viewer.viewStretch) { viewer.viewStretch = viewRanges(spec) || null; if (viewer.viewStretch) emit("refresh"); }
     return;
   }
   if (kind === "manual") return;
@@ -389,7 +390,7 @@ function ensureRanges(spec) {
   if (statsCache.has(key) || statsPending.has(key)) return;
   statsPending.add(key);
   getJSON(`${idPath(id)}/stats?bands=${bands.join(",")}&${statsParams(id)}&percentiles=${kind === "unscaled" ? "0,100" : "2,98"}`)
-    .then((st) => { statsCache.set(key, st); refresh(); })
+    .then((st) => { statsCache.set(key, st); emit("refresh"); })
     .catch((err) => showError(err.message))
     .finally(() => statsPending.delete(key));
 }
