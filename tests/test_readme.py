@@ -1,6 +1,6 @@
 """The README and docs/ as a user meets them (issue 49 item 5, issue 44 point 5).
 
-- Every shell block of README.md and of the docs pages listed in :data:`MARKED_PAGES` says whether it runs:
+- Every shell and Python block of README.md and of the docs pages listed in :data:`MARKED_PAGES` says whether it runs:
   ``<!-- run -->``, ``<!-- run: slow -->`` or ``<!-- no-run: why -->`` on the line before the fence.
 - README.md's ``run`` blocks run in order, as written, in one empty folder, with the installed ``archive``
   (about 30 s on a 2-core machine). Each docs page's ``run`` blocks run the same way in a folder of their own
@@ -49,16 +49,18 @@ MARKER = re.compile(r"^<!--\s*(run|run:\s*slow|no-run:.*?)\s*-->\s*$")
 
 @dataclass(frozen=True)
 class Block:
-    """A fenced shell block of a page: its text, the line its fence opens on (1-based) and its marker
-    (``run``, ``slow``, ``no-run`` or None)."""
+    """A fenced shell or Python block of a page: its text, the line its fence opens on (1-based), its
+    marker (``run``, ``slow``, ``no-run`` or None) and its language (``sh`` or ``python``)."""
     page: str
     line: int
     text: str
     marker: str | None
+    language: str = "sh"
 
 
-def shell_blocks(path: Path) -> list[Block]:
-    """The ```sh / ```bash / ```shell blocks of a Markdown page, in order, each with its marker."""
+def shell_blocks(path: Path, languages: tuple[str, ...] = ("sh",)) -> list[Block]:
+    """The ```sh / ```bash / ```shell blocks of a Markdown page (and its ```python blocks when
+    ``languages`` has "python"), in order, each with its marker."""
     lines = path.read_text(encoding="utf-8").splitlines()
     blocks, i = [], 0
     page = str(path.relative_to(ROOT))
@@ -70,12 +72,13 @@ def shell_blocks(path: Path) -> list[Block]:
         j = i + 1
         while j < len(lines) and not lines[j].startswith("```"):
             j += 1
-        if m.group(1) in ("sh", "bash", "shell"):
+        language = "sh" if m.group(1) in ("sh", "bash", "shell") else m.group(1)
+        if language in languages:
             before = next((lines[k] for k in range(i - 1, -1, -1) if lines[k].strip()), "")
             mk = MARKER.match(before.strip())
             marker = None if mk is None else ("slow" if mk.group(1).replace(" ", "") == "run:slow"
                                               else "run" if mk.group(1) == "run" else "no-run")
-            blocks.append(Block(page, i + 1, "\n".join(lines[i + 1:j]), marker))
+            blocks.append(Block(page, i + 1, "\n".join(lines[i + 1:j]), marker, language))
         i = j + 1
     return blocks
 
@@ -116,7 +119,9 @@ def run_blocks(blocks: list[Block], folder: Path, timeout: float = 600) -> list[
     env = dict(os.environ, PATH=f"{Path(_archive_bin()).parent}{os.pathsep}{os.environ.get('PATH', '')}")
     outputs = []
     for b in blocks:
-        proc = subprocess.run(["bash", "-e", "-c", b.text], cwd=folder, env=env, capture_output=True, text=True,
+        # python -c, not a file: the local cluster's spawned workers do not run the example again
+        argv = [sys.executable, "-c", b.text] if b.language == "python" else ["bash", "-e", "-c", b.text]
+        proc = subprocess.run(argv, cwd=folder, env=env, capture_output=True, text=True,
                               timeout=timeout)
         if proc.returncode != 0:
             pytest.fail(f"{b.page}, the block at line {b.line} exits {proc.returncode} in {folder}:\n{b.text}\n"
@@ -129,7 +134,7 @@ def run_blocks(blocks: list[Block], folder: Path, timeout: float = 600) -> list[
 
 def test_every_shell_block_of_the_kept_pages_is_marked():
     unmarked = [f"{b.page}:{b.line}" for p in MARKED_PAGES if (ROOT / p).exists()
-                for b in shell_blocks(ROOT / p) if b.marker is None]
+                for b in shell_blocks(ROOT / p, ("sh", "python")) if b.marker is None]
     assert not unmarked, ("shell blocks without <!-- run -->, <!-- run: slow --> or <!-- no-run: why --> on "
                           f"the line before: {unmarked}")
 
@@ -165,7 +170,7 @@ def test_the_readme_blocks_run_in_order_in_an_empty_folder(tmp_path):
 
 def _docs_pages_with_run_blocks() -> list[str]:
     return [str(p.relative_to(ROOT)) for p in sorted(DOCS.glob("*.md"))
-            if any(b.marker in ("run", "slow") for b in shell_blocks(p))]
+            if any(b.marker in ("run", "slow") for b in shell_blocks(p, ("sh", "python")))]
 
 
 @pytest.mark.slow
@@ -175,7 +180,7 @@ def test_the_docs_blocks_run_in_order(page, tmp_path):
     if wanted not in ("1", "slow"):
         pytest.skip("docs pages' examples run with ARCHIVE_DOCS_RUN=1 (about 100 s; =slow: also the minutes-long ones)")
     markers = ("run", "slow") if wanted == "slow" else ("run",)
-    blocks = [b for b in shell_blocks(ROOT / page) if b.marker in markers]
+    blocks = [b for b in shell_blocks(ROOT / page, ("sh", "python")) if b.marker in markers]
     if not blocks:
         pytest.skip(f"{page} has only slow blocks (ARCHIVE_DOCS_RUN=slow)")
     run_blocks(blocks, tmp_path)
