@@ -76,7 +76,7 @@ class _Flight:
     collection: str | None = None
     ingested: list | None = None                           #: the cubes (base, signature) it was ingested with
     failed: list | None = None                             #: the cubes an ingest refused (not tried again)
-    staged: int = 0                                        #: stagings so far (a cube written over gets a new folder)
+    staged: dict[str, int] = field(default_factory=dict)   #: stagings of each cube (one written over: a new folder)
 
 
 class Watch:
@@ -156,8 +156,8 @@ class Watch:
         if flight.ingested is not None and (cube.base, cube.sig) in flight.ingested:
             self.state.flight(flight.name, status="ingested", complete=True, collection=flight.collection)
             return   # in the collection already (a restarted watch)
-        flight.staged += 1
-        name = cube.base if flight.staged == 1 else f"{cube.base}.{flight.staged}"
+        times = flight.staged[cube.base] = flight.staged.get(cube.base, 0) + 1
+        name = cube.base if times == 1 else f"{cube.base}.{times}"
         target = self.work / "cubes" / safe_name(flight.name) / safe_name(name)
         try:
             stage_links(target, [cube.data], flight_extras(cube.data.parent, [c.base for c in self.follower.cubes.values()
@@ -370,7 +370,7 @@ def run(args: argparse.Namespace) -> int:
     thread = None
     if not args.no_view:
         from archive.view.server import cache_bytes, serve
-        from archive.view.cache import ByteLRU
+        from archive.drawing.cache import ByteLRU
 
         limits = cache_bytes(args.cache_mb)
         registry = LiveRegistry(args.archive, args.fov, bands_cache=ByteLRU(limits["bands"]),
