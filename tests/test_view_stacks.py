@@ -122,3 +122,115 @@ def test_the_page_steps_through_the_flights(stack):
             assert None not in p["values"] and abs(p["row"] - r) <= 1 and abs(p["col"] - c) <= 1
             np.testing.assert_array_equal(np.array(p["values"], np.float32),
                                           ds.radiance.values[1, :, p["row"], p["col"]])
+
+
+def _stack_coverage(out, shape, geo) -> list[np.ndarray]:
+    """Per time step, whether each screen pixel centre of the map falls on a stack pixel with a value in
+    every band (what the page draws of that step)."""
+    from pyproj import Transformer
+
+    from archive.grid import HALF_WORLD
+    from archive.outputs.like import read_grid
+
+    grid = read_grid(out)
+    h, w = shape
+    res = 2 * HALF_WORLD / 256 / 2 ** geo["zoom"]
+    mx, my = np.meshgrid(-HALF_WORLD + (geo["x"] + np.arange(w) + 0.5) * res,
+                         HALF_WORLD - (geo["y"] + np.arange(h) + 0.5) * res)
+    e, n = Transformer.from_crs(3857, grid.epsg, always_xy=True).transform(mx, my)
+    rows, cols = (np.floor(v).astype(int) for v in grid.rowcol(e, n))
+    inside = (rows >= 0) & (cols >= 0) & (rows < grid.height) & (cols < grid.width)
+    with xr.open_zarr(out) as ds:
+        finite = np.isfinite(ds.radiance.values).all(axis=1)   # (time, y, x)
+    out_masks = []
+    for t in range(finite.shape[0]):
+        m = np.zeros(shape, bool)
+        m[inside] = finite[t][rows[inside], cols[inside]]
+        out_masks.append(m)
+    return out_masks
+
+
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed at /usr/bin/chromium")
+def test_the_stack_is_drawn_above_the_flights(stack):
+    """Issue 49 item 4: with the archive's flights drawn, the shown stack lies above them (the flights
+    dimmed, or hidden), each time step draws exactly the stack's coverage of that step, the slider changes
+    the picture, and a click on a stack pixel answers the stack's value without opening the flight under it."""
+    import io
+
+    from PIL import Image
+    from scipy.ndimage import binary_dilation, binary_erosion
+
+    sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is not installed")
+    archive, out = stack
+    background = (255, 0, 255)
+    command = [sys.executable, "-m", "archive", "view", "--archive", str(archive), "--stack", str(out), "--port", "0"]
+    with archive_view(command, cwd=ROOT) as (url, _):
+        with sync_api.sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=["--headless", "--no-sandbox"])
+            page = browser.new_page(viewport={"width": 900, "height": 700}, device_scale_factor=1)
+            errors, points = [], []
+            page.on("pageerror", lambda exc: errors.append(str(exc)))
+            page.on("request", lambda r: points.append(r.url) if "/point?" in r.url else None)
+            page.goto(url)
+            page.wait_for_function("() => window.viewer.settled && window.viewer.draws > 0")   # the flights, drawn
+            page.get_by_role("button", name="field: 2 flights").click()
+            page.wait_for_function("document.getElementById('stack-label').textContent.includes('1 / 2')")
+            page.wait_for_function("() => window.viewer.settled")
+            page.wait_for_load_state("networkidle")
+            page.evaluate(f"""() => {{
+                for (const s of ['.leaflet-control-container', '.leaflet-footprints-pane', '.leaflet-tooltip-pane',
+                                 '.leaflet-overlay-pane'])
+                    document.querySelector(s).style.display = 'none';
+                document.getElementById('map').style.background = 'rgb{background}';
+            }}""")
+            opacity = page.evaluate("getComputedStyle(document.querySelector('.flight-tiles')).opacity")
+            assert float(opacity) == pytest.approx(0.25), "the flights are dimmed under the stack"
+            assert page.evaluate("getComputedStyle(document.querySelector('.leaflet-stack-pane')).zIndex") == "350"
+
+            def shot():
+                return np.asarray(Image.open(io.BytesIO(page.locator("#map").screenshot())).convert("RGB"))
+
+            def step(t: int):
+                page.fill("#stack-time", str(t))
+                page.wait_for_function(f"document.getElementById('stack-label').textContent.includes('{t + 1} / 2')")
+                page.wait_for_load_state("networkidle")
+                page.wait_for_timeout(200)   # the last tile decoded and composited
+
+            dimmed = [shot()]
+            step(1)
+            dimmed.append(shot())
+            geo = page.evaluate("""() => { const m = window.viewer.map;
+                const p = m.getPixelOrigin().add(m.containerPointToLayerPoint([0, 0]));
+                return {zoom: m.getZoom(), x: p.x, y: p.y}; }""")
+            coverage = _stack_coverage(out, dimmed[0].shape[:2], geo)
+            changed = (dimmed[0] != dimmed[1]).any(axis=-1)
+            differs = coverage[0] != coverage[1]
+            assert differs.sum() > 500, "the two steps cover different pixels"
+            core = binary_erosion(differs, iterations=2)
+            assert changed[core].mean() > 0.95, "the slider changes the picture where the steps differ"
+            # flights hidden: each step draws exactly its own coverage
+            page.select_option("#stack-flights", "hidden")
+            for t in (1, 0):
+                step(t)
+                drawn = (shot() != np.array(background, np.uint8)).any(axis=-1)
+                edge = binary_dilation(coverage[t], iterations=1) & ~binary_erosion(coverage[t], iterations=1)
+                assert coverage[t].sum() > 2000
+                wrong = (drawn != coverage[t]) & ~edge
+                assert wrong.sum() == 0, f"step {t}: {wrong.sum()} pixels drawn off the stack's coverage"
+            # a click on a stack pixel that a flight covers too: the stack's value, no flight opened
+            rows, cols = np.nonzero(binary_erosion(coverage[0], iterations=10))
+            k = len(rows) // 2
+            box = page.locator("#map").bounding_box()
+            with page.expect_response(lambda r: "/api/stacks/field/point" in r.url) as answer:
+                page.mouse.click(box["x"] + cols[k] + 0.5, box["y"] + rows[k] + 0.5)
+            p = answer.value.json()
+            page.wait_for_timeout(300)
+            assert page.evaluate("window.viewer.open") is None, "the click opened the flight under the stack"
+            assert all("/api/stacks/" in u for u in points), points
+            page.click("#stack-close")
+            assert page.evaluate("getComputedStyle(document.querySelector('.flight-tiles')).opacity") == "1"
+            browser.close()
+        assert not errors, errors
+        with xr.open_zarr(out) as ds:
+            assert p["time"] == 0 and None not in p["values"]
+            np.testing.assert_array_equal(np.array(p["values"], np.float32), ds.radiance.values[0, :, p["row"], p["col"]])

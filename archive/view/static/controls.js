@@ -391,6 +391,7 @@ $("close").addEventListener("click", () => { closeFlight(); status(""); });
 // ---- clicks: open the flight under the pointer, or pin the open flight's spectrum -------------
 map.on("click", (ev) => {
   const { lng, lat } = ev.latlng;
+  if (viewer.stacks && viewer.stacks.covers(lng, lat)) return;   // a stack pixel: the stack's value (stacks.js)
   const under = visibleFlights().filter((id) => inGeometry(lng, lat, geometryOf(id)));
   if (viewer.open && (under.includes(viewer.open) || !under.length)) { pinPoint(ev.latlng); return; }
   if (under.length) openFlight(under[under.length - 1], false);

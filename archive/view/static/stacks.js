@@ -1,9 +1,20 @@
 // Time stacks (archive view --stack X.zarr): one time step of a stack at a time, a slider through
 // its flights (the same grid, so the same pixels), values read from the stack's Zarr by the server.
-import { map } from "./map.js";
+// While a stack is shown it is drawn above the archive's flights (its own pane), the flights dimmed
+// or hidden under it, and a click inside its footprint answers the stack's pixel (not the flight's).
+import { inGeometry, map } from "./map.js";
 import { $, fmt, getJSON, viewer } from "./state.js";
 
 const state = { stacks: [], open: null, layer: null, outline: null, clicked: null };
+map.createPane("stack").style.zIndex = 350;   // above the flights' tiles (tilePane: 200), under the outlines (400)
+
+// the flights under a shown stack: dimmed or hidden (app.css)
+function showFlights() {
+  const shown = !!state.open;
+  document.body.classList.toggle("stack-shown", shown);
+  document.body.classList.toggle("flights-dimmed", shown && $("stack-flights").value === "dimmed");
+  document.body.classList.toggle("flights-hidden", shown && $("stack-flights").value === "hidden");
+}
 
 function tileUrl() {
   const s = state.open;
@@ -46,9 +57,10 @@ function openStack(s) {
   slider.max = String(s.times.length - 1);
   slider.value = "0";
   $("stack-controls").hidden = false;
-  state.layer = L.tileLayer(tileUrl(), { maxZoom: 24, tileSize: 256, zIndex: 500 }).addTo(map);
+  state.layer = L.tileLayer(tileUrl(), { maxZoom: 24, tileSize: 256, pane: "stack" }).addTo(map);
   state.outline = L.geoJSON(s.geometry, { style: { color: "#ff7f0e", weight: 1.5, fill: false } }).addTo(map);
   map.fitBounds(state.outline.getBounds());
+  showFlights();
   label();
 }
 
@@ -58,6 +70,7 @@ function closeStack() {
   Object.assign(state, { open: null, layer: null, outline: null, clicked: null });
   $("stack-controls").hidden = true;
   $("stack-point").replaceChildren();
+  showFlights();
 }
 
 // the stacks the server serves, in the panel (called once at the page's start)
@@ -79,5 +92,8 @@ export async function loadStacks() {
 
 $("stack-time").addEventListener("input", step);
 $("stack-close").addEventListener("click", closeStack);
-map.on("click", (e) => { if (state.open) { state.clicked = e.latlng; showPoint(); } });
-viewer.stacks = { state, openStack, closeStack };
+$("stack-flights").addEventListener("change", showFlights);
+// whether a point (degrees) lies inside the shown stack's footprint
+const covers = (lng, lat) => !!state.open && inGeometry(lng, lat, state.open.geometry);
+map.on("click", (e) => { if (covers(e.latlng.lng, e.latlng.lat)) { state.clicked = e.latlng; showPoint(); } });
+viewer.stacks = { state, openStack, closeStack, covers };
