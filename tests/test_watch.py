@@ -279,3 +279,59 @@ def test_faults_one_line_each_and_sigterm_then_resume(source, tmp_path):
     lines = [zarr.open_group(str(archive / "collections" / f"{c}.zarr"), mode="r")["dn"].shape[1] for c in cids]
     assert sorted(lines) == [300, 300]   # 2 cubes each: the truncated cube in neither
     assert truth.cubes[2].line_time.size == 150
+
+
+# ---- the live page ------------------------------------------------------------------------------
+def test_live_page_shows_the_cubes_appear(source, tmp_path):
+    """The page in real Chromium, opened before the first cube: the cubes appear one after the other
+    (their tiles asked and drawn), the pass outlines over them, the panel line counting them."""
+    from PIL import Image
+    import io
+
+    chromium = Path("/usr/bin/chromium")
+    if not chromium.exists():
+        pytest.skip("Debian's chromium is not installed at /usr/bin/chromium")
+    playwright = pytest.importorskip("playwright.sync_api")
+    src, truth = source
+    folder = tmp_path / "recorder"
+    folder.mkdir()
+    watcher = Watcher(str(folder), "--archive", str(tmp_path / "archive"), "--fov", str(FOV), "--idle", "600",
+                      "--settle", "0.2", "--port", "0", "--quiet")
+    url = watcher.url()
+    with playwright.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(chromium), args=["--headless", "--no-sandbox", "--disable-gpu"])
+        page = browser.new_page(viewport={"width": 900, "height": 700})
+        errors, asked = [], []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.on("request", lambda r: asked.append(r.url) if "/values" in r.url else None)
+        page.goto(url)
+        page.wait_for_function("() => window.viewer.booted && window.viewer.live !== null")
+        writer = threading.Thread(target=replay, args=(src, folder), kwargs={"gap_s": 1.2})
+        writer.start()
+        counts = []
+        while writer.is_alive() or not counts or counts[-1] < len(truth.cubes):
+            n = page.evaluate("() => window.viewer.features.length")
+            if not counts or n != counts[-1]:
+                counts.append(n)
+            assert watcher.proc.poll() is None, watcher.text()
+            time.sleep(0.05)
+        writer.join()
+        assert counts[0] == 0 and counts[-1] == len(truth.cubes) and counts == sorted(counts) and len(counts) >= 3
+        page.evaluate("() => window.viewer.map.fitBounds(window.viewer.footprints.getBounds(), {animate: false})")
+        page.wait_for_function("() => window.viewer.settled && window.viewer.draws > 0", timeout=60_000)
+        ids = page.evaluate("() => window.viewer.features.map((f) => f.id)")
+        assert all(any(i in u for u in asked) for i in ids), "a listed cube's tiles were never asked"
+        live = page.evaluate("() => window.viewer.live.flights[0]")
+        assert len(live["passes"]) == len(truth.strips)   # each drawn, and the gaps' one (Multi)Polygon if any
+        assert page.evaluate("() => document.querySelectorAll('.leaflet-live-pane path').length") == \
+            len(truth.strips) + (1 if live["gaps"]["coordinates"] else 0)
+        assert "4 cube(s), 600 lines, 2 pass(es)" in page.inner_text(".live-panel")
+        page.evaluate("""() => { for (const s of ['.leaflet-control-container', '.leaflet-footprints-pane',
+                                                  '.leaflet-tooltip-pane', '.leaflet-live-pane'])
+                                   document.querySelector(s).style.display = 'none';
+                                 document.getElementById('map').style.background = 'rgb(255,0,255)'; }""")
+        shot = np.asarray(Image.open(io.BytesIO(page.locator("#map").screenshot())).convert("RGB"))
+        assert (shot != np.array([255, 0, 255], np.uint8)).any(axis=-1).sum() > 5000   # imagery drawn
+        assert not errors, errors
+        browser.close()
+    assert watcher.stop() == 0
