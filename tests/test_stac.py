@@ -370,7 +370,7 @@ def test_odc_stac_loads_envi_from_its_item(rendered):
     assert item.assets["data"].media_type == "image/x-envi" and item.assets["header"].media_type == "text/plain"
     with rasterio.open(out.with_suffix("")) as ds:
         values, transform = ds.read(), ds.transform
-    odc.stac.configure_rio(GDAL_DISABLE_READDIR_ON_OPEN="FALSE")   # the README's recipe, as written there
+    odc.stac.configure_rio(GDAL_DISABLE_READDIR_ON_OPEN="FALSE")   # docs/ecosystem.md's recipe, as written there
     try:
         loaded = odc.stac.load([pystac.Item.from_file(str(path))])
     finally:
@@ -389,11 +389,12 @@ def test_every_asset_has_a_media_type(rendered):
         assert all(a.media_type for a in item.assets.values()), (fmt, {k: a.media_type for k, a in item.assets.items()})
 
 
-def test_readme_gives_the_odc_stac_envi_recipe():
-    """The README's recipe is the one the ENVI test above runs (configure_rio, not the environment)."""
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    assert 'odc.stac.configure_rio(GDAL_DISABLE_READDIR_ON_OPEN="FALSE")' in readme
-    assert "with `GDAL_DISABLE_READDIR_ON_OPEN=FALSE`, an ENVI" not in readme
+def test_docs_give_the_odc_stac_envi_recipe():
+    """docs/ecosystem.md's recipe is the one the ENVI test above runs (configure_rio, not the
+    environment; tests/test_ecosystem.py runs the page's recipes)."""
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "ecosystem.md").read_text()
+    assert 'odc.stac.configure_rio(GDAL_DISABLE_READDIR_ON_OPEN="FALSE")' in doc
+    assert "with `GDAL_DISABLE_READDIR_ON_OPEN=FALSE`, an ENVI" not in doc
 
 
 def test_grid_footprint(rendered_cog):
@@ -447,7 +448,8 @@ def test_product_items_of_every_format(tmp_path):
                   {"name": "b7", "center_wavelength": 0.65}]  # no fwhm where it is unknown
     assert envi["properties"]["processing:level"] == "L2A"
     assert envi["assets"]["data"]["raster:bands"][0] == {"data_type": "float32", "nodata": "nan", "sampling": "area",
-                                                         "spatial_resolution": 0.5, "unit": "1"}
+                                                         "scale": 1.0, "offset": 0.0, "spatial_resolution": 0.5,
+                                                         "unit": "1"}
     assert envi["properties"]["archive:recipe"]["request"] == {"gsd": 0.5, "bands": [3, 7]}
     # Zarr, its provenance layers inside the same store: described in the properties only
     import zarr

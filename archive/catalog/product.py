@@ -46,7 +46,7 @@ import numpy as np
 
 from archive import storage
 from archive.catalog.stac import (EO_EXTENSION, PROCESSING_EXTENSION, PROJECTION_EXTENSION, RASTER_EXTENSION,
-                                  STAC_VERSION, eo_bands, rfc3339, software_version, write_item)
+                                  STAC_VERSION, ZARR_EXTENSION, eo_bands, rfc3339, software_version, write_item)
 from archive.errors import InputError, MissingInputError
 from archive.overlap import OverlapRule
 
@@ -58,9 +58,11 @@ TEXT_MEDIA_TYPE = "text/plain"
 ENVI_MEDIA_TYPE = "image/x-envi"
 #: processing:level of a rendered output, by its data variable.
 LEVELS = {"dn": "L1A", "relative": "L1A", "radiance": "L1B", "reflectance": "L2A"}
-#: raster:bands unit of each data variable (an output's ``units`` attribute overrides it).
-UNITS = {"dn": "DN", "relative": "DN (exposure-normalised)", "radiance": "calibration radiance units",
-         "reflectance": "1"}
+#: Units of each data variable, UDUNITS strings: the CF ``units`` of the Zarr variable, GDAL's band
+#: unit type of every output and the ``raster:bands`` unit of its Item (an output's ``units``
+#: attribute overrides it). Counts and ratios "1"; radiance in the units of Resonon's calibration
+#: files (.icp), microflicks (uW cm-2 sr-1 um-1 = 1e-5 W m-2 sr-1 nm-1).
+UNITS = {"dn": "1", "relative": "1", "reflectance": "1", "radiance": "uW cm-2 sr-1 um-1"}
 # Variables of a Zarr output that are not provenance layers.
 _NOT_PROVENANCE = {"x", "y", "band", "wavelength", "fwhm", "spatial_ref", "saturated"}
 
@@ -219,7 +221,7 @@ def product_item(out: str | os.PathLike, *, fmt, grid, band_indices: Sequence[in
     geometry, bbox = grid_footprint(grid)
     grid_fields = _grid_fields(grid)
     unit = str(attrs.get("units") or UNITS.get(variable, ""))
-    raster_bands = [{"data_type": "float32", "nodata": "nan", "sampling": "area",
+    raster_bands = [{"data_type": "float32", "nodata": "nan", "sampling": "area", "scale": 1.0, "offset": 0.0,
                      "spatial_resolution": float(grid.gsd), **({"unit": unit} if unit else {})}
                     for _ in range(nb)]
     bands_eo = None if wavelengths is None else eo_bands(wavelengths, fwhm, [f"b{int(i)}" for i in band_indices])
@@ -251,12 +253,13 @@ def product_item(out: str | os.PathLike, *, fmt, grid, band_indices: Sequence[in
     if wavelengths is not None:
         props["archive:wavelengths"] = [float(w) for w in wavelengths]
         props["eo:bands"] = [dict(b) for b in bands_eo]
-    extensions = [PROJECTION_EXTENSION, RASTER_EXTENSION, *([EO_EXTENSION] if bands_eo else []),
-                  PROCESSING_EXTENSION]
     if provenance is not None:
         more_assets, more_props = _provenance(Path(provenance), out, fmt, variable, grid, item_dir)
         assets.update(more_assets)
         props.update(more_props)
+    zarr = any(k.startswith("zarr:") for asset in assets.values() for k in asset)
+    extensions = [PROJECTION_EXTENSION, RASTER_EXTENSION, *([EO_EXTENSION] if bands_eo else []),
+                  PROCESSING_EXTENSION, *([ZARR_EXTENSION] if zarr else [])]
     return {
         "type": "Feature",
         "stac_version": STAC_VERSION,
@@ -268,6 +271,68 @@ def product_item(out: str | os.PathLike, *, fmt, grid, band_indices: Sequence[in
         "links": [],
         "assets": assets,
     }
+
+
+#: The datacube extension a stack's Item declares when its schema is vendored (else its ``cube:*``
+#: fields stand as additional properties: valid STAC either way).
+DATACUBE_EXTENSION = "https://stac-extensions.github.io/datacube/v2.2.0/schema.json"
+
+
+def stack_item(out: str | os.PathLike, *, fmt, grid, band_indices: Sequence[int],
+               wavelengths: Sequence[float] | None, fwhm: Sequence[float] | None, variable: str, attrs: dict,
+               flights: Sequence[dict], command: str, request) -> dict:
+    """The STAC Item (a dict) of a time stack at ``out`` (a Zarr store whose ``variable`` is (time,
+    band, y, x), one time step per flight): :func:`product_item` of its grid and bands over the time
+    span of its flights, plus the datacube extension's ``cube:dimensions`` / ``cube:variables`` and
+    ``archive:stack`` (the flights).
+
+    flights: per time step, in order, the flight's record (``id``, ``source``, ``start``, ``end``:
+    ISO 8601 UTC, and its processing attributes; :meth:`archive.outputs.stack.StackFlight.to_dict`);
+    the other arguments as :func:`product_item`'s. The GDAL asset ``<variable>`` (a Zarr v2 stack) is
+    one raster of time x band bands, time-major (band ``t * bands + b + 1`` = time step ``t``, band
+    ``b``): its ``raster:bands`` and ``eo:bands`` list them all, the ``eo:bands`` names
+    ``b<source band>_t<time step>`` (odc-stac's band aliases)."""
+    from archive.catalog.validate import vendored_schemas
+
+    flights = [dict(f) for f in flights]
+    if not flights:
+        raise InputError(out, "a stack has at least one time step")
+    start = datetime.fromisoformat(min(f["start"] for f in flights).replace("Z", "+00:00"))
+    end = datetime.fromisoformat(max(f["end"] for f in flights).replace("Z", "+00:00"))
+    sources = [str(f.get("source", f["id"])) for f in flights]
+    item = product_item(out, fmt=fmt, grid=grid, band_indices=band_indices, wavelengths=wavelengths, fwhm=fwhm,
+                        variable=variable, attrs=attrs, start=start, end=end, sources=sources, command=command,
+                        request=request)
+    steps = len(flights)
+    dims = "time, band, y, x"
+    data = item["assets"]["data"]
+    data["title"] = data["title"].replace("(band, y, x)", f"({dims})")
+    raster = item["assets"].get(variable)
+    if raster is not None:
+        raster["title"] = (f"{variable} ({dims}) as one raster of {steps} x {len(band_indices)} bands, time-major "
+                           "(GDAL's Zarr driver: rasterio, odc-stac, QGIS)")
+        raster["raster:bands"] = [dict(b) for _ in range(steps) for b in raster["raster:bands"]]
+        if "eo:bands" in raster:
+            raster["eo:bands"] = [{**b, "name": f"{b['name']}_t{t}"} for t in range(steps) for b in raster["eo:bands"]]
+    w, s, e, n = grid.bounds
+    props = item["properties"]
+    props["cube:dimensions"] = {
+        "time": {"type": "temporal", "extent": [flights[0]["start"], flights[-1]["start"]],
+                 "values": [f["start"] for f in flights]},
+        "band": {"type": "bands", "values": [f"b{int(b)}" for b in band_indices]},
+        "y": {"type": "spatial", "axis": "y", "extent": [s, n], "step": -grid.gsd, "reference_system": grid.epsg},
+        "x": {"type": "spatial", "axis": "x", "extent": [w, e], "step": grid.gsd, "reference_system": grid.epsg},
+    }
+    props["cube:variables"] = {
+        variable: {"type": "data", "dimensions": ["time", "band", "y", "x"],
+                   "description": f"{variable} of each flight on the stack's grid, NaN where it has no line"},
+        "saturated": {"type": "auxiliary", "dimensions": ["time", "y", "x"]},
+        "flight": {"type": "auxiliary", "dimensions": ["time"], "values": [f["id"] for f in flights]},
+    }
+    props["archive:stack"] = {"flights": flights}
+    if DATACUBE_EXTENSION in vendored_schemas():
+        item["stac_extensions"].append(DATACUBE_EXTENSION)
+    return item
 
 
 def write_product_item(out: str | os.PathLike, item: dict) -> Path:

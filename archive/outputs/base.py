@@ -18,18 +18,19 @@ float32, NaN where no line covers a pixel; ``y`` grows southwards (row 0 is the 
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
 
+from archive.catalog.product import UNITS
 from archive.errors import InputError
 from archive.grid import Grid
 
-__all__ = ["CHUNK", "OutputFormat", "OutputMeta", "Sink", "TileWriter", "all_nan", "check_bands", "check_tile",
-           "chunk_buffer", "variable_for_mode"]
+__all__ = ["CHUNK", "OutputFormat", "OutputMeta", "Sink", "TileWriter", "all_nan", "band_labels", "check_bands",
+           "check_tile", "chunk_buffer", "variable_for_mode"]
 
 #: Output tile = Zarr chunk edge, pixels.
 CHUNK = 1024
@@ -126,10 +127,9 @@ def check_bands(band0: int, nbands: int, total: int, what: str) -> None:
 
 _VARIABLES = {"raw": "dn", "relative": "relative", "radiance": "radiance", "reflectance": "reflectance"}
 
-#: Units of each data variable, UDUNITS strings (CF ``units``; GDAL's band unit type): counts and
-#: ratios "1"; radiance in the units of Resonon's calibration files (.icp), microflicks
-#: (uW cm-2 sr-1 um-1 = 1e-5 W m-2 sr-1 nm-1).
-VARIABLE_UNITS = {"dn": "1", "relative": "1", "reflectance": "1", "radiance": "uW cm-2 sr-1 um-1"}
+#: Units of each data variable, UDUNITS strings (CF ``units``; GDAL's band unit type; the Item's
+#: ``raster:bands`` unit): :data:`archive.catalog.product.UNITS`.
+VARIABLE_UNITS = UNITS
 
 
 def variable_for_mode(mode: str) -> str:
@@ -138,6 +138,14 @@ def variable_for_mode(mode: str) -> str:
         return _VARIABLES[mode]
     except KeyError:
         raise InputError("--mode", f"unknown mode {mode!r}", f"use one of {', '.join(_VARIABLES)}") from None
+
+
+def band_labels(band_indices: Sequence[int], wavelengths: Sequence[float] | None) -> list[str]:
+    """Band names as GDAL, QGIS and ENVI show them: the wavelength (nm) with its unit ("650.0 nm"),
+    else the source band counted from 1 as those tools count bands ("source band 4")."""
+    if wavelengths is None:
+        return [f"source band {int(i) + 1}" for i in band_indices]
+    return [f"{float(w):.1f} nm" for w in wavelengths]
 
 
 @dataclass(frozen=True)
@@ -174,9 +182,7 @@ class OutputMeta:
     def labels(self) -> list[str]:
         """Band names as GDAL, QGIS and ENVI show them: the wavelength with its unit ("650.0 nm"),
         else the source band counted from 1 as those tools count bands ("source band 4")."""
-        if self.wavelengths is None:
-            return [f"source band {i + 1}" for i in self.band_indices]
-        return [f"{w:.1f} nm" for w in self.wavelengths]
+        return band_labels(self.band_indices, self.wavelengths)
 
     @property
     def units(self) -> str | None:

@@ -4,7 +4,8 @@ one time step per flight (see :mod:`archive.run.stacks` for how a stack is rende
 This module owns the store's layout: the arrays besides the slices (:class:`StackLayout`), the chunk
 files of a step (``chunk_file``: v2 '.'-separated keys, v3 'c/'-prefixed), the step's slice moved in
 (:func:`add_slice`), the metadata rewritten with one more step (:func:`commit_stack`: every array's
-documents first, the consolidated metadata last, each file replaced atomically), and reading a stack
+documents and, Zarr v2, the band names GDAL shows (:mod:`archive.outputs.pam`) first, the consolidated
+metadata last, each file replaced atomically), and reading a stack
 back (:func:`read_stack`, used by resumes and the viewer).
 """
 
@@ -91,10 +92,7 @@ class StackLayout:
         for spec in arrays:
             if spec.name in (self.variable, "saturated"):
                 attrs = dict(spec.attrs)
-                if spec.name == self.variable:
-                    attrs["coordinates"] = " ".join(sorted(attrs.get("coordinates", "").split() + ["flight"]))
-                else:
-                    attrs["coordinates"] = "flight"
+                attrs["coordinates"] = " ".join(sorted(attrs.get("coordinates", "").split() + ["flight"]))
                 spec = dataclasses.replace(spec, shape=(n, *spec.shape), chunks=(1, *spec.chunks),
                                            dims=("time", *spec.dims), attrs=attrs)
             out.append(spec)
@@ -132,6 +130,8 @@ def commit_stack(store: Path, layout: StackLayout, flights: list[StackFlight], r
         with warnings.catch_warnings():   # Zarr v3: 'flight' is fixed-length UTF-32, not yet in the v3 spec
             warnings.filterwarnings("ignore", message=".*does not have a Zarr V3 specification.*")
             write_store(tmp, root_attrs, arrays, layout.zarr_format)
+        if layout.zarr_format == 2:
+            _write_pam(tmp, layout, flights)
         files = sorted(p for p in tmp.rglob("*") if p.is_file())
         late = {".zmetadata", "zarr.json"}
         ordered = ([p for p in files if p.parent != tmp] + [p for p in files if p.parent == tmp and p.name not in late]
@@ -142,6 +142,19 @@ def commit_stack(store: Path, layout: StackLayout, flights: list[StackFlight], r
             os.replace(src, dest)
     finally:
         remove_path(tmp)
+
+
+def _write_pam(store: Path, layout: StackLayout, flights: list[StackFlight]) -> None:
+    """The band names GDAL shows for the stack's (time, band, y, x) variable (:mod:`archive.outputs.pam`):
+    time-major, band ``t * bands + b + 1`` described as "<wavelength or source band>, <flight id>"
+    with the flight's ``flight``, ``time_step`` and ``start`` items beside the band's own."""
+    from archive.outputs.base import band_labels
+    from archive.outputs.pam import band_texts, write_band_pam
+
+    bands = band_texts(band_labels(layout.bands, layout.wavelengths), layout.wavelengths, layout.fwhm)
+    texts = [(f"{label}, {f.id}", {**items, "flight": f.id, "time_step": str(t), "start": f.start}, imagery)
+             for t, f in enumerate(flights) for label, items, imagery in bands]
+    write_band_pam(store, layout.variable, 4, texts)
 
 
 def add_slice(slice_store: Path, store: Path, layout: StackLayout, t: int, slice_format: int) -> None:

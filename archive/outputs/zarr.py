@@ -25,15 +25,21 @@ from archive.codecs import compression as compression_named
 from archive.codecs import numcodecs_blosc
 from archive.files import write_atomic
 from archive.grid import Grid
-from archive.outputs.base import (CHUNK, VARIABLE_UNITS, OutputFormat, OutputMeta, Sink, TileWriter, check_bands,
-                                  chunk_buffer)
+from archive.outputs.base import (CHUNK, VARIABLE_UNITS, OutputFormat, OutputMeta, Sink, TileWriter, band_labels,
+                                  check_bands, chunk_buffer)
 from archive.outputs.layers import layer_attrs, layers_metadata
+from archive.outputs.pam import band_texts, write_band_pam
 from archive.outputs.zarr_metadata import ArraySpec, add_arrays, write_store
 
-__all__ = ["FORMAT", "ChunkWriter", "LayersStore", "MosaicStore", "ZarrFormat", "add_zarr_layers", "geozarr_attrs",
-           "mosaic_dataset", "store_layout", "store_version"]
+__all__ = ["FORMAT", "GDAL_ZARR_MEDIA_TYPE", "ChunkWriter", "LayersStore", "MosaicStore", "ZarrFormat",
+           "add_zarr_layers", "gdal_crs", "geozarr_attrs", "located_attrs", "mosaic_dataset", "store_layout",
+           "store_version"]
 
 _GRID_ATTR = "archive_grid"
+#: Media type of the GDAL asset of a Zarr output's Item (one array, read by GDAL's Zarr driver): no
+#: registered type names a Zarr array; odc-stac counts this (unregistered) one among the raster
+#: types it opens with rasterio, and xarray readers go by the store's :data:`ZARR_MEDIA_TYPE`.
+GDAL_ZARR_MEDIA_TYPE = "application/x-zarr"
 
 
 class _Uncompressed:
@@ -208,6 +214,24 @@ _Y_ATTRS = {"units": "m", "standard_name": "projection_y_coordinate", "long_name
 _SATURATED_ATTRS = {"long_name": "saturated", "flag_values": [0, 1], "flag_meanings": "ok saturated_in_some_band"}
 
 
+def gdal_crs(grid: Grid) -> dict:
+    """GDAL's own CRS attribute of a Zarr array (``_CRS``: the EPSG code as an OGC URL), which its
+    Zarr driver reads when an array is opened by its own path (``<store>/radiance``: the href
+    odc-stac opens), where it does not see the group's ``spatial_ref`` that ``grid_mapping`` names."""
+    return {"_CRS": {"url": f"http://www.opengis.net/def/crs/EPSG/0/{int(grid.epsg)}"}}
+
+
+def located_attrs(grid: Grid, coordinates: Sequence[str] = ()) -> dict:
+    """What ties a data variable (values, saturation flags, provenance layers) to its grid, after its
+    own and the GeoZarr attributes: :func:`gdal_crs`, CF ``coordinates`` (``coordinates`` and the grid
+    mapping ``spatial_ref``, sorted: so that plain ``xr.open_zarr``, whose default
+    ``decode_coords=True`` reads only that attribute, makes ``spatial_ref`` a coordinate and
+    rioxarray finds the CRS) and CF ``grid_mapping`` (``spatial_ref``: what ``decode_coords="all"``,
+    GDAL and other CF readers follow)."""
+    return {**gdal_crs(grid), "coordinates": " ".join(sorted({*coordinates, "spatial_ref"})),
+            "grid_mapping": "spatial_ref"}
+
+
 def _values_attrs(variable: str) -> dict:
     attrs = {"long_name": variable, "_description": "NaN where no image line covers the pixel"}
     if variable in VARIABLE_UNITS:  # CF units; GDAL's Zarr driver shows them as the band unit
@@ -228,7 +252,8 @@ def mosaic_dataset(grid: Grid, values, saturated, band_indices: Sequence[int],
     """The ``xarray.Dataset`` of a mosaic (the Zarr output's layout, also :func:`archive.mosaic`'s):
     ``variable`` (band, y, x) = ``values`` and ``saturated`` (y, x), any array kind (numpy, dask);
     coordinates ``band`` (source band index), x/y pixel centres (m), ``wavelength`` and ``fwhm`` (nm,
-    when known); CF attributes, the CRS (rioxarray ``spatial_ref``) and the GeoZarr attributes
+    when known); CF attributes, the CRS (rioxarray ``spatial_ref``, named in the data variables'
+    ``coordinates`` and ``grid_mapping``: :func:`located_attrs`) and the GeoZarr attributes
     (:func:`geozarr_attrs`) of ``grid``; ``attrs`` at the root."""
     import rioxarray  # noqa: F401  (registers .rio)
     import xarray as xr
@@ -254,8 +279,12 @@ def mosaic_dataset(grid: Grid, values, saturated, band_indices: Sequence[int],
     ds.attrs.setdefault("Conventions", "CF-1.10")
     ds = ds.rio.write_crs(grid.epsg).rio.write_transform(grid.transform)
     ds.attrs.update(geozarr_attrs(grid, wkt2=True))
-    for name in (variable, "saturated"):
+    extra = [name for name in ("wavelength", "fwhm") if name in ds.coords]
+    for name, coordinates in ((variable, extra), ("saturated", [])):
         ds[name].attrs.update(geozarr_attrs(grid))
+        ds[name].attrs.update(gdal_crs(grid))
+        # xarray writes a grid mapping into no variable's 'coordinates': named here, it is (located_attrs)
+        ds[name].encoding["coordinates"] = located_attrs(grid, coordinates)["coordinates"]
     return ds
 
 
@@ -298,10 +327,9 @@ def store_layout(grid: Grid, band_indices: Sequence[int], wavelengths: Sequence[
     ``compression``: the values' :data:`archive.codecs.COMPRESSIONS` name (None: the default)."""
     nb = len(band_indices)
     x, y = grid.xy_centres()
-    extra = sorted(name for name, v in (("wavelength", wavelengths), ("fwhm", fwhm)) if v is not None)
-    located = {"coordinates": " ".join(extra)} if extra else {}
-    values_attrs = {**_values_attrs(variable), **geozarr_attrs(grid), **located, "grid_mapping": "spatial_ref"}
-    saturated_attrs = {**_SATURATED_ATTRS, **geozarr_attrs(grid), "grid_mapping": "spatial_ref"}
+    extra = [name for name, v in (("wavelength", wavelengths), ("fwhm", fwhm)) if v is not None]
+    values_attrs = {**_values_attrs(variable), **geozarr_attrs(grid), **located_attrs(grid, extra)}
+    saturated_attrs = {**_SATURATED_ATTRS, **geozarr_attrs(grid), **located_attrs(grid)}
     arrays = [
         ArraySpec(variable, np.dtype(np.float32), (nb, grid.height, grid.width), (1, CHUNK, CHUNK), ("band", "y", "x"),
                   values_attrs, fill=float("nan"), values_codec=True,
@@ -331,12 +359,14 @@ class MosaicStore(Sink):
     ``saturated`` (y, x) uint8 chunked (1024, 1024) with 0 fill, x/y pixel-centre coordinates,
     ``wavelength`` (band) and ``fwhm`` (band, spectral full width at half maximum, when known) in nm,
     ``spatial_ref`` (rioxarray CRS + GeoTransform) and the grid as a root attribute. Reopen with
-    ``xr.open_zarr(path, decode_coords="all")``.
+    ``xr.open_zarr(path)`` (``spatial_ref`` is a coordinate, ``.rio.crs`` set), or through GDAL
+    (``ZARR:"path":/radiance`` or the array's folder ``path/radiance``; Zarr v2: band names from
+    :mod:`archive.outputs.pam`).
 
     Metadata conventions (see :func:`geozarr_attrs`): CF-1.10 (root ``Conventions``; ``units``,
     ``standard_name``, ``long_name`` on coordinates and variables, ``grid_mapping`` pointing at
     ``spatial_ref``), and the GeoZarr ``proj:`` and ``spatial:`` Zarr conventions on the root group
-    and on the two data arrays.
+    and on the two data arrays; GDAL's ``_CRS`` on the data arrays (:func:`located_attrs`).
     """
 
     path: str
@@ -375,6 +405,8 @@ class MosaicStore(Sink):
             raise ValueError(f"{len(fwhm)} fwhm values for {nb} bands")
         root, arrays = store_layout(grid, band_indices, wavelengths, fwhm, variable, attrs, compression)
         write_store(path, root, arrays, zarr_format)
+        if zarr_format == 2:   # the band names GDAL shows (archive.outputs.pam)
+            write_band_pam(path, variable, 3, band_texts(band_labels(band_indices, wavelengths), wavelengths, fwhm))
         return cls(os.fspath(path), variable)
 
     # ---- reading back ------------------------------------------------------------------------
@@ -506,7 +538,7 @@ class ZarrFormat(OutputFormat):
 
     @staticmethod
     def create_layers(temp, path: Path, sink: MosaicStore, meta: OutputMeta, spec) -> LayersStore:
-        add_zarr_layers(sink.path, meta.grid, spec, geozarr_attrs(meta.grid))
+        add_zarr_layers(sink.path, meta.grid, spec, {**geozarr_attrs(meta.grid), **located_attrs(meta.grid)})
         return LayersStore(sink.path, tuple(spec.names))
 
     @staticmethod
@@ -518,12 +550,27 @@ class ZarrFormat(OutputFormat):
     def finish_layers(temp, path: Path, layers, meta: OutputMeta, spec) -> list:
         return []   # written into the store, which moves with the values
 
-    def stac_assets(self, out: Path, href, variable: str, data: dict) -> dict[str, dict]:
+    def stac_assets(self, out: Path, href, variable: str, data: dict, dims: str = "band, y, x") -> dict[str, dict]:
+        """``data``: the store (the group: what xarray opens, ``xr.open_zarr(href)``) and, for a Zarr
+        v2 store, ``<variable>``: the values array by its own folder, what GDAL's Zarr driver opens
+        as a raster, with the media type odc-stac reads through rasterio (:data:`GDAL_ZARR_MEDIA_TYPE`;
+        ``zarr:node_type`` "array" says it is one array, not a group for xarray). ``dims``: the
+        variable's dimensions, for the titles."""
         version = store_version(out)
-        return {"data": {"href": href(out), "type": self.media_type,
-                         "title": f"{variable} ({self.label}{'' if version is None else f' v{version}'}, variable "
-                                  f"'{variable}' (band, y, x), float32, NaN where not covered)",
-                         "archive:variable": variable, **data}}
+        zarr_fields = {} if version is None else {"zarr:zarr_format": version}
+        # the band names (eo:bands, odc-stac's aliases b<i>) on one asset only: the one loaders read
+        store = {k: v for k, v in data.items() if k != "eo:bands"} if version == 2 else data
+        assets = {"data": {"href": href(out), "type": self.media_type,
+                           "title": f"{variable} ({self.label}{'' if version is None else f' v{version}'}, variable "
+                                    f"'{variable}' ({dims}), float32, NaN where not covered)",
+                           "archive:variable": variable, **zarr_fields, "zarr:node_type": "group",
+                           "zarr:consolidated": True, **store}}
+        if version == 2:
+            assets[variable] = {"href": href(out / variable), "type": GDAL_ZARR_MEDIA_TYPE,
+                                "title": f"{variable} ({dims}) as one raster, bands in that order (GDAL's Zarr "
+                                         "driver: rasterio, odc-stac, QGIS)",
+                                "archive:variable": variable, **zarr_fields, "zarr:node_type": "array", **data}
+        return assets
 
     def provenance_assets(self, provenance: Path, href, fields: dict, describe) -> dict[str, dict]:
         _, names = describe(provenance)

@@ -449,35 +449,14 @@ def _check_like(layout: StackLayout, planned, name: str) -> None:
 def _write_item(out: Path, layout: StackLayout, flights: list[StackFlight], options) -> None:
     """The stack's STAC Item ``<out>.json`` (written last): a product Item of the grid and bands,
     the time span of its flights, and the datacube extension's ``cube:dimensions``/``cube:variables``."""
-    from archive.catalog.product import product_item, render_command
+    from archive.catalog.product import render_command, stack_item
     from archive.catalog.stac import write_item
     from archive.outputs.zarr import FORMAT as ZARR
 
-    g = layout.grid
-    start = datetime.fromisoformat(min(f.start for f in flights))
-    end = datetime.fromisoformat(max(f.end for f in flights))
     command = render_command(options.with_sources([f.source for f in flights]), out) + " --stack"
-    item = product_item(out, fmt=ZARR, grid=g, band_indices=layout.bands, wavelengths=layout.wavelengths,
-                        fwhm=layout.fwhm, variable=layout.variable, attrs=layout.attrs, start=start, end=end,
-                        sources=[f.source for f in flights], command=command, request=options)
-    w, s, e, n = g.bounds
-    props = item["properties"]
-    props["cube:dimensions"] = {
-        "time": {"type": "temporal", "extent": [flights[0].start, flights[-1].start],
-                 "values": [f.start for f in flights]},
-        "band": {"type": "bands", "values": [f"b{b}" for b in layout.bands]},
-        "y": {"type": "spatial", "axis": "y", "extent": [s, n], "step": -g.gsd, "reference_system": g.epsg},
-        "x": {"type": "spatial", "axis": "x", "extent": [w, e], "step": g.gsd, "reference_system": g.epsg},
-    }
-    props["cube:variables"] = {
-        layout.variable: {"type": "data", "dimensions": ["time", "band", "y", "x"],
-                          "description": f"{layout.variable} of each flight on the stack's grid, NaN where it has no line"},
-        "saturated": {"type": "auxiliary", "dimensions": ["time", "y", "x"]},
-        "flight": {"type": "auxiliary", "dimensions": ["time"], "values": [f.id for f in flights]},
-    }
-    props["archive:stack"] = {"flights": [f.to_dict() for f in flights]}
-    if _datacube_vendored():
-        item["stac_extensions"].append(DATACUBE_EXTENSION)
+    item = stack_item(out, fmt=ZARR, grid=layout.grid, band_indices=layout.bands, wavelengths=layout.wavelengths,
+                      fwhm=layout.fwhm, variable=layout.variable, attrs=layout.attrs,
+                      flights=[f.to_dict() for f in flights], command=command, request=options)
     write_item(out.with_name(out.name + ".json"), item)
 
 
