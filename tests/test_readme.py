@@ -8,14 +8,15 @@
   ``ARCHIVE_DOCS_RUN=slow``).
 - No two examples make the same folder or output (the co-registration example once failed with "output
   exists already" because the stack example had made its folders).
-- Every option of every command (read from ``archive/cli.py``'s parser) is in its command's section of
+- Every option of every command (read from ``archive <command> --help``, archive/cli.py's parser) is in its command's section of
   docs/commands.md (or on the command's own page, docs/<command>.md).
 - Every "DESIGN n" the code cites is a section n of docs/design.md; every relative link resolves.
 """
 
 from __future__ import annotations
 
-import argparse
+import contextlib
+import io
 import os
 import re
 import shlex
@@ -222,13 +223,23 @@ def test_the_clash_finder_sees_a_clash():
 
 # -- every option documented ------------------------------------------------------------------------------
 
-def _subcommands(parser: argparse.ArgumentParser, prefix: str = "archive"):
-    """(name, parser) of every command and sub-command, e.g. ('archive catalog search', ...)."""
-    for action in parser._actions:   # argparse has no public walk of sub-parsers
-        if isinstance(action, argparse._SubParsersAction):
-            for name, sub in action.choices.items():
-                yield f"{prefix} {name}", sub
-                yield from _subcommands(sub, f"{prefix} {name}")
+def _help(words: tuple[str, ...]) -> str:
+    """``archive WORDS --help`` as the user reads it (the parser of archive/cli.py, in-process)."""
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), pytest.raises(SystemExit):
+        build_parser().parse_args([*words, "--help"])
+    return out.getvalue()
+
+
+def _subcommands(words: tuple[str, ...] = ()):
+    """(name, options) of every command and sub-command, read from their ``--help`` (public argparse
+    output, no parser internals): ('archive catalog search', {'--archive', '--bbox', ...}), ..."""
+    text = _help(words)
+    for sub in re.findall(r"^ {4}([a-z][\w-]*)(?= {2,}|$)", text, re.M):   # a COMMAND / SUBCOMMAND list
+        sub_help = _help((*words, sub))
+        options = set(re.findall(r"^ {2}(?:-\w[^,\n]*, )?(--[\w-]+)", sub_help, re.M)) - {"--help"}
+        yield " ".join(("archive", *words, sub)), options
+        yield from _subcommands((*words, sub))
 
 
 def _section(text: str, heading: str) -> str:
@@ -239,18 +250,18 @@ def _section(text: str, heading: str) -> str:
 def test_every_option_of_every_command_is_in_the_docs():
     reference = (DOCS / "commands.md").read_text(encoding="utf-8")
     missing = []
-    for name, sub in _subcommands(build_parser()):
+    commands = dict(_subcommands())
+    assert {"archive render", "archive simulate", "archive catalog search"} <= set(commands)
+    assert {"--cubes-per-pass", "--scene-seed"} <= commands["archive simulate"]   # the help was read
+    for name, options in commands.items():
         top = " ".join(name.split()[:2])          # 'archive catalog search' is in '## archive catalog'
         own = DOCS / f"{name.split()[1]}.md"
         text = _section(reference, top) + (own.read_text(encoding="utf-8") if own.exists() else "")
         if not text:
             missing.append(f"{name} (no '## {top}' in docs/commands.md)")
             continue
-        for action in sub._actions:
-            for opt in action.option_strings:
-                if opt.startswith("--") and opt not in ("--help", "--version") \
-                        and not re.search(rf"(?<![\w-]){re.escape(opt)}(?![\w-])", text):
-                    missing.append(f"{name} {opt}")
+        missing += [f"{name} {opt}" for opt in sorted(options)
+                    if not re.search(rf"(?<![\w-]){re.escape(opt)}(?![\w-])", text)]
     assert not missing, "options not in their command's section of docs/commands.md: " + ", ".join(missing)
 
 
@@ -258,9 +269,9 @@ def test_the_synopses_name_only_options_that_exist():
     """The reverse: an option in a synopsis of docs/commands.md that its command no longer has."""
     reference = (DOCS / "commands.md").read_text(encoding="utf-8")
     options: dict[str, set[str]] = {}
-    for name, sub in _subcommands(build_parser()):
+    for name, known in _subcommands():
         top = " ".join(name.split()[:2])
-        options.setdefault(top, set()).update(o for a in sub._actions for o in a.option_strings)
+        options.setdefault(top, set()).update(known)
     stale = []
     for top, known in options.items():
         for synopsis in re.findall(r"^```\n(.*?)^```", _section(reference, top), re.M | re.S):
