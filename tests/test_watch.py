@@ -335,3 +335,24 @@ def test_live_page_shows_the_cubes_appear(source, tmp_path):
         assert not errors, errors
         browser.close()
     assert watcher.stop() == 0
+
+
+def test_bad_input_is_one_line(tmp_path, capsys):
+    import socket
+
+    from archive.cli import main
+
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen(1)
+    port = taken.getsockname()[1]
+    base = [str(tmp_path / "rec"), "--archive", str(tmp_path / "archive"), "--fov", str(FOV)]
+    for extra, words in ((["--port", str(port)], f"--port: cannot listen on 127.0.0.1:{port}"),
+                         (["--calibration", str(tmp_path / "none.icp")], "--calibration"),
+                         (["--fov", "0"], "--fov")):
+        code = main(["watch", *base, *extra])
+        err = capsys.readouterr().err
+        assert code != 0 and words in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    taken.close()
+    code = main(["watch", str(tmp_path / "rec"), "--archive", "s3://bucket/archive", "--fov", str(FOV)])
+    assert code != 0 and "local archive" in capsys.readouterr().err

@@ -353,6 +353,8 @@ def run(args: argparse.Namespace) -> int:
         value = getattr(args, name, None)
         if value is not None and not Path(value).is_file():
             raise InputError(f"--{name.replace('_', '-')}", f"{value}: no such file", "name an existing file")
+    if args.cache_mb <= 0:
+        raise InputError("--cache-mb", f"must be a positive number of MiB, got {args.cache_mb}")
     folders = [Path(f).absolute() for f in args.folders]
     create_archive(args.archive)
     say = _say
@@ -376,18 +378,28 @@ def run(args: argparse.Namespace) -> int:
         registry = LiveRegistry(args.archive, args.fov, bands_cache=ByteLRU(limits["bands"]),
                                 lookup_cache=ByteLRU(limits["lookups"]), flights_cache=ByteLRU(limits["flights"]))
 
+        listening, failed = threading.Event(), []
+
         def announce(url: str) -> None:
             say(f"archive watch: live map at {url}  (Ctrl-C stops)")
+            listening.set()
 
         def serve_thread():
             try:
                 serve(registry, args.host, args.port, allow_remote=args.allow_remote, cache_mb=args.cache_mb,
                       announce=announce, ready=lambda s: server_box.setdefault("server", s),
                       extra_routes=live_routes(state))
-            except Exception as exc:   # (a port in use is one line; the watch goes on without the map)
-                say(f"archive watch: no live map: {' '.join(str(exc).split())}")
+            except Exception as exc:   # before listening: the command's one line (a port in use); after: one line
+                failed.append(exc)
+                if listening.is_set():
+                    say(f"archive watch: the live map stopped: {' '.join(str(exc).split())}")
+            finally:
+                listening.set()
         thread = threading.Thread(target=serve_thread, name="archive-watch-view", daemon=True)
         thread.start()
+        listening.wait()
+        if failed:
+            raise failed[0]
     watch = Watch(folders, Path(args.archive), args.fov, ingest_argv(args), idle=args.idle, settle=args.settle,
                   stall=args.stall, registry=registry, state=state, say=say, quiet=args.quiet)
     stop, wake = threading.Event(), threading.Event()
