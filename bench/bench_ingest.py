@@ -3,6 +3,17 @@
     python bench/bench_ingest.py codecs  [--flight DIR]   # ratio + encode/decode MB/s per codec
     python bench/bench_ingest.py ingest  [--flight DIR]   # ingest MB/s of raw input vs copying the files
     python bench/bench_ingest.py catalog [--items 10000]  # search latency over synthetic Items
+    python bench/bench_ingest.py floor --flight DIR       # issue 45: ingest vs the I/O floor vs to_zarr, one run
+    python bench/bench_ingest.py profile --flight DIR     # issue 45: where ingest's CPU goes, per chunk
+    python bench/bench_ingest.py many --flights 300       # issue 45: tiny flights through a scheduler
+
+``floor`` (bench_ingest_floor.py): ``archive ingest`` as a user runs it (a process, then ``sync``), the I/O
+floor measured in the same run (read every BIL + write the bytes of the collection it made, fdatasync)
+and a hand-written xarray/dask ``to_zarr`` of the same DN (same chunks, same Blosc codec), alternated
+``--rounds`` times; wall, CPU and peak RSS of each process. ``profile``: the per-chunk CPU of each step
+on one thread (band-run read, checksums, each codec, the write) and the per-flight steps (checks,
+catalog, previews). ``many``: ``--flights`` tiny flights (copies of one with their clocks moved) through a
+scheduler and two workers, the first and the last 100 timed.
 
 Without --flight a flight is simulated into a temporary directory (900 samples x 1000 lines, 12-bit
 DN, the size of a real Pika L cube). Prints Markdown rows for bench/RESULTS.md.
@@ -85,7 +96,7 @@ def bench_ingest(args) -> None:
             os.sync()
             copies.append(time.perf_counter() - t)
             t = time.perf_counter()
-            ingest([str(flight)], tmp / f"archive{k}", 47.5, ground_height=80.0, workers=args.workers, progress=False)
+            ingest([str(flight)], tmp / f"archive{k}", 47.5, ground_height=80.0, threads=args.workers, progress=False)
             os.sync()
             ingests.append(time.perf_counter() - t)
         stored = sum(p.stat().st_size for p in (tmp / "archive0").rglob("*") if p.is_file())
@@ -149,15 +160,26 @@ def bench_catalog(args) -> None:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("what", choices=["codecs", "ingest", "catalog"])
+    p.add_argument("what", choices=["codecs", "ingest", "catalog", "floor", "profile", "many"])
     p.add_argument("--flight", help="raw flight directory (default: simulate one)")
     p.add_argument("--bands", type=int, default=16, help="bands of the simulated flight (default 16)")
     p.add_argument("--cubes", type=int, default=2, help="cubes of the simulated flight (default 2)")
     p.add_argument("--items", type=int, default=10000, help="synthetic Items for 'catalog' (default 10000)")
     p.add_argument("--workers", type=int, help="ingest threads (default CPU count)")
     p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--rounds", type=int, default=2, help="floor: alternated rounds (default 2)")
+    p.add_argument("--workdir", default="/tmp/archive-bench-ingest", help="floor/many: where archives are written")
+    p.add_argument("--compression", default=None, help="floor: ingest --compression (default: its default)")
+    p.add_argument("--checksum", default=None, help="floor: ingest --checksum (default: its default)")
+    p.add_argument("--cold", action="store_true", help="floor: evict the BIL from the page cache before each step")
+    p.add_argument("--flights", type=int, default=300, help="many: tiny flights (default 300)")
     args = p.parse_args()
     print(f"# {args.what} on {platform.node()} ({os.cpu_count()} CPUs, Python {platform.python_version()})")
+    if args.what in ("floor", "profile", "many"):
+        import bench_ingest_floor
+
+        return {"floor": bench_ingest_floor.floor, "profile": bench_ingest_floor.profile,
+                "many": bench_ingest_floor.many}[args.what](args)
     {"codecs": bench_codecs, "ingest": bench_ingest, "catalog": bench_catalog}[args.what](args)
     return 0
 
