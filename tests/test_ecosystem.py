@@ -83,6 +83,7 @@ def test_plain_open_zarr_gives_the_crs_grid_and_band_coordinates(outputs):
             "projection_x_coordinate", "projection_y_coordinate")
         assert ds["wavelength"].dims == ("band",) and ds["wavelength"].attrs["units"] == "nm"
         assert ds["fwhm"].attrs["units"] == "nm" and list(ds["band"].values) == [0, 1, 2, 3]
+        assert ds["band"].attrs["units"] == "1" and ds["radiance"].attrs["units"] == "uW cm-2 sr-1 um-1"
         if name != "stack.zarr":   # the render's grid and values: the COG's, bit for bit
             assert ds.rio.transform() == transform
             assert np.array_equal(_bits(ds["radiance"].values), _bits(values))

@@ -1,8 +1,8 @@
 """The STAC Item of a rendered output: a sidecar ``<out>.json`` saying what the output is and how
 to make it again.
 
-The Item (STAC 1.1.0; extensions projection v2.0.0, raster v1.1.0, eo v1.1.0, processing v1.2.0;
-valid against the schemas vendored in ``catalogs/schemas/``) holds:
+The Item (STAC 1.1.0; extensions projection v2.0.0, raster v1.1.0, eo v1.1.0, processing v1.2.0,
+zarr v1.0.0 for a Zarr output; valid against the schemas vendored in ``catalogs/schemas/``) holds:
 
 - ``geometry``/``bbox``: the output grid's bounds reprojected to lon/lat (degrees), edges densified;
 - properties: ``datetime`` (= ``start_datetime``, the first line) and ``end_datetime`` (the last),
@@ -14,21 +14,25 @@ valid against the schemas vendored in ``catalogs/schemas/``) holds:
   ``archive:recipe``: {command, request, sources, software {name, version}}, the one command that
   renders the same output again;
 - assets, hrefs relative to the Item file: ``data`` (the COG, the ENVI data file, or the Zarr
-  store) with ``proj:*``, ``raster:bands`` (float32, nodata NaN, unit) and ``eo:bands`` on it so
-  that a loader reads it without looking further (odc-stac names its bands ``data.1``... and
-  aliases them by the eo:bands names ``b<source band>``); ``header`` (ENVI ``.hdr``); ``provenance``
-  (the sibling provenance raster, when there is one: a Zarr output keeps its provenance layers as
-  variables of the same store, then listed in ``archive:provenance`` only).
+  store) with ``proj:*``, ``raster:bands`` (float32, nodata NaN, unit :data:`UNITS`, scale 1,
+  offset 0) and ``eo:bands`` on it so that a loader reads it without looking further (odc-stac
+  names its bands by the eo:bands names ``b<source band>``); ``header`` (ENVI ``.hdr``);
+  ``provenance`` (the sibling provenance raster, when there is one: a Zarr output keeps its
+  provenance layers as variables of the same store, then listed in ``archive:provenance`` only); for
+  a Zarr v2 output also ``<variable>``, the values array as GDAL's Zarr driver opens it, with the
+  same projection and raster fields and the eo:bands (which the store asset then leaves out, so
+  that odc-stac's aliases name one asset: :meth:`archive.outputs.zarr.ZarrFormat.stac_assets`);
+- a time stack's Item (:func:`stack_item`) adds the datacube fields and its flights.
 
 Processing levels: ``L1A`` orthorectified DN (modes raw and relative), ``L1B`` orthorectified
 radiance, ``L2A`` orthorectified reflectance (collections themselves are ``L0``).
 
-Loaders: odc-stac opens the COG from its Item as is. ENVI has no registered media type, so the
-data asset has none (loaders go by its ``data`` role); GDAL finds the header beside the data file
-only when it may list the folder, which odc-stac forbids by default, so call
-``odc.stac.configure_rio(GDAL_DISABLE_READDIR_ON_OPEN="FALSE")`` first. A Zarr output is read with
-xarray (``xr.open_zarr(href, decode_coords="all")``), or, written as Zarr v2 (the default,
-``--zarr-format 2``), by GDAL >= 3.10 (``ZARR:"href":/radiance``: CRS, transform and values).
+Loaders (docs/ecosystem.md, whose recipes tests/test_ecosystem.py runs): odc-stac opens the COG
+and a Zarr v2 output or stack (its ``<variable>`` asset) from the Item as they are. ENVI has no
+registered media type (``image/x-envi``); GDAL finds the header beside the data file only when it
+may list the folder, which odc-stac forbids by default, so call
+``odc.stac.configure_rio(GDAL_DISABLE_READDIR_ON_OPEN="FALSE")`` first. xarray opens a Zarr output,
+v2 or v3, from the ``data`` asset: ``xr.open_zarr(href)``, CRS included (rioxarray).
 """
 
 from __future__ import annotations

@@ -204,7 +204,7 @@ def geozarr_attrs(grid: Grid, wkt2: bool = False) -> dict:
 
 
 #: CF attributes of the coordinates and of the saturation flags (the Zarr output's and archive.mosaic's).
-_BAND_ATTRS = {"long_name": "source band index (0-based)"}
+_BAND_ATTRS = {"long_name": "source band index (0-based)", "units": "1"}
 _WAVELENGTH_ATTRS = {"units": "nm", "long_name": "band centre wavelength", "standard_name": "radiation_wavelength"}
 _FWHM_ATTRS = {"units": "nm", "long_name": "band spectral full width at half maximum"}
 _X_ATTRS = {"units": "m", "standard_name": "projection_x_coordinate", "long_name": "easting of the pixel centre",
