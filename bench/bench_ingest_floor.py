@@ -10,6 +10,7 @@ Without --flight, ``floor`` and ``profile`` simulate a flight of ``--cubes`` x 1
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import subprocess
@@ -271,8 +272,112 @@ def _flight_steps(flight: Path, out: Path) -> None:
     shutil.rmtree(out, ignore_errors=True)
 
 
+def _copy_moved(base: Path, to: Path, seconds: float) -> None:
+    """A copy of the flight ``base`` with its clocks (the .lcf's and the .bil.times') moved by ``seconds``: a
+    flight of its own id (its start second moves)."""
+    from archive.formats.lcf import read_lcf, write_lcf
+    from archive.formats.times import read_times, write_times
+
+    shutil.copytree(base, to, ignore=shutil.ignore_patterns("truth"))
+    for lcf in to.glob("*.lcf"):
+        data = read_lcf(lcf)
+        write_lcf(lcf, dataclasses.replace(data, time=data.time + seconds))
+    for times in to.glob("*.bil.times"):
+        write_times(times, read_times(times) + seconds)
+
+
+def _scheduler(logs: Path):
+    """``dask scheduler`` + two ``dask worker --nthreads 1`` on 127.0.0.1: (address, processes)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    address = f"tcp://127.0.0.1:{port}"
+    logs.mkdir(parents=True, exist_ok=True)
+    procs = [subprocess.Popen([PY, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port),
+                               "--no-dashboard"], stdout=open(logs / "scheduler.log", "w"), stderr=subprocess.STDOUT,
+                              start_new_session=True)]
+    for i in range(2):
+        procs.append(subprocess.Popen([PY, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1",
+                                       "--no-dashboard", "--local-directory", str(logs / f"w{i}")],
+                                      stdout=open(logs / f"worker{i}.log", "w"), stderr=subprocess.STDOUT,
+                                      start_new_session=True))
+    from distributed import Client
+
+    with Client(address, timeout="60s") as client:
+        client.wait_for_workers(2, timeout=60)
+    return address, procs
+
+
 def many(args) -> int:
-    raise SystemExit("many: not measured in this issue yet (see bench/RESULTS.md)")
+    """``--flights`` tiny flights (2 cubes x 100 lines x 64 samples x 4 bands, one simulated, the others
+    copies with their clocks moved by a minute each) ingested through a scheduler with two workers in
+    three commands (the first 100 into an empty archive, the middle ones, the last 100): seconds of each,
+    per flight, and the projection to 100,000 flights from the first and the last 100."""
+    import signal
+
+    from archive.ingest.command import ingest
+    from archive.simulator.command import simulate_flight
+
+    n = max(200, args.flights)
+    work = Path(args.workdir) / "many"
+    shutil.rmtree(work, ignore_errors=True)
+    base = work / "raw" / "f00000"
+    simulate_flight(base, cubes=2, bands=4, samples=64, lines=100, cubes_per_pass=2, seed=3)
+    t = time.perf_counter()
+    dirs = [base] + [work / "raw" / f"f{k:05d}" for k in range(1, n)]
+    for k, d in enumerate(dirs[1:], start=1):
+        _copy_moved(base, d, 60.0 * k)
+    print(f"{n} tiny flights (2 cubes x 100 x 64 x 4 bands) made in {time.perf_counter() - t:.1f} s; "
+          f"load {os.getloadavg()[0]:.2f}")
+    address, procs = _scheduler(work / "dask")
+    archive = work / "archive"
+    import threading
+
+    from distributed import Client
+
+    peak, stop = [0], threading.Event()
+
+    def watch() -> None:   # the tasks the scheduler holds, every 0.2 s
+        with Client(address, timeout="30s") as c:
+            while not stop.wait(0.2):
+                peak[0] = max(peak[0], c.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.tasks)))
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        parts = [("first 100 (empty archive)", dirs[:100]), (f"middle {n - 200}", dirs[100:n - 100]),
+                 (f"last 100 (into {n - 100} flights)", dirs[n - 100:])]
+        print("| command | flights | seconds | per flight s | load |")
+        print("|---|---|---|---|---|")
+        timed = []
+        for name, part in parts:
+            if not part:
+                continue
+            t = time.perf_counter()
+            results = ingest([str(d) for d in part], archive, 47.5, ground_height=80.0, scheduler=address,
+                             progress=False)
+            seconds = time.perf_counter() - t
+            assert all(r.status == "ingested" for r in results), [r for r in results if r.status != "ingested"][:3]
+            timed.append(seconds / len(part))
+            print(f"| {name} | {len(part)} | {seconds:.1f} | {seconds / len(part):.3f} | {os.getloadavg()[0]:.2f} |")
+    finally:
+        stop.set()
+        watcher.join(10)
+        for proc in procs:
+            try:
+                os.killpg(proc.pid, signal.SIGTERM)
+                proc.wait(10)
+            except (ProcessLookupError, subprocess.TimeoutExpired):
+                pass
+    first, last = timed[0], timed[-1]
+    slope = (last - first) / max(n - 100, 1)   # seconds per flight more, per flight already in the archive
+    projected = 100_000 * first + slope * 100_000 ** 2 / 2
+    print(f"last 100 / first 100: {last / first:.2f}x; per flight {first:.3f} s + {slope * 1e3:.3f} ms per 1,000 "
+          f"flights already there: 100,000 flights through this scheduler ~{projected / 3600:.1f} h, the last one "
+          f"{first + slope * 100_000:.2f} s; the scheduler held at most {peak[0]} tasks (sampled every 0.2 s)")
+    return 0
 
 
 if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "_to_zarr":

@@ -1,5 +1,5 @@
 """Batch reprocessing at archive scale (issue 19), through the real CLI on real files: every DN chunk
-read from a collection is checked against its recorded sha256 (render, archive.mosaic, the viewer);
+read from a collection is checked against its recorded digest (BLAKE3) (render, archive.mosaic, the viewer);
 one output per flight, each flight failing alone (report.json, exit 1); --resume after SIGKILL.
 
 Archives of small simulated flights (2 cubes x 100 lines x 64 samples x 4 bands), one per seed
@@ -76,7 +76,7 @@ def test_checked_reads_name_collection_band_and_lines(flights, tmp_path):
     dn = CheckedDn(store)
     assert np.array_equal(dn.read(2, 0, 100), dn.array[2, 0:100])  # the other chunks read fine
     with pytest.raises(CorruptChunkError, match=rf"collection {ids[1]}: array dn, band 2, lines 100-199: chunk "
-                                                r"does not match its recorded sha256.*archive verify"):
+                                                r"does not match its recorded blake3.*archive verify"):
         dn.read(2, 50, 150)
     with pytest.raises(CorruptChunkError, match=r"band 3, lines 0-99: chunk cannot be decoded.*re-ingest"):
         dn.read(3, 0, 10)
@@ -93,7 +93,7 @@ def test_render_mosaic_and_viewer_refuse_a_corrupt_chunk(flights, tmp_path, caps
     cid = ids[0]
     for k in (0, 1):
         flip_value(store_of(archive, cid), 0, k)
-    expected = rf"collection {cid}: array dn, band 0, lines \d+-\d+: chunk does not match its recorded sha256"
+    expected = rf"collection {cid}: array dn, band 0, lines \d+-\d+: chunk does not match its recorded blake3"
     out = tmp_path / "one.tif"
     import re
 
@@ -174,7 +174,7 @@ def test_a_bad_flight_costs_only_itself(flights, singles, tmp_path):
              ("done", "failed", "skipped")}
     assert by_id == {ids[0]: "done", ids[1]: "failed", ids[2]: "done", ids[3]: "failed"}, stdout
     failed = {line.split()[3].rstrip(":"): line for line in lines if " failed " in line}
-    assert f"collection {ids[1]}: array dn, band 2, lines 100-199: chunk does not match its recorded sha256" \
+    assert f"collection {ids[1]}: array dn, band 2, lines 100-199: chunk does not match its recorded blake3" \
         in failed[ids[1]] and "archive verify" in failed[ids[1]]
     assert f"collection {ids[3]}: array dn, band 3, lines 0-99: chunk cannot be decoded" in failed[ids[3]]
     doc = report(out)

@@ -250,3 +250,60 @@ def test_option_names_and_refusals(flights, tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], err
     assert not (tmp_path / "a").exists()
+
+
+@pytest.fixture()
+def s3_bucket():
+    """A bucket on moto's S3 server on 127.0.0.1 (this process's AWS environment set for the test, so that the
+    local cluster's worker processes, spawned from it, reach the same server)."""
+    pytest.importorskip("moto")
+    import logging
+    import uuid
+
+    import boto3
+    from moto.server import ThreadedMotoServer
+
+    saved = dict(os.environ)
+    logging.getLogger("werkzeug").setLevel(logging.ERROR)
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    os.environ.update(AWS_ENDPOINT_URL=f"http://{host}:{port}", AWS_ACCESS_KEY_ID="AKIATESTING",
+                      AWS_SECRET_ACCESS_KEY="testing-secret", AWS_DEFAULT_REGION="us-east-1")
+    os.environ.pop("AWS_PROFILE", None)
+    bucket = f"ingest-cluster-{uuid.uuid4().hex[:10]}"
+    boto3.client("s3").create_bucket(Bucket=bucket)
+    try:
+        yield bucket
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+        server.stop()
+
+
+def test_an_s3_archive_through_a_local_cluster(flights, s3_bucket, tmp_path):
+    """Two flights into an s3:// archive on a local cluster of two worker processes (the chunks PUT by the
+    workers): complete, verified, its DN the raw cubes', equal chunk for chunk to the local ingest's."""
+    import boto3
+
+    from archive.catalog.root import open_root
+
+    dirs, _, local, ids = flights
+    url = f"s3://{s3_bucket}/arch"
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path / "cache")
+    results = ingest([str(d) for d in dirs[:2]], url, FOV, ground_height=80.0, workers=2, threads=1, progress=False)
+    assert [(r.cid, r.status) for r in results] == [(ids[0], "ingested"), (ids[1], "ingested")]
+    root = open_root(url)
+    s3 = boto3.client("s3")
+    for cid in ids[:2]:
+        assert verify_store(root.store(cid)) == []
+        prefix = f"arch/collections/{cid}.zarr/"
+        keys = [o["Key"] for page in s3.get_paginator("list_objects_v2").paginate(Bucket=s3_bucket, Prefix=prefix)
+                for o in page.get("Contents", [])]
+        chunks = [k for k in keys if "/dn/c/" in k]
+        assert len(chunks) == 6 * 2
+        for k in chunks:
+            body = s3.get_object(Bucket=s3_bucket, Key=k)["Body"].read()
+            assert body == (local / "collections" / k.removeprefix("arch/collections/")).read_bytes(), k
+    raw = EnviCube(discover_flight(dirs[0]).cubes[0].data).read()
+    assert np.array_equal(CheckedDn(root.store(ids[0])).read(3, 0, 100), raw[3])

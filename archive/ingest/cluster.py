@@ -30,6 +30,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 
+from archive import storage
 from archive.collection import StorePlan, finish_store, open_partial, publish, store_lock
 from archive.errors import ArchiveError, InputError
 from archive.files import write_atomic
@@ -148,10 +149,11 @@ def ingest_on_cluster(directories: list[str], archive_path, arguments: PrepareAr
 
     say = tell or (lambda line: None)
     seen: dict[str, _Flight] = {}
-    for d in directories:   # a directory given twice is taken once
-        seen.setdefault(os.path.realpath(d), _Flight(str(d)))
+    for d in directories:   # a directory given twice is taken once; absolute: the workers run elsewhere
+        seen.setdefault(os.path.realpath(d), _Flight(os.path.abspath(d)))
     flights = list(seen.values())
-    root = open_archive_root(archive_path)
+    arguments = arguments.absolute()
+    root = open_archive_root(archive_path if storage.is_url(archive_path) else os.path.abspath(archive_path))
     _write_report(report, flights, False)
     client, cluster = _connect(scheduler, workers, threads, lambda line: print(line, file=sys.stderr))
     bar = tqdm(total=len(flights), desc="flights", unit="flight", disable=not progress, file=sys.stderr)

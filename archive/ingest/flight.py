@@ -5,9 +5,11 @@ published (:func:`finish_flight`), and its result (:class:`IngestResult`)."""
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from archive import storage
 from archive.catalog.root import ArchiveRoot
 from archive.collection import StorePlan, chunk_groups, hash_file_task, is_complete, write_chunks
 from archive.collection.layout import CHECKSUMS, DEFAULT_CHECKSUM, DEFAULT_DN_COMPRESSION, DN_COMPRESSIONS
@@ -49,6 +51,14 @@ class PrepareArguments:
     navigation_columns: dict | None = None
     dn_codec: dict = field(default_factory=lambda: dict(DN_COMPRESSIONS[DEFAULT_DN_COMPRESSION]))
     checksum: str = DEFAULT_CHECKSUM
+
+    def absolute(self) -> PrepareArguments:
+        """These arguments with every local file path made absolute (for workers whose current folder differs)."""
+        def local(path):
+            return path if path is None or storage.is_url(path) else os.path.abspath(path)
+
+        return replace(self, calibration=local(self.calibration), dem=local(self.dem),
+                       irradiance_calibration=local(self.irradiance_calibration), navigation=local(self.navigation))
 
     def prepare(self, directory: str) -> StorePlan:
         """The checked plan of the flight in ``directory`` (raises what the checks raise)."""
