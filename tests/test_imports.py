@@ -267,6 +267,7 @@ LAYERS = [
     ("drawing", ("archive.drawing",)),   # the viewer's drawing engine: a flight's tiles, planes, points, previews
     ("run", ("archive.run",)),   # options, the cluster, single renders, batches, tiles, stacks (one runner)
     ("features", ("archive.run.command", "archive.api", "archive.api_errors", "archive.ingest", "archive.simulator", "archive.view",
+                  "archive.analysis",
                   "archive.calibrate", "archive.watch")),
     ("entry", ("archive.cli", "archive.__main__")),
 ]

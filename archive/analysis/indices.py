@@ -246,10 +246,20 @@ def bind_indices(specs: Sequence[IndexSpec], wavelengths: Sequence[float] | None
 
 
 def evaluate(index: BoundIndex, values: Mapping[float, np.ndarray]) -> np.ndarray:
-    """The index from ``values`` (camera band wavelength nm -> array, one shape), float32, NaN where
-    a band is NaN or the formula has no finite value (0/0, a log of a negative)."""
+    """The index from ``values`` (camera band wavelength nm -> array, one shape; a band is found
+    within 0.01 nm of its centre), float32, NaN where a band is NaN or the formula has no finite
+    value (0/0, a log of a negative)."""
     bands = dict(index.bands)
-    env: dict[str, object] = {s: np.asarray(values[nm], np.float32) for s, nm in bands.items()}
+    given = list(values)
+    nms = np.asarray(given, float)
+
+    def band(nm: float) -> np.ndarray:   # the band of that centre (a float32 copy of the nm may differ by ulps)
+        k = int(np.argmin(np.abs(nms - nm))) if nms.size else -1
+        if k < 0 or abs(nms[k] - nm) > 0.01:
+            raise InputError(index.name, f"needs the band at {nm:.3f} nm, which the values lack")
+        return np.asarray(values[given[k]], np.float32)
+
+    env: dict[str, object] = {s: band(nm) for s, nm in bands.items()}
     env.update({f"lambda{s}": np.float32(nm) for s, nm in bands.items()})
     env.update({k: np.float32(v) for k, v in index.spec.constants})
 

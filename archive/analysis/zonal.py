@@ -217,7 +217,12 @@ def zonal_table(options, zones: Zones, specs: Sequence[IndexSpec], *, geometry: 
     options = dataclasses.replace(options, wavelengths=needed, bands="all")
     client = cluster = None
     try:
-        client, cluster = start_cluster(scheduler, workers, say, threads)
+        import distributed  # noqa: F401  (its configuration's defaults loaded before one is set)
+
+        preload = dask.config.get("distributed.worker.preload", None) or []
+        preload = [preload] if isinstance(preload, str) else list(preload)
+        with dask.config.set({"distributed.worker.preload": ["archive.analysis.worker", *preload]}):
+            client, cluster = start_cluster(scheduler, workers, say, threads)   # a local one: archive.analysis.worker
         da = stack(options, quiet=quiet)
         stack_nm = [float(v) for v in da["wavelength"].values]
         epsg, x0, y0, gsd = _grid_of(da)
