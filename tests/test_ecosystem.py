@@ -14,6 +14,8 @@ from __future__ import annotations
 import json
 import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -109,6 +111,13 @@ def test_gdal_opens_the_zarr_values_with_band_names(outputs):
             assert [z.tags(b, ns="IMAGERY") for b in z.indexes] == imagery
             assert z.tags(2)["wavelength_units"] == "nm" and z.units[0] == "uW cm-2 sr-1 um-1"
             assert np.array_equal(_bits(z.read()), _bits(values))
+    rio = subprocess.run([str(Path(sys.executable).with_name("rio")), "info",   # rasterio's command line
+                          f'ZARR:"{folder / "mosaic.zarr"}":/radiance'], capture_output=True, text=True, timeout=60)
+    assert rio.returncode == 0, rio.stderr
+    info = json.loads(rio.stdout)
+    assert tuple(info["descriptions"]) == names and info["crs"] == f"EPSG:{crs.to_epsg()}"
+    with pytest.raises(rasterio.errors.RasterioIOError, match="Unsupported codec: bytes"):   # the doc's v3 note
+        rasterio.open(f'ZARR:"{folder / "mosaic3.zarr"}":/radiance')
     stack = xr.open_zarr(folder / "stack.zarr")["radiance"].values   # (time, band, y, x)
     with rasterio.open(folder / "stack.zarr" / "radiance") as s:
         assert s.count == stack.shape[0] * stack.shape[1] and s.crs == crs

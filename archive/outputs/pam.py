@@ -5,11 +5,12 @@ bands are the array's slices along the other dimensions; it gives them no descri
 but reads the band descriptions and metadata of its *persistent auxiliary metadata* (PAM) file,
 ``<array>/.zarray.aux.xml`` (Zarr v2), section ``AsClassicDataset(<x>,<y>) view of /<array>``
 (the file and section GDAL itself writes when a band description is set through
-``rasterio.open(..., "r+")``; tests/test_ecosystem.py reads it back with rasterio). :func:`write_band_pam` writes that file when the store is created, so that
-``gdalinfo``, rasterio (``.descriptions``), QGIS and odc-stac see "650.0 nm" and, in GDAL's IMAGERY
-domain, ``CENTRAL_WAVELENGTH_UM`` / ``FWHM_UM`` per band, as in the COG. zarr and xarray ignore the
-file (not a Zarr key). Zarr v3 stores get none: the GDAL 3.10 of rasterio's wheel does not read
-their codecs.
+``rasterio.open(..., "r+")``; tests/test_ecosystem.py reads it back with rasterio).
+:func:`write_band_pam` writes that file when the store is created, so that ``gdalinfo``, rasterio
+(``.descriptions``) and QGIS show "650.0 nm" and, in GDAL's IMAGERY domain,
+``CENTRAL_WAVELENGTH_UM`` / ``FWHM_UM`` per band, as in the COG. zarr and xarray ignore the file
+(not a Zarr key). Zarr v3 stores get none: the GDAL 3.10 of rasterio's wheel does not read their
+codecs.
 """
 
 from __future__ import annotations
