@@ -201,6 +201,26 @@ def test_scheduler_ingest_equals_local_and_a_bad_flight_fails_alone(flights, sch
     assert code == 0 and out.splitlines()[-1].endswith("0 ingested, 0 resumed, 3 already ingested, 0 failed"), out
 
 
+def test_two_ingests_into_one_archive_at_once_through_one_scheduler(flights, scheduler, tmp_path):
+    """Two commands at once, sharing a flight, through one scheduler: each flight written once (its lock:
+    the second finds it ingested, or waits for it), both exit 0, the catalog holds the three, every store
+    equal to the local ingest's."""
+    dirs, _, local, ids = flights
+    address, _ = scheduler
+    archive = tmp_path / "archive"
+    a = _ingest(str(dirs[0]), str(dirs[1]), "--archive", str(archive), "--scheduler", address, wait=False)
+    b = _ingest(str(dirs[1]), str(dirs[2]), "--archive", str(archive), "--scheduler", address, wait=False)
+    (out_a, err_a), (out_b, err_b) = a.communicate(timeout=300), b.communicate(timeout=300)
+    assert (a.returncode, b.returncode) == (0, 0), err_a + err_b
+    said = [line for line in (out_a + out_b).splitlines() if f": {ids[1]} (" in line]
+    assert sorted(line.split()[2] for line in said) == ["already", "ingested"], said
+    from archive.catalog.index import search
+
+    assert sorted(r.id for r in search(archive / "catalog" / "index.sqlite")) == sorted(ids)
+    for cid in ids:
+        _same_collection(archive, local, cid)
+
+
 def test_a_store_of_format_1_reads_verifies_and_is_found_ingested(flights, tmp_path):
     """A collection as ingest wrote it before issue 45 (sha256 chunk digests in ``dn_sha256``, sha256 of
     the raw files, no recorded algorithm, format 1): read and checked chunk by chunk, verified, a
