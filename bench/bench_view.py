@@ -92,11 +92,11 @@ def cpu_seconds(pid: int) -> float:
 class Server:
     """``archive view`` in a subprocess, with its peak resident memory sampled."""
 
-    def __init__(self, archive: Path, cache_mb: int):
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
+    def __init__(self, archive: Path, cache_mb: int, code: Path | None = None):
+        env = dict(os.environ, PYTHONUNBUFFERED="1")   # code: another checkout's archive view (its page too)
         self.proc = subprocess.Popen([sys.executable, "-m", "archive", "view", "--archive", str(archive), "--port", "0",
                                       "--cache-mb", str(cache_mb)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     text=True, cwd=ROOT, env=env)
+                                     text=True, cwd=code or ROOT, env=env)
         line = self.proc.stdout.readline()
         found = re.search(r"http://127\.0\.0\.1:(\d+)/", line)
         if not found:
@@ -391,6 +391,12 @@ def main(argv=None) -> int:
     ap.add_argument("--no-previews", action="store_true",
                     help="--browser --flights: take the ingest's overview previews out of the archive (in --workdir): "
                          "every tile drawn from the DN, the baseline they are measured against")
+    ap.add_argument("--step", type=lambda t: tuple(float(v) for v in t.split(",")), metavar="LON,LAT",
+                    help="--browser --flights: the flights' grid spacing, degrees (default 0.0011,0.0008: they tile "
+                         "the map; 0.00025,0.00015: packed, overlapping, fitted at a zoom finer than their previews)")
+    ap.add_argument("--code", type=Path, metavar="CHECKOUT",
+                    help="--browser --flights: run another checkout's 'archive view' (server and page; e.g. an export "
+                         "of an older commit), the archive made by this one")
     ap.add_argument("--memory", action="store_true",
                     help="with --flights: the server's resident memory and cache accounting while it draws many "
                          "tiles from the DN at --cache-mb (issue 36)")

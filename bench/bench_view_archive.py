@@ -29,13 +29,14 @@ ARCHIVE_PAIR = 6
 def make_flights_archive(workdir: Path, args: argparse.Namespace) -> tuple[Path, list[str]]:
     """An archive of ``args.flights`` simulated flights (``archive simulate`` --cubes/--bands/
     --samples/--lines, seeds 0..N-1, a day apart) on a 5-column grid ARCHIVE_STEP degrees apart near
-    the simulator's site, every ARCHIVE_PAIR-th overlapping its western neighbour, ingested at --fov
+    the simulator's site (``args.step``: another spacing), every ARCHIVE_PAIR-th overlapping its western neighbour, ingested at --fov
     47.5 (ingest makes each flight's overview previews); reused while its marker file exists (the raw
     flights are deleted; previews are added to a reused archive that lacks them). (archive, ids)."""
     archive = workdir / "archive"
     import shutil
 
-    marker = workdir / f".bench-view-flights-{ARCHIVE_STEP[0]}-{ARCHIVE_STEP[1]}-{args.flights}-{args.cubes}-{args.bands}-{args.samples}-{args.lines}"
+    step = getattr(args, "step", None) or ARCHIVE_STEP
+    marker = workdir / f".bench-view-flights-{step[0]}-{step[1]}-{args.flights}-{args.cubes}-{args.bands}-{args.samples}-{args.lines}"
     if not marker.exists():
         from datetime import datetime, timedelta, timezone
 
@@ -47,10 +48,10 @@ def make_flights_archive(workdir: Path, args: argparse.Namespace) -> tuple[Path,
         t0 = datetime(2024, 6, 1, 15, tzinfo=timezone.utc)
         for i in range(args.flights):
             col, row = i % 5, i // 5
-            lon = -89.94 + ARCHIVE_STEP[0] * (col - (0.85 if i % ARCHIVE_PAIR == ARCHIVE_PAIR - 1 else 0))
+            lon = -89.94 + step[0] * (col - (0.85 if i % ARCHIVE_PAIR == ARCHIVE_PAIR - 1 else 0))
             raw = workdir / f"flight{i:02d}"
             simulate_flight(raw, cubes=args.cubes, bands=args.bands, samples=args.samples, lines=args.lines, seed=i,
-                            lat=35.12 + ARCHIVE_STEP[1] * row, lon=lon,
+                            lat=35.12 + step[1] * row, lon=lon,
                             start=(t0 + timedelta(days=i)).strftime("%Y-%m-%dT%H:%M:%SZ"))
             ingest([raw], archive, FOV, progress=False)
             shutil.rmtree(raw)
@@ -70,7 +71,8 @@ def make_flights_archive(workdir: Path, args: argparse.Namespace) -> tuple[Path,
     return archive, sorted(item["id"] for item in items)
 
 
-def archive_bench(archive: Path, reps: int, cold: int, cache_mb: int, width: int = 1400, height: int = 900) -> dict:
+def archive_bench(archive: Path, reps: int, cold: int, cache_mb: int, width: int = 1400, height: int = 900,
+                  code: Path | None = None) -> dict:
     """Time from page load (navigation start) to a full screen (``viewer.settledAt``) of the page
     opened with no hash (every flight drawn at the zoom that fits them all), then to one after a
     zoom out: ``cold`` times on a new server each, then ``reps`` new pages on one warm server (its
@@ -127,10 +129,11 @@ def archive_bench(archive: Path, reps: int, cold: int, cache_mb: int, width: int
                                      args=["--headless", "--no-sandbox", "--disable-gpu"])
         try:
             for i in range(cold + 1):
-                server = Server(archive, cache_mb)
+                server = Server(archive, cache_mb, code)
                 try:
                     page = load(browser, server, "cold" if i < cold else "warm")
                     if i < cold:
+                        out["render_cold"] = render_counts(server.port)   # what the new server's first screen drew
                         zoom(page, server, "zoom_cold", 1)   # odd: out
                         page.close()
                         continue
@@ -154,7 +157,7 @@ def archive_main(args: argparse.Namespace) -> str:
     workdir = args.workdir if args.workdir != DEFAULT_WORKDIR else Path("/tmp/archive-bench-view-flights")
     archive, ids = make_flights_archive(workdir, args)
     load_before = os.getloadavg()
-    out = archive_bench(archive, args.reps, args.cold, args.cache_mb)
+    out = archive_bench(archive, args.reps, args.cold, args.cache_mb, code=getattr(args, "code", None))
     load_after = os.getloadavg()
     m = machine()
     rows = [f"| {label} | {percentile(out[k], 50):.0f} | {percentile(out[k], 95):.0f} | {percentile(out[k], 100):.0f} | "
@@ -182,7 +185,9 @@ def archive_main(args: argparse.Namespace) -> str:
         f"several flights' tiles), values from {out['with_values']} "
         f"of the {len(ids)} flights; the warm server's render jobs: {out['render']['done']} drawn, "
         f"{out['render']['skipped'] + out['render']['stopped']} dropped; band-value tiles answered from the ingest "
-        f"previews: {out['render']['from_previews']} (overview previews {'taken out (--no-previews)' if args.no_previews else 'in the archive'}).",
+        f"previews: {out['render']['from_previews']} (overview previews {'taken out (--no-previews)' if args.no_previews else 'in the archive'}); "
+        f"a new server's first screen: {out['render_cold']['done']} tiles drawn from the DN, "
+        f"{out['render_cold']['from_previews']} answered from the previews.",
         "",
     ]
     if args.json:

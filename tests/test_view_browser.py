@@ -677,3 +677,41 @@ def test_page_scripts_are_modules_sharing_no_globals_and_rules_come_from_the_api
     assert both.sum() > 500 and one.sum() > 500
     assert changed[both].mean() > 0.1 and changed[one].mean() < 0.01, (changed[both].mean(), changed[one].mean())
     page.close()
+
+
+def test_the_opening_view_is_at_a_zoom_the_previews_serve(browser, archive_of_flights):
+    """Issue 49 item 7: a page opened with no hash fits the flights, but not finer than the finest zoom their
+    ingest previews serve when that is at most 2 zooms out; its first full screen then comes from the
+    previews (no tile drawn from the DN on a new server). 3 zooms out, or with a flight open: the fit."""
+    import json
+    import urllib.request
+
+    from archive.drawing.preview_layout import read_previews
+    from archive.catalog.root import open_root
+
+    path, ids = archive_of_flights
+    root = open_root(path)
+    finest = min(read_previews(root.store(cid)).finest for cid in ids)
+    command = [sys.executable, "-m", "archive", "view", "--archive", str(path), "--port", "0"]
+    with archive_view(command, cwd=ROOT) as (url, _):
+        features = json.loads(urllib.request.urlopen(url + "api/collections").read())["features"]
+        assert sorted(f["properties"]["previews_zoom"] for f in features) == sorted(
+            read_previews(root.store(cid)).finest for cid in ids)
+        def fitted(page):
+            return page.page.evaluate("""() => { const m = window.viewer.map;
+                return [m.getZoom(), m.getBoundsZoom(window.viewer.footprints.getBounds(), false, L.point(40, 40))]; }""")
+
+        page = Page(browser, url, width=1280, height=900)   # the fit: 3 zooms finer than the previews
+        zoom, fit = fitted(page)
+        assert fit == finest + 3 and zoom == fit, (zoom, fit, finest)
+        page.close()
+        before = json.loads(urllib.request.urlopen(url + "api/status").read())
+        page = Page(browser, url, width=640, height=450)    # 2 zooms finer: the previews' zoom
+        zoom, fit = fitted(page)
+        assert fit == finest + 2 and zoom == finest, (zoom, fit, finest)
+        page.clean()
+        assert page.drawn().sum() > 1_000
+        status = json.loads(urllib.request.urlopen(url + "api/status").read())
+        assert status["from_previews"] > before["from_previews"], status
+        assert status["render"]["done"] == before["render"]["done"], "a tile of the first screen was drawn from the DN"
+        page.close()

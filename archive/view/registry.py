@@ -195,6 +195,12 @@ class FlightRegistry:
             return self.bands_cache.get_or_make((*key, zoom), lambda: _sized_array(found.load(zoom)))
         return dataclasses.replace(found, load=load)
 
+    def previews_zoom(self, cid: str) -> int | None:
+        """The finest zoom the current previews of a checked flight serve (:meth:`previews`), None
+        without them (the page opens at or above it: a first screen without the DN)."""
+        found = self.previews(cid)
+        return None if found is None else int(found.finest)
+
     # ---- opened flights ------------------------------------------------------------------
     def flight(self, cid: str) -> Flight:
         """The opened :class:`Flight` of a checked id (render thread only). Kept in the flights cache

@@ -5,7 +5,8 @@ trace):
 
 - ``GET /`` the page (``static/index.html``); ``GET /static/...`` its assets (Leaflet vendored);
 - ``GET /api/collections?bbox=W,S,E,N&datetime=A/B&wavelength=NM`` GeoJSON FeatureCollection of
-  the footprints (id, time range, wavelength range, bands, nominal gsd...), and ``damaged``: the
+  the footprints (id, time range, wavelength range, bands, nominal gsd, ``previews_zoom``: the finest
+  zoom its ingest previews serve, None without them...), and ``damaged``: the
   flights the catalog cannot describe (``{id, reason, fix}``: an unreadable Item, a collection
   without an Item), each costing only itself; and ``overlaps``: the overlap rules the page offers
   (``{name, label, key, wins}``, the first the default; :data:`archive.drawing.query.OVERLAPS`);
@@ -203,6 +204,14 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
     async def index(request):
         return HTMLResponse((static / "index.html").read_text(encoding="utf-8"))
 
+    def listed(bbox, when, wavelength) -> dict:
+        """The matching flights' Features, each with ``previews_zoom``: the finest zoom its previews serve
+        (None: drawn from the DN at every zoom)."""
+        found = registry.features(bbox, when, wavelength)
+        found["features"] = [{**f, "properties": {**f["properties"], "previews_zoom": registry.previews_zoom(f["id"])}}
+                             for f in found["features"]]
+        return found
+
     async def collections(request):
         p = request.query_params
         bbox = parse_bbox(p)
@@ -210,7 +219,7 @@ def create_app(registry: FlightRegistry, *, tile_cache_bytes: int = int((DEFAULT
         when = p.get("datetime") or None
         if when is not None and len(when) > 100:
             raise InputError("datetime", f"value of {len(when)} characters is too long")
-        found = await run_in_threadpool(registry.features, bbox, when, wavelength)
+        found = await run_in_threadpool(listed, bbox, when, wavelength)
         found["overlaps"] = [choice.as_dict() for choice in OVERLAPS]
         return JSONResponse(found, media_type="application/geo+json")
 

@@ -4,7 +4,7 @@
 // window.viewer, which the browser tests read; the small helpers), map.js (the map, footprints,
 // tile geometry), tiles.js (band-value tiles, their drawing, the stretch), controls.js (the panel,
 // refresh, the URL hash), spectra.js, stacks.js; residual.js is loaded beside. This one starts the page.
-import { applyHash, loadCatalog, refresh, showDisplay } from "./controls.js";
+import { applyHash, fitFlights, loadCatalog, refresh, showDisplay } from "./controls.js";
 import { map } from "./map.js";
 import { loadStacks } from "./stacks.js";
 import { $, viewer } from "./state.js";
@@ -28,7 +28,7 @@ if (window.matchMedia("(max-width: 720px)").matches) {
   await catalog;
   const s = new URLSearchParams(location.hash.slice(1));
   if (location.hash.length > 1) await applyHash(true);
-  if (!s.has("map") && viewer.footprints && viewer.features.length) map.fitBounds(viewer.footprints.getBounds(), { padding: [20, 20] });
+  if (!s.has("map") && viewer.footprints && viewer.features.length) fitFlights();
   showDisplay();
   viewer.booted = true;
   refresh();

@@ -86,8 +86,24 @@ export async function loadCatalog(fit) {
   drawFootprints();
   renderList();
   status(`${fc.features.length} flight(s)`);
-  if (fit && fc.features.length && !viewer.hashHasMap) map.fitBounds(viewer.footprints.getBounds(), { padding: [20, 20] });
+  if (fit && fc.features.length && !viewer.hashHasMap) fitFlights();
   refresh();
+}
+
+// the view of every flight listed: the zoom that fits them all, or, where that is finer than the
+// overview previews the flights were ingested with serve (properties.previews_zoom: their finest
+// zoom) by at most PREVIEWS_ZOOM_OUT levels and no flight is open, that zoom: the first screen then
+// comes from the previews, without the DN (issue 49 item 7). An open flight is drawn from its DN
+// whatever the zoom (its own parameters), and further out the flights would be too small to see.
+const PREVIEWS_ZOOM_OUT = 2;
+export function fitFlights() {
+  map.fitBounds(viewer.footprints.getBounds(), { padding: [20, 20], animate: false });
+  const zooms = viewer.features.filter((f) => !viewer.hidden.has(f.id)).map((f) => f.properties.previews_zoom)
+    .filter((z) => Number.isInteger(z));
+  const served = zooms.length ? Math.min(...zooms) : null;
+  if (!viewer.open && served !== null && map.getZoom() > served && map.getZoom() - served <= PREVIEWS_ZOOM_OUT) {
+    map.setZoom(served, { animate: false });
+  }
 }
 
 // the overlap rules the server offers ({name, label, key, wins}, the first the default) in the list
