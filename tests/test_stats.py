@@ -119,7 +119,8 @@ def _check_truth(table: pd.DataFrame, field) -> None:
     cut, true = edges["edge"]
     rows = got[got["zone"] == "edge"].sort_values("datetime")
     for (_, row), fraction in zip(rows.iterrows(), true):
-        assert abs(row["coverage"] - fraction) < 0.04, (row["coverage"], fraction)   # a 4 m edge at 0.25 m: 0.06
+        # half a pixel along the 4 m edge would be 0.03; the pixel-centre rule errs both ways: measured 0.002
+        assert abs(row["coverage"] - fraction) < 0.02, (row["coverage"], fraction)
         assert row["count"] == pytest.approx(row["coverage"] * cut.area / GSD**2, rel=1e-6)
     far = got[got["zone"] == "far"]
     assert len(far) == 2 and (far["count"] == 0).all() and (far["coverage"] == 0).all() and far["mean"].isna().all()
