@@ -372,11 +372,13 @@ def many(args) -> int:
             except (ProcessLookupError, subprocess.TimeoutExpired):
                 pass
     first, last = timed[0], timed[-1]
-    slope = (last - first) / max(n - 100, 1)   # seconds per flight more, per flight already in the archive
+    slope = max(0.0, (last - first) / max(n - 100, 1))   # s more per flight, per flight already in the archive
     projected = 100_000 * first + slope * 100_000 ** 2 / 2
-    print(f"last 100 / first 100: {last / first:.2f}x; per flight {first:.3f} s + {slope * 1e3:.3f} ms per 1,000 "
-          f"flights already there: 100,000 flights through this scheduler ~{projected / 3600:.1f} h, the last one "
-          f"{first + slope * 100_000:.2f} s; the scheduler held at most {peak[0]} tasks (sampled every 0.2 s)")
+    growth = (f"{slope * 1e6:.2f} ms more per flight for every 1,000 flights already there" if slope > 0 else
+              "no growth measured")
+    print(f"last 100 / first 100: {last / first:.2f}x; per flight {first:.3f} s, {growth}: 100,000 flights through "
+          f"this scheduler ~{projected / 3600:.1f} h (the last one {first + slope * 100_000:.2f} s); the scheduler "
+          f"held at most {peak[0]} tasks (sampled every 0.2 s)")
     return 0
 
 

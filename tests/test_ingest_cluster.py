@@ -221,6 +221,40 @@ def test_two_ingests_into_one_archive_at_once_through_one_scheduler(flights, sch
         _same_collection(archive, local, cid)
 
 
+def test_sigkill_of_a_worker_mid_flight(flights, scheduler, tmp_path):
+    """A worker process killed (SIGKILL) while it holds a chunk task: the scheduler runs its tasks again on
+    the other (and on the worker its nanny restarts), the command completes, the store is the local one."""
+    import psutil
+    from distributed import Client
+
+    dirs, _, local, ids = flights
+    address, hold = scheduler
+    archive = tmp_path / "archive"
+    hold.touch()
+    proc = _ingest(str(dirs[2]), "--archive", str(archive), "--scheduler", address, wait=False)
+    try:
+        with Client(address, timeout="30s") as client:
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and proc.poll() is None:
+                busy = [w for w, keys in client.processing().items() if any("ingest-dn-" in str(k) for k in keys)]
+                if busy and Path(f"{hold}.reached").exists():
+                    break
+                time.sleep(0.05)
+            assert proc.poll() is None and busy, "no worker held a chunk task"
+            pid = client.run(os.getpid, workers=[busy[0]])[busy[0]]
+            psutil.Process(pid).kill()
+            hold.unlink()
+            out, err = proc.communicate(timeout=300)
+            assert proc.returncode == 0, err
+            assert f"ingested {dirs[2]}: {ids[2]}" in out, out
+            _same_collection(archive, local, ids[2])
+            client.wait_for_workers(2, timeout=60)   # the nanny's new worker, for the tests after this one
+    finally:
+        hold.unlink(missing_ok=True)
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+
+
 def test_a_store_of_format_1_reads_verifies_and_is_found_ingested(flights, tmp_path):
     """A collection as ingest wrote it before issue 45 (sha256 chunk digests in ``dn_sha256``, sha256 of
     the raw files, no recorded algorithm, format 1): read and checked chunk by chunk, verified, a
