@@ -260,7 +260,8 @@ def _add_ingest(sub) -> None:
 def _add_verify(sub) -> None:
     p = _command(sub, "verify", "re-check stored collections against their recorded checksums", (
         "Decode every DN chunk and small array of a collection (or of all collections) and compare "
-        "their sha256 with those recorded at ingest. Exit code 0 when all are intact, 1 otherwise."))
+        "their checksums with those recorded at ingest (BLAKE3 or sha256: the store says which). Exit code 0 when all "
+        "are intact, 1 otherwise."))
     p.add_argument("id", nargs="?", metavar="ID", help="collection id (default: every collection)")
     p.add_argument("--archive", required=True, metavar="ARCHIVE", help="archive directory")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
