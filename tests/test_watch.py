@@ -5,7 +5,8 @@ helper that writes as a recorder does (tests/recorder.py: the ``.bil`` growing b
 - completeness: a cube is never complete before its header, never while a file disagrees with it
   or moves; a cube that stays incomplete is skipped once;
 - the live flight: every cube listed with imagery (the close -> imagery latency of each printed),
-  the imagery where the simulator's true footprint is, one pass outline per true strip; after
+  the imagery where the simulator's true footprint is, one pass outline per true strip (on it within
+  half a pixel), a pass not flown reported as the gap the true footprints leave; after
   ``--idle`` the collection equals a plain ``archive ingest`` of the folder (every array, every
   attribute, the catalog Item); a restarted watch ingests nothing again;
 - faults: a recorder that dies mid-cube and restarts under a new image set, a folder that
@@ -151,7 +152,7 @@ def test_live_flight_then_the_collection_of_a_plain_ingest(source, tmp_path):
     src, truth = source
     folder, archive = tmp_path / "recorder", tmp_path / "archive"
     folder.mkdir()
-    watcher = Watcher(str(folder), "--archive", str(archive), "--fov", str(FOV), "--idle", "3", "--settle", "0.2",
+    watcher = Watcher(str(folder), "--archive", str(archive), "--fov", str(FOV), "--idle", "2", "--settle", "0.2",
                       "--stall", "10", "--port", "0")
     url = watcher.url()
     closed: list = []
@@ -185,8 +186,7 @@ def test_live_flight_then_the_collection_of_a_plain_ingest(source, tmp_path):
     assert len(closed) == len(truth.cubes) == len(shown)
     assert sum(f["properties"]["lines"] for f in features.values()) == sum(len(c.line_time) for c in truth.cubes)
 
-    # one pass outline per true strip, each covering that strip's true footprint (the catalog's footprint
-    # is drawn a little wide: within 4 pixels of the truth)
+    # one pass outline per true strip, each on that strip's true footprint (within half a pixel)
     watcher.wait_for("ingested as", timeout=90)
     deadline = time.monotonic() + 30
     while True:
@@ -207,7 +207,7 @@ def test_live_flight_then_the_collection_of_a_plain_ingest(source, tmp_path):
         b = Polygon(true)
         print(f"pass outline vs the true strip: {a.hausdorff_distance(b):.2f} m apart at most "
               f"(gsd {truth.nominal_gsd:.2f} m)")
-        assert a.intersection(b).area / b.area > 0.99 and a.hausdorff_distance(b) < 4 * truth.nominal_gsd
+        assert a.intersection(b).area / b.area > 0.99 and a.hausdorff_distance(b) < 0.5 * truth.nominal_gsd
     ids = [f["id"] for f in json.loads(get(url + "api/collections")[1])["features"]]
     assert ids == [flight["collection"]]
     assert watcher.stop() == 0 and watcher.lines[-1] == "archive watch: stopped"
@@ -230,7 +230,7 @@ def test_live_flight_then_the_collection_of_a_plain_ingest(source, tmp_path):
     again = Watcher(str(folder), "--archive", str(archive), "--fov", str(FOV), "--idle", "0.5", "--settle", "0.1",
                     "--no-view")
     again.wait_for("following 1 folder")
-    time.sleep(3)
+    time.sleep(2)
     assert again.stop() == 0
     assert again.count("complete|ingest") == 0, again.text()
     assert (archive / "collections" / f"{cid}.zarr" / "zarr.json").stat().st_mtime_ns == stamp
@@ -356,3 +356,31 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     taken.close()
     code = main(["watch", str(tmp_path / "rec"), "--archive", "s3://bucket/archive", "--fov", str(FOV)])
     assert code != 0 and "local archive" in capsys.readouterr().err
+
+
+def test_a_skipped_pass_is_a_gap(tmp_path):
+    """Passes 1 and 3 of a three-pass flight (the middle one not flown): the ground of the middle
+    pass between them is the gap, as the simulator's true footprints say."""
+    import shapely
+    from pyproj import Transformer
+    from shapely.geometry import Polygon, shape
+    from shapely.ops import unary_union
+
+    from archive.simulator.command import simulate_flight
+    from archive.watch.live import cube_feature, passes_and_gaps
+    from archive.watch.stage import stage_links
+
+    truth = simulate_flight(tmp_path / "flight", cubes=3, bands=2, samples=64, lines=400, cubes_per_pass=1, seed=7)
+    features = [cube_feature(stage_links(tmp_path / "staged" / f"c{k}", [tmp_path / "flight" / f"sim_Pika_L_{k + 1}.bil"]),
+                             FOV) for k in (0, 2)]
+    passes, gaps = passes_and_gaps(features)
+    assert len(passes) == 2
+    to_utm = Transformer.from_crs(4326, truth.epsg, always_xy=True)
+    gap = shapely.transform(shape(gaps), lambda xy: np.stack(to_utm.transform(xy[:, 0], xy[:, 1]), axis=1))
+    flown = unary_union([Polygon(truth.footprint()[k]) for k in (0, 2)])
+    true_gap = flown.convex_hull.difference(flown)
+    missed = Polygon(truth.footprint()[1]).intersection(true_gap)   # the middle pass's ground nobody imaged
+    print(f"gap {gap.area:.0f} m2, true {true_gap.area:.0f} m2, the unflown pass's part {missed.area:.0f} m2")
+    assert missed.area > 100
+    assert gap.intersection(missed).area / missed.area > 0.97
+    assert abs(gap.area - true_gap.area) / true_gap.area < 0.05

@@ -128,28 +128,36 @@ class Watch:
     def step(self, now: float) -> None:
         """Scan once, act on what changed, start or finish an ingest."""
         for event in self.follower.scan(now):
-            if isinstance(event, Complete):
-                self._complete(event.cube, now)
-            elif isinstance(event, Skipped):
-                flight = self._flight(event.cube.flight)
-                self.say(f"archive watch: {flight.name}: cube {event.cube.base} skipped: {event.why}")
-                self.state.skipped(flight.name, event.cube.base)
-            elif isinstance(event, Changed):
-                flight = self._flight(event.cube.flight)
-                self.say(f"archive watch: {flight.name}: cube {event.cube.base}: {event.why}")
-                self._unlist(flight, [event.cube.base])
-            elif isinstance(event, FolderGone):
-                self.say(f"archive watch: {event.folder}: the folder is gone (unplugged, unmounted?); its "
-                         f"{len(event.cubes)} complete cubes are no longer shown; watching for it to come back")
-                for flight in [f for f in self.flights.values() if f.key[0] == event.folder]:
-                    self._unlist(flight, list(flight.live))
-                    self.state.flight(flight.name, status="gone")
-            elif isinstance(event, FolderBack):
-                self.say(f"archive watch: {event.folder}: the folder is back; looking at its cubes again")
+            try:
+                self._act(event, now)
+            except Exception as exc:   # a bug or a file system surprise costs this event, not the watch
+                self.say(f"archive watch: {type(event).__name__.lower()} event not handled "
+                         f"({type(exc).__name__}: {' '.join(str(exc).split())[:300]}); going on")
         self._finish_ingest(now)
         self._retire_live()
         if self.ingesting is None:
             self._start_ingest(now)
+
+    def _act(self, event, now: float) -> None:
+        """Act on one event of a scan (see the module docstring)."""
+        if isinstance(event, Complete):
+            self._complete(event.cube, now)
+        elif isinstance(event, Skipped):
+            flight = self._flight(event.cube.flight)
+            self.say(f"archive watch: {flight.name}: cube {event.cube.base} skipped: {event.why}")
+            self.state.skipped(flight.name, event.cube.base)
+        elif isinstance(event, Changed):
+            flight = self._flight(event.cube.flight)
+            self.say(f"archive watch: {flight.name}: cube {event.cube.base}: {event.why}")
+            self._unlist(flight, [event.cube.base])
+        elif isinstance(event, FolderGone):
+            self.say(f"archive watch: {event.folder}: the folder is gone (unplugged, unmounted?); its "
+                     f"{len(event.cubes)} complete cubes are no longer shown; watching for it to come back")
+            for flight in [f for f in self.flights.values() if f.key[0] == event.folder]:
+                self._unlist(flight, list(flight.live))
+                self.state.flight(flight.name, status="gone")
+        elif isinstance(event, FolderBack):
+            self.say(f"archive watch: {event.folder}: the folder is back; looking at its cubes again")
 
     def _complete(self, cube: CubeState, now: float) -> None:
         flight = self._flight(cube.flight)

@@ -24,10 +24,12 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
+
 from archive.params import NavigationParams
 from archive.view.registry import FlightRegistry
 
-__all__ = ["GAP_MIN_M2", "LiveRegistry", "LiveState", "cube_feature", "live_routes", "passes_and_gaps"]
+__all__ = ["GAP_MIN_M2", "LiveRegistry", "LiveState", "cube_feature", "live_routes", "passes_and_gaps", "swath_polygon"]
 
 #: m²: smaller pieces of ground between passes are not reported as gaps (slivers of the outlines).
 GAP_MIN_M2 = 2.0
@@ -59,7 +61,26 @@ def cube_feature(directory: Path, fov: float) -> dict:
         "fov_deg": fov, "ground_height": ground, "cubes": 1, "lines": int(source.cubes[0].lines),
         "samples": source.cubes[0].samples,
     }
+    props["coverage"] = swath_polygon(pose.position, pose.attitude, source.frame, fov, ground, str(directory))
     return {"type": "Feature", "id": source.id, "geometry": fp.geometry(), "bbox": fp.bbox(), "properties": props}
+
+
+def swath_polygon(position, attitude, frame, fov: float, ground: float, where: str = "") -> dict:
+    """The ground a cube's lines see, exactly (the catalog's footprint is a hull grown by a margin, to
+    contain it): its left swath edge from the first line to the last, then its right edge back, on flat
+    ground at ``ground`` m; lines seen further off nadir than the renderer draws left out. ``position``
+    (lines, 3) N, E, D m in ``frame``; ``attitude`` (lines,) camera -> NED. A GeoJSON Polygon, lon/lat."""
+    from pyproj import Transformer
+
+    from archive.catalog.footprint import swath_edges
+    from archive.geometry.navigation import DEFAULT_MAX_VIEW_ANGLE, view_angles
+
+    seen = view_angles(attitude, fov) <= DEFAULT_MAX_VIEW_ANGLE
+    left, right = swath_edges(position[seen], attitude[seen], fov, frame.origin_alt - float(ground), where)
+    ring = np.vstack([left, right[::-1], left[:1]])   # (N, E) m
+    lon, lat = Transformer.from_crs(int(frame.epsg), 4326, always_xy=True).transform(ring[:, 1] + frame.origin_e,
+                                                                                     ring[:, 0] + frame.origin_n)
+    return {"type": "Polygon", "coordinates": [[[float(x), float(y)] for x, y in zip(lon, lat)]]}
 
 
 class LiveRegistry(FlightRegistry):
@@ -86,20 +107,21 @@ class LiveRegistry(FlightRegistry):
 
 
 def _local_metres(lon0: float, lat0: float):
-    """lon/lat degrees -> local east/north metres about (lon0, lat0) and back (equirectangular: enough
-    for areas of a field and for sliver filtering)."""
-    kx, ky = 111320.0 * math.cos(math.radians(lat0)), 110540.0
-    return (lambda x, y, z=None: ((x - lon0) * kx, (y - lat0) * ky)), \
-        (lambda x, y, z=None: (x / kx + lon0, y / ky + lat0))
+    """lon/lat degrees -> local east/north metres about (lon0, lat0) and back, each on (n, 2) arrays
+    (equirectangular: enough for areas of a field and for sliver filtering)."""
+    scale, origin = np.array([111320.0 * math.cos(math.radians(lat0)), 110540.0]), np.array([lon0, lat0])
+    return (lambda xy: (xy - origin) * scale), (lambda xy: xy / scale + origin)
 
 
 def passes_and_gaps(features: list[dict]) -> tuple[list[dict], dict]:
     """(the coverage of each pass as GeoJSON MultiPolygons, the gaps between consecutive passes as one
-    MultiPolygon), lon/lat degrees, of one flight's cube ``features`` in capture order. Cubes whose
+    MultiPolygon), lon/lat degrees, of one flight's cube ``features`` in capture order (each cube's exact
+    ``coverage``, :func:`swath_polygon`, else its footprint). Cubes whose
     lines follow within 3.5 frame intervals (a recorder's cube switch) are one pass; a gap is ground
     inside the hull of two consecutive passes that no pass covers, pieces under GAP_MIN_M2 left out."""
+    from shapely import transform
     from shapely.geometry import mapping, shape
-    from shapely.ops import transform, unary_union
+    from shapely.ops import unary_union
 
     if not features:
         return [], {"type": "MultiPolygon", "coordinates": []}
@@ -114,7 +136,8 @@ def passes_and_gaps(features: list[dict]) -> tuple[list[dict], dict]:
             groups.append([f])
     b = features[0]["bbox"]
     to_m, to_deg = _local_metres((b[0] + b[2]) / 2, (b[1] + b[3]) / 2)
-    covered = [unary_union([transform(to_m, shape(f["geometry"])).buffer(0.05) for f in g]) for g in groups]
+    covered = [unary_union([transform(shape(f["properties"].get("coverage") or f["geometry"]), to_m).buffer(0.05)
+                            for f in g]) for g in groups]
     everything = unary_union(covered)
     gaps = []
     for a, c in zip(covered, covered[1:]):
@@ -124,7 +147,7 @@ def passes_and_gaps(features: list[dict]) -> tuple[list[dict], dict]:
 
     def multi(geom) -> dict:
         polys = [g for g in getattr(geom, "geoms", [geom]) if g.geom_type == "Polygon" and not g.is_empty]
-        found = mapping(transform(to_deg, unary_union(polys))) if polys else {"type": "MultiPolygon", "coordinates": []}
+        found = mapping(transform(unary_union(polys), to_deg)) if polys else {"type": "MultiPolygon", "coordinates": []}
         if found["type"] == "Polygon":
             found = {"type": "MultiPolygon", "coordinates": [found["coordinates"]]}
         return {"type": "MultiPolygon", "coordinates": [[[list(map(float, pt)) for pt in ring] for ring in poly]
