@@ -98,10 +98,12 @@ def main() -> int:
         time.sleep(0.02)
     writer.join()
     replay_s = time.time() - t_start
+    rss = [json.loads(get(url + "api/status")[1]).get("rss_bytes") or 0]
     latency = [shown[next(i for i in shown if i.startswith(c.base + "-"))] - c.closed for c in closed]
     while not any("ingested as" in t or "not ingested" in t for _, t in lines):
         time.sleep(0.2)
     done_at, done = next((at, t) for at, t in lines if "ingested as" in t or "not ingested" in t)
+    rss.append(json.loads(get(url + "api/status")[1]).get("rss_bytes") or 0)
     watcher.terminate()
     watcher.wait(60)
     per_cube_record = args.lines / 249.0
@@ -111,6 +113,9 @@ def main() -> int:
           f"({per_cube_record:.2f} s a cube); replay {replay_s:.1f} s")
     print("cube close -> listed with imagery (s): " + ", ".join(f"{v:.2f}" for v in latency))
     print(f"  median {statistics.median(latency):.2f} s, worst {max(latency):.2f} s")
+    cube_mb = args.lines * args.samples * args.bands * 2 / 1e6
+    print(f"watcher resident memory: {rss[0] / 1e6:.0f} MB after the last cube, {rss[1] / 1e6:.0f} MB after the "
+          f"ingest (cubes of {cube_mb:.0f} MB, {args.cubes * cube_mb:.0f} MB in all; the ingest is a child process)")
     print(f"ingest: {done}")
     print(f"  {ingest_s:.1f} s for {args.cubes} cubes = {ingest_s / args.cubes:.2f} s a cube against "
           f"{per_cube_record:.2f} s a cube recorded: ratio {ingest_s / args.cubes / per_cube_record:.2f}")
