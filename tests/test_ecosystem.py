@@ -176,15 +176,20 @@ def test_odc_stac_loads_every_items_values(outputs):
 
 
 def test_pystac_validates_every_item(outputs, capsys):
+    """Every output's Item, and the archive's catalog with its flights' Items (pystac, offline:
+    the vendored schemas), and ``archive catalog validate`` of the outputs' Items."""
     import pystac
 
     from archive.catalog.pystac_validator import use_with_pystac
     from archive.catalog.validate import CORE_SCHEMAS
     from archive.cli import main
 
-    folder, _, _ = outputs
+    folder, archive, ids = outputs
     use_with_pystac()
     try:
+        catalog = pystac.Catalog.from_file(str(archive / "catalog.json"))   # the archive's STAC tree
+        catalog.validate_all()
+        assert sorted(item.id for item in catalog.get_items(recursive=True)) == sorted(ids)
         items = sorted(folder.glob("*.json"))
         assert [p.name for p in items] == ["mosaic.hdr.json", "mosaic.tif.json", "mosaic.zarr.json",
                                            "mosaic3.zarr.json", "stack.zarr.json"]
