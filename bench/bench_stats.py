@@ -138,15 +138,16 @@ def by_hand(stack: Path, zones: Path, out: Path) -> None:
     order = np.argsort(labels, axis=None, kind="stable")
     bounds = np.searchsorted(labels.ravel()[order], np.arange(len(frame) + 2))
     rows = []
-    for t in range(ds.sizes["time"]):
+    ids, flights = list(frame["id"]), [str(f) for f in ds["flight"].values]
+    for t, flight in enumerate(flights):
         red, nir = values.isel(time=t).sel(wavelength=[657.143, 828.571], method="nearest").values
         ndvi = ((nir - red) / (nir + red)).ravel()[order]
-        for k in range(len(frame)):
+        for k, zid in enumerate(ids):
             v = ndvi[bounds[k + 1]:bounds[k + 2]]
             v = v[np.isfinite(v)]
             stats = ([len(v), v.mean(), v.std(), v.min(), *np.quantile(v, [0.1, 0.5, 0.9]), v.max()] if len(v)
                      else [0, *([np.nan] * 7)])
-            rows.append([frame["id"][k], str(ds["flight"].values[t]), "NDVI", *stats])
+            rows.append([zid, flight, "NDVI", *stats])
     pd.DataFrame(rows, columns=["zone", "flight", "index", "count", "mean", "std", "min", "p10", "median", "p90",
                                 "max"]).to_csv(out, index=False)
 

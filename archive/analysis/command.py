@@ -10,7 +10,12 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 from archive.errors import InputError, OutputExistsError
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 __all__ = ["TABLE_SUFFIXES", "check_out", "run", "write_table", "zonal_stats"]
 
@@ -38,7 +43,7 @@ def check_out(out: str | os.PathLike, overwrite: bool, geometry: bool) -> Path:
     return path
 
 
-def write_table(frame, out: str | os.PathLike) -> None:
+def write_table(frame: pd.DataFrame, out: str | os.PathLike) -> None:
     """``frame`` to ``out`` (.csv: ``datetime`` ISO 8601 UTC; .parquet: GeoParquet for a
     GeoDataFrame), written under a temporary name and renamed over ``out`` when complete."""
     from archive.files import atomic_path
@@ -76,7 +81,7 @@ def _sources(ids_or_query, archive) -> list[str]:
 def zonal_stats(ids_or_query, zones, indices: str | Sequence[str] = (), expressions: str | Sequence[str] = (), *,
                 zone_id: str | None = None, geometry: bool = False, scheduler: str | None = None,
                 workers: int | None = None, threads: int | None = None, quiet: bool = True, mode: str = "reflectance",
-                **options):
+                **options) -> pd.DataFrame:
     """The zone x flight x index statistics of ``zones`` over the time stack of ``ids_or_query``
     (``archive stats``): a ``pandas.DataFrame`` of :data:`archive.analysis.zonal.COLUMNS`, a
     ``geopandas.GeoDataFrame`` with ``geometry``.

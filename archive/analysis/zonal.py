@@ -33,6 +33,7 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,7 +41,13 @@ from archive.analysis.indices import BoundIndex, IndexSpec, bind_indices, evalua
 from archive.analysis.zones import Zones
 from archive.errors import ArchiveError, InputError, RenderError
 
-__all__ = ["COLUMNS", "MAX_GROUP_PIXELS", "STATS", "Window", "plan_windows", "window_stats", "zonal_table"]
+if TYPE_CHECKING:
+    import pandas as pd
+
+    from archive.run.options import RenderOptions
+
+__all__ = ["COLUMNS", "MAX_GROUP_PIXELS", "STATS", "Window", "check_options", "plan_windows", "window_stats",
+           "zonal_table"]
 
 #: The statistics columns, in order.
 STATS = ("count", "coverage", "mean", "std", "min", "p10", "median", "p90", "max")
@@ -153,7 +160,7 @@ def plan_windows(boxes: np.ndarray, x0: float, y0: float, gsd: float, shape: tup
 # ---------------------------------------------------------------------------------------------
 # The table
 # ---------------------------------------------------------------------------------------------
-def _camera_wavelengths(options, nav) -> tuple[tuple[float, ...] | None, str]:
+def _camera_wavelengths(options: RenderOptions, nav) -> tuple[tuple[float, ...] | None, str]:
     """The band centres (nm) of the first flight of ``options`` and its name (metadata only)."""
     from archive.sources import open_source
 
@@ -194,8 +201,9 @@ def _wait(futures: list, flight: str) -> list:
     return out
 
 
-def zonal_table(options, zones: Zones, specs: Sequence[IndexSpec], *, geometry: bool = False, scheduler=None,
-                workers: int | None = None, threads: int | None = None, quiet: bool = True, say=None):
+def zonal_table(options: RenderOptions, zones: Zones, specs: Sequence[IndexSpec], *, geometry: bool = False,
+                scheduler: str | None = None, workers: int | None = None, threads: int | None = None,
+                quiet: bool = True, say=None) -> pd.DataFrame:
     """The zone x flight x index table of ``zones`` over the time stack of ``options`` (a
     :class:`~archive.run.options.RenderOptions`; its band selection is replaced by the bands the
     indices ``specs`` need), computed on ``scheduler`` (an address) or a local cluster of
@@ -205,7 +213,9 @@ def zonal_table(options, zones: Zones, specs: Sequence[IndexSpec], *, geometry: 
     import dask
     import pandas as pd
 
-    from archive.run.cluster import close_client, closed_or_warned, start_cluster
+    import distributed  # noqa: F401  (its configuration's defaults loaded before one is set below)
+
+    from archive.run.cluster import ClusterStart, close_client, closed_or_warned, start_cluster
     from archive.run.stacks import stack
 
     say = say or (lambda text: None)
@@ -216,14 +226,17 @@ def zonal_table(options, zones: Zones, specs: Sequence[IndexSpec], *, geometry: 
     needed = tuple(sorted({nm for ix in bound for nm in ix.wavelengths}))
     options = dataclasses.replace(options, wavelengths=needed, bands="all")
     client = cluster = None
+    preload = dask.config.get("distributed.worker.preload", None) or []
+    preload = [preload] if isinstance(preload, str) else list(preload)
     try:
-        import distributed  # noqa: F401  (its configuration's defaults loaded before one is set)
-
-        preload = dask.config.get("distributed.worker.preload", None) or []
-        preload = [preload] if isinstance(preload, str) else list(preload)
+        # the workers start (a local cluster's first preloading archive.analysis.worker) while the
+        # flights are planned: the stack's grid, each flight's plan (metadata only)
         with dask.config.set({"distributed.worker.preload": ["archive.analysis.worker", *preload]}):
-            client, cluster = start_cluster(scheduler, workers, say, threads)   # a local one: archive.analysis.worker
-        da = stack(options, quiet=quiet)
+            starting = ClusterStart(scheduler, workers, say, threads)
+            try:
+                da = stack(options, quiet=quiet)
+            finally:
+                client, cluster = start_cluster(starting, workers, say, threads)   # waits for it
         stack_nm = [float(v) for v in da["wavelength"].values]
         epsg, x0, y0, gsd = _grid_of(da)
         if math.isnan(gsd):
@@ -296,7 +309,7 @@ def zonal_table(options, zones: Zones, specs: Sequence[IndexSpec], *, geometry: 
     return frame
 
 
-def check_options(options) -> None:
+def check_options(options: RenderOptions) -> None:
     """InputError for render options a zonal table cannot take (provenance layers)."""
     if options.provenance:
         raise InputError("--provenance", "a zonal table holds no provenance layers", "leave it out")
