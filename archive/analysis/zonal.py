@@ -253,7 +253,7 @@ def zonal_table(options: RenderOptions, zones: Zones, specs: Sequence[IndexSpec]
         results: dict[int, list] = {}
         queue, inflight = deque(range(len(flights))), deque()
         say(f"archive stats: {len(zones)} zones ({len(off)} off the grid) in {len(windows)} windows x "
-            f"{len(flights)} flights x {len(bound)} indices")
+            f"{len(flights)} flights x {len(bound)} indices, planned in {time.perf_counter() - started:.1f} s")
         bar = None
         if not quiet:
             from tqdm import tqdm
