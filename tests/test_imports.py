@@ -274,12 +274,14 @@ LAYERS = [
 #: Edges the layers allow that DESIGN 1 still forbids: (importer prefix, forbidden target prefixes, exempt
 #: importers). "formats know nothing of sources, sources nothing of the catalog (only the open_source
 #: function resolves an archive id), the catalog nothing of rendering"; "graph/ imports no concrete
-#: writer" (only the sink interface, :mod:`archive.outputs.base`); "view/ no command module".
+#: writer" (only the sink interface, :mod:`archive.outputs.base`); "view/ no command module"; ingest nothing of
+#: the viewer (its previews are drawn by drawing/).
 FORBIDDEN = [
     ("archive.formats.", ("archive.",), ("archive.errors", "archive.files", "archive.formats.")),
     ("archive.sources.", ("archive.catalog",), ()),
     ("archive.graph", ("archive.outputs.",), ("archive.outputs.base",)),
     ("archive.view", ("archive.run.pipeline", "archive.cli", "archive.run.command", "archive.run.cluster"), ()),
+    ("archive.ingest", ("archive.view",), ()),   # ingest draws its previews with drawing/, never through the viewer
 ]
 #: The one module of sources/ that resolves collection ids through the archive (and the package
 #: __init__ that re-exports it).
@@ -332,6 +334,8 @@ def test_the_layer_rules_catch_what_they_should():
     assert not refused("archive.graph.build", "archive.outputs.base")
     assert refused("archive.drawing.flight", "archive.run.pipeline") and refused("archive.drawing.flight", "archive.view.registry")
     assert refused("archive.view.registry", "archive.run.pipeline") and refused("archive.view.server", "archive.cli")
+    assert refused("archive.ingest.previews", "archive.view.registry")
+    assert not refused("archive.ingest.previews", "archive.drawing.flight")
     assert refused("archive.catalog.index", "archive.sources.raw")
     assert refused("archive.formats.lcf", "archive.geometry.navigation")
     assert refused("archive.sources.raw", "archive.catalog.root")

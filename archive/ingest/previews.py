@@ -1,6 +1,7 @@
 """Making a collection's overview previews (issue 36; the layout is :mod:`archive.drawing.preview_layout`'s): drawn
-with the viewer's renderer from the flight opened as ``archive view`` opens it, after the ingest
-published and cataloged it (:func:`add_previews`, ``archive ingest``'s hook)."""
+with the viewer's drawing engine (:class:`archive.drawing.flight.Flight`) from the flight opened as ``archive
+view`` opens it, after the ingest published and cataloged it (:func:`add_previews`, ``archive ingest``'s hook).
+Nothing of :mod:`archive.view` is imported."""
 
 from __future__ import annotations
 
@@ -21,15 +22,25 @@ def make_previews(archive_path: str | os.PathLike, cid: str) -> tuple[dict, dict
     """(the ``archive:previews`` attribute, {level name: (bands, height, width) float32}) of the
     collection ``cid`` of the archive at ``archive_path``, drawn with the viewer's renderer (OpenGL: pass 1) from a
     flight opened as ``archive view`` opens it."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from archive.catalog.index import read_item_file
+    from archive.catalog.root import open_root
+    from archive.catalog.stac import item_summary
     from archive.collection import array_digest, content_version
     from archive.drawing.cache import ByteLRU
-    from archive.drawing.flight import overview_level
-    from archive.view.registry import FlightRegistry
+    from archive.drawing.flight import Flight, overview_level
+    from archive.sources import open_source
 
-    registry = FlightRegistry(archive_path, bands_cache=ByteLRU(256 << 20), lookup_cache=ByteLRU(64 << 20))
+    root = open_root(archive_path)
+    flight_gsd = float(item_summary(read_item_file(root.item_path(cid)))["gsd"])   # the catalog's nominal GSD
+
+    def opener(params, navigation):   # the flight as 'archive view' opens it (its default navigation source)
+        return open_source(cid, params, archive=root.path, navigation=navigation)
+
+    workers = ThreadPoolExecutor(max_workers=2, thread_name_prefix="archive-previews-bands")
     try:
-        flight = registry.flight(cid)
-        flight_gsd = float(registry.feature(cid)["properties"]["gsd"])
+        flight = Flight(cid, opener, None, ByteLRU(256 << 20), ByteLRU(64 << 20), workers)
         geometry = flight.geometry(None, None)
         cubes = range(len(flight.cubes))
         bounds = geometry.union(cubes)
@@ -56,10 +67,8 @@ def make_previews(archive_path: str | os.PathLike, cid: str) -> tuple[dict, dict
             above = (level,)
         stats = flight.stats(None, bands, mode, cubes, None, PERCENTILES)
     finally:
-        registry.close()
-    from archive.catalog.root import open_root
-
-    version = content_version(open_root(archive_path).store(cid))
+        workers.shutdown(wait=True, cancel_futures=True)
+    version = content_version(root.store(cid))
     attrs = {"format_version": FORMAT_VERSION, "version": version["version"],
              "mode": mode, "bands": [int(b) for b in bands], "wavelength": flight.wavelengths_of(bands),
              "flight_gsd": flight_gsd, "levels": records, "stats": stats}
