@@ -2,7 +2,7 @@
 viewer (``archive view``), the ingest's previews and the benches. It imports nothing of
 :mod:`archive.view` (the server, its registry and its pages use it, never the other way).
 
-Modules: ``flight`` (:class:`~archive.drawing.flight.Flight`: one viewed flight's caches; tiles and view
+Modules: ``flight`` (:class:`~archive.drawing.flight.ViewedFlight`: one viewed flight's caches; tiles and view
 statistics), ``placement`` (its meshes at one ground height and sync offset, and small array helpers),
 ``planes`` (calibrated band planes and their box-filtered levels), ``point`` (the spectrum of one output
 pixel), ``query`` (what a view asks: bands, mode, stretch, overlap), ``cache`` (byte-bounded LRU

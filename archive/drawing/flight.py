@@ -1,7 +1,7 @@
 """The flights a viewer serves, and what it draws of them: tiles, point spectra, view statistics.
 
 Which ids exist is :class:`archive.view.registry.FlightRegistry`'s (the archive's catalog, plus raw
-flight directories named on the command line). :class:`Flight` holds one flight's caches and does its drawing with the inverse renderer:
+flight directories named on the command line). :class:`ViewedFlight` holds one flight's caches and does its drawing with the inverse renderer:
 
 - geometry per (ground height, sync offset, navigation source, boresight): the opened source, its cube meshes (the same
   :func:`~archive.graph.plan.cube_meshes` as ``archive render``) transformed to EPSG:3857 for tiles
@@ -11,7 +11,7 @@ flight directories named on the command line). :class:`Flight` holds one flight'
   then a vertical offset of the DEM (m, 0 = the DEM as it is);
 - lookups (pass 1 of the renderer: which line and sample each tile pixel sees) per cube and tile
   grid, shared by every band choice;
-- band planes (:class:`archive.drawing.planes.BandPlanes`, ``Flight.planes``): a band of a cube in a
+- band planes (:class:`archive.drawing.planes.BandPlanes`, ``ViewedFlight.planes``): a band of a cube in a
   mode, calibrated once for every (line, sample) as ``archive render`` does and kept, with its
   box-filtered levels for overview zooms (each value the mean of the 2^k x 2^k block of lines x
   samples around it), made on worker threads; a tile is then a gather through its lookup (no GL
@@ -19,7 +19,7 @@ flight directories named on the command line). :class:`Flight` holds one flight'
 - whole-flight 2/98 % statistics per (band, mode, cubes) from every 4th line and sample of those
   planes: computed once, whatever the ground height or sync offset.
 
-Every method of :class:`Flight` may use OpenGL: call them from the viewer's one render thread
+Every method of :class:`ViewedFlight` may use OpenGL: call them from the viewer's one render thread
 (:class:`archive.view.worker.RenderThread`), never from the event loop.
 """
 
@@ -45,7 +45,7 @@ from archive.drawing.query import ViewQuery
 from archive.grid import MERCATOR_EPSG, bbox_grid
 from archive.drawing.png import encode_png, transparent_png
 
-__all__ = ["DEFAULT_RGB_NM", "Flight", "navigation_sources", "overview_level"]
+__all__ = ["DEFAULT_RGB_NM", "ViewedFlight", "navigation_sources", "overview_level"]
 
 #: Wavelengths of the default (true colour) channels, nm.
 DEFAULT_RGB_NM = (640.0, 550.0, 460.0)
@@ -64,13 +64,13 @@ OUTLINE_ROWS = 64
 def overview_level(gsd: float, flight_gsd: float | None) -> int:
     """The block side (1, 2, 4 .. MAX_MIP flight pixels, lines x samples) averaged for an output pixel
     of ``gsd`` (m of EPSG:3857) over a flight of nominal pixel ``flight_gsd`` (m; None: unknown, 1):
-    the power of two nearest their ratio (:meth:`Flight.band_values`, the ingest previews)."""
+    the power of two nearest their ratio (:meth:`ViewedFlight.band_values`, the ingest previews)."""
     if not flight_gsd:
         return 1
     return int(min(MAX_MIP, 2 ** max(0, round(math.log2(gsd / flight_gsd)))))
 
 
-class Flight:
+class ViewedFlight:
     """One flight of the viewer: its caches and drawing (see the module docstring).
 
     cid: the id it is served under; opener(params) -> a flight source with these navigation

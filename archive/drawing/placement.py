@@ -27,7 +27,7 @@ class Geometry:
     mercator: tuple
     bounds: np.ndarray
     gsd: float | None = None   #: terrain meshes: the output pixel they were built for (m); None: flat
-    #: (sync offset, navigation source, boresight) as asked (:meth:`Flight.pose_key`): the caches' key
+    #: (sync offset, navigation source, boresight) as asked (:meth:`ViewedFlight.pose_key`): the caches' key
     pose: tuple = ()
 
     def union(self, cubes: range) -> tuple[float, float, float, float] | None:
@@ -55,7 +55,7 @@ def slice_radiometry(radiometry, lines: slice, samples: slice):
 
 
 def plane_index(lookup) -> np.ndarray:
-    """(height * width,) int32 index into a band plane (:meth:`Flight.plane`) of the (line, sample)
+    """(height * width,) int32 index into a band plane (:meth:`ViewedFlight.plane`) of the (line, sample)
     each pixel of ``lookup`` sees; the plane's last (NaN) element where none."""
     index = lookup.line * np.int32(lookup.samples) + lookup.sample
     return np.where(lookup.line >= 0, index, lookup.lines * lookup.samples).astype(np.int32).reshape(-1)

@@ -4,7 +4,7 @@ once and kept, and the same box-filtered for overview zooms; made on worker thre
 A plane holds the float32 values ``archive render`` gives those pixels:
 :func:`archive.render.gather.calibrate_plane`, the calibration of the CPU pass 2 of ``archive
 render`` on software GL (bit for bit llvmpipe's band pass), once per (line, sample) instead of per
-output pixel. A tile is then a gather through its lookup (:class:`archive.drawing.flight.Flight`). No
+output pixel. A tile is then a gather through its lookup (:class:`archive.drawing.flight.ViewedFlight`). No
 OpenGL here: planes are made on any thread.
 """
 

@@ -1,5 +1,5 @@
 """Making a collection's overview previews (issue 36; the layout is :mod:`archive.drawing.preview_layout`'s): drawn
-with the viewer's drawing engine (:class:`archive.drawing.flight.Flight`) from the flight opened as ``archive
+with the viewer's drawing engine (:class:`archive.drawing.flight.ViewedFlight`) from the flight opened as ``archive
 view`` opens it, after the ingest published and cataloged it (:func:`add_previews`, ``archive ingest``'s hook).
 Nothing of :mod:`archive.view` is imported."""
 
@@ -29,7 +29,7 @@ def make_previews(archive_path: str | os.PathLike, cid: str) -> tuple[dict, dict
     from archive.catalog.stac import item_summary
     from archive.collection import array_digest, content_version
     from archive.drawing.cache import ByteLRU
-    from archive.drawing.flight import Flight, overview_level
+    from archive.drawing.flight import ViewedFlight, overview_level
     from archive.sources import open_source
 
     root = open_root(archive_path)
@@ -40,7 +40,7 @@ def make_previews(archive_path: str | os.PathLike, cid: str) -> tuple[dict, dict
 
     workers = ThreadPoolExecutor(max_workers=2, thread_name_prefix="archive-previews-bands")
     try:
-        flight = Flight(cid, opener, None, ByteLRU(256 << 20), ByteLRU(64 << 20), workers)
+        flight = ViewedFlight(cid, opener, None, ByteLRU(256 << 20), ByteLRU(64 << 20), workers)
         geometry = flight.geometry(None, None)
         cubes = range(len(flight.cubes))
         bounds = geometry.union(cubes)

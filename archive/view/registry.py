@@ -15,7 +15,7 @@ import numpy as np
 from archive.errors import ArchiveError, InputError, MissingInputError
 from archive.params import NavigationParams
 from archive.drawing.cache import ByteLRU
-from archive.drawing.flight import Flight
+from archive.drawing.flight import ViewedFlight
 
 __all__ = ["BAND_WORKERS", "FLIGHTS_KEPT", "IDS_TTL_S", "FlightRegistry", "UnknownFlight"]
 
@@ -24,7 +24,7 @@ __all__ = ["BAND_WORKERS", "FLIGHTS_KEPT", "IDS_TTL_S", "FlightRegistry", "Unkno
 #: their arrays pass the flights cache's bytes (a flight's meshes are ~0.3 KB a line per ground
 #: height kept).
 FLIGHTS_KEPT = 32
-#: Threads making band planes (:meth:`Flight.prepare`): the VM's cores.
+#: Threads making band planes (:meth:`ViewedFlight.prepare`): the VM's cores.
 BAND_WORKERS = 2
 #: Seconds the list of catalog ids is trusted before the index is asked again.
 IDS_TTL_S = 5.0
@@ -65,12 +65,12 @@ class FlightRegistry:
         self.navigation = None if navigation is None else str(navigation)
         self.bands_cache = bands_cache if bands_cache is not None else ByteLRU(256 << 20)
         self.lookup_cache = lookup_cache if lookup_cache is not None else ByteLRU(64 << 20)
-        #: the opened flights, each charged :meth:`Flight.nbytes` (:meth:`settle`)
+        #: the opened flights, each charged :meth:`ViewedFlight.nbytes` (:meth:`settle`)
         self.flights_cache = flights_cache if flights_cache is not None else ByteLRU(64 << 20)
         self._lock = threading.Lock()
         self._ids: tuple[float, frozenset] | None = None
         self._items: dict[str, tuple[int, dict]] = {}
-        self._used: dict[str, Flight] = {}   # flights used since the last settle()
+        self._used: dict[str, ViewedFlight] = {}   # flights used since the last settle()
         self.workers = ThreadPoolExecutor(max_workers=BAND_WORKERS, thread_name_prefix="archive-view-bands")
         self.raw: dict[str, tuple[Path, dict]] = {}
         if directories and fov is None:
@@ -202,8 +202,8 @@ class FlightRegistry:
         return None if found is None else int(found.finest)
 
     # ---- opened flights ------------------------------------------------------------------
-    def flight(self, cid: str) -> Flight:
-        """The opened :class:`Flight` of a checked id (render thread only). Kept in the flights cache
+    def flight(self, cid: str) -> ViewedFlight:
+        """The opened :class:`ViewedFlight` of a checked id (render thread only). Kept in the flights cache
         (at most FLIGHTS_KEPT, and their bytes within its limit); :meth:`settle` charges it what it
         holds after the job that used it."""
         self.check(cid)
@@ -221,13 +221,13 @@ class FlightRegistry:
 
                 def opener(params, navigation):
                     return open_source(cid, params, archive=archive, navigation=navigation)
-            found = Flight(cid, opener, self.fov, self.bands_cache, self.lookup_cache, self.workers,
+            found = ViewedFlight(cid, opener, self.fov, self.bands_cache, self.lookup_cache, self.workers,
                            navigation=self.navigation)
         self._used[cid] = found
         return found
 
     def settle(self) -> None:
-        """Charge the flights used since the last call what they hold now (:meth:`Flight.nbytes`;
+        """Charge the flights used since the last call what they hold now (:meth:`ViewedFlight.nbytes`;
         the least recently used go beyond the cache's bytes or FLIGHTS_KEPT). The render thread
         calls it after each job."""
         used, self._used = self._used, {}
