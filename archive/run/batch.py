@@ -411,42 +411,35 @@ def _follow(session, todo: list[Flight], report: _Report, tell, state: dict, *, 
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
 
-    from distributed import as_completed
     from tqdm import tqdm
 
     from archive.run.pipeline import progress_lines
+    from archive.run.session import Waves
 
     say = progress_lines(quiet)
     client = session.client
     queue = deque(todo)
     prepared: deque = deque()   # (flight, its planning's concurrent future), in submission order
     planner = ThreadPoolExecutor(1, thread_name_prefix="archive-plan")
-    owner: dict[str, Flight] = {}
-    active: list[Flight] = []
     t0 = time.perf_counter()
     bar = tqdm(total=len(todo), desc="flights", unit="flight", disable=quiet, file=sys.stderr)
-    tasks = {"done": 0, "submitted": 0}
     try:
         budget = session.budget
-        slots = wave or session.slots()
-        state["wave"] = slots
-        counted = time.monotonic()
-        # on this client's event loop: as_completed() alone tracks the futures on the default client's
-        # loop, another Client of the process (a notebook's, the bench's) where their completions
-        # arrive late (measured: 20 flights in 21 s instead of 4.7 s)
-        pending_futures = as_completed(loop=client.loop)
+        waves = Waves(session, wave)
+        state["wave"] = waves.slots
 
         def plan_ahead() -> None:
             """Keep up to a wave of flights planned (in the planner's thread) ahead of the scheduler."""
-            while queue and len(prepared) < max(slots, 1):
+            while queue and len(prepared) < max(waves.slots, 1):
                 flight = queue.popleft()
                 prepared.append((flight, planner.submit(_timed_prepare, flight, budget, say)))
 
         def finish(flight: Flight, status: str, error: str | None = None) -> None:
             flight.status, flight.error = status, error
             flight.seconds = time.perf_counter() - flight.started
+            # a failed flight's unfinished tasks cancelled; their writers waited for at the end
+            waves.leave(flight, give_up=status == "failed", wait=False)
             if status == "failed":
-                session.abandon(flight.futures, wait=False)   # its writers waited for at the end
                 flight.output.cleanup()
                 tell(f"failed {flight.name}: {error}")
             else:
@@ -454,8 +447,6 @@ def _follow(session, todo: list[Flight], report: _Report, tell, state: dict, *, 
                 tell(f"done {flight.name}: {s['width']} x {s['height']} px, {s['bands']} bands -> "
                      f"{flight.entry()['path']} ({flight.seconds:.1f} s)")
             flight.futures, flight.job = [], None
-            if flight in active:
-                active.remove(flight)
             report.write()
             bar.update(1)
             _test_hold(report.flights)
@@ -466,17 +457,11 @@ def _follow(session, todo: list[Flight], report: _Report, tell, state: dict, *, 
                 state["submit_seconds"] += seconds
                 flight.started = time.perf_counter() - seconds   # its planning, not its wait for a place
                 t = time.perf_counter()
-                futures = client.compute(list(graph.writes)) if len(graph) else []
+                futures = waves.submit(flight, graph.writes if len(graph) else [])
                 state["submit_seconds"] += time.perf_counter() - t
             except Exception as exc:  # noqa: BLE001 - the flight fails alone
                 finish(flight, "failed", _reason(exc))
                 return
-            flight.futures, flight.left = list(futures), len(futures)
-            active.append(flight)
-            tasks["submitted"] += len(futures)
-            for future in futures:
-                owner[future.key] = flight
-                pending_futures.add(future)
             if not futures:
                 publish_flight(flight)
 
@@ -488,35 +473,25 @@ def _follow(session, todo: list[Flight], report: _Report, tell, state: dict, *, 
                 return
             finish(flight, "done")
 
-        while queue or prepared or active:
-            if wave is None and time.monotonic() - counted > 5.0:   # workers come and go (Slurm jobs)
-                slots, counted = session.slots(), time.monotonic()
-                state["wave"] = max(state["wave"], slots)
+        while queue or prepared or waves.active:
             plan_ahead()
-            while prepared and len(active) < slots:
+            while prepared and waves.has_room():
                 submit(*prepared.popleft())
                 plan_ahead()
-            state["peak_tasks"] = max(state["peak_tasks"], sum(len(f.futures) for f in active))
-            if not active:
+            state["wave"] = waves.largest
+            state["peak_tasks"] = waves.peak
+            if not waves.active:
                 continue
-            future = next(pending_futures)
-            flight = owner.pop(future.key, None)
+            flight, status, exc = waves.next_done()
             if flight is None or flight.status != "pending":
-                future.release()
                 continue
-            if future.status == "error":
-                exc = future.exception()
-                future.release()
+            if status == "error":
                 finish(flight, "failed", _reason(exc))
                 continue
-            if future.status == "cancelled":
-                future.release()
+            if status == "cancelled":
                 finish(flight, "failed", "its tasks were cancelled (the scheduler lost them)")
                 continue
-            future.release()
-            flight.left -= 1
-            tasks["done"] += 1
-            bar.set_postfix_str(f"tasks {tasks['done']}/{tasks['submitted']}", refresh=False)
+            bar.set_postfix_str(f"tasks {waves.done}/{waves.submitted}", refresh=False)
             if flight.left == 0:
                 publish_flight(flight)
         state["graph_seconds"] = time.perf_counter() - t0

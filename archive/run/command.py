@@ -112,6 +112,10 @@ def run(args: argparse.Namespace) -> int:
     # Slurm jobs are submitted where the command always did (after its checks of the options); a
     # --resume may find nothing to render: its workers start when needed.
     where = _where(args)
+    if where is None and args.workers is None and small_job(args.sources or [], args):
+        from archive.run.session import IN_PROCESS
+
+        return _run(args, IN_PROCESS)   # no worker process to start
     starting = (None if isinstance(where, SlurmJobs) or args.resume
                 else ClusterStart(where, args.workers, _say(args), args.threads))
     try:
@@ -119,6 +123,31 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if starting is not None:
             starting.close()   # only one nobody took (the command failed before it needed workers)
+
+
+#: Raw flights with at most this many bytes of DN in all render in this process (no worker process
+#: spawned: a local cluster's start is 2.5-5 s of a tiny render; bench/bench_small.py). ``--workers
+#: N`` asks for worker processes whatever the size.
+SMALL_JOB_BYTES = 16 << 20
+
+
+def small_job(sources: list, args: argparse.Namespace | None = None) -> bool:
+    """Whether a render of ``sources`` is small enough to run in this process: only raw flight
+    directories (a collection's or a catalog query's size is not read here), whose ``.bil`` files
+    hold :data:`SMALL_JOB_BYTES` or fewer in all."""
+    from pathlib import Path
+
+    if not sources or (args is not None and any(getattr(args, k, None) is not None for k in
+                                                ("query_bbox", "query_datetime", "query_wavelength"))):
+        return False
+    total = 0
+    for source in sources:
+        if not Path(source).is_dir():
+            return False
+        total += sum(p.stat().st_size for p in Path(source).glob("*.bil") if p.is_file())
+        if total > SMALL_JOB_BYTES:
+            return False
+    return True
 
 
 def _say(args: argparse.Namespace):

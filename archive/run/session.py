@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TypedDict
@@ -10,7 +11,12 @@ from typing import TypedDict
 from archive.run import cluster as clusters
 from archive.run.cluster import ClusterClose, closed_or_warned, flight_slots, start_cluster, task_budget, wait_for_writers
 
-__all__ = ["BatchSummary", "Job", "RenderSummary", "Session", "StackSummary", "render_summary"]
+__all__ = ["IN_PROCESS", "BatchSummary", "Job", "RenderSummary", "Session", "StackSummary", "Waves", "in_process",
+           "render_summary"]
+
+#: The ``scheduler`` of a run in this process: one worker's threads, no worker process to spawn (a
+#: small job: ``archive render`` picks it below :data:`archive.run.command.SMALL_JOB_BYTES` of DN).
+IN_PROCESS = "in-process"
 
 
 @dataclass
@@ -120,7 +126,8 @@ class Session:
         """Start (or take) the cluster; returns the session."""
         from distributed import LocalCluster
 
-        self.client, self.cluster = start_cluster(*self._args)
+        scheduler, _, say, threads = self._args
+        self.client, self.cluster = in_process(threads) if scheduler == IN_PROCESS else start_cluster(*self._args)
         # a shared scheduler or Slurm jobs go on after the command: their tasks may still write
         self._outlives = not isinstance(self.cluster, LocalCluster)
         return self
@@ -172,3 +179,94 @@ class Session:
             closed_or_warned(lambda: clusters.close_client(client, cluster), self.command, self.what)
         if self._closing is not None:
             closed_or_warned(self._closing.join, self.command, self.what)
+
+
+class Waves:
+    """The outputs of a run in the scheduler at once, and their tasks' completions (one place for the
+    batch's and the stack's waves).
+
+    ``wave``: outputs at once (default :meth:`Session.slots`, counted again every 5 s: workers come
+    and go). An owner (a batch's flight, a stack's time step) enters with :meth:`submit` (its
+    ``futures`` and ``left`` set), :meth:`next_done` gives each of its finished futures in turn
+    (released, and counted off its ``left`` when it finished well), :meth:`leave` takes it out.
+    The completions are followed on the session's client's event loop: ``as_completed()`` alone
+    follows the futures on the default client's loop, another Client of the process (a notebook's,
+    the bench's), where they arrive late (measured: 20 flights in 21 s instead of 4.7 s)."""
+
+    def __init__(self, session: Session, wave: int | None = None):
+        from distributed import as_completed
+
+        self.session, self._fixed = session, wave
+        self.slots = wave or session.slots()
+        self.largest = self.slots   # the largest wave of the run
+        self._counted = time.monotonic()
+        self._completed = as_completed(loop=session.client.loop)
+        self._owners: dict[str, object] = {}
+        self.active: list = []
+        self.peak = 0   # futures in the scheduler at once, at most
+        self.done = self.submitted = 0
+
+    def has_room(self) -> bool:
+        """Whether another output may enter now."""
+        if self._fixed is None and time.monotonic() - self._counted > 5.0:
+            self.slots, self._counted = self.session.slots(), time.monotonic()
+            self.largest = max(self.largest, self.slots)
+        return len(self.active) < self.slots
+
+    def submit(self, owner, writes: Sequence) -> list:
+        """Compute ``writes`` (a graph's write keys' objects) for ``owner``: its ``futures`` and
+        ``left`` set, it is active. Returns the futures ([] for nothing to compute)."""
+        futures = list(self.session.client.compute(list(writes))) if len(writes) else []
+        owner.futures, owner.left = futures, len(futures)
+        self.active.append(owner)
+        self.submitted += len(futures)
+        for future in futures:
+            self._owners[future.key] = owner
+            self._completed.add(future)
+        self.peak = max(self.peak, sum(len(o.futures) for o in self.active))
+        return futures
+
+    def next_done(self) -> tuple[object, str, BaseException | None]:
+        """Wait for a future: (its owner, or None when it left already; 'finished', 'error' or
+        'cancelled'; the task's exception for 'error'). Released; a finished one counted off the
+        owner's ``left``."""
+        future = next(self._completed)
+        owner = self._owners.pop(future.key, None)
+        status = future.status
+        exc = future.exception() if status == "error" else None
+        future.release()
+        if owner is not None and status == "finished":
+            owner.left -= 1
+            self.done += 1
+        return owner, status, exc
+
+    def leave(self, owner, give_up: bool = False, wait: bool = True) -> None:
+        """``owner`` is out of the scheduler; ``give_up``: its unfinished tasks cancelled
+        (:meth:`Session.abandon`, ``wait`` as there)."""
+        if give_up:
+            self.session.abandon(owner.futures, wait=wait)
+        for future in owner.futures:
+            self._owners.pop(future.key, None)
+        if owner in self.active:
+            self.active.remove(owner)
+
+
+def in_process(threads: int | None = None):
+    """(client, cluster): a Dask cluster in this process, one worker of ``threads`` threads (default
+    the cores, at least 2) holding the GPU resource as a local cluster's workers do; its GL context
+    made ahead on a thread (:func:`archive.run.cluster.warm_up`). Starting it spawns no process
+    (bench/bench_small.py measures the difference)."""
+    import logging
+    import os
+    import threading
+
+    from distributed import Client, LocalCluster
+
+    from archive.run.cluster import GL_SLOTS, positive, warm_up
+
+    threads = positive(threads, "--threads", "threads per worker") or max(2, os.cpu_count() or 1)
+    cluster = LocalCluster(n_workers=1, threads_per_worker=threads, processes=False, resources={"GPU": GL_SLOTS},
+                           dashboard_address=":0", silence_logs=logging.CRITICAL)
+    client = Client(cluster)
+    threading.Thread(target=warm_up, name="archive-warm-up", daemon=True).start()
+    return client, cluster

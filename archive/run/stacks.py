@@ -28,10 +28,10 @@ so that ``--like X.zarr`` takes its grid.
   stack lacks (after new ingests, or a killed run), at the end of ``time``, on the stack's own grid
   (a request with other options is refused unless ``--overwrite``). Flights that have no line on the
   grid are left out with a note.
-- **Memory.** Flights enter the scheduler in waves, as batches do: at most
-  :func:`archive.run.cluster.flight_slots` flights at once (each rendering into its own temporary
-  slice store), the next submitted when the earliest is committed; the client holds the plans of
-  the wave only. Memory does not grow with the number of flights (bench/bench_stack.py).
+- **Memory.** Flights enter the scheduler in waves, through the batches' own
+  :class:`archive.run.session.Waves`: at most :func:`archive.run.cluster.flight_slots` flights at
+  once (each rendering into its own temporary slice store; counted again as workers come and go),
+  the next submitted when the earliest is committed; the client holds the plans of the wave only. Memory does not grow with the number of flights (bench/bench_stack.py).
 
 :func:`stack` is the lazy form (``archive.stack``): the same values as an ``xarray.DataArray``
 backed by dask, nothing rendered until computed.
@@ -60,9 +60,6 @@ from archive.outputs.stack import STACK_ATTR, StackFlight, StackLayout, add_slic
 from archive.run.session import StackSummary
 
 __all__ = ["STACK_ATTR", "StackFlight", "read_stack", "run_stack", "stack", "stack_grid", "survey"]
-
-#: The datacube STAC extension the stack's Item declares (when its schema is vendored).
-DATACUBE_EXTENSION = "https://stac-extensions.github.io/datacube/v2.2.0/schema.json"
 
 
 def _flight_name(source: str) -> str:
@@ -230,7 +227,7 @@ def run_stack(options, out, *, overwrite: bool = False, resume: bool = False, sc
 def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *, overwrite: bool, resume: bool,
                       scheduler, workers, threads, quiet: bool) -> dict:
     """:func:`run_stack` once the stack's lock is held."""
-    from archive.run.session import Session
+    from archive.run.session import Session, Waves
     from archive.outputs.publish import Output
     from archive.run.pipeline import build_output, open_inputs, plan_output
 
@@ -283,19 +280,18 @@ def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *
     try:
         if todo:
             session = Session(scheduler, workers, threads, say, what=f"stack {out}").start()
-            client, budget = session.client, session.budget
+            budget, waves = session.budget, Waves(session)
             bar = None
             if not quiet:
                 from tqdm import tqdm
 
                 bar = tqdm(total=len(surveyed), desc="stack", unit="flight", file=sys.stderr)
-            slots = max(1, session.slots())
             queue, inflight = deque(surveyed), deque()
             try:
                 while queue or inflight:
                     # a wave: up to ``slots`` flights in the scheduler, each rendering into a slice store
                     # of its own; committed in time order as the earliest one completes
-                    while queue and len(inflight) < slots:
+                    while queue and (waves.has_room() or not inflight):
                         one = queue.popleft()
                         t0 = time.perf_counter()
                         inputs = dataclasses.replace(open_inputs(_alone(options, one.source), nav, say, mosaic=True,
@@ -321,11 +317,14 @@ def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *
                         inflight.append(record)
                         record.sink, graph = build_output(planned, slice_out)
                         record.renders = graph.renders
-                        record.futures = client.compute(list(graph.writes)) if len(graph) else []
+                        waves.submit(record, graph.writes if len(graph) else [])
                     if not inflight:
                         continue
-                    record = inflight.popleft()
-                    _wait(record.futures, record.flight.name)
+                    record = inflight[0]
+                    while record.left:   # the earliest time step's tasks; the others' counted meanwhile
+                        _check(*waves.next_done())
+                    inflight.popleft()
+                    waves.leave(record)
                     renders += record.renders
                     start, end = _time_span(record.planned)
                     flight = StackFlight(record.flight.name, record.flight.source, start, end,
@@ -349,8 +348,8 @@ def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *
                         bar.update(1)
                     _test_hold(len(added))
             finally:
-                if inflight:   # given up: on a cluster that outlives us, no chunk may land after the clean-up
-                    session.abandon([f for r in inflight for f in r.futures])
+                for record in inflight:   # given up: on a cluster that outlives us, no chunk lands after the clean-up
+                    waves.leave(record, give_up=True)
                 for record in inflight:
                     record.output.cleanup()
             if bar is not None:
@@ -396,28 +395,27 @@ class _Slice:
     sink: object = None
     renders: int = 0
     futures: list = dataclasses.field(default_factory=list)
+    left: int = 0   # its tasks not finished yet
 
 
-def _wait(futures: list, name: str) -> None:
-    """Wait for a flight's writer tasks; the first task error as an ArchiveError naming the flight."""
-    from distributed import KilledWorker, wait
+def _check(record, status: str, exc: BaseException | None) -> None:
+    """A finished task of a time step (:meth:`archive.run.session.Waves.next_done`): its error as an
+    ArchiveError naming the flight (the stack stops)."""
+    from distributed import KilledWorker
 
     from archive.errors import ArchiveError, RenderError
 
-    wait(futures)
-    for future in futures:
-        if future.status == "error":
-            exc = future.exception()
-            if isinstance(exc, ArchiveError):
-                raise exc
-            if isinstance(exc, KilledWorker):
-                raise RenderError(f"{name}: a Dask worker died while rendering it ({exc}); it may have run out of "
-                                  "memory or crashed in OpenGL: try a larger --gsd or fewer --wavelengths")
-            raise RenderError(f"{name}: a render task failed: {type(exc).__name__}: {exc}")
-        if future.status == "cancelled":
-            raise RenderError(f"{name}: its tasks were cancelled (the scheduler lost them)")
-    for future in futures:
-        future.release()
+    if record is None or status == "finished":
+        return
+    name = record.flight.name
+    if status == "cancelled":
+        raise RenderError(f"{name}: its tasks were cancelled (the scheduler lost them)")
+    if isinstance(exc, ArchiveError):
+        raise exc
+    if isinstance(exc, KilledWorker):
+        raise RenderError(f"{name}: a Dask worker died while rendering it ({exc}); it may have run out of "
+                          "memory or crashed in OpenGL: try a larger --gsd or fewer --wavelengths")
+    raise RenderError(f"{name}: a render task failed: {type(exc).__name__}: {exc}")
 
 
 #: Processing attributes that differ between the flights of a stack (kept per flight, not at the root).
@@ -460,17 +458,6 @@ def _write_item(out: Path, layout: StackLayout, flights: list[StackFlight], opti
     write_item(out.with_name(out.name + ".json"), item)
 
 
-def _datacube_vendored() -> bool:
-    """Whether ``archive catalog validate`` has the datacube extension's schema (then the Item
-    declares it; else its ``cube:*`` fields stand as additional properties, valid STAC either way)."""
-    from archive.catalog.validate import vendored_schemas
-
-    return DATACUBE_EXTENSION in vendored_schemas()
-
-
-# ---------------------------------------------------------------------------------------------
-# The lazy stack
-# ---------------------------------------------------------------------------------------------
 def stack(options, *, band_group: int | None = None, quiet: bool = True):
     """The stack of ``options`` as a lazy ``xarray.DataArray`` (time, band, y, x), nothing rendered
     until computed: each time step is :func:`archive.mosaic` of its flight alone on the stack's grid
