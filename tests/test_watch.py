@@ -377,9 +377,18 @@ def test_a_skipped_pass_is_a_gap(tmp_path):
     assert len(passes) == 2
     to_utm = Transformer.from_crs(4326, truth.epsg, always_xy=True)
     gap = shapely.transform(shape(gaps), lambda xy: np.stack(to_utm.transform(xy[:, 0], xy[:, 1]), axis=1))
-    flown = unary_union([Polygon(truth.footprint()[k]) for k in (0, 2)])
-    true_gap = flown.convex_hull.difference(flown)
-    missed = Polygon(truth.footprint()[1]).intersection(true_gap)   # the middle pass's ground nobody imaged
+    rings = truth.footprint()   # per strip: the left edge first -> last line, then the right edge back
+
+    def across(ring, reach=2.0):   # between the strip's first and last lines, each stretched 2 swaths out
+        n = len(ring) // 2
+        ends = []
+        for left, right in ((ring[0], ring[-1]), (ring[n - 1], ring[n])):
+            u = (right - left) * reach
+            ends.append((left - u, right + u))
+        return Polygon([ends[0][0], ends[0][1], ends[1][1], ends[1][0]])
+    flown = unary_union([Polygon(rings[k]) for k in (0, 2)])
+    true_gap = flown.convex_hull.difference(flown).intersection(across(rings[0])).intersection(across(rings[2]))
+    missed = Polygon(rings[1]).intersection(true_gap)   # the middle pass's ground nobody imaged
     print(f"gap {gap.area:.0f} m2, true {true_gap.area:.0f} m2, the unflown pass's part {missed.area:.0f} m2")
     assert missed.area > 100
     assert gap.intersection(missed).area / missed.area > 0.97

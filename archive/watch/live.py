@@ -62,6 +62,9 @@ def cube_feature(directory: Path, fov: float) -> dict:
         "samples": source.cubes[0].samples,
     }
     props["coverage"] = swath_polygon(pose.position, pose.attitude, source.frame, fov, ground, str(directory))
+    ring = props["coverage"]["coordinates"][0]   # left edge out, right edge back
+    half = (len(ring) - 1) // 2
+    props["ends"] = [[ring[0], ring[-2]], [ring[half - 1], ring[half]]]   # first and last line: (left, right) lon/lat
     return {"type": "Feature", "id": source.id, "geometry": fp.geometry(), "bbox": fp.bbox(), "properties": props}
 
 
@@ -118,7 +121,8 @@ def passes_and_gaps(features: list[dict]) -> tuple[list[dict], dict]:
     MultiPolygon), lon/lat degrees, of one flight's cube ``features`` in capture order (each cube's exact
     ``coverage``, :func:`swath_polygon`, else its footprint). Cubes whose
     lines follow within 3.5 frame intervals (a recorder's cube switch) are one pass; a gap is ground
-    inside the hull of two consecutive passes that no pass covers, pieces under GAP_MIN_M2 left out."""
+    inside the hull of two consecutive passes, across track of both (not beyond either's ends: a pass being
+    flown has no gap ahead of it yet), that no pass covers, pieces under GAP_MIN_M2 left out."""
     from shapely import transform
     from shapely.geometry import mapping, shape
     from shapely.ops import unary_union
@@ -139,9 +143,13 @@ def passes_and_gaps(features: list[dict]) -> tuple[list[dict], dict]:
     covered = [unary_union([transform(shape(f["properties"].get("coverage") or f["geometry"]), to_m).buffer(0.05)
                             for f in g]) for g in groups]
     everything = unary_union(covered)
+    bands = [_band(g, to_m) for g in groups]
     gaps = []
-    for a, c in zip(covered, covered[1:]):
+    for (a, c), (ba, bc) in zip(zip(covered, covered[1:]), zip(bands, bands[1:])):
+        # across track of both: not the ground beyond either pass's ends (a pass still being flown)
         between = unary_union([a, c]).convex_hull.difference(everything)
+        if ba is not None and bc is not None:
+            between = between.intersection(ba).intersection(bc)
         parts = getattr(between, "geoms", [between])
         gaps += [g for g in parts if g.geom_type == "Polygon" and g.area >= GAP_MIN_M2]
 
@@ -153,6 +161,27 @@ def passes_and_gaps(features: list[dict]) -> tuple[list[dict], dict]:
         return {"type": "MultiPolygon", "coordinates": [[[list(map(float, pt)) for pt in ring] for ring in poly]
                                                         for poly in found["coordinates"]]}
     return [multi(c) for c in covered], multi(unary_union(gaps) if gaps else _empty())
+
+
+def _band(group: list[dict], to_m, reach: float = 2.0):
+    """The ground a pass sweeps across track, out to ``reach`` swath widths beyond either swath edge:
+    between its first line's swath (first cube) and its last line's (last cube), each line stretched
+    along itself (metres; lines a few degrees apart, stretched further, would cross); None without
+    ``ends`` properties."""
+    from shapely.geometry import Polygon
+
+    try:
+        first, last = (to_m(np.array(e, float)) for e in (group[0]["properties"]["ends"][0],
+                                                         group[-1]["properties"]["ends"][1]))
+    except (KeyError, TypeError, IndexError, ValueError):
+        return None
+
+    def stretched(seg):
+        u = (seg[1] - seg[0]) * reach
+        return seg[0] - u, seg[1] + u
+    (a, b), (c, d) = stretched(first), stretched(last)
+    band = Polygon([a, b, d, c])
+    return band if band.is_valid and band.area > 0 else band.buffer(0)
 
 
 def _empty():
