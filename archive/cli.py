@@ -169,7 +169,8 @@ def _add_render(sub) -> None:
     p.add_argument("--scheduler", metavar="ADDRESS",
                    help="Dask scheduler address, e.g. tcp://host:8786 (default: a local cluster). Workers need "
                         "--nthreads <cores> --resources GPU=2 and the same file paths (shared file system); see docs/deploy.md")
-    p.add_argument("--workers", type=_positive_int, metavar="N", help="local cluster worker processes (default: 1)")
+    p.add_argument("--workers", type=_positive_int, metavar="N", help="local cluster worker processes (default: 1; "
+                   "raw flights of at most 16 MiB of DN render in this process unless --workers is given)")
     p.add_argument("--threads", type=_positive_int, metavar="N", help="threads per local worker (default: the "
                    "cores divided among the workers, at least 2): render tasks draw on the worker's GL thread while "
                    "the others mosaic, compress and write")
