@@ -157,9 +157,18 @@ def test_cli_and_api_on_a_scheduler_give_the_same_table(field, scheduler, tmp_pa
     # the expression on the same bands is NDVI, number for number
     nd, ndvi = api[api["index"] == "ND"], api[api["index"] == "NDVI"]
     np.testing.assert_allclose(nd["mean"].to_numpy(), ndvi["mean"].to_numpy(), rtol=1e-6)
-    # GeoParquet keeps the zones' geometries (their own CRS: lon/lat), and --out is not replaced unasked
+    # the same zones from a GeoPackage in Web Mercator, named by a property: the same numbers
     import geopandas as gpd
 
+    gpkg = tmp_path / "fields.gpkg"
+    gpd.read_file(field[3]).to_crs(3857).to_file(gpkg, driver="GPKG")
+    merc = archive.zonal_stats({"datetime": "2024-06-01/2024-07-01"}, gpkg, "NDVI", zone_id="name",
+                               archive=field[1], gsd=GSD, scheduler=scheduler)
+    assert list(merc["zone"]) == [f"zone {z}" for z in ndvi["zone"]]
+    for column in ("count", "coverage", "mean"):   # the fractions move by ~1e-9 through another projection
+        np.testing.assert_allclose(merc[column].to_numpy(), ndvi[column].to_numpy(), rtol=1e-6, err_msg=column)
+    np.testing.assert_allclose(merc["median"].to_numpy(), ndvi["median"].to_numpy(), atol=1e-4)
+    # GeoParquet keeps the zones' geometries (their own CRS: lon/lat), and --out is not replaced unasked
     geo = tmp_path / "fields.parquet"
     args = ["stats", *_query(field), "--zones", str(field[3]), "--index", "NDVI", "--gsd", str(GSD), "--out",
             str(geo), "--geometry", "--scheduler", scheduler, "--quiet"]
