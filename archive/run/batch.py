@@ -51,7 +51,7 @@ from archive.errors import ArchiveError, InputError
 from archive.files import FileLock, path_exists, remove_path, test_hold, write_atomic
 from archive.run.session import BatchSummary, Job, render_summary
 
-__all__ = ["LOCK", "REPORT", "Flight", "recipe_request", "run_batch"]
+__all__ = ["LOCK", "REPORT", "BatchOutput", "recipe_request", "run_batch"]
 
 #: The batch report's file name in the output directory.
 REPORT = "report.json"
@@ -65,8 +65,8 @@ def recipe_request(options) -> dict:
 
 
 @dataclass
-class Flight:
-    """One flight of a batch: its source (id or directory), output, request (its recipe), status
+class BatchOutput:
+    """One output of a batch (a flight, or a tile of flights): its source (id or directory; ids joined by commas), output, request (its recipe), status
     ('pending', 'done', 'skipped', 'failed'), one-line error, seconds and summary."""
 
     source: str
@@ -156,7 +156,7 @@ def _remove_leftovers(output) -> None:
         output.overwrite = keep
 
 
-def _decide(flight: Flight, resume: bool, overwrite: bool) -> None:
+def _decide(flight: BatchOutput, resume: bool, overwrite: bool) -> None:
     """Settle what to do with ``flight`` before anything starts: skip it (``status`` 'skipped'), or
     render it (its Output replaces what is there when it may). InputError when its output exists and
     may not be replaced, or (with ``resume``) was made with another recipe and ``overwrite`` is off."""
@@ -223,7 +223,7 @@ class _Report:
     (disk full, quota) does not stop the batch: ``warn`` is told once, the report stays as last
     written, and the next rewrite tries again (:meth:`write` returns whether it was written)."""
 
-    def __init__(self, directory: Path, flights: list[Flight], warn: Callable[[str], None] | None = None):
+    def __init__(self, directory: Path, flights: list[BatchOutput], warn: Callable[[str], None] | None = None):
         self.path, self.flights = directory / REPORT, flights
         self.warn, self.error = warn or (lambda line: None), None
         for tmp in ([] if storage.is_url(directory) else directory.glob(f"{REPORT}.*.partial")):   # a killed run's report being rewritten
@@ -292,7 +292,7 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
                 output = Output(directory / f"{name}{fmt.suffix}", overwrite=bool(overwrite),
                                 provenance=options.provenance, zarr_format=options.zarr_format,
                                 compression=options.compression)
-            flights.append(Flight(",".join(recipe.sources), name, output, recipe, inputs=recipe_inputs(recipe),
+            flights.append(BatchOutput(",".join(recipe.sources), name, output, recipe, inputs=recipe_inputs(recipe),
                                   properties=properties, remote=remote))
         for flight in flights:
             _decide(flight, resume, overwrite)
@@ -350,20 +350,20 @@ def run_batch(options, out, *, format: str = "zarr", overwrite: bool = False, re
 TEST_HOLD_AFTER = "ARCHIVE_TEST_HOLD_AFTER"
 
 
-def _test_hold(flights: list[Flight]) -> None:
+def _test_hold(flights: list[BatchOutput]) -> None:
     """The :data:`TEST_HOLD_AFTER` hook (:func:`archive.files.test_hold`), called right after each
     rewrite of the report."""
     test_hold(TEST_HOLD_AFTER, sum(f.status == "done" for f in flights))
 
 
-def _remove_staging(flights: list[Flight]) -> None:
+def _remove_staging(flights: list[BatchOutput]) -> None:
     """Remove the local staging folders of a batch into an s3:// folder."""
     for flight in flights:
         if flight.remote is not None:
             flight.remote.cleanup()
 
 
-def _counts_text(flights: list[Flight]) -> str:
+def _counts_text(flights: list[BatchOutput]) -> str:
     return ", ".join(f"{sum(f.status == s for f in flights)} {s}" for s in ("done", "skipped", "failed"))
 
 
@@ -387,7 +387,7 @@ def _lock_directory(directory: Path) -> FileLock:
     return lock
 
 
-def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler, workers, threads, quiet,
+def _render(todo: list[BatchOutput], report: _Report, tell, state: dict, *, scheduler, workers, threads, quiet,
             wave) -> None:
     """Plan, submit (in waves), follow and publish ``todo``'s flights on a cluster."""
     from archive.run.pipeline import progress_lines
@@ -405,7 +405,7 @@ def _render(todo: list[Flight], report: _Report, tell, state: dict, *, scheduler
             flight.output.cleanup()
 
 
-def _follow(session, todo: list[Flight], report: _Report, tell, state: dict, *, quiet, wave) -> None:
+def _follow(session, todo: list[BatchOutput], report: _Report, tell, state: dict, *, quiet, wave) -> None:
     """:func:`_render`'s loop on the session's cluster: plan ahead, submit in waves, publish each
     flight as its last task ends."""
     from collections import deque
@@ -434,7 +434,7 @@ def _follow(session, todo: list[Flight], report: _Report, tell, state: dict, *, 
                 flight = queue.popleft()
                 prepared.append((flight, planner.submit(_timed_prepare, flight, budget, say)))
 
-        def finish(flight: Flight, status: str, error: str | None = None) -> None:
+        def finish(flight: BatchOutput, status: str, error: str | None = None) -> None:
             flight.status, flight.error = status, error
             flight.seconds = time.perf_counter() - flight.started
             # a failed flight's unfinished tasks cancelled; their writers waited for at the end
@@ -451,7 +451,7 @@ def _follow(session, todo: list[Flight], report: _Report, tell, state: dict, *, 
             bar.update(1)
             _test_hold(report.flights)
 
-        def submit(flight: Flight, planning) -> None:
+        def submit(flight: BatchOutput, planning) -> None:
             try:
                 flight.job, graph, seconds = planning.result()
                 state["submit_seconds"] += seconds
@@ -465,7 +465,7 @@ def _follow(session, todo: list[Flight], report: _Report, tell, state: dict, *, 
             if not futures:
                 publish_flight(flight)
 
-        def publish_flight(flight: Flight) -> None:
+        def publish_flight(flight: BatchOutput) -> None:
             try:
                 _publish(flight, client)
             except Exception as exc:  # noqa: BLE001
@@ -500,7 +500,7 @@ def _follow(session, todo: list[Flight], report: _Report, tell, state: dict, *, 
         planner.shutdown(wait=True, cancel_futures=True)   # no temporaries made after the clean-up
 
 
-def _publish(flight: Flight, client) -> None:
+def _publish(flight: BatchOutput, client) -> None:
     """:func:`archive.run.pipeline.publish` of a flight, whose Item's recipe also records the inputs it
     was rendered from (``archive:recipe.inputs``, what ``--resume`` compares besides the request):
     the data renamed into place (an old Item removed first), then the Item, last."""
@@ -518,14 +518,14 @@ def _publish(flight: Flight, client) -> None:
             flight.remote.cleanup()
 
 
-def _timed_prepare(flight: Flight, budget: int, say) -> tuple[Job, object, float]:
+def _timed_prepare(flight: BatchOutput, budget: int, say) -> tuple[Job, object, float]:
     """:func:`_prepare` in the planner's thread; the flight's clock starts here. (job, graph, seconds)."""
     flight.started = time.perf_counter()
     job, graph = _prepare(flight, budget, say)
     return job, graph, time.perf_counter() - flight.started
 
 
-def _prepare(flight: Flight, budget: int, say) -> tuple[Job, object]:
+def _prepare(flight: BatchOutput, budget: int, say) -> tuple[Job, object]:
     """Open, plan and build one flight (metadata only; its sink created under temporary names)."""
     from archive.run.pipeline import build_output, open_inputs, plan_output
 
