@@ -66,8 +66,9 @@ def recipe_request(options) -> dict:
 
 @dataclass
 class BatchOutput:
-    """One output of a batch (a flight, or a tile of flights): its source (id or directory; ids joined by commas), output, request (its recipe), status
-    ('pending', 'done', 'skipped', 'failed'), one-line error, seconds and summary."""
+    """One output of a batch (a flight, or a tile of flights): its source (id or directory; a tile's
+    ids joined by commas), output, request (its recipe), status ('pending', 'done', 'skipped',
+    'failed'), one-line error, seconds and summary."""
 
     source: str
     name: str
