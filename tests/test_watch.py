@@ -98,7 +98,7 @@ def get(url: str):
 # ---- completeness -------------------------------------------------------------------------------
 def test_a_cube_is_complete_only_whole_and_still(source, tmp_path):
     from archive.watch.cubes import check_cube, image_set
-    from archive.watch.follow import Complete, Follower, Skipped
+    from archive.watch.follow import Changed, Complete, Follower, Skipped
 
     folder = tmp_path / "rec"
     replay(source[0], folder, cubes=slice(0, 1), stop_after=(0, 0.5), speed=50)   # dies half way: no header
@@ -121,6 +121,11 @@ def test_a_cube_is_complete_only_whole_and_still(source, tmp_path):
     events = follower.scan(122.5)
     assert [(type(e), e.cube.base) for e in events] == [(Complete, "sim_Pika_L_2")]
     assert events[0].cube.check.lines == 150
+    # a recorder restarted under the same names writes over it: no longer complete, looked at again
+    replay(source[0], folder, cubes=slice(1, 2), stop_after=(0, 0.3), speed=50)
+    events = follower.scan(123.0)
+    assert [type(e) for e in events] == [Changed] and events[0].cube.state == "growing"
+    assert follower.scan(140.0)[0].why.startswith("incomplete for 17 s (sim_Pika_L_2.bil holds")
     # image sets of real recorder names (a new set is a new flight)
     assert image_set("Juvika_June2022_Pika_L_12") == "Juvika_June2022_Pika_L"
     assert image_set("20160228_17h18m_pika_L_1") == "20160228_17h18m_pika_L"
@@ -264,7 +269,8 @@ def test_faults_one_line_each_and_sigterm_then_resume(source, tmp_path):
     assert not list((archive / "catalog" / "items").glob("*.json")) if (archive / "catalog" / "items").exists() else True
 
     again = Watcher(str(folder), "--archive", str(archive), "--fov", str(FOV), "--idle", "1", "--settle", "0.1",
-                    "--stall", "1", "--no-view", "--quiet")
+                    "--stall", "1", "--no-view", "--quiet", "--poll", "0.3")   # polling, as on a network mount
+    again.wait_for(r"following 1 folder \(polling every 0.3 s\)")
     for name in ("sim_Pika_L", "restart"):
         again.wait_for(f"recorder/{name}: ingested as", timeout=120)
     assert again.stop() == 0, again.text()
