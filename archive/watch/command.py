@@ -260,7 +260,7 @@ class Watch:
         cid = out.split(":", 1)[0].strip() if out.strip() else None
         flight.collection, flight.ingested, flight.failed = cid, cubes, None
         self.record[flight.name] = {"folder": str(flight.key[0]), "collection": cid,
-                                    "cubes": [[b, list(map(list_or_none, s))] for b, s in cubes]}
+                                    "cubes": [[b, list(map(_listed, s))] for b, s in cubes]}
         self._write_record()
         still = self._ready(flight, now) is None and all(c.state != "growing" for c in self._complete_cubes(flight))
         self.state.flight(flight.name, status="ingested", collection=cid, complete=still, ingest_seconds=round(seconds, 3))
@@ -314,7 +314,7 @@ class Watch:
         return max(0.05, min(d for d in due if d > -1.0) if due else 1.0)
 
 
-def list_or_none(v):
+def _listed(v):
     return None if v is None else list(v)
 
 
