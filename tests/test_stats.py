@@ -135,6 +135,22 @@ def test_zone_means_match_the_truth_for_every_flight(field, tmp_path):
     _check_truth(table, field)
     assert set(table["bands"]) == {"N=828.6nm,R=657.1nm"}
     assert len(table) == (len(field[4]) + 2) * 2
+    # the lazy index of archive.stack: (time, y, x), the patches' NDVI on both dates
+    from archive.analysis.indices import stack_index
+
+    da = archive.stack({"datetime": "2024-06-01/2024-07-01"}, archive=field[1], gsd=GSD, mode="reflectance",
+                       wavelengths=[655, 830])
+    ndvi = stack_index(da, "NDVI")
+    assert ndvi.dims == ("time", "y", "x") and ndvi.attrs["bands"] == "N=828.6nm,R=657.1nm"
+    values = ndvi.values
+    xx, yy = np.meshgrid(ndvi["x"].values, ndvi["y"].values)
+    zones = {f["id"]: Polygon(f["geometry"]["coordinates"][0]) for f in json.loads(field[3].read_text())["features"]}
+    for zid, true in field[4].items():
+        lon, lat = field[2][0].from_utm(xx, yy, crs=4326)
+        inside = shapely.contains_xy(zones[zid], lon, lat)
+        assert inside.sum() > 30
+        for t in range(2):
+            assert abs(np.nanmean(values[t][inside]) - true) < 0.005, (zid, t)
 
 
 def test_cli_and_api_on_a_scheduler_give_the_same_table(field, scheduler, tmp_path):

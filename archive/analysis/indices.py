@@ -34,7 +34,7 @@ import numpy as np
 from archive.errors import InputError
 
 __all__ = ["FUNCTIONS", "BoundIndex", "IndexSpec", "bind_indices", "catalogue_names", "evaluate", "named_index",
-           "parse_expression", "parse_indices"]
+           "parse_expression", "parse_indices", "stack_index"]
 
 #: The functions an expression may call (elementwise, over numpy arrays).
 FUNCTIONS = {"sqrt": np.sqrt, "abs": np.abs, "exp": np.exp, "log": np.log, "log10": np.log10,
@@ -245,24 +245,9 @@ def bind_indices(specs: Sequence[IndexSpec], wavelengths: Sequence[float] | None
     return out
 
 
-def evaluate(index: BoundIndex, values: Mapping[float, np.ndarray]) -> np.ndarray:
-    """The index from ``values`` (camera band wavelength nm -> array, one shape; a band is found
-    within 0.01 nm of its centre), float32, NaN where a band is NaN or the formula has no finite
-    value (0/0, a log of a negative)."""
-    bands = dict(index.bands)
-    given = list(values)
-    nms = np.asarray(given, float)
-
-    def band(nm: float) -> np.ndarray:   # the band of that centre (a float32 copy of the nm may differ by ulps)
-        k = int(np.argmin(np.abs(nms - nm))) if nms.size else -1
-        if k < 0 or abs(nms[k] - nm) > 0.01:
-            raise InputError(index.name, f"needs the band at {nm:.3f} nm, which the values lack")
-        return np.asarray(values[given[k]], np.float32)
-
-    env: dict[str, object] = {s: band(nm) for s, nm in bands.items()}
-    env.update({f"lambda{s}": np.float32(nm) for s, nm in bands.items()})
-    env.update({k: np.float32(v) for k, v in index.spec.constants})
-
+def _walk(index: BoundIndex, env: Mapping[str, object]):
+    """The checked tree of ``index`` over ``env`` (symbol -> array: numpy, or a lazy xarray/dask one:
+    numpy's ufuncs keep them lazy)."""
     def walk(node: ast.AST):
         if isinstance(node, ast.BinOp):
             return _OPS[type(node.op)](walk(node.left), walk(node.right))
@@ -283,9 +268,57 @@ def evaluate(index: BoundIndex, values: Mapping[float, np.ndarray]) -> np.ndarra
             return func(*args)
         raise AssertionError(type(node))   # the tree was checked when parsed
 
+    return walk(index.spec.tree.body)
+
+
+def _env(index: BoundIndex, band) -> dict[str, object]:
+    bands = dict(index.bands)
+    env: dict[str, object] = {s: band(nm) for s, nm in bands.items()}
+    env.update({f"lambda{s}": np.float32(nm) for s, nm in bands.items()})
+    env.update({k: np.float32(v) for k, v in index.spec.constants})
+    return env
+
+
+def _nearest(index: BoundIndex, nms: np.ndarray, nm: float) -> int:
+    """The position in ``nms`` of the band centred at ``nm`` (a float32 copy of a centre may differ by ulps)."""
+    k = int(np.argmin(np.abs(nms - nm))) if nms.size else -1
+    if k < 0 or abs(nms[k] - nm) > 0.01:
+        raise InputError(index.name, f"needs the band at {nm:.3f} nm, which the values lack")
+    return k
+
+
+def evaluate(index: BoundIndex, values: Mapping[float, np.ndarray]) -> np.ndarray:
+    """The index from ``values`` (camera band wavelength nm -> array, one shape; a band is found
+    within 0.01 nm of its centre), float32, NaN where a band is NaN or the formula has no finite
+    value (0/0, a log of a negative)."""
+    given = list(values)
+    nms = np.asarray(given, float)
+    env = _env(index, lambda nm: np.asarray(values[given[_nearest(index, nms, nm)]], np.float32))
     with np.errstate(all="ignore"):
-        out = np.asarray(walk(index.spec.tree.body), np.float32)
+        out = np.asarray(_walk(index, env), np.float32)
     shape = np.broadcast_shapes(*(np.shape(v) for v in values.values())) if values else ()
     out = np.broadcast_to(out, shape).astype(np.float32, copy=True)
     out[~np.isfinite(out)] = np.nan
+    return out
+
+
+def stack_index(da, index: str):
+    """The index ``index`` (a catalogue name, or ``NAME=EXPR``) of a lazy stack or mosaic ``da``
+    (``archive.stack``, ``archive.mosaic(...)[variable]``: a DataArray with a ``band`` dimension and
+    a ``wavelength`` coordinate, in nm), as a lazy DataArray without the ``band`` dimension (time, y,
+    x for a stack), float32, NaN where not finite; named by the index, its band mapping in
+    ``attrs["bands"]``. Only the bands the index reads are computed when it is. InputError when
+    ``da`` lacks a band the index needs (render the stack with those wavelengths, or all bands)."""
+    import xarray as xr
+
+    spec = parse_expression(index) if "=" in str(index) else named_index(str(index))
+    nms = np.asarray(da["wavelength"].values, float)
+    (bound,) = bind_indices([spec], nms, "the stack")
+    env = _env(bound, lambda nm: da.isel(band=_nearest(bound, nms, nm)).drop_vars(
+        [c for c in da.coords if "band" in da[c].dims], errors="ignore").astype(np.float32))
+    with np.errstate(all="ignore"):
+        out = xr.DataArray(_walk(bound, env)).astype(np.float32)
+    out = out.where(np.isfinite(out))
+    out.name = bound.name
+    out.attrs = {"long_name": bound.name, "bands": bound.describe(), "formula": spec.text}
     return out
