@@ -165,7 +165,7 @@ def test_cli_and_api_on_a_scheduler_give_the_same_table(field, scheduler, tmp_pa
     assert "wrote" in done.stdout and out.exists()
     cli = pd.read_csv(out, parse_dates=["datetime"])
     _check_truth(cli, field)
-    api = archive.zonal_stats({"datetime": "2024-06-01/2024-07-01"}, field[3], "NDVI", expressions=[expr],
+    api = archive.zonal_stats({"datetime": "2024-06-01/2024-07-01"}, field[3], "NDVI", expression=[expr],
                               archive=field[1], gsd=GSD, scheduler=scheduler)
     assert list(cli["zone"]) == list(api["zone"]) and list(cli["index"]) == list(api["index"])
     for column in ("count", "coverage", "mean", "std", "min", "p10", "median", "p90", "max"):

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from typing import TYPE_CHECKING
 
+from archive.api_errors import python_errors
 from archive.errors import InputError, OutputExistsError
 
 if TYPE_CHECKING:
@@ -78,7 +79,14 @@ def _sources(ids_or_query, archive) -> list[str]:
     return [os.fspath(s) for s in ids_or_query]
 
 
-def zonal_stats(ids_or_query, zones, indices: str | Sequence[str] = (), expressions: str | Sequence[str] = (), *,
+def _keywords() -> tuple[str, ...]:
+    from archive.run.options import KEYWORDS
+
+    return (*KEYWORDS, "index", "expression", "zone_id", "geometry", "scheduler", "workers", "threads", "quiet")
+
+
+@python_errors("archive.zonal_stats", _keywords)
+def zonal_stats(ids_or_query, zones, index: str | Sequence[str] = (), expression: str | Sequence[str] = (), *,
                 zone_id: str | None = None, geometry: bool = False, scheduler: str | None = None,
                 workers: int | None = None, threads: int | None = None, quiet: bool = True, mode: str = "reflectance",
                 **options) -> pd.DataFrame:
@@ -87,8 +95,8 @@ def zonal_stats(ids_or_query, zones, indices: str | Sequence[str] = (), expressi
     ``geopandas.GeoDataFrame`` with ``geometry``.
 
     ids_or_query: collection ids / raw flight directories, or a query dict ({"bbox", "datetime",
-    "wavelength"}) of ``archive``; zones: a .geojson/.gpkg/.shp path (any CRS); indices: catalogue
-    names ('NDVI'); expressions: 'NAME=EXPR' band math (``R<nm>``); zone_id: the property naming the
+    "wavelength"}) of ``archive``; zones: a .geojson/.gpkg/.shp path (any CRS); index: catalogue
+    names ('NDVI', or a list); expression: 'NAME=EXPR' band math (``R<nm>``; or a list); zone_id: the property naming the
     zones; mode: what indices are computed from (default 'reflectance'); scheduler: a Dask scheduler
     address (default a local cluster of ``workers`` x ``threads``). Render options as
     :func:`archive.stack` (gsd or like required; fov for raw flights; crs, ground_height, dem,
@@ -98,25 +106,19 @@ def zonal_stats(ids_or_query, zones, indices: str | Sequence[str] = (), expressi
     from archive.analysis.indices import parse_indices
     from archive.analysis.zonal import check_options, zonal_table
     from archive.analysis.zones import read_zones
-    from archive.api_errors import python_errors
-    from archive.run.options import KEYWORDS, RenderOptions
+    from archive.run.options import RenderOptions
 
-    @python_errors("archive.zonal_stats", lambda: (*KEYWORDS, "zone_id", "geometry", "scheduler", "workers",
-                                                   "threads", "quiet"))
-    def call():
-        names = [indices] if isinstance(indices, str) else list(indices)
-        texts = [expressions] if isinstance(expressions, str) else list(expressions)
-        specs = parse_indices(names, texts)
-        found = read_zones(zones, zone_id)
-        where = options.get("archive")
-        if where is not None and hasattr(where, "path"):
-            options["archive"] = str(where.path)
-        request = RenderOptions.create(_sources(ids_or_query, where), mode=mode, **options)
-        check_options(request)
-        return zonal_table(request, found, specs, geometry=geometry, scheduler=scheduler, workers=workers,
-                           threads=threads, quiet=quiet)
-
-    return call()
+    names = [index] if isinstance(index, str) else list(index)
+    texts = [expression] if isinstance(expression, str) else list(expression)
+    specs = parse_indices(names, texts)
+    found = read_zones(zones, zone_id)
+    where = options.get("archive")
+    if where is not None and hasattr(where, "path"):
+        options["archive"] = str(where.path)
+    request = RenderOptions.create(_sources(ids_or_query, where), mode=mode, **options)
+    check_options(request)
+    return zonal_table(request, found, specs, geometry=geometry, scheduler=scheduler, workers=workers,
+                       threads=threads, quiet=quiet)
 
 
 def run(args: argparse.Namespace) -> int:
