@@ -202,8 +202,13 @@ def stack(ids_or_query, *, band_group: int | None = None, quiet: bool = True, **
     values as the Zarr stack and as ``archive render ID --like X.zarr``, bit for bit); ``time`` is
     each flight's first line (UTC, datetime64[ns]) in time order, ``flight`` its id. Computing a
     window (``.sel(x=slice(...), y=slice(...))``, one ``time``) renders only its tiles.
+    ``.archive.index("NDVI")`` (or ``"NAME=EXPR"``) is a spectral index of it, as lazy (time, y, x)
+    (:func:`archive.analysis.indices.stack_index`).
     """
+    from archive.analysis.indices import register_accessor
     from archive.run.stacks import stack as lazy_stack
+
+    register_accessor()   # .archive.index("NDVI") on the stack
 
     return lazy_stack(_options(_stack_sources(ids_or_query, options), options), band_group=band_group,
                       quiet=quiet)

@@ -141,6 +141,7 @@ def test_zone_means_match_the_truth_for_every_flight(field, tmp_path):
     da = archive.stack({"datetime": "2024-06-01/2024-07-01"}, archive=field[1], gsd=GSD, mode="reflectance",
                        wavelengths=[655, 830])
     ndvi = stack_index(da, "NDVI")
+    np.testing.assert_array_equal(da.archive.index("NDVI").values, ndvi.values)   # the accessor's
     assert ndvi.dims == ("time", "y", "x") and ndvi.attrs["bands"] == "N=828.6nm,R=657.1nm"
     values = ndvi.values
     xx, yy = np.meshgrid(ndvi["x"].values, ndvi["y"].values)

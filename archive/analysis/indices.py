@@ -322,3 +322,23 @@ def stack_index(da, index: str):
     out.name = bound.name
     out.attrs = {"long_name": bound.name, "bands": bound.describe(), "formula": spec.text}
     return out
+
+
+def register_accessor() -> None:
+    """Register ``DataArray.archive`` (once): ``archive.stack(...).archive.index("NDVI")`` is
+    :func:`stack_index` of the stack (``archive.stack`` and ``archive.mosaic`` call this)."""
+    import xarray as xr
+
+    if hasattr(xr.DataArray, "archive"):
+        return
+
+    @xr.register_dataarray_accessor("archive")
+    class ArchiveAccessor:
+        """What the archive adds to a lazy stack or mosaic variable: ``.archive.index(NAME|NAME=EXPR)``."""
+
+        def __init__(self, da):
+            self._da = da
+
+        def index(self, index: str):
+            """:func:`stack_index` of this DataArray."""
+            return stack_index(self._da, index)
