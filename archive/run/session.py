@@ -107,11 +107,14 @@ class Session:
 
     ``scheduler``: an address, an :class:`archive.run.cluster.SlurmJobs`, a
     :class:`archive.run.cluster.ClusterStart` or None (a local cluster of ``workers`` processes of
-    ``threads`` threads); ``what``: what the run writes, for the warning of a close that fails."""
+    ``threads`` threads); ``what``: what the run writes, for the warning of a close that fails;
+    ``connect``: how to start or reach the cluster instead of
+    :func:`archive.run.cluster.start_cluster` (an ingest's workers need no GPU)."""
 
     def __init__(self, scheduler, workers: int | None, threads: int | None, say: Callable[[str], None], *,
-                 what: str, command: str = "archive render"):
+                 what: str, command: str = "archive render", connect: Callable | None = None):
         self._args = (scheduler, workers, say, threads)
+        self._connect = connect   # (scheduler, workers, say, threads) -> (client, cluster): not a render's
         self.what, self.command = what, command
         self.client = self.cluster = None
         self._closing: ClusterClose | None = None
@@ -127,7 +130,10 @@ class Session:
         from distributed import LocalCluster
 
         scheduler, _, say, threads = self._args
-        self.client, self.cluster = in_process(threads) if scheduler == IN_PROCESS else start_cluster(*self._args)
+        if scheduler == IN_PROCESS:
+            self.client, self.cluster = in_process(threads)
+        else:
+            self.client, self.cluster = (self._connect or start_cluster)(*self._args)
         # a shared scheduler or Slurm jobs go on after the command: their tasks may still write
         self._outlives = not isinstance(self.cluster, LocalCluster)
         return self
