@@ -49,7 +49,7 @@ from pathlib import Path
 from archive import storage
 from archive.errors import ArchiveError, InputError
 from archive.files import FileLock, path_exists, remove_path, test_hold, write_atomic
-from archive.run.session import BatchSummary, Job, render_summary
+from archive.run.session import BatchSummary, Job, render_failure, render_summary
 
 __all__ = ["LOCK", "REPORT", "BatchOutput", "recipe_request", "run_batch"]
 
@@ -206,17 +206,8 @@ def _decide(flight: BatchOutput, resume: bool, overwrite: bool) -> None:
 
 
 def _reason(exc: BaseException) -> str:
-    """One line saying why a flight failed."""
-    from distributed import KilledWorker
-
-    if isinstance(exc, ArchiveError):
-        text = str(exc)
-    elif isinstance(exc, KilledWorker):
-        text = (f"a Dask worker died while rendering it ({exc}); it may have run out of memory or crashed in "
-                "OpenGL: try a larger --gsd or fewer --wavelengths")
-    else:
-        text = f"a render task failed: {type(exc).__name__}: {exc}"
-    return " ".join(text.split())
+    """One line saying why a flight failed (:func:`archive.run.session.render_failure`)."""
+    return " ".join(render_failure(exc).split())
 
 
 class _Report:

@@ -12,7 +12,7 @@ from archive.run import cluster as clusters
 from archive.run.cluster import ClusterClose, closed_or_warned, flight_slots, start_cluster, task_budget, wait_for_writers
 
 __all__ = ["IN_PROCESS", "BatchSummary", "Job", "RenderSummary", "Session", "StackSummary", "Waves", "in_process",
-           "render_summary"]
+           "render_failure", "render_summary"]
 
 #: The ``scheduler`` of a run in this process: one worker's threads, no worker process to spawn (a
 #: small job: ``archive render`` picks it below :data:`archive.run.command.SMALL_JOB_BYTES` of DN).
@@ -129,7 +129,7 @@ class Session:
         """Start (or take) the cluster; returns the session."""
         from distributed import LocalCluster
 
-        scheduler, _, say, threads = self._args
+        scheduler, _, _, threads = self._args
         if scheduler == IN_PROCESS:
             self.client, self.cluster = in_process(threads)
         else:
@@ -276,3 +276,19 @@ def in_process(threads: int | None = None):
     client = Client(cluster)
     threading.Thread(target=warm_up, name="archive-warm-up", daemon=True).start()
     return client, cluster
+
+
+def render_failure(exc: BaseException) -> str:
+    """Why a render task of an output failed, in the words a batch's line and a stack's error give
+    after the output's name: an ArchiveError's own text, a dead worker's likely causes, else the
+    exception's type and text."""
+    from distributed import KilledWorker
+
+    from archive.errors import ArchiveError
+
+    if isinstance(exc, ArchiveError):
+        return str(exc)
+    if isinstance(exc, KilledWorker):
+        return (f"a Dask worker died while rendering it ({exc}); it may have run out of memory or crashed in "
+                "OpenGL: try a larger --gsd or fewer --wavelengths")
+    return f"a render task failed: {type(exc).__name__}: {exc}"

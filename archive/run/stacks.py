@@ -57,7 +57,7 @@ from archive.errors import InputError, NoLineOnGrid
 from archive.files import FileLock, host_name, path_exists, remove_path, replace_path
 from archive.grid import Grid, GridRequest
 from archive.outputs.stack import STACK_ATTR, StackFlight, StackLayout, add_slice, commit_stack, read_stack
-from archive.run.session import StackSummary
+from archive.run.session import StackSummary, render_failure
 
 __all__ = ["STACK_ATTR", "StackFlight", "read_stack", "run_stack", "stack", "stack_grid", "survey"]
 
@@ -401,8 +401,6 @@ class _Slice:
 def _check(record, status: str, exc: BaseException | None) -> None:
     """A finished task of a time step (:meth:`archive.run.session.Waves.next_done`): its error as an
     ArchiveError naming the flight (the stack stops)."""
-    from distributed import KilledWorker
-
     from archive.errors import ArchiveError, RenderError
 
     if record is None or status == "finished":
@@ -412,10 +410,7 @@ def _check(record, status: str, exc: BaseException | None) -> None:
         raise RenderError(f"{name}: its tasks were cancelled (the scheduler lost them)")
     if isinstance(exc, ArchiveError):
         raise exc
-    if isinstance(exc, KilledWorker):
-        raise RenderError(f"{name}: a Dask worker died while rendering it ({exc}); it may have run out of "
-                          "memory or crashed in OpenGL: try a larger --gsd or fewer --wavelengths")
-    raise RenderError(f"{name}: a render task failed: {type(exc).__name__}: {exc}")
+    raise RenderError(f"{name}: {render_failure(exc)}")
 
 
 #: Processing attributes that differ between the flights of a stack (kept per flight, not at the root).
