@@ -38,7 +38,9 @@ def _with_token(token: str) -> list[psutil.Process]:
 
 def test_a_render_run_as_a_program_records_its_phases_and_leaves_nothing(small_flight, tmp_path):
     out = tmp_path / "m.zarr"
-    cmd = timeline.render_command(small_flight, out, 0.05, "auto", None)
+    # --workers: a flight this small would otherwise render in this process (run.command.small_job);
+    # the phases asked for here are the local cluster's
+    cmd = timeline.render_command(small_flight, out, 0.05, "auto", None, extra=("--workers", "2"))
     token = uuid.uuid4().hex
     R = timeline.analyse(timeline.run_timeline(cmd, interval=0.05, env={"ARCHIVE_TEST_TOKEN": token}))
     assert R["returncode"] == 0, R["stderr"]
