@@ -48,7 +48,8 @@ def is_url(loc: Any) -> bool:
 
 def location(loc: str | os.PathLike) -> Path | Any:
     """``loc`` as a path object: a :class:`upath.UPath` for an ``s3://`` URL (listing cache off, so
-    that a reader sees other processes' writes), else a :class:`pathlib.Path`."""
+    that a reader sees other processes' writes; the endpoint of the environment named, so that s3fs's
+    cached filesystem of another endpoint is not reused), else a :class:`pathlib.Path`."""
     if is_url(loc):
         if not isinstance(loc, str):
             return loc
@@ -56,7 +57,8 @@ def location(loc: str | os.PathLike) -> Path | Any:
 
         if not split_url(loc)[0]:
             raise InputError(loc, "names no bucket", "write s3://BUCKET/PREFIX")
-        return UPath(loc.rstrip("/"), use_listings_cache=False)
+        endpoint = _endpoint()
+        return UPath(loc.rstrip("/"), use_listings_cache=False, **({"endpoint_url": endpoint} if endpoint else {}))
     return Path(loc)
 
 
