@@ -239,6 +239,10 @@ class Waves:
         future = next(self._completed)
         owner = self._owners.pop(future.key, None)
         status = future.status
+        if status not in ("error", "cancelled"):
+            # it was yielded because it finished: "pending"/"lost" now only says that its worker left
+            # since (a cancelled Slurm job), taking the task's small result with it; the write was done
+            status = "finished"
         exc = future.exception() if status == "error" else None
         future.release()
         if owner is not None and status == "finished":
