@@ -103,20 +103,14 @@ def _write_report(path, flights: list[_Flight], complete: bool) -> None:
 
 
 def _reason(exc: BaseException) -> str:
-    """One line saying why a flight failed."""
-    from distributed import KilledWorker
+    """One line saying why a flight failed (:func:`archive.run.session.task_failure`)."""
+    from archive.run.session import task_failure
 
-    if isinstance(exc, ArchiveError | TaskFailed):
-        text = str(exc)
-    elif isinstance(exc, KilledWorker):
-        text = (f"a Dask worker died while ingesting it ({exc}); it may have run out of memory: give the workers "
-                "more memory or fewer threads")
-    else:
-        text = f"{type(exc).__name__}: {exc}"
-    return " ".join(text.split())
+    return " ".join(task_failure(exc, "ingesting", "it may have run out of memory: give the workers more memory or "
+                                 "fewer threads", known=(TaskFailed,)).split())
 
 
-def _connect(scheduler, workers: int | None, threads: int | None, say):
+def _connect(scheduler, workers: int | None, say, threads: int | None):
     """(client, cluster or None): a scheduler's address (its workers need no GPU for ingest), Slurm worker
     jobs or a local cluster (:func:`archive.run.cluster.start_cluster`)."""
     from archive.run.cluster import SlurmJobs, start_cluster
@@ -145,7 +139,7 @@ def ingest_on_cluster(directories: list[str], archive_path, arguments: PrepareAr
     from distributed import wait
     from tqdm import tqdm
 
-    from archive.run.cluster import close_client, closed_or_warned
+    from archive.run.session import Session
 
     say = tell or (lambda line: None)
     seen: dict[str, _Flight] = {}
@@ -155,7 +149,11 @@ def ingest_on_cluster(directories: list[str], archive_path, arguments: PrepareAr
     arguments = arguments.absolute()
     root = open_archive_root(archive_path if storage.is_url(archive_path) else os.path.abspath(archive_path))
     _write_report(report, flights, False)
-    client, cluster = _connect(scheduler, workers, threads, lambda line: print(line, file=sys.stderr))
+    # the cluster's lifecycle as a render's (start, tasks given up cancelled and, on a cluster that outlives
+    # the command, their writers waited for at the end, a failing close one warning line)
+    session = Session(scheduler, workers, threads, lambda line: print(line, file=sys.stderr), what=str(root.path),
+                      command="archive ingest", connect=_connect).start()
+    client = session.client
     bar = tqdm(total=len(flights), desc="flights", unit="flight", disable=not progress, file=sys.stderr)
     owners: dict[str, _Flight] = {}   # cid -> the flight of this command that holds it
     try:
@@ -172,8 +170,8 @@ def ingest_on_cluster(directories: list[str], archive_path, arguments: PrepareAr
             flight.seconds = time.perf_counter() - flight.started
             for future in flight.futures:
                 active.pop(future, None)
-            if any(not f.done() for f in flight.futures):
-                client.cancel([f for f in flight.futures if not f.done()], force=True)
+            if status == "failed":
+                session.abandon(flight.futures, wait=False)
             flight.futures, flight.results, flight.plan = [], [], None
             if flight in running:
                 running.remove(flight)
@@ -282,6 +280,8 @@ def ingest_on_cluster(directories: list[str], archive_path, arguments: PrepareAr
                     flight = checking.pop(future)
                     if future.status == "error":
                         finish(flight, "failed", _reason(future.exception()))
+                    elif future.status == "cancelled":
+                        finish(flight, "failed", "its checks were cancelled (the scheduler lost them)")
                     else:
                         guard(flight, lambda flight=flight, future=future: checked(flight, future.result()))
                     future.release()
@@ -290,7 +290,7 @@ def ingest_on_cluster(directories: list[str], archive_path, arguments: PrepareAr
                 if owner is None:
                     continue
                 flight, index = owner
-                if future.status != "finished":
+                if future.status in ("error", "cancelled"):   # "lost" (its worker left since): result() waits
                     why = _reason(future.exception()) if future.status == "error" else \
                         "its tasks were cancelled (the scheduler lost them)"
                     finish(flight, "failed", why)
@@ -304,7 +304,7 @@ def ingest_on_cluster(directories: list[str], archive_path, arguments: PrepareAr
         for flight in flights:
             if flight.lock is not None:
                 flight.lock.release()
-        closed_or_warned(lambda: close_client(client, cluster), "archive ingest", str(root.path))
+        session.close()
     _write_report(report, flights, all(f.status != "pending" for f in flights))
     done_ids = [f.cid for f in flights if f.status in ("ingested", "resumed", "already ingested")]
     if not root.is_url and done_ids:   # the viewer's overviews, as a local ingest makes them

@@ -12,7 +12,7 @@ from archive.run import cluster as clusters
 from archive.run.cluster import ClusterClose, closed_or_warned, flight_slots, start_cluster, task_budget, wait_for_writers
 
 __all__ = ["IN_PROCESS", "BatchSummary", "Job", "RenderSummary", "Session", "StackSummary", "Waves", "in_process",
-           "render_failure", "render_summary"]
+           "render_failure", "render_summary", "task_failure"]
 
 #: The ``scheduler`` of a run in this process: one worker's threads, no worker process to spawn (a
 #: small job: ``archive render`` picks it below :data:`archive.run.command.SMALL_JOB_BYTES` of DN).
@@ -282,17 +282,23 @@ def in_process(threads: int | None = None):
     return client, cluster
 
 
-def render_failure(exc: BaseException) -> str:
-    """Why a render task of an output failed, in the words a batch's line and a stack's error give
-    after the output's name: an ArchiveError's own text, a dead worker's likely causes, else the
-    exception's type and text."""
+def task_failure(exc: BaseException, doing: str, death_advice: str, prefix: str = "", known: tuple = ()) -> str:
+    """Why a task of an output or flight failed, in the words that follow its name: an ArchiveError's
+    (or a ``known`` type's) own text, a dead worker's likely causes (``doing``: "rendering"...;
+    ``death_advice``: what to try), else ``prefix`` and the exception's type and text."""
     from distributed import KilledWorker
 
     from archive.errors import ArchiveError
 
-    if isinstance(exc, ArchiveError):
+    if isinstance(exc, (ArchiveError, *known)):
         return str(exc)
     if isinstance(exc, KilledWorker):
-        return (f"a Dask worker died while rendering it ({exc}); it may have run out of memory or crashed in "
-                "OpenGL: try a larger --gsd or fewer --wavelengths")
-    return f"a render task failed: {type(exc).__name__}: {exc}"
+        return f"a Dask worker died while {doing} it ({exc}); {death_advice}"
+    return f"{prefix}{type(exc).__name__}: {exc}"
+
+
+def render_failure(exc: BaseException) -> str:
+    """Why a render task of an output failed, in the words a batch's line and a stack's error give
+    after the output's name (:func:`task_failure`)."""
+    return task_failure(exc, "rendering", "it may have run out of memory or crashed in OpenGL: try a larger --gsd "
+                        "or fewer --wavelengths", "a render task failed: ")
