@@ -227,6 +227,9 @@ def _add_info(sub) -> None:
                    "(default: the collection's, else 47.5)")
     p.add_argument("--sync-offset", type=float, default=0.0, metavar="S", help="camera-to-navigation time offset, seconds (default 0)")
     _add_dem(p, "also check that it covers the swath and report the terrain under the flight")
+    _add_navigation(p, "check and summarise the flight with it instead of its .lcf (its coverage of every line, "
+                       "the track); for a collection: lcf or the name of a track it was ingested with (default: its "
+                       "default source)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 

@@ -3,7 +3,11 @@
 Checks (through :class:`archive.sources.RawFlightSource`): every cube's header and data file size,
 ``.times`` line count and order, ``.lcf`` parse, navigation coverage of every line (with the given
 sync offset), and the calibration if there is one (its bands and samples must fit every cube); with
-``--dem``, that the DEM covers every line's swath (and the terrain under the flight).
+``--dem``, that the DEM covers every line's swath (and the terrain under the flight). ``--navigation``
+checks and summarises the flight with another navigation source, opened as ``render --navigation``
+opens it (:func:`archive.sources.open_source`'s ``navigation``): a raw flight's post-processed
+trajectory (SBET or CSV; one leaving lines without a pose is a NavigationError naming the file, the
+gap and the lines), a collection's ``lcf`` or stored track.
 """
 
 from __future__ import annotations
@@ -74,9 +78,34 @@ def ingest_id(source: RawFlightSource) -> str:
     return collection_id(sensor_name(source.header(0).metadata), start)
 
 
+def navigation_summary(source) -> dict[str, Any]:
+    """Which navigation source ``source`` was opened with (``navigation``: 'lcf', a raw flight's trajectory
+    file, a collection's track name), the one it uses by default and every one it has (``lcf``, then a
+    collection's stored tracks, or the trajectory a raw flight was opened with)."""
+    used = str(getattr(source, "navigation_source", "lcf"))
+    info = getattr(source, "info", None)
+    if info is not None and hasattr(info, "attrs"):   # a collection: the tracks ingest stored
+        record = info.attrs.get("navigation_tracks") or {}
+        names = ["lcf", *sorted(str(n) for n in (record.get("tracks") or {}) if str(n) != "lcf")]
+        return {"navigation": used, "navigation_default": str(record.get("default") or "lcf"),
+                "navigation_sources": names}
+    return {"navigation": used, "navigation_default": "lcf",
+            "navigation_sources": ["lcf"] if used == "lcf" else ["lcf", used]}
+
+
+def _lcf_rows(source, cube: int, track) -> int:
+    """Rows of ``cube``'s ``.lcf``: its track's when it is navigated by the ``.lcf``, else as recorded."""
+    if getattr(source, "navigation_source", "lcf") == "lcf":
+        return int(len(track.time))
+    recorded = getattr(source, "recorded_navigation", None)   # a raw flight's own .lcf
+    lcf = recorded[cube].lcf if recorded is not None else source.info.cubes[cube].lcf
+    return int(len(lcf.time))
+
+
 def summarize(source: RawFlightSource, fov_deg: float, dem=None) -> dict[str, Any]:
-    """Summary of a flight as plain JSON-able values (times s, lengths m, angles deg); with ``dem``
-    (an opened :class:`archive.terrain.dem.Dem`) also ``terrain`` (:func:`terrain_summary`)."""
+    """Summary of a flight as plain JSON-able values (times s, lengths m, angles deg) from the navigation
+    it was opened with (:func:`navigation_summary`: track, altitudes and per cube ``navigation_rows``);
+    with ``dem`` (an opened :class:`archive.terrain.dem.Dem`) also ``terrain`` (:func:`terrain_summary`)."""
     cubes = []
     track_length = 0.0
     track_time = 0.0
@@ -110,7 +139,7 @@ def summarize(source: RawFlightSource, fov_deg: float, dem=None) -> dict[str, An
             "measured_line_rate_hz": _number(1.0 / interval if interval > 0 else None),
             "track_length_m": round(length, 2), "mean_altitude_m": round(float(np.mean(lcf_alt)), 2),
             "lcf": (str(source.files(info.index).lcf.name) if hasattr(source, "files") else f"{info.base}.lcf"),
-            "lcf_rows": int(len(track.time)),
+            "lcf_rows": _lcf_rows(source, info.index, track), "navigation_rows": int(len(track.time)),
         })
     start = source.cubes[0].first_time
     end = float(source.line_times(len(source.cubes) - 1)[-1])
@@ -134,6 +163,7 @@ def summarize(source: RawFlightSource, fov_deg: float, dem=None) -> dict[str, An
         "duration_s": round(duration, 3),
         "start_utc": gps_seconds_to_datetime(start).isoformat(),
         "sync_offset_s": source.params.sync_offset,
+        **navigation_summary(source),
         "epsg": source.frame.epsg,
         "track_length_m": round(track_length, 2),
         "mean_speed_m_s": _number(track_length / track_time if track_time > 0 else None, 2),
@@ -169,6 +199,16 @@ def _downwelling(source) -> str | None:
     return f"{len(sky.cubes)} spectra, calibration {sky.calibration}"
 
 
+def _navigation_line(s: dict[str, Any]) -> list[str]:
+    """The navigation line of :func:`format_summary`: none for a flight whose only source is its ``.lcf``."""
+    sources = s.get("navigation_sources") or ["lcf"]
+    used = s.get("navigation", "lcf")
+    if used == "lcf" and len(sources) == 1:
+        return []
+    listed = ", ".join(f"{n} (default)" if n == s.get("navigation_default") else n for n in sources)
+    return [f"navigation {used} (track and altitude from it); sources: {listed}"]
+
+
 def format_summary(s: dict[str, Any]) -> str:
     """Readable multi-line text of :func:`summarize`'s result."""
     wl = ("no wavelengths" if s["wavelength_min_nm"] is None
@@ -180,6 +220,7 @@ def format_summary(s: dict[str, Any]) -> str:
         f"time       {s['start_utc']}  ({s['start_gps_s']:.3f} s GPS), {s['duration_s']:.1f} s, "
         f"sync offset {s['sync_offset_s']:+.3f} s",
         f"frame      EPSG:{s['epsg']} (WGS 84 / UTM)",
+        *_navigation_line(s),
         f"track      {s['track_length_m']:.1f} m"
         + ("" if s["mean_speed_m_s"] is None else f" at {s['mean_speed_m_s']:.2f} m/s mean")
         + f", altitude {s['mean_altitude_m']:.1f} m mean ({s['min_altitude_m']:.1f}\u2013{s['max_altitude_m']:.1f}) "
@@ -208,8 +249,11 @@ def format_summary(s: dict[str, Any]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``archive info DIR|ID [--archive A] [--fov DEG] [--sync-offset S] [--dem FILE] [--json]``; errors
-    propagate as ArchiveError. A collection ingested with a DEM is summarised over it (``--dem`` wins)."""
+    """``archive info DIR|ID [--archive A] [--fov DEG] [--sync-offset S] [--dem FILE] [--navigation FILE|lcf|NAME
+    [--navigation-columns C]] [--json]``; errors propagate as ArchiveError. A collection ingested with a DEM is
+    summarised over it (``--dem`` wins), and from its default navigation source unless ``--navigation`` names
+    another (``lcf`` or a stored track; a trajectory file is for raw flights, as in ``render``)."""
+    from archive.formats.trajectory import parse_columns
     from archive.terrain.dem import open_dem
     from archive.sources import open_source
     from archive.sources.ground import recorded_dem
@@ -219,16 +263,24 @@ def run(args: argparse.Namespace) -> int:
     if getattr(args, "dem", None) is None and getattr(args, "dem_datum", None) is not None:
         raise InputError("--dem-datum", "gives the vertical datum of a DEM, but no --dem was given",
                          "add --dem FILE, or leave --dem-datum out")
+    navigation = getattr(args, "navigation", None)
+    columns = parse_columns(getattr(args, "navigation_columns", None))
+    if navigation is None and columns is not None:
+        raise InputError("--navigation-columns", "names a CSV trajectory's columns, but no --navigation was given",
+                         "add --navigation FILE, or leave --navigation-columns out")
     if archive is None or Path(args.directory).is_dir():
         fov = 47.5 if fov is None else float(fov)   # info's documented default (a Pika L's)
-        source = RawFlightSource(args.directory, NavigationParams(sync_offset=float(args.sync_offset)))
+        source = RawFlightSource(args.directory, NavigationParams(sync_offset=float(args.sync_offset)),
+                                 navigation=None if navigation in (None, "lcf") else navigation,
+                                 navigation_columns=columns)
         spec = None
     else:
         if fov is None:
             from archive.sources.open import collection_fov
 
             fov = collection_fov(archive, [args.directory])
-        source = open_source(args.directory, NavigationParams(sync_offset=None), archive=archive)
+        source = open_source(args.directory, NavigationParams(sync_offset=None), archive=archive,
+                             navigation=navigation, navigation_columns=columns)
         spec = recorded_dem(source.info.attrs.get("terrain"), str(args.directory))
     if getattr(args, "dem", None) is not None:
         dem = open_dem(args.dem, args.dem_datum)
