@@ -153,14 +153,15 @@ def make_item(cid: str, geometry: dict, bbox: list[float], start: datetime, end:
     return item
 
 
-def write_item(path: str | os.PathLike, item: dict) -> Path:
-    """Write an Item as JSON (temporary name, then rename)."""
+def write_item(path: str | os.PathLike, item: dict, indent: int | None = 1) -> Path:
+    """Write an Item (or any STAC document) as JSON (temporary name, then rename); ``indent`` None:
+    on one line, through json's C encoder (the archive's Collection, one link per Item)."""
     if storage.is_url(path):   # one PUT (atomic); no folders in object storage
         path = storage.location(path)
     else:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, (json.dumps(item, indent=1) + "\n").encode())
+    write_atomic(path, (json.dumps(item, indent=indent) + "\n").encode())
     return path
 
 
