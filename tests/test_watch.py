@@ -201,6 +201,9 @@ def test_live_flight_then_the_collection_of_a_plain_ingest(source, tmp_path):
         time.sleep(0.2)
     assert flight["complete"] and flight["cubes"] == 4 and flight["lines"] == 600 and flight["status"] == "ingested"
     assert flight["cube_ids"] == []   # the collection shows instead of the cubes
+    # the staged cubes served while recording are gone with them (no folder of links left behind)
+    staged = archive / ".watch" / "cubes"
+    assert not staged.exists() or not any(staged.iterdir()), sorted(staged.rglob("*"))[:5]
     assert len(flight["passes"]) == len(truth.strips)
     import shapely
     from pyproj import Transformer

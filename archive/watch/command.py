@@ -206,6 +206,9 @@ class Watch:
             for f in done:
                 if f.collection in ids:
                     self._unlist(f, list(f.live))
+                    # its staged cubes are no longer served: their folders of links go (a cube written
+                    # over later is staged again under a new name)
+                    remove_path(self.work / "cubes" / safe_name(f.name))
 
     def _complete_cubes(self, flight: _Flight) -> list[CubeState]:
         return [c for c in self.follower.flights().get(flight.key, []) if c.state == "complete"]
@@ -259,6 +262,7 @@ class Watch:
             return
         cid = out.split(":", 1)[0].strip() if out.strip() else None
         flight.collection, flight.ingested, flight.failed = cid, cubes, None
+        remove_path(self.work / "flights" / safe_name(flight.name))   # the staged folder ingested, if one was
         self.record[flight.name] = {"folder": str(flight.key[0]), "collection": cid,
                                     "cubes": [[b, list(map(_listed, s))] for b, s in cubes]}
         self._write_record()
