@@ -402,3 +402,30 @@ def test_a_skipped_pass_is_a_gap(tmp_path):
     assert missed.area > 100
     assert gap.intersection(missed).area / missed.area > 0.97
     assert abs(gap.area - true_gap.area) / true_gap.area < 0.05
+
+
+def test_a_live_cube_is_drawn_at_the_ground_height_given(tmp_path):
+    """``watch --ground-height M``: a live cube's coverage is the ground its lines see at M (the simulator's
+    true strip when M is the true ground), not the header's; 20 m higher ground, a narrower swath."""
+    from pyproj import Transformer
+    from shapely.geometry import Polygon, shape
+
+    from archive.simulator.command import simulate_flight
+    from archive.watch.command import _flat_ground
+    from archive.watch.live import cube_feature
+    from archive.watch.stage import stage_links
+
+    truth = simulate_flight(tmp_path / "flight", cubes=1, bands=2, samples=64, lines=300, cubes_per_pass=1, seed=5)
+    staged = stage_links(tmp_path / "staged" / "c0", [tmp_path / "flight" / "sim_Pika_L_1.bil"])
+    to_utm = Transformer.from_crs(4326, truth.epsg, always_xy=True)
+
+    def coverage(ground):
+        ring = cube_feature(staged, FOV, ground)["properties"]["coverage"]["coordinates"][0]
+        return Polygon([to_utm.transform(x, y) for x, y in ring])
+    true = Polygon(truth.footprint()[0])
+    at_truth = coverage(_flat_ground(str(truth.ground_height)))
+    assert at_truth.hausdorff_distance(true) < 0.5 * truth.nominal_gsd
+    higher = coverage(truth.ground_height + 20.0)
+    assert cube_feature(staged, FOV, truth.ground_height + 20.0)["properties"]["ground_height"] == truth.ground_height + 20
+    assert higher.area < 0.9 * true.area and higher.hausdorff_distance(true) > 5 * truth.nominal_gsd
+    assert _flat_ground("auto") is None and _flat_ground(None) is None

@@ -387,7 +387,7 @@ def run(args: argparse.Namespace) -> int:
         from archive.drawing.cache import ByteLRU
 
         limits = cache_bytes(args.cache_mb)
-        registry = LiveRegistry(args.archive, args.fov, bands_cache=ByteLRU(limits["bands"]),
+        registry = LiveRegistry(args.archive, args.fov, _flat_ground(args.ground_height), bands_cache=ByteLRU(limits["bands"]),
                                 lookup_cache=ByteLRU(limits["lookups"]), flights_cache=ByteLRU(limits["flights"]))
 
         listening, failed = threading.Event(), []
@@ -451,3 +451,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _say(line: str) -> None:
     print(line, flush=True)
+
+
+def _flat_ground(value) -> float | None:
+    """The live cubes' flat ground height from ``--ground-height`` (metres; None for auto or none:
+    each cube's header); a value the ingest would refuse is the ingest's to name."""
+    try:
+        return None if value in (None, "auto") else float(value)
+    except ValueError:
+        return None

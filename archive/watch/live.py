@@ -35,17 +35,18 @@ __all__ = ["GAP_MIN_M2", "LiveRegistry", "LiveState", "cube_feature", "live_rout
 GAP_MIN_M2 = 2.0
 
 
-def cube_feature(directory: Path, fov: float) -> dict:
-    """The viewer's Feature of a staged cube (a raw flight of one cube): its footprint at the header's
-    ground height (as the catalog computes a collection's), its times and wavelengths. Raises the
-    source's ArchiveError (naming the file) for a cube the raw reader refuses."""
+def cube_feature(directory: Path, fov: float, ground_height: float | None = None) -> dict:
+    """The viewer's Feature of a staged cube (a raw flight of one cube): its footprint at
+    ``ground_height`` (m; the watch's ``--ground-height``; None: the header's, as the catalog computes a
+    collection's), its times and wavelengths. Raises the source's ArchiveError (naming the file) for a
+    cube the raw reader refuses."""
     from archive.catalog.footprint import flight_footprint
     from archive.formats.lcf import gps_seconds_to_datetime
     from archive.sources import open_source
     from archive.sources.ground import auto_ground_height
 
     source = open_source(directory, NavigationParams())
-    ground = auto_ground_height([source])
+    ground = auto_ground_height([source]) if ground_height is None else float(ground_height)
     pose = source.poses(0)
     fp = flight_footprint(pose.time, pose.position, pose.attitude, source.frame, fov, ground,
                           source.cubes[0].samples, where=str(directory))
@@ -91,13 +92,14 @@ class LiveRegistry(FlightRegistry):
     serves (:meth:`add_cube`, :meth:`remove`; any thread: the dict of raw flights is replaced whole,
     never changed in place, so a request iterating it sees one version)."""
 
-    def __init__(self, archive, fov: float, **caches):
+    def __init__(self, archive, fov: float, ground_height: float | None = None, **caches):
         super().__init__(archive, (), fov, **caches)
+        self.ground_height = ground_height   # the live cubes' (None: each header's)
         self._live_lock = threading.Lock()
 
     def add_cube(self, directory: Path) -> dict:
         """Serve the staged cube ``directory``; its Feature (:func:`cube_feature`)."""
-        feature = cube_feature(Path(directory).absolute(), float(self.fov))
+        feature = cube_feature(Path(directory).absolute(), float(self.fov), self.ground_height)
         with self._live_lock:
             self.raw = {**self.raw, feature["id"]: (Path(directory).absolute(), feature)}
         return feature
