@@ -10,61 +10,20 @@ from the trajectory sits 0.8 m below the ``.lcf``'s.
 
 from __future__ import annotations
 
-import csv
 import json
 import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-import pyproj
 import pytest
 from helpers import TINY_FLIGHT, ingest_each
+from trajectory_writer import COLUMNS, KEYS, write_csv, write_sbet
+from trajectory_writer import true_path as _true_path
 
 from archive.cli import main
 
 BIAS = (1.5, -1.1, 0.8)   # E, N, up metres: the .lcf is off by this
-WEEK = 604800.0
-SBET = np.dtype([(name, "<f8") for name in (
-    "GpsTime", "Y", "X", "Z", "XVelocity", "YVelocity", "ZVelocity", "Roll", "Pitch", "PlatformHeading",
-    "WanderAngle", "XBodyAccel", "YBodyAccel", "ZBodyAccel", "XBodyAngRate", "YBodyAngRate", "ZBodyAngRate")])
-COLUMNS = ("GPS Time (s)", "Latitude (deg)", "Longitude (deg)", "Ellipsoidal Height (m)", "Roll (deg)",
-           "Pitch (deg)", "Heading (deg)")
-MAPPING = ",".join(f"{k}={c}" for k, c in zip(("time", "lat", "lon", "height", "roll", "pitch", "heading"), COLUMNS))
-
-
-def _true_path(truth, rate: float = 200.0):
-    """(GPS seconds, lon, lat, height, roll, pitch, true heading; radians) of the INS, a second either side."""
-    first = min(float(c.line_time[0]) for c in truth.cubes) - 1.0
-    last = max(float(c.line_time[-1]) for c in truth.cubes) + 1.0
-    t = np.arange(first, last, 1.0 / rate)
-    pos, att = truth.ins_trajectory(t)   # UTM E, N, ellipsoidal height; body -> NED about grid north
-    lon, lat = pyproj.Transformer.from_crs(truth.epsg, 4326, always_xy=True).transform(pos[:, 0], pos[:, 1])
-    e1, n1 = pyproj.Transformer.from_crs(4326, truth.epsg, always_xy=True).transform(lon, lat + 1e-4)
-    north = np.arctan2(e1 - pos[:, 0], n1 - pos[:, 1])   # grid azimuth of true north
-    yaw, pitch, roll = att.as_euler("ZYX").T
-    return t, np.radians(lon), np.radians(lat), pos[:, 2], roll, pitch, np.mod(yaw - north, 2 * np.pi)
-
-
-def _write_sbet(path: Path, path_rows) -> Path:
-    t, lon, lat, h, roll, pitch, heading = path_rows
-    rec = np.zeros(t.size, SBET)
-    rec["GpsTime"], rec["Y"], rec["X"], rec["Z"] = np.mod(t, WEEK), lat, lon, h
-    rec["Roll"], rec["Pitch"], rec["PlatformHeading"] = roll, pitch, heading   # wander angle 0
-    rec.tofile(path)
-    return path
-
-
-def _write_csv(path: Path, path_rows) -> Path:
-    t, lon, lat, h, roll, pitch, heading = path_rows
-    with open(path, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(COLUMNS)
-        for row in zip(np.mod(t, WEEK), np.degrees(lat), np.degrees(lon), h, np.degrees(roll), np.degrees(pitch),
-                       np.degrees(heading)):
-            writer.writerow([f"{row[0]:.4f}", f"{row[1]:.9f}", f"{row[2]:.9f}", f"{row[3]:.3f}",
-                             *(f"{v:.5f}" for v in row[4:])])
-    return path
+MAPPING = ",".join(f"{k}={c}" for k, c in zip(KEYS, COLUMNS))
 
 
 @pytest.fixture(scope="module")
@@ -79,9 +38,9 @@ def ppk(simulated, tmp_path_factory):
     first = truth.cubes[0].line_time
     cut = t < float(second[len(second) // 2])
     hole = (t < float(first[5])) | (t > float(first[5]) + 0.5)
-    files = {"sbet": _write_sbet(base / "ppk.sbet", rows), "csv": _write_csv(base / "qinertia.csv", rows),
-             "short": _write_sbet(base / "short.out", [r[cut] for r in rows]),
-             "gap": _write_sbet(base / "gap.out", [r[hole] for r in rows])}
+    files = {"sbet": write_sbet(base / "ppk.sbet", rows), "csv": write_csv(base / "qinertia.csv", rows),
+             "short": write_sbet(base / "short.out", [r[cut] for r in rows]),
+             "gap": write_sbet(base / "gap.out", [r[hole] for r in rows])}
     return flight, files, truth
 
 
