@@ -530,3 +530,49 @@ def test_render_command_round_trips_every_option(tmp_path, monkeypatch):
     assert keywords["out"] == str(tmp_path / "out dir" / "m.zarr") and keywords["quicklook"] == str(tmp_path / "q.png")
     with pytest.raises(InputError, match="render options"):
         render_command({"gsd": 1.0}, "x.tif")
+
+
+def test_the_collection_summarises_many_items_as_the_items_say(tmp_path):
+    """The archive's Collection (asked of the index in SQL since issue 45) against the Item files
+    themselves: 60 synthetic Items at random places and times, some sharing a start or an end time."""
+    import random
+    from datetime import UTC, datetime, timedelta
+
+    from archive.catalog.index import add_rows, row_from_item
+    from archive.catalog.root import create_archive
+    from archive.catalog.stac import make_item, write_item
+    from archive.catalog.tree import item_links, write_catalog
+
+    rng = random.Random(4)
+    root = create_archive(tmp_path / "archive")
+    t0 = datetime(2020, 1, 1, tzinfo=UTC)
+    rows, items = [], []
+    for k in range(60):
+        cid = f"sim-{k:03d}"
+        lon, lat = rng.uniform(-120, -70), rng.uniform(25, 50)
+        start = t0 + timedelta(hours=rng.choice([0, 5, 9, 9, 30, 48]), minutes=k % 7)
+        end = start + timedelta(minutes=rng.choice([3, 10, 10]))
+        ring = [[lon, lat], [lon + 0.01, lat], [lon + 0.01, lat + 0.01], [lon, lat + 0.01], [lon, lat]]
+        item = make_item(cid, {"type": "Polygon", "coordinates": [ring]}, [lon, lat, lon + 0.01, lat + 0.01], start,
+                         end, [500.0, 600.0], 2, rng.choice(["Pika L", "Pika XC2"]), rng.choice([0.03, 0.05, 0.04]),
+                         f"../../collections/{cid}.zarr", collection=COLLECTION_ID, links=item_links())
+        path = write_item(root.item_path(cid), item)
+        items.append(item)
+        rows.append(row_from_item(item, path.relative_to(root.path).as_posix()))
+    add_rows(root.index_path, rows)
+    write_catalog(root)
+    doc = _json(root.collection_path)
+    (bbox,) = doc["extent"]["spatial"]["bbox"]
+    assert bbox == pytest.approx([min(i["bbox"][0] for i in items), min(i["bbox"][1] for i in items),
+                                  max(i["bbox"][2] for i in items), max(i["bbox"][3] for i in items)])
+    (interval,) = doc["extent"]["temporal"]["interval"]
+    starts = [i["properties"]["start_datetime"] for i in items]
+    ends = [i["properties"]["end_datetime"] for i in items]
+    assert interval == [min(starts), max(ends)]
+    assert doc["summaries"]["instruments"] == sorted({i["properties"]["instruments"][0] for i in items})
+    gsds = [i["properties"]["gsd"] for i in items if i["properties"].get("gsd") is not None]
+    assert doc["summaries"]["gsd"] == {"minimum": min(gsds), "maximum": max(gsds)}
+    by_time = sorted(items, key=lambda i: (i["properties"]["start_datetime"], i["id"]))
+    assert [ln["title"] for ln in doc["links"] if ln["rel"] == "item"] == [i["id"] for i in by_time]
+    assert all((root.collection_path.parent / ln["href"]).is_file() for ln in doc["links"] if ln["rel"] == "item")
+    pystac.Collection.from_dict(doc).validate()

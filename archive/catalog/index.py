@@ -537,6 +537,26 @@ def search(path: str | os.PathLike, bbox: tuple[float, float, float, float] | No
             return [_row(r) for r in con.execute(sql, params)]
 
 
+def collection_summary(path: str | os.PathLike) -> dict:
+    """What the archive's STAC Collection says of its Items, asked of the index in SQL (no row object
+    per Item: an ingest rewrites the Collection, and at 10,000 Items that was most of its cost):
+    ``bbox`` (west, south, east, north degrees; None when empty), ``start_iso`` of the first Item and
+    ``end_iso`` of the one ending last (ties as :func:`search` orders them), ``sensors`` (sorted),
+    ``gsd`` (min, max m; None when none is known) and ``links``: (id, item_path) sorted by start time,
+    then id."""
+    with closing(connect_readonly(path)) as con:
+        w, s, e, n, g0, g1 = con.execute("SELECT MIN(west), MIN(south), MAX(east), MAX(north), MIN(gsd), MAX(gsd) "
+                                         "FROM items").fetchone()
+        first = con.execute("SELECT start_iso FROM items ORDER BY start_time, id LIMIT 1").fetchone()
+        last = con.execute("SELECT end_iso FROM items ORDER BY end_time DESC, start_time, id LIMIT 1").fetchone()
+        sensors = [r[0] for r in con.execute("SELECT DISTINCT sensor FROM items WHERE sensor IS NOT NULL AND "
+                                             "sensor != '' ORDER BY sensor")]
+        links = con.execute("SELECT id, item_path FROM items ORDER BY start_time, id").fetchall()
+    return {"bbox": None if first is None else (w, s, e, n), "start_iso": first and first[0],
+            "end_iso": last and last[0], "sensors": sensors, "gsd": None if g0 is None else (float(g0), float(g1)),
+            "links": links}
+
+
 def _archive_of(index: str | os.PathLike) -> ArchiveRoot | None:
     """The archive whose own index ``index`` is (``<ARCHIVE>/catalog/index.sqlite``), else None."""
     path = Path(index)
