@@ -715,3 +715,64 @@ def test_the_opening_view_is_at_a_zoom_the_previews_serve(browser, archive_of_fl
         assert status["from_previews"] > before["from_previews"], status
         assert status["render"]["done"] == before["render"]["done"], "a tile of the first screen was drawn from the DN"
         page.close()
+
+
+def test_an_index_display_shows_the_index_of_the_mosaic_on_its_ramp(server, browser, archive_of_flights):
+    """Display 'index' (issue 48 item 4): the NDVI button picks a = the band nearest 830 nm and b = the
+    band nearest 654 nm (as archive stats maps NDVI), each pixel is (a - b) / (a + b) of the radiance
+    archive.mosaic gives there, on the page's colour ramp, with its legend shown and the stretch hidden;
+    the hash keeps it (two bands) and restores it."""
+    from scipy.ndimage import binary_erosion
+
+    import archive
+
+    path, ids = archive_of_flights
+    cid = ids[0]
+    page = Page(browser, server, f"flights={cid}&open={cid}")
+    page.page.wait_for_function(f"() => window.viewer.open === '{cid}'")
+    page.page.evaluate("() => window.viewer.map.setZoom(window.viewer.map.getZoom() + 1)")
+    page.settled()
+    rgb = page.shot()
+    page.page.click("#ndvi")
+    page.page.wait_for_function("() => document.getElementById('display').value === 'index'")
+    page.settled()
+    assert page.page.locator("#index-legend").is_visible() and not page.page.locator("#stretch").is_visible()
+    a_nm, b_nm = (float(page.page.input_value(s)) for s in ("#index-a", "#index-b"))
+    wl = np.array(page.page.evaluate(f"() => window.viewer.byId.get('{cid}').properties.wavelength"))
+    assert a_nm == wl[np.argmin(abs(wl - 830))] and b_nm == wl[np.argmin(abs(wl - 654))] and a_nm != b_nm
+    page.page.wait_for_function(f"() => location.hash.includes('bands={a_nm:g},{b_nm:g}')")
+    stops = page.page.evaluate("() => import('/static/tiles.js').then((m) => m.RAMP_STOPS)")
+    page.clean()
+    shot = page.shot()
+    assert (shot != rgb).any(axis=-1).mean() > 0.05   # the picture changed
+
+    # the truth: the mosaic of the two bands (radiance, the page's mode), its pixel under each screen pixel
+    from pyproj import Transformer
+
+    ds = archive.mosaic([cid], archive=path, gsd=0.03, wavelengths=[a_nm, b_nm])
+    values = ds["radiance"].values
+    geo = page.geometry()
+    lon, lat = _screen_lonlat(shot.shape[:2], geo)
+    e, n = Transformer.from_crs(4326, ds.rio.crs.to_epsg(), always_xy=True).transform(lon, lat)
+    col = np.floor((np.asarray(e) - (float(ds.x[0]) - 0.015)) / 0.03).astype(int)
+    row = np.floor(((float(ds.y[0]) + 0.015) - np.asarray(n)) / 0.03).astype(int)
+    inside = (col >= 0) & (col < ds.sizes["x"]) & (row >= 0) & (row < ds.sizes["y"])
+    index = np.full(shot.shape[:2], np.nan)
+    av, bv = values[0][row[inside], col[inside]], values[1][row[inside], col[inside]]
+    index[inside] = (av - bv) / (av + bv)
+    inner = binary_erosion(np.isfinite(index), iterations=6)
+    assert inner.sum() > 10_000, "the flight should fill a good part of the map"
+    xs = np.array([s[0] for s in stops])
+    expected = np.stack([np.interp(np.clip(index[inner], -1, 1), xs, [s[1][c] for s in stops]) for c in range(3)], -1)
+    error = np.abs(shot[inner].astype(float) - expected).max(axis=-1)
+    print(f"index display vs the mosaic: median colour error {np.median(error):.1f}, {(error <= 12).mean():.1%} within 12, "
+          f"{inner.sum()} pixels, index {np.nanmin(index[inner]):.3f}..{np.nanmax(index[inner]):.3f}")
+    assert np.median(error) <= 3 and (error <= 12).mean() >= 0.9, (np.median(error), (error <= 12).mean())
+    assert np.ptp(index[inner]) > 0.05, "a scene of one index value would not test the ramp"
+
+    # the hash restores it after a reload
+    page.page.reload()
+    page.settled()
+    assert page.page.input_value("#display") == "index"
+    assert (float(page.page.input_value("#index-a")), float(page.page.input_value("#index-b"))) == (a_nm, b_nm)
+    page.close()

@@ -10,6 +10,9 @@ import { $, PREVIEW_UP, clearErrors, fmt, geometryOf, getJSON, idPath, newGenera
          viewer, visibleFlights } from "./state.js";
 import { markPlaceholders, pump, schedule, stretchRanges, viewRanges } from "./tiles.js";
 
+// the band selects of the three displays (RGB, grey, index a and b), filled from the reference flight
+const BAND_SELECTS = ["band-r", "band-g", "band-b", "band-grey", "index-a", "index-b"];
+
 // the overlap rule chosen ({name, label, key, wins} as /api/collections serves it); before the list
 // has arrived, a rule that picks the later flight and needs no key
 function overlapRule() {
@@ -41,12 +44,13 @@ function buildSpec() {
     return { id, params: flightParams(id, coarse ? preview : null), bands: nm.map((w) => nearestBand(f, w)),
              up: coarse ? PREVIEW_UP : 0, box: flightBox(id, coarse) };
   });
-  const ranges = stretchRanges(nm);
+  const index = $("display").value === "index";
+  const ranges = index ? [[-1, 1]] : stretchRanges(nm);   // an index is drawn on its fixed ramp
   // the overlap rule says what it needs (a per-pixel key plane) and which capture a pixel shows
   const rule = overlapRule();
   const keyed = !!rule.key, lowest = keyed && rule.wins === "lowest";
   const data = JSON.stringify(flights.map((f) => [f.id, f.params, f.bands, f.up]));
-  return { flights, nm, ranges, keyed, lowest, data, id: data + JSON.stringify(ranges) + keyed, grey: nm.length === 1 };
+  return { flights, nm, ranges, keyed, lowest, data, id: data + JSON.stringify(ranges) + keyed, grey: nm.length === 1, index };
 }
 
 export function refresh() {
@@ -167,8 +171,8 @@ function fillBandOptions() {
   const id = referenceFlight();
   if (!id) return;
   const p = viewer.byId.get(id).properties;
-  const keep = ["band-r", "band-g", "band-b", "band-grey"].map((s) => $(s).value);
-  for (const sel of ["band-r", "band-g", "band-b", "band-grey"]) {
+  const keep = BAND_SELECTS.map((s) => $(s).value);
+  for (const sel of BAND_SELECTS) {
     const select = $(sel);
     select.replaceChildren();
     for (let i = 0; i < p.bands; i++) {
@@ -178,10 +182,18 @@ function fillBandOptions() {
       select.append(o);
     }
   }
-  if (keep[0] === "") setTrueColour(false);
-  else ["band-r", "band-g", "band-b", "band-grey"].forEach((s, i) => selectNearest($(s), Number(keep[i])));
+  if (keep[0] === "") { setTrueColour(false); setNdvi(false); }
+  else BAND_SELECTS.forEach((s, i) => selectNearest($(s), Number(keep[i])));
   if (!$("mode").options.length) setModes(["raw", "relative", "radiance"], "radiance");
 }
+// NDVI's bands as archive stats maps them (the Awesome Spectral Indices catalogue's N and R, the
+// centres of their ranges): a nearest 830 nm, b nearest 654 nm
+function setNdvi(apply = true) {
+  selectNearest($("index-a"), 830);
+  selectNearest($("index-b"), 654);
+  if (apply) { $("display").value = "index"; showDisplay(); refresh(); }
+}
+$("ndvi").addEventListener("click", () => setNdvi());
 function selectNearest(select, nm) {
   let best = null;
   for (const o of select.options) if (best === null || Math.abs(Number(o.value) - nm) < Math.abs(Number(best.value) - nm)) best = o;
@@ -207,14 +219,16 @@ function setModes(modes, chosen) {
   mode.value = modes.includes(keep) ? keep : chosen;
 }
 export function showDisplay() {
-  const grey = $("display").value === "grey";
-  for (const el of document.querySelectorAll(".row.rgb")) el.hidden = grey;
+  const kind = $("display").value, grey = kind === "grey", index = kind === "index";
+  for (const el of document.querySelectorAll(".row.rgb")) el.hidden = kind !== "rgb";
   for (const el of document.querySelectorAll(".row.grey")) el.hidden = !grey;
+  for (const el of document.querySelectorAll(".row.index")) el.hidden = !index;
+  document.querySelector(".row.stretch").hidden = index;   // an index has its fixed ramp
   $("per-channel-label").hidden = grey;
-  document.querySelector(".row.manual").hidden = $("stretch").value !== "manual";
+  document.querySelector(".row.manual").hidden = index || $("stretch").value !== "manual";
 }
 
-for (const id of ["band-r", "band-g", "band-b", "band-grey"]) $(id).addEventListener("change", () => refresh());
+for (const id of BAND_SELECTS) $(id).addEventListener("change", () => refresh());
 $("display").addEventListener("change", () => { showDisplay(); refresh(); });
 $("mode").addEventListener("change", () => refresh());
 $("truecolour").addEventListener("click", () => setTrueColour(true));
@@ -247,7 +261,7 @@ function showOutputs() {
     (boresightOf(p, preview) || []).forEach((v, i) => showOutputsValue(ANGLES[i], v));
   }
   const r = viewer.current && viewer.current.ranges;
-  const names = $("display").value === "grey" ? ["grey"] : ["R", "G", "B"];
+  const names = { grey: ["grey"], index: ["index"] }[$("display").value] || ["R", "G", "B"];
   $("stretch-values").textContent = r ? r.map(([lo, hi], i) => `${names[i]} ${fmt(lo)}…${fmt(hi)}`).join("  ") : "";
 }
 
@@ -476,6 +490,7 @@ export async function applyHash(initial) {
   if (s.has("mode") && [...$("mode").options].some((o) => o.value === s.get("mode"))) $("mode").value = s.get("mode");
   const bands = (s.get("bands") || "").split(",").filter((v) => v.trim() !== "").map(Number).filter(isFinite);
   if (bands.length === 1) { $("display").value = "grey"; selectNearest($("band-grey"), bands[0]); }
+  if (bands.length === 2) { $("display").value = "index"; selectNearest($("index-a"), bands[0]); selectNearest($("index-b"), bands[1]); }
   if (bands.length === 3) { $("display").value = "rgb"; ["band-r", "band-g", "band-b"].forEach((id, i) => selectNearest($(id), bands[i])); }
   const st = s.get("stretch");
   if (st) {

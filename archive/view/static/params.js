@@ -16,6 +16,7 @@ export function nearestBand(feature, nm) {
 // the wavelengths shown: [grey] or [R, G, B] (nm)
 export function channelsNm() {
   if ($("display").value === "grey") return [Number($("band-grey").value)];
+  if ($("display").value === "index") return [Number($("index-a").value), Number($("index-b").value)];
   return ["band-r", "band-g", "band-b"].map((id) => Number($(id).value));
 }
 

@@ -276,12 +276,25 @@ function settle(spec) {
   if (viewer.settled) clearErrors("err-cubes", "err-ground", "err-sync", "err-mode", "err-bands");
   viewer.specId = spec.id;
   if (viewer.preview && viewer.previewNext !== null) { emit("preview", viewer.previewNext); }
-  if ($("stretch").value === "view" && !spec.viewStretchFresh) {
+  if ($("stretch").value === "view" && !spec.index && !spec.viewStretchFresh) {
     spec.viewStretchFresh = true;
     const r = viewRanges(spec);
     if (r && JSON.stringify(r) !== JSON.stringify(viewer.viewStretch)) { viewer.viewStretch = r; emit("refresh"); }
   }
 }
+
+// the index display's colour ramp from -1 to +1 (ColorBrewer's RdYlGn stops, as the legend's CSS
+// gradient in app.css): RAMP_LUT[k] the colour of (k / 127.5 - 1)
+export const RAMP_STOPS = [[-1, [165, 0, 38]], [-0.5, [244, 109, 67]], [0, [255, 255, 191]], [0.5, [102, 189, 99]],
+                           [1, [0, 104, 55]]];
+export function rampColour(v) {
+  const x = Math.max(-1, Math.min(1, v));
+  let k = 0;
+  while (k < RAMP_STOPS.length - 2 && x > RAMP_STOPS[k + 1][0]) k++;
+  const [x0, c0] = RAMP_STOPS[k], [x1, c1] = RAMP_STOPS[k + 1], t = (x - x0) / (x1 - x0);
+  return c0.map((c, i) => Math.round(c + (c1[i] - c) * t));
+}
+const RAMP_LUT = Array.from({ length: 256 }, (_, k) => rampColour(k / 127.5 - 1));
 
 // one tile's picture from the planes of every flight over it (later flights on top, or the one of
 // the lowest key: the overlap rule's), stretched here
@@ -307,8 +320,24 @@ function draw(tile, spec) {
     const [c0w, r0w, w, h] = e.win || [0, 0, n, n];
     const i0 = Math.max(0, (r0w - oy) << shift), i1 = Math.min(TILE, (r0w + h - oy) << shift);
     const j0 = Math.max(0, (c0w - ox) << shift), j1 = Math.min(TILE, (c0w + w - ox) << shift);
-    const c0 = e.planes.get(f.bands[0]), c1 = e.planes.get(f.bands[k > 1 ? 1 : 0]), c2 = e.planes.get(f.bands[k > 1 ? 2 : 0]);
     const key = e.key;
+    if (spec.index) {   // (a - b) / (a + b) of the two bands, on the index ramp
+      const a = e.planes.get(f.bands[0]), b = e.planes.get(f.bands[1]);
+      for (let i = i0; i < i1; i++) {
+        const row = (oy + (i >> shift) - r0w) * w + ox - c0w;
+        for (let j = j0; j < j1; j++) {
+          const s = row + (j >> shift);
+          const v = (a[s] - b[s]) / (a[s] + b[s]);
+          if (v !== v || !isFinite(v)) continue;    // NaN: no line covers it (or a + b is 0)
+          const p = i * TILE + j;
+          if (best) { const kv = key[s]; if (!(kv <= best[p])) continue; best[p] = kv; }
+          const o = p * 4, c = RAMP_LUT[Math.max(0, Math.min(255, Math.round((v + 1) * 127.5)))];
+          d[o] = c[0]; d[o + 1] = c[1]; d[o + 2] = c[2]; d[o + 3] = 255;
+        }
+      }
+      continue;
+    }
+    const c0 = e.planes.get(f.bands[0]), c1 = e.planes.get(f.bands[k > 1 ? 1 : 0]), c2 = e.planes.get(f.bands[k > 1 ? 2 : 0]);
     const l0 = lo[0], l1 = lo[k > 1 ? 1 : 0], l2 = lo[k > 1 ? 2 : 0];
     const s0 = sc[0], s1 = sc[k > 1 ? 1 : 0], s2 = sc[k > 1 ? 2 : 0];
     for (let i = i0; i < i1; i++) {
