@@ -468,10 +468,12 @@ def test_raw_flight_directories(demo):
         FlightRegistry(None, [flight_dir])
     with _client(create_app(FlightRegistry(None, [flight_dir], FOV))) as c:
         (f,) = c.get("/api/collections").json()["features"]
-        assert f["properties"]["kind"] == "raw" and f["id"] != cid
+        # named as ingest names it (issue 49 item 6: one name for a flight, raw or ingested)
+        assert f["properties"]["kind"] == "raw" and f["id"] == cid
         assert np.allclose(f["bbox"], item["bbox"], atol=1e-6)
         assert c.get("/api/collections", params={"bbox": "10,10,11,11"}).json()["features"] == []
-        assert c.get(f"/api/collections/{cid}").status_code == 404  # the archive is not served
+        described = c.get(f"/api/collections/{cid}")   # the raw folder's (the archive is not served)
+        assert described.status_code == 200 and described.json()["id"] == cid
         tiles = _tiles_over(f["bbox"], Z)
         drawn = sum(int((_rgba(c.get(f"/api/collections/{f['id']}/tiles/{Z}/{x}/{y}.png"))[..., 3] > 0).sum())
                     for x, y in tiles)
@@ -479,6 +481,13 @@ def test_raw_flight_directories(demo):
         lon, lat = (f["bbox"][0] + f["bbox"][2]) / 2, (f["bbox"][1] + f["bbox"][3]) / 2
         p = c.get(f"/api/collections/{f['id']}/point", params={"lon": lon, "lat": lat}).json()
         assert p["gsd"] == f["properties"]["gsd"] and len(p["values"]) == 6
+    # beside its own collection, the raw folder keeps the raw source's name: both are served
+    with _client(create_app(FlightRegistry(path, [flight_dir], FOV))) as c:
+        features = {f["id"]: f for f in c.get("/api/collections").json()["features"]}
+        assert features[cid]["properties"]["kind"] != "raw"
+        (raw,) = [f for f in features.values() if f["properties"]["kind"] == "raw"]
+        assert raw["id"].startswith("flight-") and raw["id"] != cid
+        assert c.get(f"/api/collections/{raw['id']}").json()["id"] == raw["id"]
 
 
 def _values(response, count: int, side: int = 256) -> np.ndarray:

@@ -80,7 +80,7 @@ class FlightRegistry:
             path = Path(d).absolute()
             if not path.is_dir():
                 raise MissingInputError(path, "flight directory")
-            feature = _raw_feature(path, float(fov))
+            feature = _raw_feature(path, float(fov), taken=set(self.raw) | set(self.catalog_ids()))
             self.raw[feature["id"]] = (path, feature)
         if self.archive is None and not self.raw:
             raise InputError(None, "nothing to view", "give --archive ARCHIVE and/or raw flight directories")
@@ -269,9 +269,12 @@ def _feature_of_item(item: dict) -> dict:
             "properties": props}
 
 
-def _raw_feature(directory: Path, fov: float) -> dict:
+def _raw_feature(directory: Path, fov: float, taken: set = frozenset()) -> dict:
     """The Feature of a raw flight directory: its footprint at the headers' ground height (as the
-    catalog computes it for a collection), time range and wavelengths."""
+    catalog computes it for a collection), time range and wavelengths. Its id is the one ``archive
+    ingest`` and ``archive info`` give it (``<sensor>_<UTC start>``), or, when that id is ``taken`` (the
+    flight's own collection served beside it, another folder of the same flight), the raw source's
+    (``<folder>-<first .lcf time>``)."""
     from scipy.spatial.transform import Rotation
 
     from archive.catalog.footprint import flight_footprint
@@ -279,8 +282,12 @@ def _raw_feature(directory: Path, fov: float) -> dict:
     from archive.sources import open_source
     from archive.sources.ground import auto_ground_height
 
+    from archive.ingest.prepare import collection_id, sensor_name
+
     source = open_source(directory, NavigationParams())
     ground = auto_ground_height([source])
+    fid = collection_id(sensor_name(source.header(0).metadata), gps_seconds_to_datetime(float(source.line_times(0)[0])))
+    fid = source.id if fid in taken else fid
     poses = [source.poses(i) for i in range(len(source.cubes))]
     times = np.concatenate([p.time for p in poses])
     fp = flight_footprint(times, np.concatenate([p.position for p in poses]),
@@ -290,7 +297,7 @@ def _raw_feature(directory: Path, fov: float) -> dict:
     wl = source.wavelengths
     iso = [t.isoformat().replace("+00:00", "Z") for t in (start, end)]
     props = {
-        "id": source.id, "kind": "raw", "start_datetime": iso[0], "end_datetime": iso[1],
+        "id": fid, "kind": "raw", "start_datetime": iso[0], "end_datetime": iso[1],
         "start_time": start.timestamp(), "end_time": end.timestamp(), "bands": source.cubes[0].bands,
         "min_wavelength": None if wl is None else float(min(wl)),
         "max_wavelength": None if wl is None else float(max(wl)),
@@ -298,4 +305,4 @@ def _raw_feature(directory: Path, fov: float) -> dict:
         "fov_deg": fov, "ground_height": ground, "cubes": len(source.cubes),
         "lines": int(sum(c.lines for c in source.cubes)), "samples": source.cubes[0].samples,
     }
-    return {"type": "Feature", "id": source.id, "geometry": fp.geometry(), "bbox": fp.bbox(), "properties": props}
+    return {"type": "Feature", "id": fid, "geometry": fp.geometry(), "bbox": fp.bbox(), "properties": props}
