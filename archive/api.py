@@ -245,6 +245,9 @@ def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: So
     """
     from archive.run.runner import OutputKind, run
 
+    if stack and (options.get("index") or options.get("expression")):
+        raise InputError("--index", "a stack of index bands is not written yet", "render the indices per flight "
+                         "(per_flight=True), or the stack's bands and archive.analysis.indices.stack_index")
     return run(OutputKind.of(per_flight=per_flight, stack=stack, tiles=tiles), _options(sources, options), out,
                quicklook=quicklook, format=format, overwrite=overwrite, resume=resume, scheduler=scheduler,
                workers=workers, threads=threads, quiet=quiet, tell=tell)

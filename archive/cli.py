@@ -117,6 +117,10 @@ def _add_render(sub) -> None:
     bands.add_argument("--wavelengths", metavar="NM,NM,...", help="render the bands nearest to these wavelengths")
     bands.add_argument("--bands", metavar="all|I,J,...", default="all",
                        help="'all' bands (default) or band indices counted from 0 (GDAL and QGIS count from 1: docs/numbering.md)")
+    p.add_argument("--index", nargs="+", action="extend", metavar="NAME", default=[],
+                   help="write one band per spectral index instead of the bands (NDVI, EVI...: docs/stats.md)")
+    p.add_argument("--expression", action="append", metavar="NAME=EXPR", default=[],
+                   help="also one band of band math, repeatable: R<nm> is the band nearest <nm> nm")
     p.add_argument("--mode", choices=["raw", "relative", "radiance", "reflectance"], default=None,
                    help="radiometric mode (default radiance; raw DN, with a note, when the flight has no calibration)")
     p.add_argument("--white-reference", metavar="FILE", help="white reference for --mode reflectance: text file of "

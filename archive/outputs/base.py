@@ -162,9 +162,14 @@ class OutputMeta:
     fwhm: tuple[float, ...] | None = None
     zarr_format: int = 2   #: the Zarr version of a .zarr output (other formats ignore it)
     compression: str = "fast"   #: :data:`archive.codecs.COMPRESSIONS` name (Zarr chunks, COG tiles; not ENVI)
+    names: tuple[str, ...] | None = None   #: band names instead of the wavelengths' (an index output's: the indices)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "band_indices", tuple(int(i) for i in self.band_indices))
+        if self.names is not None:
+            object.__setattr__(self, "names", tuple(str(n) for n in self.names))
+            if len(self.names) != len(self.band_indices):
+                raise ValueError(f"{len(self.names)} band names for {len(self.band_indices)} bands")
         if self.wavelengths is not None:
             object.__setattr__(self, "wavelengths", tuple(float(w) for w in self.wavelengths))
             if len(self.wavelengths) != len(self.band_indices):
@@ -181,8 +186,9 @@ class OutputMeta:
     @property
     def labels(self) -> list[str]:
         """Band names as GDAL, QGIS and ENVI show them: the wavelength with its unit ("650.0 nm"),
-        else the source band counted from 1 as those tools count bands ("source band 4")."""
-        return band_labels(self.band_indices, self.wavelengths)
+        else the source band counted from 1 as those tools count bands ("source band 4"); ``names``
+        when given (an index output's: "NDVI")."""
+        return list(self.names) if self.names is not None else band_labels(self.band_indices, self.wavelengths)
 
     @property
     def units(self) -> str | None:

@@ -319,15 +319,16 @@ def _spatial_ref_attrs(grid: Grid) -> dict:
 
 def store_layout(grid: Grid, band_indices: Sequence[int], wavelengths: Sequence[float] | None,
                  fwhm: Sequence[float] | None, variable: str, attrs: dict | None = None,
-                 compression: str | None = None) -> tuple[dict, list[ArraySpec]]:
+                 compression: str | None = None, names: Sequence[str] | None = None) -> tuple[dict, list[ArraySpec]]:
     """(root attributes, arrays) of the Zarr output: what ``to_zarr`` of :func:`mosaic_dataset`
     writes (its CF encoding: ``coordinates`` and ``grid_mapping`` on the data variables), values
     (band, y, x) float32 chunked (1, CHUNK, CHUNK) and saturation (y, x) uint8 chunked (CHUNK,
     CHUNK) without data, the coordinates with theirs; ``attrs`` at the root, then the grid's;
-    ``compression``: the values' :data:`archive.codecs.COMPRESSIONS` name (None: the default)."""
+    ``compression``: the values' :data:`archive.codecs.COMPRESSIONS` name (None: the default);
+    ``names``: each band's name (an index output's), the text coordinate ``band_name`` (band)."""
     nb = len(band_indices)
     x, y = grid.xy_centres()
-    extra = [name for name, v in (("wavelength", wavelengths), ("fwhm", fwhm)) if v is not None]
+    extra = [name for name, v in (("wavelength", wavelengths), ("fwhm", fwhm), ("band_name", names)) if v is not None]
     values_attrs = {**_values_attrs(variable), **geozarr_attrs(grid), **located_attrs(grid, extra)}
     saturated_attrs = {**_SATURATED_ATTRS, **geozarr_attrs(grid), **located_attrs(grid)}
     arrays = [
@@ -345,6 +346,10 @@ def store_layout(grid: Grid, band_indices: Sequence[int], wavelengths: Sequence[
         if v is not None:
             arrays.append(ArraySpec(name, np.dtype(np.float64), (nb,), (nb,), ("band",), dict(cf),
                                     data=np.asarray(v, np.float64)))
+    if names is not None:   # fixed-width text: what xarray reads back as str
+        text = np.asarray([str(n) for n in names], dtype=str)
+        arrays.append(ArraySpec("band_name", text.dtype, (nb,), (nb,), ("band",), {"long_name": "band name"},
+                                data=text))
     root = _root_attrs(grid, attrs)
     root[_GRID_ATTR] = json.dumps({"epsg": grid.epsg, "gsd": grid.gsd, "x0": grid.x0, "y0": grid.y0,
                                    "width": grid.width, "height": grid.height})
@@ -390,6 +395,7 @@ class MosaicStore(Sink):
         fwhm: Sequence[float] | None = None,
         zarr_format: int = 2,
         compression: str | None = None,
+        names: Sequence[str] | None = None,
     ) -> MosaicStore:
         """Write the store's metadata and coordinates (no chunk data: unwritten chunks read as NaN).
 
@@ -403,10 +409,11 @@ class MosaicStore(Sink):
             raise ValueError(f"{len(wavelengths)} wavelengths for {nb} bands")
         if fwhm is not None and len(fwhm) != nb:
             raise ValueError(f"{len(fwhm)} fwhm values for {nb} bands")
-        root, arrays = store_layout(grid, band_indices, wavelengths, fwhm, variable, attrs, compression)
+        root, arrays = store_layout(grid, band_indices, wavelengths, fwhm, variable, attrs, compression, names)
         write_store(path, root, arrays, zarr_format)
-        if zarr_format == 2:   # the band names GDAL shows (archive.outputs.pam)
-            write_band_pam(path, variable, 3, band_texts(band_labels(band_indices, wavelengths), wavelengths, fwhm))
+        if zarr_format == 2:   # the band names GDAL shows (archive.outputs.pam); names: an index output's
+            labels = list(names) if names is not None else band_labels(band_indices, wavelengths)
+            write_band_pam(path, variable, 3, band_texts(labels, wavelengths, fwhm))
         return cls(os.fspath(path), variable)
 
     # ---- reading back ------------------------------------------------------------------------
@@ -534,7 +541,7 @@ class ZarrFormat(OutputFormat):
     def create(temp, path: Path, meta: OutputMeta) -> MosaicStore:
         return MosaicStore.create(temp(path), meta.grid, meta.wavelengths, meta.band_indices, meta.variable,
                                   meta.attrs, fwhm=meta.fwhm, zarr_format=meta.zarr_format,
-                                  compression=meta.compression)
+                                  compression=meta.compression, names=meta.names)
 
     @staticmethod
     def create_layers(temp, path: Path, sink: MosaicStore, meta: OutputMeta, spec) -> LayersStore:

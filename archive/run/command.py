@@ -95,6 +95,9 @@ def render_keywords(args: argparse.Namespace, scheduler=None) -> dict:
                              "add --archive A with --query-bbox/--query-datetime/--query-wavelength")
         if args.mosaic:
             raise InputError("--stack", "--stack and --mosaic are two kinds of output", "give one of them")
+        if args.index or args.expression:
+            raise InputError("--index", "a stack of index bands is not written yet", "render the indices per "
+                             "flight (--out DIR), or the stack's bands and archive.analysis.indices.stack_index")
         keywords["stack"] = True
         keywords.pop("format", None)
     return keywords

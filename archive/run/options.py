@@ -177,6 +177,8 @@ class RenderOptions:
     bounds: tuple[float, float, float, float] | None = None
     align: bool = False
     like: str | None = None
+    index: tuple[str, ...] = ()   #: spectral indices of the catalogue (NDVI...): one output band each
+    expression: tuple[str, ...] = ()   #: NAME=EXPR band math (R<nm>): one output band each, after ``index``
 
     @classmethod
     def create(cls, sources, *, gsd=None, archive=None, fov=None, calibration=None, ground_height="auto",
@@ -184,7 +186,8 @@ class RenderOptions:
                navigation=None, navigation_columns=None, panels=None, sync_offset=None,
                boresight=None, lever_arm=None, overlap=LAST, crs=None,
                max_view_angle=DEFAULT_MAX_VIEW_ANGLE, dem=None, dem_datum=None, provenance=False,
-               zarr_format=2, compression=None, bounds=None, align=False, like=None) -> RenderOptions:
+               zarr_format=2, compression=None, bounds=None, align=False, like=None, index=(),
+               expression=()) -> RenderOptions:
         """A request from API keywords (or CLI values); InputError for malformed values. With
         ``like`` and no ``gsd``, the GSD is the one of that output (read here, metadata only)."""
         if isinstance(sources, (str, os.PathLike)):
@@ -213,7 +216,16 @@ class RenderOptions:
             max_view_angle=_number(max_view_angle, "--max-view-angle", "degrees"),
             dem=fspath(dem), dem_datum=None if dem_datum is None else str(dem_datum), provenance=bool(provenance),
             zarr_format=_zarr_format(zarr_format), compression=_compression(compression),
-            bounds=parse_bounds(bounds), align=bool(align), like=like)
+            bounds=parse_bounds(bounds), align=bool(align), like=like,
+            index=_texts(index, r",", "--index"), expression=_texts(expression, r",(?=\s*[A-Za-z_][\w.+-]*\s*=)",
+                                                                    "--expression"))
+
+    def indices(self) -> list:
+        """The :class:`~archive.outputs.bandmath.IndexSpec` of ``index`` then ``expression`` (checked,
+        no camera needed; [] without either): an output of one band per index."""
+        from archive.outputs.bandmath import parse_indices
+
+        return parse_indices(self.index, self.expression) if self.index or self.expression else []
 
     def with_sources(self, sources: Sequence[str]) -> RenderOptions:
         """This request for other sources."""
@@ -259,6 +271,12 @@ class RenderOptions:
             raise InputError("--panels", "fits the empirical line of --mode reflectance on a flat ground",
                              "use --panels with --mode reflectance, without --white-reference or --dem")
         _check_dem(self)
+        if self.index or self.expression:
+            self.indices()
+            if self.wavelengths is not None or self.bands != "all":
+                flag = "--index" if self.index else "--expression"
+                raise InputError(flag, f"chooses the bands its indices read, so --{'wavelengths' if self.wavelengths else 'bands'} "
+                                 "has nothing to choose", f"leave --wavelengths/--bands out, or {flag}")
         if self.like is not None and (self.bounds is not None or self.align):
             raise InputError("--like", f"takes the whole grid of {self.like}, so --bounds and --align have nothing "
                              "to decide", "leave --bounds/--align out, or --like")
@@ -296,6 +314,19 @@ def _check_dem(options: RenderOptions) -> None:
     if str(options.ground_height).strip().lower() != "auto":
         raise InputError("--dem", f"--dem and --ground-height {options.ground_height} are exclusive: the DEM "
                          "gives the ground", "leave --ground-height out")
+
+
+def _texts(value, separator: str, option: str) -> tuple[str, ...]:
+    """--index / --expression: None, one text or several -> a tuple of texts; a text holding several
+    (the recipe's command line joins them: 'NDVI,EVI') split at ``separator`` (a regular expression)."""
+    import re
+
+    if value is None:
+        return ()
+    items = [value] if isinstance(value, str) else list(value)
+    if not all(isinstance(v, str) for v in items):
+        raise InputError(option, f"expected names or texts, got {value!r}")
+    return tuple(t.strip() for v in items for t in re.split(separator, v) if t.strip())
 
 
 def _compression(value) -> str:

@@ -45,7 +45,9 @@ from archive.grid import GridRequest
 from archive.geometry.navigation import projected_epsg
 from archive.run.options import RenderOptions, grid_request
 from archive.run.session import Job, RenderSummary, Session, render_summary
+from archive.outputs.bandmath import bind_indices
 from archive.outputs.base import variable_for_mode
+from archive.outputs.indexed import IndexSink, index_properties
 from archive.outputs.publish import Output
 from archive.outputs.zarr import mosaic_dataset
 from archive.params import MeshSpec, NavigationParams, RenderParams
@@ -102,6 +104,7 @@ class Inputs:
     mesh_specs: tuple[MeshSpec, ...]
     meshes: tuple | None = None  #: with a DEM: each source's terrain meshes (built here: DEM errors come early)
     grid: GridRequest = GridRequest()  #: what the output grid is asked to be (--bounds, --align, --like)
+    indices: tuple | None = None  #: --index/--expression: per source, its BoundIndex of each output band
 
 
 def _quiet(text: str) -> None:
@@ -156,7 +159,10 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
     if options.white_reference:   # interpolated to each source's wavelengths: opened again with it
         sources = [opened(src, read_white_reference(options.white_reference, s.wavelengths))
                    for s, src in zip(sources, options.sources)]
-    bands = [select_bands(s, options.wavelengths, options.bands) for s in sources]
+    specs = options.indices()   # --index/--expression: the bands they read, chosen by wavelength
+    bound = [tuple(bind_indices(specs, s.wavelengths, str(s.label))) if specs else None for s in sources]
+    bands = [select_bands(s, options.wavelengths, options.bands) if b is None else
+             select_bands(s, sorted({nm for i in b for nm in i.wavelengths})) for s, b in zip(sources, bound)]
     if mosaic:
         check_same_bands(sources, bands)
     mode = options.mode or "radiance"
@@ -189,7 +195,8 @@ def open_inputs(options: RenderOptions, nav: NavigationParams, say=_quiet, mosai
         specs = [mesh(float(resolve_ground_height(options.ground_height, [s]))) for s in sources]
     params = RenderParams(gsd=float(options.gsd), mode=mode, bands=tuple(bands[0]), overlap=options.overlap,
                           navigation=nav)
-    return Inputs(tuple(sources), tuple(tuple(b) for b in bands), params, tuple(specs), meshes, grid)
+    return Inputs(tuple(sources), tuple(tuple(b) for b in bands), params, tuple(specs), meshes, grid,
+                  tuple(bound) if bound and bound[0] is not None else None)
 
 
 @dataclass(frozen=True, eq=False)
@@ -207,11 +214,12 @@ class OutputPlan:
     wavelengths: list[float] | None
     left_out: dict | None = None  #: lines left out of the meshes, by reason ('no navigation', 'view angle')
     fwhm: list[float] | None = None
+    indices: tuple | None = None  #: an index output's BoundIndex per output band (the rendered bands: its inputs)
 
     @property
     def variable(self) -> str:
-        """Name of the data variable ('radiance', 'dn', ...)."""
-        return variable_for_mode(self.params.mode)
+        """Name of the data variable ('radiance', 'dn', ...; 'index' for an index output)."""
+        return "index" if self.indices else variable_for_mode(self.params.mode)
 
     def layers_spec(self, rule_only: bool = False):
         """The :class:`~archive.geometry.provenance.ProvenanceSpec` of this output: every provenance layer,
@@ -230,7 +238,8 @@ class OutputPlan:
                   {"dem": mesh.dem.path, "dem_datum": mesh.dem.datum or "declared"})
         return {"mode": self.params.mode, "gsd_m": self.params.gsd, "fov_deg": mesh.fov_deg,
                 **ground, "sync_offset_s": offsets[0] if len(offsets) == 1 else offsets,
-                "overlap": self.params.overlap.name, "sources": [str(s.label) for s in self.sources]}
+                "overlap": self.params.overlap.name, "sources": [str(s.label) for s in self.sources],
+                **({"indices": index_properties(self.indices)} if self.indices else {})}
 
 
 def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget: int | None = None,
@@ -256,7 +265,10 @@ def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget:
     # terrain flight's meshes made graphs of MBs); the plan keeps their windows only
     spec = spec.with_epsg(plan.grid.epsg)
     plan = plan.without_meshes(spec)
-    if band_group is None:
+    indices = None if inputs.indices is None else inputs.indices[idx[0]]
+    if indices is not None:   # one band group: each tile's indices are computed from all the bands they read
+        plan = dataclasses.replace(plan, groups=band_groups(plan.nbands, plan.nbands))
+    elif band_group is None:
         plan = with_task_groups(plan, TASK_VALUES_BYTES if budget is None else budget)
     else:
         if isinstance(band_group, bool) or not isinstance(band_group, (int, np.integer)) or band_group <= 0:
@@ -272,7 +284,7 @@ def plan_output(inputs: Inputs, members: Sequence[int] | None = None, *, budget:
         for m in ms:
             for reason, n in (m.dropped or {}).items():
                 left_out[reason] = left_out.get(reason, 0) + int(n)
-    return OutputPlan(tuple(sources), plan, p, spec, out_wl, left_out, out_fwhm)
+    return OutputPlan(tuple(sources), plan, p, spec, out_wl, left_out, out_fwhm, indices)
 
 
 def build_output(output: OutputPlan, target: Output):
@@ -286,13 +298,18 @@ def build_output(output: OutputPlan, target: Output):
     meta = OutputMeta(plan.grid, tuple(plan.bands[0]), None if output.wavelengths is None else tuple(output.wavelengths),
                       output.variable, output.attrs, fwhm=None if output.fwhm is None else tuple(output.fwhm),
                       zarr_format=target.zarr_format, compression=target.compression)
-    sink = target.sink(meta)
+    if output.indices:   # one band per index, named by it; the graph writes the bands they read through IndexSink
+        meta = dataclasses.replace(meta, band_indices=tuple(range(len(output.indices))), wavelengths=None, fwhm=None,
+                                   names=tuple(i.name for i in output.indices))
+    sink = graph_sink = target.sink(meta)
+    if output.indices:
+        graph_sink = IndexSink(sink, tuple(output.wavelengths), tuple(output.indices))
     layers = layers_sink = None
     if target.provenance or p.overlap.key is not None:
         layers = output.layers_spec(rule_only=not target.provenance)
     if target.provenance:
         layers_sink = target.layers_sink(layers)
-    graph = build_render_graph(plan, list(output.sources), sink, mode=p.mode, overlap=p.overlap,
+    graph = build_render_graph(plan, list(output.sources), graph_sink, mode=p.mode, overlap=p.overlap,
                                layers=layers, layers_sink=layers_sink)
     return sink, graph
 
@@ -380,11 +397,17 @@ def product_item(planned: OutputPlan, output: Output, options: RenderOptions,
     first = min(float(planned.sources[j.source].line_times(j.cube)[0]) for j in plan.jobs)
     last = max(float(planned.sources[j.source].line_times(j.cube)[-1]) for j in plan.jobs)
     command = render_command(options, output.path, quicklook=output.quicklook, provenance=output.provenance)
-    doc = item(output.path, fmt=output.format, grid=plan.grid, band_indices=plan.bands[0],
-                wavelengths=planned.wavelengths, fwhm=planned.fwhm, variable=planned.variable,
+    idx = planned.indices
+    doc = item(output.path, fmt=output.format, grid=plan.grid, band_indices=range(len(idx)) if idx else plan.bands[0],
+                wavelengths=None if idx else planned.wavelengths, fwhm=None if idx else planned.fwhm,
+                variable=planned.variable,
                 attrs=planned.attrs, start=gps_seconds_to_datetime(first), end=gps_seconds_to_datetime(last),
                 sources=list(options.sources), command=command, request=options,
                 provenance=(output.provenance_path or output.path) if output.provenance else None)
+    if idx:   # an index output: the camera bands rendered for its indices, and which band each symbol took
+        doc["properties"].update({"archive:source_bands": [int(b) for b in plan.bands[0]],
+                                  "archive:wavelengths": [float(w) for w in planned.wavelengths or ()]})
+        doc["properties"]["archive:recipe"]["indices"] = index_properties(idx)
     if renderers:
         # which GL renderer drew it (a GPU, or llvmpipe with the CPU band gather): a record of the
         # run, kept out of archive:recipe.request so that a resume on other hardware is the same recipe
@@ -555,6 +578,9 @@ def planned_dataset(planned: OutputPlan):
     from archive.graph.lazy import mosaic_arrays
 
     p, grid = planned.params, planned.plan.grid
+    if planned.indices:
+        raise InputError("--index", "a lazy mosaic holds the bands", "take the index of it with "
+                         "archive.analysis.indices.stack_index(ds[variable], 'NDVI'), or write it with georectify")
     values, saturated = mosaic_arrays(planned.plan, list(planned.sources), mode=p.mode, overlap=p.overlap,
                                       layers=planned.layers_spec(rule_only=True)
                                       if p.overlap.key is not None else None)

@@ -1,0 +1,154 @@
+"""``archive render --index NDVI --expression NAME=EXPR`` (issue 48 point 1): one band per index,
+computed per written tile from the rendered bands the indices read.
+
+Real renders of a simulated reflectance flight (the sky-sensor set-up of tests/test_stats.py): the
+NDVI output against NDVI computed from a plain render of its two bands, rendered independently
+(equal where both have data, NaN where neither); the simulator's true NDVI on a homogeneous patch;
+band names read back by rasterio (COG), xarray (Zarr) and the ENVI header; an expression; a
+per-flight batch; the refusals in one line.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from helpers import FOV
+
+import archive
+from archive.analysis.indices import bind_indices, evaluate, parse_indices
+
+SHAPE = dict(cubes=2, bands=8, samples=96, lines=150, cubes_per_pass=2)
+GSD = 0.25
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    from archive.simulator.command import simulate_flight
+
+    root = tmp_path_factory.mktemp("index")
+    truth = simulate_flight(root / "day0", seed=0, scene_seed=0, clouds=True, start="2024-06-12T16:00:00Z", **SHAPE)
+    return root, root / "day0", truth
+
+
+def _render(src, out, **kw):
+    return archive.georectify([str(src)], str(out), gsd=GSD, fov=FOV, mode="reflectance", **kw)
+
+
+@pytest.fixture(scope="module")
+def plain(flight):
+    """The plain reflectance render of the bands NDVI reads (and R800 / R670 for the expression)."""
+    import xarray as xr
+
+    root, src, _ = flight
+    ds = xr.open_zarr(root / "plain.zarr") if (root / "plain.zarr").exists() else None
+    if ds is None:
+        _render(src, root / "plain.zarr")
+        ds = xr.open_zarr(root / "plain.zarr")
+    return ds
+
+
+def _expected(ds, text: str, named: bool) -> np.ndarray:
+    (spec,) = parse_indices([text] if named else [], [] if named else [text])
+    wl = ds["wavelength"].values
+    (bound,) = bind_indices([spec], wl)
+    values = {float(w): ds["reflectance"].isel(band=k).values for k, w in enumerate(wl)}
+    return evaluate(bound, values)
+
+
+def test_zarr_ndvi_equals_the_plain_render_and_the_truth(flight, plain):
+    import xarray as xr
+    from shapely.geometry import box
+
+    root, src, truth = flight
+    s = _render(src, root / "ndvi.zarr", index=["NDVI"], expression=["RATIO=R800/R670"])
+    assert s["bands"] == 2
+    ds = xr.open_zarr(root / "ndvi.zarr")
+    assert list(ds["band_name"].values) == ["NDVI", "RATIO"]
+    got = ds["index"].values
+    assert got.dtype == np.float32 and got.shape[1:] == plain["reflectance"].shape[1:]
+    for k, (text, named) in enumerate((("NDVI", True), ("RATIO=R800/R670", False))):
+        want = _expected(plain, text, named)
+        both = np.isfinite(want) & np.isfinite(got[k])
+        assert both.sum() > 1000
+        np.testing.assert_array_equal(np.isnan(got[k]), np.isnan(want))
+        np.testing.assert_allclose(got[k][both], want[both], rtol=2e-7, atol=0)
+    # the simulator's truth on a homogeneous patch (the true reflectance's NDVI, bands 655 / 830 nm)
+    from archive.simulator.clouds import truth_reflectance
+
+    wl = np.asarray(truth.wavelengths if hasattr(truth, "wavelengths") else plain["wavelength"].values, float)
+    checked = 0
+    x, y = ds["x"].values, ds["y"].values
+    for p in truth.homogeneous_patches():
+        w, s_, e, n = p["interior"]
+        w, s_, e, n = w + 0.6, s_ + 0.6, e - 0.6, n - 0.6   # > 1 px of blur inside the patch's edge
+        cx, cy = box(w, s_, e, n).centroid.coords[0]
+        refl = truth_reflectance(truth, np.array([cx]), np.array([cy]))[:, 0]
+        r, nir = refl[np.argmin(np.abs(wl - 655))], refl[np.argmin(np.abs(wl - 830))]
+        win = got[0][np.ix_((y > s_) & (y < n), (x > w) & (x < e))]
+        if win.size and np.isfinite(win).all():
+            assert abs(float(np.mean(win)) - (nir - r) / (nir + r)) < 0.005, p["name"]
+            checked += 1
+    assert checked >= 1
+    item = json.loads((root / "ndvi.zarr.json").read_text())
+    recipe = item["properties"]["archive:recipe"]
+    assert [i["name"] for i in recipe["indices"]] == ["NDVI", "RATIO"]
+    assert set(recipe["indices"][0]["bands"]) == {"N", "R"}
+    assert recipe["request"]["index"] == ["NDVI"] and "--index NDVI" in recipe["command"]
+    assert len(item["properties"]["archive:source_bands"]) == 2   # 8 bands: R800 is N's band, R670 R's
+
+
+def test_cog_and_envi_band_names(flight, plain):
+    import rasterio
+
+    root, src, _ = flight
+    _render(src, root / "ndvi.tif", index=["NDVI"])
+    want = _expected(plain, "NDVI", True)
+    with rasterio.open(root / "ndvi.tif") as f:
+        assert f.count == 1 and f.descriptions == ("NDVI",)
+        got = f.read(1)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    np.testing.assert_allclose(got[np.isfinite(got)], want[np.isfinite(want)], rtol=2e-7)
+    _render(src, root / "ndvi.hdr", index=["NDVI"])
+    header = (root / "ndvi.hdr").read_text()
+    assert "NDVI" in header.split("band names", 1)[1].split("}", 1)[0]
+
+
+def test_plain_render_is_unchanged(plain):
+    assert "band_name" not in plain.coords and "band_name" not in plain
+    assert plain["reflectance"].shape[0] == 8
+
+
+def test_per_flight_batch(flight, tmp_path):
+    import xarray as xr
+
+    root, src, _ = flight
+    s = archive.georectify([str(src)], str(tmp_path / "out"), gsd=GSD, fov=FOV, mode="reflectance",
+                           per_flight=True, index=["NDVI"])
+    assert s["failed"] == 0, s
+    (out,) = tmp_path.joinpath("out").glob("*.zarr")
+    assert list(xr.open_zarr(out)["band_name"].values) == ["NDVI"]
+
+
+def _cli(*args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "archive", "render", *args], capture_output=True, text=True,
+                          timeout=120)
+
+
+@pytest.mark.parametrize("extra, option", [
+    (["--index", "NDVX"], "--index"),
+    (["--expression", "X=R2000/R670"], "--expression X"),
+    (["--index", "NDVI", "--wavelengths", "650"], "--index"),
+    (["--index", "NDVI", "--bands", "0,1"], "--index"),
+])
+def test_refusals(flight, tmp_path, extra, option):
+    _, src, _ = flight
+    r = _cli(str(src), "--out", str(tmp_path / "x.zarr"), "--gsd", "0.25", "--fov", str(FOV), "--mode",
+             "reflectance", "--quiet", *extra)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and option in lines[0], r.stderr
+    assert not (tmp_path / "x.zarr").exists()
