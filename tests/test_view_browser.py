@@ -199,6 +199,13 @@ def _point_check(point, path):
     return spectrum
 
 
+#: The spectrum chart's curves as uPlot holds them (viewer.chart): x, and per curve its values, colour and
+#: whether uPlot built its path (drew it).
+_CHART = """() => { const u = window.viewer.chart;
+    return { x: [...u.data[0]], curves: u.series.slice(1).map((s, i) => ({ y: [...u.data[i + 1]],
+             stroke: s.stroke(u, i + 1), drawn: Boolean(s.show && s._paths) })) }; }"""
+
+
 def test_one_flight_where_the_mosaic_is_and_pinned_spectra(server, browser, archive_of_flights):
     from scipy.ndimage import binary_dilation, binary_erosion
 
@@ -232,9 +239,15 @@ def test_one_flight_where_the_mosaic_is_and_pinned_spectra(server, browser, arch
         points.append(page.page.evaluate("window.viewer.lastPoint"))
     spectra = [_point_check(p, path) for p in points]
     assert all(p["covered"] and p["id"] == cid and p["mode"] == "radiance" for p in points)
-    assert page.page.locator("#spectrum polyline").count() == 2
-    colours = {page.page.locator("#spectrum polyline").nth(i).get_attribute("stroke") for i in range(2)}
-    assert len(colours) == 2
+    # the chart (uPlot, viewer.chart): one curve per pin in the pin's own colour, over the point's
+    # wavelengths, its values those of the pixel (drawn: uPlot built the curve's path)
+    plot = page.page.evaluate(_CHART)
+    assert len(plot["curves"]) == 2 and all(c["drawn"] for c in plot["curves"])
+    assert [c["stroke"] for c in plot["curves"]] == page.page.evaluate("window.viewer.pins.map((p) => p.colour)")
+    assert len({c["stroke"] for c in plot["curves"]}) == 2
+    assert plot["x"] == points[0]["wavelength"] == points[1]["wavelength"]
+    for curve, spectrum in zip(plot["curves"], spectra):
+        assert np.array_equal(np.array(curve["y"], np.float32).view(np.uint32), spectrum.view(np.uint32))
     assert page.page.locator("#spectrum .band-mark").count() == 3          # R, G, B wavelengths marked
     assert "calibration radiance units" in page.page.locator("#spectrum").inner_html()
     # the y-axis label (mode and units) lies inside the chart, not clipped by its edges
@@ -249,8 +262,21 @@ def test_one_flight_where_the_mosaic_is_and_pinned_spectra(server, browser, arch
     assert csv[0].startswith("wavelength_nm,radiance ") and len(csv) == len(spectra[0]) + 1
     for j, spectrum in enumerate(spectra):
         assert np.array_equal(np.array([float(line.split(",")[1 + j]) for line in csv[1:]], np.float32), spectrum)
+    # the chart as a PNG: twice the chart's size, both curves' colours in it
+    page.page.click("#png")
+    page.page.wait_for_function("() => Boolean(window.viewer.png)")
+    png = page.page.evaluate("""async () => { const b = await (await fetch(window.viewer.png)).arrayBuffer();
+        return Array.from(new Uint8Array(b)); }""")
+    image = np.asarray(Image.open(io.BytesIO(bytes(png))).convert("RGB")).astype(int)
+    size = page.page.evaluate("[window.viewer.chart.width, window.viewer.chart.height]")
+    assert image.shape[:2] == (2 * size[1], 2 * size[0])
+    for c in plot["curves"]:
+        rgb = np.array([int(c["stroke"][k:k + 2], 16) for k in (1, 3, 5)])
+        assert (np.abs(image - rgb).sum(axis=-1) < 40).sum() > 50, c["stroke"]
     page.page.locator("#pins button").first.click()       # remove the first
-    assert page.page.locator("#spectrum polyline").count() == 1
+    plot = page.page.evaluate(_CHART)
+    assert len(plot["curves"]) == 1
+    assert np.array_equal(np.array(plot["curves"][0]["y"], np.float32).view(np.uint32), spectra[1].view(np.uint32))
     page.close()
 
 

@@ -15,12 +15,13 @@ IMPORT = re.compile(r"""^\s*(?:import|export)\b(?:[^;"'()]*?\bfrom\s*)?\s*["'](\
 
 
 def module_imports(folder: Path = STATIC) -> dict[str, list[str]]:
-    """{module file name: the page modules it imports statically, by file name}."""
+    """{module file name: the page modules it imports statically, by file name}; the files of sub-folders
+    (the vendored libraries, ``vendor/uplot/uPlot.esm.js``) by their path under ``folder``."""
     graph = {}
-    for path in sorted(folder.glob("*.js")):
+    for path in sorted(folder.rglob("*.js")):
         text = re.sub(r"//[^\n]*|/\*.*?\*/", "", path.read_text(encoding="utf-8"), flags=re.S)
-        graph[path.name] = [(path.parent / target).resolve().relative_to(folder.resolve()).as_posix()
-                            for target in IMPORT.findall(text)]
+        graph[path.relative_to(folder).as_posix()] = [
+            (path.parent / target).resolve().relative_to(folder.resolve()).as_posix() for target in IMPORT.findall(text)]
     return graph
 
 

@@ -1,6 +1,7 @@
 // archive view: pinned spectra of the open flight (the pixel of archive render's grid at the
-// flight's nominal GSD holding a click, float32 as render writes it), their chart, CSV and PNG.
+// flight's nominal GSD holding a click, float32 as render writes it), their chart (uPlot), CSV and PNG.
 import { channelsNm, flightParams } from "./params.js";
+import uPlot from "./vendor/uplot/uPlot.esm.js";
 import { map } from "./map.js";
 import { $, MAX_PINS, PALETTE, getJSON, idPath, newGeneration, status, viewer } from "./state.js";
 
@@ -26,8 +27,9 @@ export async function pinPoint(latlng) {
   viewer.pins.push(pin);
   showPixel(p);
   showPins();
-  // the chart in sight (at 1400 x 900 it lies below the panel's fold): the panel scrolls, not the page
-  $("spectrum").scrollIntoView({ block: "nearest" });
+  // the chart in sight (at 1400 x 900 it lies below the panel's fold): the panel scrolls, not the page;
+  // at the next frame, when uPlot has sized its canvas (it lays out in a microtask)
+  requestAnimationFrame(() => $("spectrum").scrollIntoView({ block: "nearest" }));
 }
 function removePin(pin) {
   pin.marker.remove();
@@ -89,89 +91,177 @@ function showPins() {
   viewer.csv = csv;
 }
 
-function niceTicks(lo, hi, n = 5) {
-  if (!(hi > lo)) { hi = lo + 1; }
-  const step0 = (hi - lo) / n;
-  const mag = 10 ** Math.floor(Math.log10(step0));
-  const step = [1, 2, 5, 10].map((m) => m * mag).find((s) => s >= step0);
-  const ticks = [];
-  for (let t = Math.ceil(lo / step) * step; t <= hi + step * 1e-9; t += step) ticks.push(Number(t.toPrecision(12)));
-  return ticks;
+// ---- the chart: uPlot (vendor/uplot/, see vendor/README.md) --------------------------------------
+// One curve per pin in its colour (a missing value breaks the curve), x in nm (or band numbers when
+// the flight has no wavelengths), y in the mode's unit. The bands the map shows are dashed lines
+// (DOM elements over the plot, class band-mark) and the y-axis label is a DOM element (class y-label)
+// shrunk, then shortened, to fit the plot's height, the whole of it as a tooltip. uPlot's legend
+// reads the values under the cursor; drag to zoom in on a wavelength range, double-click to reset.
+const FONT_PX = 10;
+const FAMILY = `system-ui, -apple-system, "Segoe UI", Roboto, Arial, sans-serif`;
+const LABEL_ROOM = 16;   // the chart's left margin (CSS px) that holds the y-axis label
+let chart = null;        // the uPlot of the pins (null without pins); the tests read it as viewer.chart
+
+// the chart's box: index.html's <div id="spectrum">
+const chartBox = () => $("spectrum");
+const boxSize = (box) => { const width = Math.max(200, Math.floor(box.clientWidth || 330)); return { width, height: Math.round(width * 0.64) }; };
+new ResizeObserver(() => {
+  if (!chart) return;
+  const size = boxSize(chartBox());
+  if (size.width !== chart.width) chart.setSize(size);
+}).observe(chartBox());
+
+const tickText = (t) => (Math.abs(t) >= 1e4 ? t.toExponential(1) : String(Number(t.toPrecision(12))));
+const valueText = (v) => (v === null || v === undefined ? "–" : Number(v.toPrecision(6)).toString());
+
+// the axis as wide as its longest tick label (uPlot's documented recipe)
+function axisSize(u, values, i, cycle) {
+  const axis = u.axes[i];
+  if (cycle > 1) return axis._size;
+  let size = axis.ticks.size + axis.gap;
+  const longest = (values || []).reduce((a, v) => (v.length > a.length ? v : a), "");
+  if (longest) { u.ctx.font = axis.font[0]; size += u.ctx.measureText(longest).width / devicePixelRatio; }
+  return Math.ceil(size);
+}
+
+// the display's bands: [nm, colour, letter]
+function bandMarks() {
+  const nm = channelsNm().filter((w) => Number.isFinite(w));
+  const marks = nm.length === 1 ? [["#666", "grey"]] : nm.length === 2 ? [["#c0392b", "a"], ["#2155c0", "b"]]
+    : [["#c0392b", "R"], ["#1e8449", "G"], ["#2155c0", "B"]];
+  return nm.map((w, i) => [w, ...marks[i]]);
+}
+const shownMarks = (u) => (u.withWavelength ? bandMarks() : []).filter(([w]) => w >= u.scales.x.min && w <= u.scales.x.max);
+
+// after each redraw (pins, zoom, resize): the band marks over the plot, the y-axis label beside it
+function placeOverlays(u) {
+  u.over.querySelector(".band-marks").replaceChildren(...shownMarks(u).map(([w, colour, letter]) => {
+    const mark = document.createElement("div");
+    mark.className = "band-mark";
+    mark.style.left = `${u.valToPos(w, "x")}px`;
+    mark.style.borderLeftColor = colour;
+    mark.dataset.nm = String(w);
+    const text = document.createElement("span");
+    text.textContent = letter; text.style.color = colour;
+    mark.append(text);
+    return mark;
+  }));
+  const label = u.root.querySelector(".y-label"), ratio = u.ctx.canvas.width / u.width;
+  label.style.top = `${u.bbox.top / ratio}px`;
+  label.style.height = `${u.bbox.height / ratio}px`;
+  label.style.fontSize = `${FONT_PX}px`;
+  label.textContent = u.yLabel;
+  for (let size = FONT_PX; size > 7 && label.scrollHeight > label.clientHeight + 0.5; size -= 1) label.style.fontSize = `${size - 1}px`;
+  for (let n = u.yLabel.length - 1; n > 4 && label.scrollHeight > label.clientHeight + 0.5; n -= 1) label.textContent = u.yLabel.slice(0, n) + "…";
+}
+
+// uPlot's options and data for the pins, at `scale` times the sizes of the page's chart (2: the PNG)
+function chartSetup(pins, size, scale = 1) {
+  const pts = pins.map((s) => s.point), ref = pts[0];
+  const xsOf = (p) => p.wavelength || p.values.map((_, i) => i);
+  // one x for all: pins of flights with other bands are aligned (a curve spans the others' x)
+  const data = uPlot.join(pts.map((p) => [xsOf(p), p.values.map((v) => (v === undefined ? null : v))]));
+  const oneFlight = pts.every((p) => p.id === ref.id);
+  const label = (p) => (oneFlight ? `c${p.cube + 1} l${p.line + 1} s${p.sample + 1}` : pinLabel(p));
+  const font = `${FONT_PX * scale}px ${FAMILY}`;
+  const axis = { font, labelFont: font, stroke: "#334", gap: 5 * scale, ticks: { stroke: "#445", width: scale, size: 4 * scale } };
+  const opts = {
+    ...size,
+    padding: [14 * scale, 12 * scale, 0, LABEL_ROOM * scale],
+    scales: {
+      x: { time: false, range: (u, lo, hi) => (lo === hi ? [lo - 1, hi + 1] : [lo, hi]) },
+      y: {
+        range: (u, lo, hi) => {
+          if (lo === null || hi === null) return [0, 1];
+          if (lo === hi) { lo -= 1; hi += 1; }
+          const pad = (hi - lo) * 0.05;
+          return [lo - pad, hi + pad];
+        },
+      },
+    },
+    axes: [
+      { ...axis, label: ref.wavelength ? "wavelength (nm)" : "band", labelSize: 16 * scale, size: 24 * scale,
+        space: 50 * scale, grid: { show: false }, values: (u, splits) => splits.map(tickText) },
+      { ...axis, size: axisSize, space: 30 * scale, grid: { stroke: "#e3e6eb", width: scale }, ticks: { show: false },
+        values: (u, splits) => splits.map(tickText) },
+    ],
+    series: [
+      { label: ref.wavelength ? "nm" : "band", value: (u, v) => valueText(v) },
+      ...pins.map((pin) => ({ label: label(pin.point), stroke: pin.colour, width: 1.5 * scale, value: (u, v) => valueText(v),
+                              points: { size: 5 * scale, width: scale } })),
+    ],
+  };
+  return { opts, data, withWavelength: Boolean(ref.wavelength), yLabel: `${ref.mode} (${pins[0].units})` };
 }
 
 function drawSpectrum() {
-  const svg = $("spectrum");
-  const NS = "http://www.w3.org/2000/svg";
-  // room for the y-axis label and its tick labels (the viewBox follows: the chart scales to the panel)
-  const W = 360, H = 230, left = 62, right = 14, top = 14, bottom = 34;
-  svg.setAttribute("viewBox", `0 0 ${W} ${H}`);
-  svg.replaceChildren();
-  const pts = viewer.pins.map((s) => s.point);
-  if (!pts.length) return;
-  const el = (name, attrs, text) => {
-    const e = document.createElementNS(NS, name);
-    for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
-    if (text !== undefined) e.textContent = text;
-    svg.append(e);
-    return e;
-  };
-  el("rect", { x: 0, y: 0, width: W, height: H, fill: "#fff" });
-  const xsOf = (p) => p.wavelength || p.values.map((_, i) => i);
-  const allX = pts.flatMap(xsOf), finite = pts.flatMap((p) => p.values.filter((v) => v !== null));
-  const x0 = Math.min(...allX), x1 = Math.max(...allX);
-  let y0 = finite.length ? Math.min(...finite) : 0, y1 = finite.length ? Math.max(...finite) : 1;
-  if (y1 === y0) { y0 -= 1; y1 += 1; }
-  const pad = (y1 - y0) * 0.05; y0 -= pad; y1 += pad;
-  const sx = (x) => left + ((x - x0) / (x1 - x0 || 1)) * (W - left - right);
-  const sy = (y) => top + (1 - (y - y0) / (y1 - y0)) * (H - top - bottom);
-  for (const t of niceTicks(y0, y1)) {
-    el("line", { class: "grid", x1: left, x2: W - right, y1: sy(t), y2: sy(t), stroke: "#e3e6eb" });
-    el("text", { x: left - 4, y: sy(t) + 3, "text-anchor": "end", "font-size": 10 }, Math.abs(t) >= 1e4 ? t.toExponential(1) : String(t));
-  }
-  for (const t of niceTicks(x0, x1)) {
-    el("line", { class: "axis", x1: sx(t), x2: sx(t), y1: H - bottom, y2: H - bottom + 4, stroke: "#445" });
-    el("text", { x: sx(t), y: H - bottom + 14, "text-anchor": "middle", "font-size": 10 }, String(t));
-  }
-  // the bands the map shows
-  const nm = channelsNm();
-  const marks = nm.length === 1 ? [["#666", "grey"]] : [["#c0392b", "R"], ["#1e8449", "G"], ["#2155c0", "B"]];
-  const ref = pts[0];
-  nm.forEach((w, i) => {
-    const x = ref.wavelength ? w : w;
-    if (x < x0 || x > x1) return;
-    el("line", { class: "band-mark", x1: sx(x), x2: sx(x), y1: top, y2: H - bottom, stroke: marks[i][0], "stroke-dasharray": "3 3" });
-    el("text", { x: sx(x), y: top - 2, "text-anchor": "middle", "font-size": 9, fill: marks[i][0] }, marks[i][1]);
+  const box = chartBox();
+  if (chart) { chart.destroy(); chart = null; }
+  viewer.chart = null;
+  box.replaceChildren();
+  box.hidden = viewer.pins.length === 0;
+  if (!viewer.pins.length) return;
+  const { opts, data, withWavelength, yLabel } = chartSetup(viewer.pins, boxSize(box));
+  opts.legend = { live: true };
+  opts.hooks = { draw: [placeOverlays] };
+  chart = new uPlot(opts, data, (self, init) => {
+    // the overlays exist before uPlot's first draw (which calls placeOverlays)
+    Object.assign(self, { withWavelength, yLabel });
+    const marks = document.createElement("div");
+    marks.className = "band-marks";
+    self.over.append(marks);
+    const yl = document.createElement("div");
+    yl.className = "y-label"; yl.title = yLabel;
+    self.over.parentNode.append(yl);
+    box.append(self.root);
+    init();
   });
-  el("path", { class: "axis", d: `M${left},${top}V${H - bottom}H${W - right}`, stroke: "#445", fill: "none" });
-  el("text", { x: (left + W - right) / 2, y: H - 4, "text-anchor": "middle", "font-size": 10 }, ref.wavelength ? "wavelength (nm)" : "band");
-  const units = viewer.pins[0].units;
-  // the y-axis label fits the plot's height: smaller type, then shortened (the whole of it as a tooltip)
-  const label = `${ref.mode} (${units})`, room = H - top - bottom - 4;
-  const yl = el("text", { class: "y-label", x: 10, y: (top + H - bottom) / 2, "text-anchor": "middle", "font-size": 10,
-                          transform: `rotate(-90 10 ${(top + H - bottom) / 2})` }, label);
-  for (let size = 10; size > 7 && yl.getComputedTextLength() > room; size -= 1) yl.setAttribute("font-size", size - 1);
-  for (let n = label.length - 1; n > 4 && yl.getComputedTextLength() > room; n -= 1) yl.textContent = label.slice(0, n) + "…";
-  const tip = document.createElementNS(NS, "title");
-  tip.textContent = label;
-  yl.append(tip);
-  for (const pin of viewer.pins) {
-    const p = pin.point, xs = xsOf(p);
-    let run = [];
-    const flush = () => { if (run.length) el("polyline", { class: "line", points: run.join(" "), stroke: pin.colour, "stroke-width": 1.5, fill: "none" }); run = []; };
-    p.values.forEach((v, i) => { if (v === null) flush(); else run.push(`${sx(xs[i]).toFixed(2)},${sy(v).toFixed(2)}`); });
-    flush();
-  }
+  viewer.chart = chart;
 }
 
+// the chart as a PNG: the pins drawn again by uPlot at twice the chart's size (the x range shown,
+// no cursor or legend) off screen, the band marks and the y-axis label drawn over its canvas
 $("png").addEventListener("click", () => {
-  const svg = $("spectrum");
-  const text = new XMLSerializer().serializeToString(svg);
-  const img = new Image();
-  img.onload = () => {
+  if (!chart) return;
+  const S = 2, shown = chart, { min, max } = shown.scales.x;
+  const holder = document.createElement("div");
+  holder.style.cssText = "position: fixed; left: -100000px; top: 0;";
+  document.body.append(holder);
+  const { opts, data } = chartSetup(viewer.pins, { width: shown.width * S, height: shown.height * S }, S);
+  opts.scales.x.range = () => [min, max];
+  opts.legend = { show: false };
+  opts.cursor = { show: false };
+  const u = new uPlot(opts, data, holder);
+  // uPlot draws in a microtask: compose at the next frame
+  requestAnimationFrame(() => {
+    const src = u.ctx.canvas, ratio = src.width / u.width;
     const canvas = document.createElement("canvas");
-    canvas.width = 720; canvas.height = 460;
+    canvas.width = u.width; canvas.height = u.height;
     const ctx = canvas.getContext("2d");
-    ctx.drawImage(img, 0, 0, 720, 460);
+    ctx.fillStyle = "#fff";
+    ctx.fillRect(0, 0, canvas.width, canvas.height);
+    ctx.drawImage(src, 0, 0, canvas.width, canvas.height);
+    const top = u.bbox.top / ratio, left = u.bbox.left / ratio, height = u.bbox.height / ratio;
+    ctx.textAlign = "center";
+    ctx.lineWidth = S;
+    ctx.font = `${9 * S}px ${FAMILY}`;
+    u.withWavelength = shown.withWavelength;
+    for (const [w, colour, letter] of shownMarks(u)) {
+      const x = left + u.valToPos(w, "x");
+      ctx.strokeStyle = colour; ctx.fillStyle = colour;
+      ctx.setLineDash([3 * S, 3 * S]);
+      ctx.beginPath(); ctx.moveTo(x, top); ctx.lineTo(x, top + height); ctx.stroke();
+      ctx.fillText(letter, x, top - 3 * S);
+    }
+    const yl = shown.root.querySelector(".y-label");
+    ctx.fillStyle = "#334";
+    ctx.font = `${parseFloat(getComputedStyle(yl).fontSize) * S}px ${FAMILY}`;
+    ctx.textBaseline = "middle";
+    ctx.translate((LABEL_ROOM * S) / 2, top + height / 2);
+    ctx.rotate(-Math.PI / 2);
+    ctx.fillText(yl.textContent, 0, 0);
+    u.destroy();
+    holder.remove();
     canvas.toBlob((blob) => {
       const a = document.createElement("a");
       a.href = URL.createObjectURL(blob);
@@ -179,7 +269,5 @@ $("png").addEventListener("click", () => {
       viewer.png = a.href;
       a.click();
     }, "image/png");
-  };
-  img.src = "data:image/svg+xml;charset=utf-8," + encodeURIComponent(text);
+  });
 });
-
