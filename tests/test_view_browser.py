@@ -142,8 +142,9 @@ def _screen_lonlat(shape, geo):
     return np.asarray(lon), np.asarray(lat)
 
 
-def _expected_coverage(ds, shape, geo) -> np.ndarray:
-    """Whether each screen pixel centre of the map falls on a covered pixel of the UTM mosaic ``ds``."""
+def _mosaic_pixels(ds, shape, geo):
+    """(row, col, inside): the pixel of the UTM mosaic ``ds`` under each screen pixel centre of the map,
+    and whether it lies in the mosaic."""
     from pyproj import Transformer
 
     lon, lat = _screen_lonlat(shape, geo)
@@ -151,7 +152,12 @@ def _expected_coverage(ds, shape, geo) -> np.ndarray:
     gsd = float(ds.x[1] - ds.x[0])
     col = np.floor((np.asarray(e) - (float(ds.x[0]) - gsd / 2)) / gsd).astype(int)
     row = np.floor(((float(ds.y[0]) + gsd / 2) - np.asarray(n)) / gsd).astype(int)
-    inside = (col >= 0) & (col < ds.sizes["x"]) & (row >= 0) & (row < ds.sizes["y"])
+    return row, col, (col >= 0) & (col < ds.sizes["x"]) & (row >= 0) & (row < ds.sizes["y"])
+
+
+def _expected_coverage(ds, shape, geo) -> np.ndarray:
+    """Whether each screen pixel centre of the map falls on a covered pixel of the UTM mosaic ``ds``."""
+    row, col, inside = _mosaic_pixels(ds, shape, geo)
     covered = np.isfinite(ds[[v for v in ds.data_vars if v != "saturated"][0]].values[0])
     out = np.zeros(shape, bool)
     out[inside] = covered[row[inside], col[inside]]
@@ -773,16 +779,9 @@ def test_an_index_display_shows_the_index_of_the_mosaic_on_its_ramp(server, brow
     assert (shot != rgb).any(axis=-1).mean() > 0.05   # the picture changed
 
     # the truth: the mosaic of the two bands (radiance, the page's mode), its pixel under each screen pixel
-    from pyproj import Transformer
-
     ds = archive.mosaic([cid], archive=path, gsd=0.03, wavelengths=[a_nm, b_nm])
     values = ds["radiance"].values
-    geo = page.geometry()
-    lon, lat = _screen_lonlat(shot.shape[:2], geo)
-    e, n = Transformer.from_crs(4326, ds.rio.crs.to_epsg(), always_xy=True).transform(lon, lat)
-    col = np.floor((np.asarray(e) - (float(ds.x[0]) - 0.015)) / 0.03).astype(int)
-    row = np.floor(((float(ds.y[0]) + 0.015) - np.asarray(n)) / 0.03).astype(int)
-    inside = (col >= 0) & (col < ds.sizes["x"]) & (row >= 0) & (row < ds.sizes["y"])
+    row, col, inside = _mosaic_pixels(ds, shot.shape[:2], page.geometry())
     index = np.full(shot.shape[:2], np.nan)
     av, bv = values[0][row[inside], col[inside]], values[1][row[inside], col[inside]]
     index[inside] = (av - bv) / (av + bv)
