@@ -760,9 +760,8 @@ def test_an_index_display_shows_the_index_of_the_mosaic_on_its_ramp(server, brow
 
     path, ids = archive_of_flights
     cid = ids[0]
-    page = Page(browser, server, f"flights={cid}&open={cid}")
-    page.page.wait_for_function(f"() => window.viewer.open === '{cid}'")
-    page.page.evaluate("() => window.viewer.map.setZoom(window.viewer.map.getZoom() + 1)")
+    page = opened(browser, server, cid)
+    page.page.evaluate("() => window.viewer.map.setZoom(window.viewer.map.getZoom() + 1)")   # from the DN
     page.settled()
     rgb = page.shot()
     page.page.click("#ndvi")
