@@ -4,10 +4,11 @@ A simulated flight is replayed into an empty folder at the camera's pace by test
 ``.bil`` growing block by block, ``.times``/``.lcf`` with it, the header last) while ``archive watch``
 follows the folder (inotify, the live map on loopback). For each cube: the time from the moment its
 header was complete to the moment ``/api/live`` listed it AND a 256 x 256 band-value tile over its
-centre answered with imagery (measured by this client, polling every 20 ms). Then, after ``--idle``,
-the flight's ingest (``archive ingest`` in the watcher's child process): its seconds a cube against
-the recorder's seconds a cube, and the backlog (the collection ready this long after the last cube
-closed, less the idle wait). One run; prints the figures.
+centre answered with imagery (measured by this client, polling every 20 ms). Each cube's DN chunks are
+encoded as it closes (the watcher's thread): their seconds a cube against the recorder's seconds a
+cube; then, after ``--idle``, the flight's ingest (``archive ingest --prewritten`` in the watcher's
+child process, moving those chunks in), and the backlog (the collection ready this long after the
+last cube closed, less the idle wait). One run; prints the figures.
 
     .venv/bin/python bench/bench_watch.py                      # paper shape: 900 samples x 1000 lines x 300 bands, 249 Hz
     .venv/bin/python bench/bench_watch.py --cubes 6 --bands 30   # lighter cubes, same 900 samples
@@ -38,7 +39,7 @@ def get(url: str):
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cubes", type=int, default=4)
+    ap.add_argument("--cubes", type=int, default=8, help="cubes of the flight (default 8: the paper's flight)")
     ap.add_argument("--bands", type=int, default=300)
     ap.add_argument("--samples", type=int, default=900)
     ap.add_argument("--lines", type=int, default=1000)
@@ -117,8 +118,15 @@ def main() -> int:
     print(f"watcher resident memory: {rss[0] / 1e6:.0f} MB after the last cube, {rss[1] / 1e6:.0f} MB after the "
           f"ingest (cubes of {cube_mb:.0f} MB, {args.cubes * cube_mb:.0f} MB in all; the ingest is a child process)")
     print(f"ingest: {done}")
-    print(f"  {ingest_s:.1f} s for {args.cubes} cubes = {ingest_s / args.cubes:.2f} s a cube against "
-          f"{per_cube_record:.2f} s a cube recorded: ratio {ingest_s / args.cubes / per_cube_record:.2f}")
+    ahead = re.search(r"(\d+) encoded as they closed, (\d+) moved in, ([\d.]+) s a cube", done)
+    if ahead:   # each cube encoded as it closed (issue 47); the ingest then moves them in
+        per = float(ahead.group(3))
+        print(f"  encoded as they closed: {ahead.group(1)} cubes, {ahead.group(2)} moved in by the ingest; "
+              f"{per:.2f} s a cube against {per_cube_record:.2f} s a cube recorded: ratio {per / per_cube_record:.2f}")
+        print(f"  the ingest after --idle: {ingest_s:.1f} s")
+    else:
+        print(f"  {ingest_s:.1f} s for {args.cubes} cubes = {ingest_s / args.cubes:.2f} s a cube against "
+              f"{per_cube_record:.2f} s a cube recorded: ratio {ingest_s / args.cubes / per_cube_record:.2f}")
     print(f"  collection ready {done_at - closed[-1].closed:.1f} s after the last cube closed "
           f"(idle {args.idle:g} s + ingest)")
     return 0

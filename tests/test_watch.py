@@ -192,7 +192,9 @@ def test_live_flight_then_the_collection_of_a_plain_ingest(source, tmp_path):
     assert sum(f["properties"]["lines"] for f in features.values()) == sum(len(c.line_time) for c in truth.cubes)
 
     # one pass outline per true strip, each on that strip's true footprint (within half a pixel)
-    watcher.wait_for("ingested as", timeout=90)
+    done = watcher.wait_for("ingested as", timeout=90)
+    # every cube was encoded as it closed and its chunks moved into the collection (nothing written twice)
+    assert re.search(r"\(4 cubes; 4 encoded as they closed, 4 moved in, ", done), done
     deadline = time.monotonic() + 30
     while True:
         (flight,) = json.loads(get(url + "api/live")[1])["flights"]

@@ -41,6 +41,10 @@ def add_cluster_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checksum", choices=list(CHECKSUM_NAMES), default=CHECKSUM_NAMES[0],
                    help="checksum of every DN chunk and raw file: blake3 (default, ~3.5x faster) or sha256 (where a "
                         "policy asks for it); recorded with the store, which every reader and 'archive verify' follow")
+    p.add_argument("--prewritten", metavar="DIR",
+                   help="a folder of DN chunks 'archive watch' encoded as each cube closed: each that is exactly "
+                        "what this ingest writes is moved in instead of written again (in this process only); the "
+                        "collection is the same (docs/watch.md)")
     g = p.add_argument_group("where it runs (default: this process, every core; every flight checked before any is "
                              "written). On a cluster each flight is a unit of its own: checked and written by tasks "
                              "on the workers, published here; a flight that fails costs only itself (exit code 1)")

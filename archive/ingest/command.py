@@ -59,23 +59,29 @@ class _Progress:
         self.callback = _Cb()
 
 
-def write_flight(plan: StorePlan, root: ArchiveRoot, workers: int | None = None, progress: bool = True) -> bool:
+def write_flight(plan: StorePlan, root: ArchiveRoot, workers: int | None = None, progress: bool = True,
+                 prewritten: str | os.PathLike | None = None) -> bool:
     """Write ``plan`` into ``root`` in this process (partial store, Dask graph on ``workers`` threads,
-    default every core; checksums, marker, rename). Returns whether the store was resumed from an
-    interrupted run."""
+    default every core; checksums, marker, rename). ``prewritten``: a folder of chunks written ahead
+    (:mod:`archive.ingest.ahead`; those that are exactly this plan's are moved in, not written again).
+    Returns whether the store was resumed from an interrupted run."""
     import dask
+
+    from archive.ingest.ahead import adopt
 
     partial = root.partial(plan.cid)
     resumed = open_partial(partial, plan)
-    jobs = [dask.delayed(function, pure=True)(*args, dask_key_name=key)
-            for key, function, args in flight_tasks(plan, partial, resumed)]
+    known_chunks, known_files = ({}, {}) if prewritten is None or root.is_url else adopt(prewritten, plan, partial)
+    tasks = flight_tasks(plan, partial, resumed, frozenset(k for _, k in known_chunks), frozenset(known_files))
+    jobs = [dask.delayed(function, pure=True)(*args, dask_key_name=key) for key, function, args in tasks]
     bar = _Progress(len(jobs), f"ingest {plan.cid}", progress)
     try:
         with bar.callback:
             (results,) = dask.compute(jobs, scheduler="threads", num_workers=workers or os.cpu_count() or 1)
     finally:
         bar.bar.close()
-    finish_store(partial, plan, *split_results(plan, results))
+    chunks, files = split_results(plan, results)
+    finish_store(partial, plan, {**known_chunks, **chunks}, {**known_files, **files})
     publish(partial, root.store(plan.cid))
     return resumed
 
@@ -89,7 +95,8 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
            navigation: str | os.PathLike | None = None, navigation_columns: dict | None = None, *,
            scheduler=None, threads: int | None = None, compression: str | None = None,
            checksum: str | None = None, report: str | os.PathLike | None = None,
-           tell=None, wave_tasks: int | None = None) -> list[IngestResult]:
+           tell=None, wave_tasks: int | None = None,
+           prewritten: str | os.PathLike | None = None) -> list[IngestResult]:
     """Ingest raw flight ``directories`` into the archive (created when absent); see the module docstring.
     ``dem`` / ``dem_datum``: the catalog footprint follows that terrain (:func:`prepare_flight`).
     ``irradiance_calibration``: the downwelling spectrometer's ``.dcp`` when it is not in the flight
@@ -103,7 +110,9 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
     tasks kept in the scheduler at most, :func:`archive.ingest.cluster.ingest_on_cluster`); else in this
     process on ``threads`` threads (default every core; ``workers`` 1 or None), every flight checked before
     anything is written. ``compression``: the dn codec by name (:data:`archive.collection.layout.DN_COMPRESSIONS`,
-    default 'fast'); ``checksum``: 'blake3' (default) or 'sha256' for the dn chunks and raw files."""
+    default 'fast'); ``checksum``: 'blake3' (default) or 'sha256' for the dn chunks and raw files.
+    ``prewritten``: a folder of dn chunks written ahead by ``archive watch`` (:mod:`archive.ingest.ahead`;
+    in this process only: refused with a cluster)."""
     from archive.ingest.cluster import ingest_on_cluster
 
     codec, checksum = store_choices(compression, checksum)
@@ -112,6 +121,9 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
     if workers is not None and (isinstance(workers, bool) or int(workers) < 1):
         raise InputError("--workers", f"expected a positive number of worker processes, got {workers!r}")
     if scheduler is not None or (workers or 1) > 1:
+        if prewritten is not None:
+            raise InputError("--prewritten", "chunks written ahead are moved in by an ingest in this process",
+                             "leave out --scheduler/--workers, or --prewritten")
         return ingest_on_cluster(list(directories), archive_path, arguments, scheduler=scheduler, workers=workers,
                                  threads=threads, overwrite=overwrite, progress=progress, report=report, tell=tell,
                                  wave_tasks=wave_tasks)
@@ -142,7 +154,7 @@ def ingest(directories: list[str], archive_path: str | os.PathLike, fov_deg: flo
                     results.append(began)
                     continue
                 with disk_full_is_an_error(root, plan.cid):
-                    resumed = write_flight(plan, root, threads, progress)
+                    resumed = write_flight(plan, root, threads, progress, prewritten)
                 results.append(finish_flight(root, plan, directory, resumed))
             finally:
                 lock.release()
@@ -171,7 +183,8 @@ def run(args: argparse.Namespace) -> int:
                      navigation=getattr(args, "navigation", None),
                      navigation_columns=parse_columns(getattr(args, "navigation_columns", None)),
                      scheduler=where(args), threads=args.threads, compression=args.compression,
-                     checksum=args.checksum, report=args.report, tell=print)
+                     checksum=args.checksum, report=args.report, tell=print,
+                     prewritten=getattr(args, "prewritten", None))
     cluster = where(args) is not None or (args.workers or 1) > 1
     if not cluster:
         for r in results:

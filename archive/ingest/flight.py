@@ -70,10 +70,13 @@ class PrepareArguments:
         return replace(plan, dn_codec=dict(self.dn_codec), checksum=self.checksum)
 
 
-def flight_tasks(plan: StorePlan, partial, resumed: bool) -> list[tuple[str, object, tuple]]:
+def flight_tasks(plan: StorePlan, partial, resumed: bool, written: frozenset = frozenset(),
+                 hashed: frozenset = frozenset()) -> list[tuple[str, object, tuple]]:
     """The tasks that write ``plan``'s dn chunks into ``partial`` and checksum its raw files: (key,
     function, arguments) each, keys from the plan's token (the same flight gives the same keys). The
-    chunk tasks return [(band, chunk, hex digest), ...], the file tasks (path, hex digest)."""
+    chunk tasks return [(band, chunk, hex digest), ...], the file tasks (path, hex digest). Left out:
+    the line chunks ``written`` (every band there already: :func:`archive.ingest.ahead.adopt`) and the
+    source paths ``hashed``."""
     from dask.base import tokenize
 
     token = tokenize(plan.token(), resumed, str(partial))
@@ -81,9 +84,10 @@ def flight_tasks(plan: StorePlan, partial, resumed: bool) -> list[tuple[str, obj
     groups = chunk_groups(plan.data_files, plan.cube_lines, plan.bands, plan.chunk_lines, plan.samples, itemsize)
     tasks: list[tuple[str, object, tuple]] = [
         (f"ingest-dn-{g.chunk}-{g.band0}-{token}", write_chunks,
-         (str(partial), g, plan.chunk_lines, resumed, plan.dn_codec, plan.checksum)) for g in groups]
+         (str(partial), g, plan.chunk_lines, resumed, plan.dn_codec, plan.checksum))
+        for g in groups if g.chunk not in written]
     tasks += [(f"ingest-{plan.checksum}-{k}-{token}", hash_file_task, (path, plan.checksum))
-              for k, (path, _) in enumerate(plan.sources)]
+              for k, (path, _) in enumerate(plan.sources) if path not in hashed]
     return tasks
 
 

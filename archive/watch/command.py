@@ -6,17 +6,20 @@ says something changed (``watchfiles``, in a thread) or a timer expires (a cube 
 a flight going idle; every ``--poll`` seconds on network mounts), then act on what the scan found:
 
 - a complete cube is staged (:mod:`archive.watch.stage`) and served at once as a raw flight of its own
-  (:class:`archive.watch.live.LiveRegistry`), listed in ``/api/live``;
-- a flight idle for ``--idle`` seconds (no cube of it being written) is ingested by ``archive ingest``
-  with the options given, in a child process (one at a time): its collection is exactly what a plain
-  ingest of its files makes, because it is one. The recorder folder itself is ingested when it holds
+  (:class:`archive.watch.live.LiveRegistry`), listed in ``/api/live``; then its DN chunks are encoded
+  ahead of the ingest, in a thread, one cube at a time (:mod:`archive.watch.ahead`);
+- a flight idle for ``--idle`` seconds (no cube of it being written or encoded) is ingested by
+  ``archive ingest --prewritten`` (the chunks encoded ahead) with the options given, in a child process
+  (one at a time): its collection is exactly what a plain ingest of its files makes, because it is one
+  (the ingest moves in only the chunks that are exactly its own, and writes the rest). The recorder folder itself is ingested when it holds
   exactly that flight's complete cubes, else a staged folder of links to them. Once the collection is
   in the catalog, the flight's live cubes leave the list;
 - what was ingested is recorded in ``ARCHIVE/.watch/state.json`` (the cubes' sizes and times), so a
   watch restarted on the same folders lists and ingests nothing again; a flight that grew since is
   ingested again (``--overwrite`` of the collection this watcher made).
 
-SIGTERM or Ctrl-C stops the loop: the cube in hand is finished (staging is a rename), an ingest in
+SIGTERM or Ctrl-C stops the loop: the cube in hand is finished (staging is a rename; the cube being
+encoded ahead is finished, the cubes queued behind it are dropped: the ingest writes them), an ingest in
 progress is stopped (its partial store stays, invisible to readers, and the next watch resumes it);
 exit 0. Faults that cost only themselves (a cube that never completes, a folder that disappears, a
 recorder writing over a cube, an ingest refusing a flight) are one line each and the watch goes on.
@@ -37,6 +40,7 @@ from pathlib import Path
 
 from archive.errors import InputError
 from archive.files import remove_path, write_atomic
+from archive.watch.ahead import Encoder, place
 from archive.watch.arguments import ingest_argv
 from archive.watch.follow import Changed, Complete, CubeState, FolderBack, FolderGone, Follower, Skipped, flight_name
 from archive.watch.live import LiveRegistry, LiveState, live_routes
@@ -77,6 +81,7 @@ class _Flight:
     ingested: list | None = None                           #: the cubes (base, signature) it was ingested with
     failed: list | None = None                             #: the cubes an ingest refused (not tried again)
     staged: dict[str, int] = field(default_factory=dict)   #: stagings of each cube (one written over: a new folder)
+    behind: bool = False                                   #: said that the encoding falls behind
 
 
 class Watch:
@@ -85,7 +90,7 @@ class Watch:
 
     def __init__(self, folders: list[Path], archive: Path, fov: float, ingest_options: list[str], *,
                  idle: float = 30.0, settle: float = 0.5, stall: float = 15.0, registry: LiveRegistry | None = None,
-                 state: LiveState | None = None, say=print, quiet: bool = False):
+                 state: LiveState | None = None, say=print, quiet: bool = False, ahead: bool = True):
         self.follower = Follower([Path(f).absolute() for f in folders], settle=settle, stall=stall)
         self.archive, self.fov, self.options = Path(archive).absolute(), float(fov), list(ingest_options)
         self.idle = idle
@@ -95,6 +100,12 @@ class Watch:
         self.flights: dict[tuple, _Flight] = {}
         self.ingesting: tuple[_Flight, list, subprocess.Popen, float] | None = None
         self.record = self._read_record()
+        self.encoder = None
+        if ahead and not any(o.startswith("--workers=") and o.split("=", 1)[1].strip() not in ("", "1")
+                             for o in self.options):   # an ingest on a cluster writes every chunk itself
+            from archive.ingest.flight import store_choices
+
+            self.encoder = Encoder(self.work, *store_choices(None, None))
 
     # ---- the record of what was ingested ---------------------------------------------------------------
     def _read_record(self) -> dict:
@@ -133,6 +144,7 @@ class Watch:
             except Exception as exc:   # a bug or a file system surprise costs this event, not the watch
                 self.say(f"archive watch: {type(event).__name__.lower()} event not handled "
                          f"({type(exc).__name__}: {' '.join(str(exc).split())[:300]}); going on")
+        self._encoded()
         self._finish_ingest(now)
         self._retire_live()
         if self.ingesting is None:
@@ -182,11 +194,38 @@ class Watch:
             flight.live[cube.base] = feature["id"]
             self.state.add_cube(flight.name, feature)
         self.state.flight(flight.name, status="recording", complete=False)
+        self._encode(flight, cube)
         if not self.quiet:
             listed = len(flight.live) if self.registry is not None else sum(
                 1 for c in self.follower.cubes.values() if c.flight == flight.key and c.state == "complete")
             self.say(f"archive watch: {flight.name}: cube {cube.base} complete ({cube.check.lines} lines), "
                      f"{listed} listed")
+
+    def _encode(self, flight: _Flight, cube: CubeState) -> None:
+        """Queue ``cube``'s DN chunks to be encoded ahead of the ingest, where the layout guessed from
+        the flight's cubes so far gives it one line chunk."""
+        if self.encoder is None or cube.check is None:
+            return
+        where = place([(c.base, c.check.lines) for c in self._complete_cubes(flight) if c.check is not None],
+                      cube.base)
+        if where is not None and self.encoder.submit(flight.name, cube.data, cube.base, where):
+            if self.encoder.waiting() > 2 and not flight.behind:
+                flight.behind = True
+                self.say(f"archive watch: {flight.name}: falls behind: {self.encoder.waiting()} cubes wait to be "
+                         "encoded (the collection will come later after landing)")
+
+    def _encoded(self) -> None:
+        """Record the cubes encoded since the last scan; one line for one that could not be."""
+        if self.encoder is None:
+            return
+        for name, base, record, error in self.encoder.poll():
+            if error is not None:
+                self.say(f"archive watch: {name}: cube {base} not encoded ahead ({type(error).__name__}: "
+                         f"{' '.join(str(error).split())[:200]}); the ingest will write it")
+            else:
+                flight = next((f for f in self.flights.values() if f.name == name), None)
+                if flight is not None:
+                    self.state.flight(name, encoded=len(self.encoder.seconds.get(name, [])))
 
     def _unlist(self, flight: _Flight, bases: list[str]) -> None:
         ids = [flight.live.pop(b) for b in bases if b in flight.live]
@@ -219,6 +258,8 @@ class Watch:
         cubes = self.follower.flights().get(flight.key, [])
         if not cubes or any(c.state == "growing" for c in cubes) or now - flight.updated < self.idle:
             return None
+        if self.encoder is not None and self.encoder.busy(flight.name):
+            return None
         done = sorted((c.base, c.sig) for c in cubes if c.state == "complete")
         if not done or done == sorted(flight.ingested or []) or done == flight.failed:
             return None
@@ -238,8 +279,10 @@ class Watch:
                                         [c.data for c in everything if c.flight == flight.key and c.state == "complete"],
                                         flight_extras(folder, [c.base for c in everything]))
             overwrite = ["--overwrite"] if flight.ingested is not None else []
+            ahead = self.encoder.folder(flight.name) if self.encoder is not None else None
+            prewritten = ["--prewritten", str(ahead)] if ahead is not None and ahead.is_dir() else []
             argv = [sys.executable, "-m", "archive", "ingest", str(directory), "--archive", str(self.archive),
-                    "--fov", repr(self.fov), "--quiet", *self.options, *overwrite]
+                    "--fov", repr(self.fov), "--quiet", *self.options, *prewritten, *overwrite]
             self.say(f"archive watch: {flight.name}: idle {self.idle:g} s with {len(cubes)} cubes: ingesting")
             self.state.flight(flight.name, status="ingesting")
             proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -263,13 +306,15 @@ class Watch:
         cid = out.split(":", 1)[0].strip() if out.strip() else None
         flight.collection, flight.ingested, flight.failed = cid, cubes, None
         remove_path(self.work / "flights" / safe_name(flight.name))   # the staged folder ingested, if one was
+        pace = self._pace(flight, len(cubes), seconds)
+        if self.encoder is not None:   # what the ingest did not move in is of no use any more
+            self.encoder.discard(flight.name)
         self.record[flight.name] = {"folder": str(flight.key[0]), "collection": cid,
                                     "cubes": [[b, list(map(_listed, s))] for b, s in cubes]}
         self._write_record()
         still = self._ready(flight, now) is None and all(c.state != "growing" for c in self._complete_cubes(flight))
         self.state.flight(flight.name, status="ingested", collection=cid, complete=still, ingest_seconds=round(seconds, 3))
-        self.say(f"archive watch: {flight.name}: ingested as {cid} in {seconds:.1f} s ({len(cubes)} cubes; "
-                 f"{self._pace(flight, len(cubes), seconds)})")
+        self.say(f"archive watch: {flight.name}: ingested as {cid} in {seconds:.1f} s ({len(cubes)} cubes; {pace})")
 
     def _pace(self, flight: _Flight, cubes: int, seconds: float) -> str:
         """Whether the ingest keeps pace with the recorder: its seconds a cube against the seconds the
@@ -285,17 +330,26 @@ class Watch:
                 continue
             if len(t) > 1:
                 spans.append(float(t[-1] - t[0]) * len(t) / (len(t) - 1))
-        per = seconds / cubes
+        encoded = self.encoder.seconds.get(flight.name, []) if self.encoder is not None else []
+        if encoded:   # the work done as the cubes closed; the ingest's seconds came after the last
+            per = sum(encoded) / len(encoded)
+            moved, _ = self.encoder.moved(flight.name)
+            head = f"{len(encoded)} encoded as they closed, {moved} moved in, {per:.1f} s a cube"
+        else:
+            per, head = seconds / cubes, f"{seconds / cubes:.1f} s a cube"
         if not spans:
-            return f"{per:.1f} s a cube"
+            return head
         record = sum(spans) / len(spans)
         if per <= record:
-            return f"{per:.1f} s a cube, the recorder takes {record:.1f} s: keeps pace"
-        return (f"{per:.1f} s a cube, the recorder takes {record:.1f} s: falls behind by {per - record:.1f} s a cube "
+            return f"{head}, the recorder takes {record:.1f} s: keeps pace"
+        return (f"{head}, the recorder takes {record:.1f} s: falls behind by {per - record:.1f} s a cube "
                 f"({(per - record) * cubes:.0f} s over this flight)")
 
     def stop(self) -> None:
-        """Stop an ingest in progress (its partial store stays for the next run to resume)."""
+        """Stop an ingest in progress (its partial store stays for the next run to resume) and the
+        encoding ahead (the cube in hand finished, those queued dropped)."""
+        if self.encoder is not None:
+            self.encoder.stop()
         if self.ingesting is not None:
             flight, _, proc, _ = self.ingesting
             proc.send_signal(signal.SIGTERM)
@@ -313,7 +367,7 @@ class Watch:
         for c in self.follower.cubes.values():
             if c.state == "growing":
                 due += [c.changed + self.follower.settle - now, c.changed + self.follower.stall - now]
-        if self.ingesting is not None:
+        if self.ingesting is not None or (self.encoder is not None and self.encoder.waiting()):
             due.append(0.2)
         return max(0.05, min(d for d in due if d > -1.0) if due else 1.0)
 
