@@ -102,8 +102,9 @@ def _query(field) -> list[str]:
 
 def _check_truth(table: pd.DataFrame, field) -> None:
     _, _, truths, _, ndvi, edges = field
-    assert list(table.columns[:13]) == ["zone", "flight", "datetime", "index", "count", "coverage", "mean", "std",
-                                        "min", "p10", "median", "p90", "max"]
+    assert list(table.columns[:14]) == ["zone", "flight", "datetime", "index", "count", "coverage", "saturated",
+                                        "mean", "std", "min", "p10", "median", "p90", "max"]
+    assert (table["saturated"] == 0).all()   # 0 dB: no DN of these flights clips
     got = table[table["index"] == "NDVI"]
     assert got["flight"].nunique() == 2
     assert [str(d)[:10] for d in sorted(got["datetime"].unique())] == list(DAYS)
@@ -169,7 +170,7 @@ def test_cli_and_api_on_a_scheduler_give_the_same_table(field, scheduler, tmp_pa
     api = archive.zonal_stats({"datetime": "2024-06-01/2024-07-01"}, field[3], "NDVI", expression=[expr],
                               archive=field[1], gsd=GSD, scheduler=scheduler)
     assert list(cli["zone"]) == list(api["zone"]) and list(cli["index"]) == list(api["index"])
-    for column in ("count", "coverage", "mean", "std", "min", "p10", "median", "p90", "max"):
+    for column in ("count", "coverage", "saturated", "mean", "std", "min", "p10", "median", "p90", "max"):
         np.testing.assert_array_equal(cli[column].to_numpy(), api[column].to_numpy(), err_msg=column)
     # the expression on the same bands is NDVI, number for number
     nd, ndvi = api[api["index"] == "ND"], api[api["index"] == "NDVI"]
@@ -216,7 +217,7 @@ def test_weights_are_exact_polygon_areas_on_a_small_grid():
     bounds = (x0, y0 - h * gsd, x0 + w * gsd, y0)
     rows = window_stats(values, [500.0], bounds, [z.wkb for z in zones], [z.area for z in zones], [ix])
     assert [r[:2] for r in rows] == [[k, 0] for k in range(len(zones))]
-    for zone, (_, _, count, coverage, mean, std, vmin, p10, median, p90, vmax) in zip(zones, rows):
+    for zone, (_, _, count, coverage, saturated, mean, std, vmin, p10, median, p90, vmax) in zip(zones, rows):
         weights = np.array([[box(x0 + c * gsd, y0 - (r + 1) * gsd, x0 + (c + 1) * gsd, y0 - r * gsd)
                              .intersection(zone).area / gsd**2 for c in range(w)] for r in range(h)])
         v = values[0]
@@ -232,6 +233,15 @@ def test_weights_are_exact_polygon_areas_on_a_small_grid():
             np.testing.assert_allclose([p10, median, p90], np.quantile(vv, [0.1, 0.5, 0.9]), rtol=1e-6)
     assert rows[1][3] < 0.9   # the rotated box is partly off the window: its coverage says so
     assert rows[0][3] < 1 and rows[2][3] == pytest.approx(1.0)   # the triangle holds the NaN pixel
+    # a flagged (saturated) pixel: out of count and mean, its weight in ``saturated``
+    flags = np.zeros((h, w), np.uint8)
+    flags[3, 4] = 1
+    flagged = window_stats(values, [500.0], bounds, [z.wkb for z in zones], [z.area for z in zones], [ix], flags)
+    for zone, before, after in zip(zones, rows, flagged):
+        cell = box(x0 + 4 * gsd, y0 - 4 * gsd, x0 + 5 * gsd, y0 - 3 * gsd).intersection(zone).area / gsd**2
+        assert after[4] == pytest.approx(cell, abs=1e-6) and before[4] == 0
+        assert after[2] == pytest.approx(before[2] - cell, abs=1e-5)
+    assert any(r[4] > 0.1 for r in flagged)
 
 
 def test_indices_map_to_bands_and_refuse_in_one_line():
@@ -299,3 +309,48 @@ def test_bad_input_is_refused_in_one_line(field, tmp_path, capsys):
                           capture_output=True, text=True, timeout=120)
     assert done.returncode != 0 and len(done.stderr.strip().splitlines()) == 1 and "bowtie.geojson" in done.stderr
     assert not out.exists()
+
+
+def test_saturated_pixels_are_left_out_and_counted(tmp_path):
+    """A flight at 9 dB gain (x2.8): the white patch's DN clips at 4095 in the NDVI bands, the grass
+    patch's does not. One zone holds both patches' interiors (a MultiPolygon): its NDVI is the grass
+    truth's (the saturated white pixels left out, not mixed in), ``count`` the grass interior's
+    pixels and ``saturated`` the white interior's (both 1.8 m squares: 51.84 px at 0.25 m; the
+    coverage weights are exact); each patch alone as its own zone."""
+    import archive
+    from archive.simulator.command import simulate_flight
+    from shapely.geometry import MultiPolygon
+
+    truth = simulate_flight(tmp_path / "bright", seed=0, scene_seed=0, gains=[9.0], shutters=[3.0],
+                            start="2024-06-12T16:00:00Z", **SHAPE)
+    patches = {p["material_name"]: p for p in truth.homogeneous_patches()}
+    inner = {}
+    for name in ("white", "grass"):
+        w, s, e, n = patches[name]["interior"]
+        inner[name] = box(w + 0.6, s + 0.6, e - 0.6, n - 0.6)
+        assert _covered(truth, inner[name], 0.1) == 1.0, name
+    rad = truth.radiance(np.array([inner["grass"].centroid.x]), np.array([inner["grass"].centroid.y]))[:, 0]
+    wl = truth.wavelengths
+    red, nir = rad[np.argmin(abs(wl - 655))], rad[np.argmin(abs(wl - 830))]
+    grass_ndvi = float((nir - red) / (nir + red))
+    both = MultiPolygon([inner["grass"], inner["white"]])
+    features = [_feature(truth, "grass", inner["grass"]), _feature(truth, "white", inner["white"]),
+                {"type": "Feature", "id": "both", "properties": {"name": "both"},
+                 "geometry": {"type": "MultiPolygon", "coordinates": [[_lonlat(truth, g.exterior.coords)]
+                                                                      for g in both.geoms]}}]
+    zones = tmp_path / "patches.geojson"
+    zones.write_text(json.dumps({"type": "FeatureCollection", "features": features}))
+    table = archive.zonal_stats(str(tmp_path / "bright"), zones, "NDVI", gsd=GSD, fov=FOV, mode="radiance")
+    assert list(table.columns) == ["zone", "flight", "datetime", "index", "count", "coverage", "saturated", "mean",
+                                   "std", "min", "p10", "median", "p90", "max", "bands"]
+    rows = {r["zone"]: r for _, r in table.iterrows()}
+    px = inner["grass"].area / GSD**2   # 51.84
+    assert rows["grass"]["saturated"] == 0 and rows["grass"]["count"] == pytest.approx(px, rel=1e-5)
+    assert rows["white"]["count"] == 0 and np.isnan(rows["white"]["mean"])
+    assert rows["white"]["saturated"] == pytest.approx(px, rel=1e-5) and rows["white"]["coverage"] == 0
+    got = rows["both"]
+    assert got["saturated"] == pytest.approx(px, rel=1e-5) and got["count"] == pytest.approx(px, rel=1e-5)
+    assert got["coverage"] == pytest.approx(0.5, rel=1e-5)   # half the zone's area counts
+    assert abs(got["mean"] - grass_ndvi) < 0.005, (got["mean"], grass_ndvi)
+    assert got["mean"] == pytest.approx(rows["grass"]["mean"], abs=1e-6)
+    assert got["min"] >= rows["grass"]["min"] - 1e-6 and got["max"] <= rows["grass"]["max"] + 1e-6

@@ -15,7 +15,12 @@ what the table needs is computed, as one Dask graph over the stack's own tasks:
 
 Pixels are weighted by the fraction of them inside the zone (``exactextract``'s exact coverage):
 ``count`` is the sum of those fractions over the pixels with a value (float), ``coverage`` the
-zone's imaged fraction (``count`` x GSD² / the zone's area in the grid's CRS), ``mean``, ``std``
+fraction of the zone they make (``count`` x GSD² / the zone's area in the grid's CRS). A pixel
+flagged saturated (the lazy stack's ``saturated``: the raw DN of some rendered band, i.e. of some
+band the table's indices read, at or above the camera's ceiling) has no value: it is left out of
+``count``, ``coverage`` and every statistic of every index, and ``saturated`` is the sum of the
+fractions of the flagged pixels in the zone (its imaged fraction is (``count`` + ``saturated``) x
+GSD² / area). ``mean``, ``std``
 (population), ``min``, ``max`` and the weighted quantiles ``p10``, ``median``, ``p90``
 (exactextract's: Hyndman-Fan type 7 generalised to weights). A zone no flight images is listed
 with count 0 and NaN statistics. The ``bands`` column records which camera band each symbol took.
@@ -50,7 +55,7 @@ __all__ = ["COLUMNS", "MAX_GROUP_PIXELS", "STATS", "Window", "check_options", "p
            "zonal_table"]
 
 #: The statistics columns, in order.
-STATS = ("count", "coverage", "mean", "std", "min", "p10", "median", "p90", "max")
+STATS = ("count", "coverage", "saturated", "mean", "std", "min", "p10", "median", "p90", "max")
 #: The table's columns (``geometry`` added last when asked for).
 COLUMNS = ("zone", "flight", "datetime", "index", *STATS, "bands")
 #: exactextract's operation for each statistic it computes, and the name of its result.
@@ -67,10 +72,12 @@ FLIGHTS_AHEAD = 2
 # The task body (a plain function of explicit inputs)
 # ---------------------------------------------------------------------------------------------
 def window_stats(values: np.ndarray, wavelengths: Sequence[float], bounds: Sequence[float],
-                 zones: Sequence[bytes], areas: Sequence[float], indices: Sequence[BoundIndex]) -> list[list]:
+                 zones: Sequence[bytes], areas: Sequence[float], indices: Sequence[BoundIndex],
+                 saturated: np.ndarray | None = None) -> list[list]:
     """Statistics of ``indices`` over ``zones`` on one window.
 
-    values: (band, y, x) float32, rows north to south, NaN where no line was seen; wavelengths: nm of
+    values: (band, y, x) float32, rows north to south, NaN where no line was seen; saturated: (y, x),
+    not 0 where a pixel is flagged saturated (left out of every index; None: no pixel is); wavelengths: nm of
     each band of ``values``; bounds: the window's (west, south, east, north), metres of the zones'
     CRS (pixels square: (east - west) / x = the GSD); zones: WKB polygons in that CRS; areas: each
     zone's area, m². Returns one row per zone and index (zone order, then index order):
@@ -84,11 +91,18 @@ def window_stats(values: np.ndarray, wavelengths: Sequence[float], bounds: Seque
     west, south, east, north = (float(b) for b in bounds)
     gsd = (east - west) / values.shape[2]
     by_nm = {float(nm): values[k] for k, nm in enumerate(wavelengths)}
-    rasters = [NumPyRasterSource(evaluate(ix, by_nm), west, south, east, north, name=f"i{j}")
+    flagged = None if saturated is None else np.asarray(saturated) != 0
+    rasters = [NumPyRasterSource(_unflagged(evaluate(ix, by_nm), flagged), west, south, east, north, name=f"i{j}")
                for j, ix in enumerate(indices)]
     features = [{"type": "Feature", "properties": {"z": k}, "geometry": shapely.from_wkb(w).__geo_interface__}
                 for k, w in enumerate(zones)]
     found = exact_extract(rasters, JSONFeatureSource(features), [op for op, _ in _OPS.values()], include_cols=["z"])
+    flags = {}   # zone -> the coverage-weighted count of its flagged pixels (a pass of its own: one op, one raster)
+    if flagged is not None and flagged.any():
+        for f in exact_extract(NumPyRasterSource(flagged.astype(np.float32), west, south, east, north, name="s"),
+                               JSONFeatureSource(features), ["sum"], include_cols=["z"]):
+            v = f["properties"].get("sum")
+            flags[int(f["properties"]["z"])] = 0.0 if v is None or math.isnan(v) else float(v)
     rows = []
     for feature in sorted(found, key=lambda f: f["properties"]["z"]):
         props = feature["properties"]
@@ -103,8 +117,16 @@ def window_stats(values: np.ndarray, wavelengths: Sequence[float], bounds: Seque
             if stats["count"] == 0:
                 stats.update({k: math.nan for k in _OPS if k != "count"})
             stats["coverage"] = stats["count"] * gsd * gsd / float(areas[z])
+            stats["saturated"] = flags.get(z, 0.0)
             rows.append([z, j, *(stats[s] for s in STATS)])
     return rows
+
+
+def _unflagged(index: np.ndarray, flagged: np.ndarray | None) -> np.ndarray:
+    """``index`` with NaN where ``flagged`` (saturated pixels have no value)."""
+    if flagged is None or not flagged.any():
+        return index
+    return np.where(flagged, np.float32(np.nan), index).astype(np.float32, copy=False)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -234,7 +256,7 @@ def zonal_table(options: RenderOptions, zones: Zones, specs: Sequence[IndexSpec]
         with dask.config.set({"distributed.worker.preload": ["archive.analysis.worker", *preload]}):
             starting = ClusterStart(scheduler, workers, say, threads)
             try:
-                da = stack(options, quiet=quiet)
+                da, flags = stack(options, quiet=quiet, saturated=True)
             finally:
                 client, cluster = start_cluster(starting, workers, say, threads)   # waits for it
         stack_nm = [float(v) for v in da["wavelength"].values]
@@ -263,13 +285,14 @@ def zonal_table(options: RenderOptions, zones: Zones, specs: Sequence[IndexSpec]
             while queue or inflight:
                 while queue and len(inflight) < FLIGHTS_AHEAD:
                     t = queue.popleft()
-                    slice_t = da.data[t]
+                    slice_t, flags_t = da.data[t], flags.data[t]
                     tasks = []
                     for w in windows:
                         west, north = x0 + w.c0 * gsd, y0 - w.r0 * gsd
                         bounds = (west, north - (w.r1 - w.r0) * gsd, west + (w.c1 - w.c0) * gsd, north)
                         tasks.append(call(slice_t[:, w.r0:w.r1, w.c0:w.c1], stack_nm, bounds,
-                                          [wkb[z] for z in w.zones], [areas[z] for z in w.zones], bound))
+                                          [wkb[z] for z in w.zones], [areas[z] for z in w.zones], bound,
+                                          flags_t[w.r0:w.r1, w.c0:w.c1]))
                     with dask.config.set({"optimization.fuse.active": False}):   # keeps the GL tasks' GPU annotations
                         inflight.append((t, client.compute(tasks) if tasks else []))
                 t, futures = inflight.popleft()
@@ -291,7 +314,7 @@ def zonal_table(options: RenderOptions, zones: Zones, specs: Sequence[IndexSpec]
         for w, rows in zip(windows, per_window):
             for zpos, j, *stats in rows:
                 table[w.zones[zpos], t, j] = stats
-    empty = [0.0, 0.0, *([math.nan] * (len(STATS) - 2))]
+    empty = [0.0, 0.0, 0.0, *([math.nan] * (len(STATS) - 3))]
     records = []
     for z, zid in enumerate(zones.ids):
         for t, flight in enumerate(flights):

@@ -453,13 +453,15 @@ def _write_item(out: Path, layout: StackLayout, flights: list[StackFlight], opti
     write_item(out.with_name(out.name + ".json"), item)
 
 
-def stack(options, *, band_group: int | None = None, quiet: bool = True):
+def stack(options, *, band_group: int | None = None, quiet: bool = True, saturated: bool = False):
     """The stack of ``options`` as a lazy ``xarray.DataArray`` (time, band, y, x), nothing rendered
     until computed: each time step is :func:`archive.mosaic` of its flight alone on the stack's grid
     (:func:`stack_grid`), so its values are the Zarr stack's, bit for bit. Coordinates as the Zarr
     stack (``time`` as datetime64[ns] UTC, ``flight``, ``band``, ``wavelength``, x/y); the CRS set.
     A window (``.sel(x=..., y=...)``, ``.isel(time=...)``) renders only the flights and cubes under
-    it (dask culls the other tiles' tasks; a tile no cube of a flight touches is NaN without GL)."""
+    it (dask culls the other tiles' tasks; a tile no cube of a flight touches is NaN without GL).
+    With ``saturated``: (values, flags), the flags the lazy (time, y, x) uint8 ``saturated`` of the
+    Zarr stack (1 where the DN of some rendered band was saturated), sharing the values' tasks."""
     import xarray as xr
 
     from archive.run.pipeline import client_budget, field_of_view, plan as plan_of, planned_dataset, progress_lines
@@ -492,6 +494,11 @@ def stack(options, *, band_group: int | None = None, quiet: bool = True):
     times = [np.datetime64(datetime.fromisoformat(t).astimezone(UTC).replace(tzinfo=None), "ns") for t, *_ in steps]
     out = xr.concat([ds[variable] for *_, ds in steps], dim="time", coords="minimal", compat="override",
                     join="exact", combine_attrs="override")
-    out = out.assign_coords(time=("time", np.array(times)), flight=("time", [name for _, name, *_ in steps]))
+    when = {"time": ("time", np.array(times)), "flight": ("time", [name for _, name, *_ in steps])}
+    out = out.assign_coords(when)
     out["time"].attrs.update({"standard_name": "time", "long_name": "start of the flight (its first line), UTC"})
-    return out
+    if not saturated:
+        return out
+    flags = xr.concat([ds["saturated"] for *_, ds in steps], dim="time", coords="minimal", compat="override",
+                      join="exact", combine_attrs="override").assign_coords(when)
+    return out, flags
