@@ -237,7 +237,8 @@ def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: So
     outputs that are complete with the same recipe (with ``stack``: add the flights the stack lacks);
     tell: called with one line per finished flight; stack: one Zarr ``out`` (time, band, y, x) of
     all sources on one aligned grid (:mod:`archive.run.stacks`; the summary holds ``flights``,
-    ``added``, ``skipped``, ``left_out``); tiles: a tile side in metres: one output per tile of the
+    ``added``, ``skipped``, ``left_out``; with ``index``/``expression`` its bands are the indices);
+    tiles: a tile side in metres: one output per tile of the
     output CRS that a source touches, ``out/<EPSG>_<E0>_<N0>.<format>``, each the mosaic of its
     sources, tiles as the units of a batch (:mod:`archive.run.tiling`).
     Nothing is left at ``out`` when anything fails; the output's STAC Item, ``<out>.json``, is
@@ -245,9 +246,6 @@ def georectify(sources: Source | Sequence[Source], out: Source, *, quicklook: So
     """
     from archive.run.runner import OutputKind, run
 
-    if stack and (options.get("index") or options.get("expression")):
-        raise InputError("--index", "a stack of index bands is not written yet", "render the indices per flight "
-                         "(per_flight=True), or the stack's bands and archive.analysis.indices.stack_index")
     return run(OutputKind.of(per_flight=per_flight, stack=stack, tiles=tiles), _options(sources, options), out,
                quicklook=quicklook, format=format, overwrite=overwrite, resume=resume, scheduler=scheduler,
                workers=workers, threads=threads, quiet=quiet, tell=tell)

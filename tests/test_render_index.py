@@ -5,7 +5,8 @@ Real renders of a simulated reflectance flight (the sky-sensor set-up of tests/t
 NDVI output against NDVI computed from a plain render of its two bands, rendered independently
 (equal where both have data, NaN where neither); the simulator's true NDVI on a homogeneous patch;
 band names read back by rasterio (COG), xarray (Zarr) and the ENVI header; an expression; a
-per-flight batch; the refusals in one line.
+per-flight batch; a time stack of index bands (two flights: equal to ``stack_index`` of the plain
+stack, resumed and replaced as stacks are); the refusals in one line.
 """
 
 from __future__ import annotations
@@ -152,3 +153,69 @@ def test_refusals(flight, tmp_path, extra, option):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and option in lines[0], r.stderr
     assert not (tmp_path / "x.zarr").exists()
+
+
+@pytest.fixture(scope="module")
+def second(flight):
+    """The same ground a week later (seed 1, scene seed 0: its own wobble, noise and sky)."""
+    from archive.simulator.command import simulate_flight
+
+    root = flight[0]
+    simulate_flight(root / "day1", seed=1, scene_seed=0, clouds=True, start="2024-06-19T16:00:00Z", **SHAPE)
+    return root / "day1"
+
+
+def test_stack_of_index_bands_equals_stack_index_of_the_plain_stack(flight, second, tmp_path):
+    """``render --stack --index NDVI --expression RATIO=...``: one float32 band per index, named by
+    it, each time step the index of the plain stack's bands (``stack_index``); made with the first
+    flight, --resumed by the command with both (only the second added), refused with other indices
+    unless --overwrite; the Item records the indices."""
+    import xarray as xr
+
+    from archive.analysis.indices import stack_index
+    from archive.errors import InputError
+
+    _, src, _ = flight
+    both = [str(src), str(second)]
+    plain = tmp_path / "plain.zarr"
+    archive.georectify(both, str(plain), gsd=GSD, fov=FOV, mode="reflectance", stack=True)
+    out = tmp_path / "idx.zarr"
+    kw = dict(gsd=GSD, fov=FOV, mode="reflectance", stack=True, like=str(plain))
+    s = archive.georectify([str(src)], str(out), index=["NDVI"], expression=["RATIO=R800/R670"], **kw)
+    assert s["added"] == [src.name] and s["bands"] == 2
+    r = _cli(*both, "--out", str(out), "--stack", "--resume", "--like", str(plain), "--gsd", str(GSD),
+             "--fov", str(FOV), "--mode", "reflectance", "--index", "NDVI", "--expression", "RATIO=R800/R670", "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert "1 added, 1 already there" in r.stdout and "2 bands" in r.stdout
+    with xr.open_zarr(plain) as p, xr.open_zarr(out) as ds:
+        assert list(ds["band_name"].values) == ["NDVI", "RATIO"] and "wavelength" not in ds.coords
+        assert ds["index"].dims == ("time", "band", "y", "x") and ds["index"].dtype == np.float32
+        assert list(ds["flight"].values) == list(p["flight"].values) == [src.name, second.name]
+        got = ds["index"].values
+        for k, text in enumerate(("NDVI", "RATIO=R800/R670")):
+            want = stack_index(p["reflectance"], text).values
+            assert got.shape[0] == want.shape[0] == 2 and got.shape[2:] == want.shape[1:]
+            np.testing.assert_array_equal(np.isnan(got[:, k]), np.isnan(want), err_msg=text)
+            finite = np.isfinite(want)
+            assert finite[0].sum() > 1000 and finite[1].sum() > 1000
+            np.testing.assert_allclose(got[:, k][finite], want[finite], rtol=1e-6, atol=0, err_msg=text)
+        np.testing.assert_array_equal(ds["saturated"].values, p["saturated"].values)
+    item = json.loads(out.with_name(out.name + ".json").read_text())
+    props = item["properties"]
+    recipe = props["archive:recipe"]
+    assert [i["name"] for i in recipe["indices"]] == ["NDVI", "RATIO"]
+    assert set(recipe["indices"][0]["bands"]) == {"N", "R"}
+    assert recipe["request"]["index"] == ["NDVI"] and recipe["request"]["expression"] == ["RATIO=R800/R670"]
+    assert "--index NDVI" in recipe["command"] and "--stack" in recipe["command"]
+    assert props["cube:dimensions"]["band"]["values"] == ["NDVI", "RATIO"]
+    assert len(props["archive:wavelengths"]) == 2   # only the two camera bands the indices read were rendered
+    assert [f["id"] for f in props["archive:stack"]["flights"]] == [src.name, second.name]
+    # other indices: a resume is refused (another request); --overwrite makes the stack again
+    with pytest.raises(InputError, match="another request"):
+        archive.georectify(both, str(out), index=["NDVI"], resume=True, **kw)
+    s = archive.georectify(both, str(out), index=["NDVI"], overwrite=True, **kw)
+    assert s["bands"] == 1 and s["added"] == [src.name, second.name]
+    with xr.open_zarr(out) as ds:
+        assert list(ds["band_name"].values) == ["NDVI"]
+        np.testing.assert_array_equal(ds["index"].values[:, 0], got[:, 0])
+

@@ -70,7 +70,8 @@ class StackFlight:
 @dataclass
 class StackLayout:
     """What a stack store holds besides its slices: the grid, the bands (source indices,
-    wavelengths, fwhm, nm), the data variable, the root attributes and the Zarr version."""
+    wavelengths, fwhm, nm), the data variable, the root attributes and the Zarr version; ``names``:
+    each band's name (a stack of index bands: the indices, bands 0.., no wavelengths)."""
 
     grid: Grid
     bands: tuple[int, ...]
@@ -79,6 +80,7 @@ class StackLayout:
     variable: str
     attrs: dict
     zarr_format: int
+    names: tuple[str, ...] | None = None
 
     def arrays(self, flights: Sequence[StackFlight]) -> tuple[dict, list]:
         """(root attributes, :class:`~archive.outputs.zarr_metadata.ArraySpec` list) of the store
@@ -86,7 +88,8 @@ class StackLayout:
         from archive.outputs.zarr import store_layout
         from archive.outputs.zarr_metadata import ArraySpec
 
-        root, arrays = store_layout(self.grid, self.bands, self.wavelengths, self.fwhm, self.variable, self.attrs)
+        root, arrays = store_layout(self.grid, self.bands, self.wavelengths, self.fwhm, self.variable, self.attrs,
+                                    names=self.names)
         n = len(flights)
         out = []
         for spec in arrays:
@@ -151,7 +154,8 @@ def _write_pam(store: Path, layout: StackLayout, flights: list[StackFlight]) -> 
     from archive.outputs.base import band_labels
     from archive.outputs.pam import band_texts, write_band_pam
 
-    bands = band_texts(band_labels(layout.bands, layout.wavelengths), layout.wavelengths, layout.fwhm)
+    labels = list(layout.names) if layout.names is not None else band_labels(layout.bands, layout.wavelengths)
+    bands = band_texts(labels, layout.wavelengths, layout.fwhm)
     texts = [(f"{label}, {f.id}", {**items, "flight": f.id, "time_step": str(t), "start": f.start}, imagery)
              for t, f in enumerate(flights) for label, items, imagery in bands]
     write_band_pam(store, layout.variable, 4, texts)
@@ -206,8 +210,9 @@ def read_stack(path: str | os.PathLike) -> tuple[StackLayout, list[StackFlight],
     wavelengths = tuple(float(v) for v in group["wavelength"][:]) if "wavelength" in group else None
     fwhm = tuple(float(v) for v in group["fwhm"][:]) if "fwhm" in group else None
     bands = tuple(int(v) for v in group["band"][:])
+    names = tuple(str(v) for v in group["band_name"][:]) if "band_name" in group else None
     keep = {k: v for k, v in attrs.items() if k not in (STACK_ATTR, "archive_grid", "Conventions", "zarr_conventions")
             and not k.startswith(("proj:", "spatial:"))}
     zarr_format = 2 if (path / ".zgroup").exists() else 3
-    return StackLayout(grid, bands, wavelengths, fwhm, variable, keep, zarr_format), flights, meta.get("request")
+    return StackLayout(grid, bands, wavelengths, fwhm, variable, keep, zarr_format, names), flights, meta.get("request")
 

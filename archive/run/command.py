@@ -95,9 +95,6 @@ def render_keywords(args: argparse.Namespace, scheduler=None) -> dict:
                              "add --archive A with --query-bbox/--query-datetime/--query-wavelength")
         if args.mosaic:
             raise InputError("--stack", "--stack and --mosaic are two kinds of output", "give one of them")
-        if args.index or args.expression:
-            raise InputError("--index", "a stack of index bands is not written yet", "render the indices per "
-                             "flight (--out DIR), or the stack's bands and archive.analysis.indices.stack_index")
         keywords["stack"] = True
         keywords.pop("format", None)
     return keywords
@@ -184,7 +181,8 @@ def _run(args: argparse.Namespace, starting) -> int:
     if "added" in s:
         n = len(s["flights"])
         print(f"archive render: stack {s['out']}: {n} flight{'s' if n != 1 else ''} on {s['width']} x {s['height']} px "
-              f"at {s['gsd']:g} m, EPSG:{s['epsg']}, {s['bands']} bands: {len(s['added'])} added, "
+              f"at {s['gsd']:g} m, EPSG:{s['epsg']}, {s['bands']} band{'s' if s['bands'] != 1 else ''}: "
+              f"{len(s['added'])} added, "
               f"{len(s['skipped'])} already there, {len(s['left_out'])} left out, in {s['seconds']:.1f} s.")
         return 0
     if "outputs" in s:

@@ -306,10 +306,7 @@ def _run_stack_locked(options, out: Path, nav, fov, say, tell, started: float, *
                                 bar.update(1)
                             continue
                         if layout is None:
-                            layout = StackLayout(grid, tuple(planned.plan.bands[0]),
-                                             None if planned.wavelengths is None else tuple(planned.wavelengths),
-                                             None if planned.fwhm is None else tuple(planned.fwhm),
-                                             planned.variable, _stack_attrs(planned.attrs), options.zarr_format)
+                            layout = _layout(grid, planned, options.zarr_format)
                         _check_like(layout, planned, one.name)
                         slice_out = Output(out.with_name(f".{out.name}.slice-{len(added) + len(inflight)}.zarr"),
                                            overwrite=True, zarr_format=layout.zarr_format)
@@ -428,8 +425,28 @@ def _flight_attrs(planned) -> dict:
     return json.loads(json.dumps(out, default=str))
 
 
+def _layout(grid: Grid, planned, zarr_format: int) -> StackLayout:
+    """The layout of a new stack whose first flight is ``planned``: its bands, or (an index output)
+    one band per index, bands 0.., named by the indices (what each read: ``attrs["indices"]``)."""
+    attrs = _stack_attrs(planned.attrs)
+    if planned.indices:
+        names = tuple(i.name for i in planned.indices)
+        return StackLayout(grid, tuple(range(len(names))), None, None, planned.variable, attrs, zarr_format, names)
+    return StackLayout(grid, tuple(planned.plan.bands[0]),
+                       None if planned.wavelengths is None else tuple(planned.wavelengths),
+                       None if planned.fwhm is None else tuple(planned.fwhm), planned.variable, attrs, zarr_format)
+
+
 def _check_like(layout: StackLayout, planned, name: str) -> None:
-    """InputError unless flight ``name`` gives the stack's bands and variable."""
+    """InputError unless flight ``name`` gives the stack's bands and variable (an index stack: its
+    indices, each from the same camera bands)."""
+    if layout.names is not None or planned.indices:
+        got = [i["describe"] for i in planned.attrs.get("indices", [])]
+        want = [i.get("describe") for i in layout.attrs.get("indices", [])]
+        if got != want:
+            raise InputError(name, f"gives other index bands than the stack ({got} vs {want})",
+                             "stack flights of one camera, with the stack's --index / --expression")
+        return
     wl = None if planned.wavelengths is None else tuple(planned.wavelengths)
     if tuple(planned.plan.bands[0]) != layout.bands or wl != layout.wavelengths:
         raise InputError(name, f"selects other bands than the stack ({list(planned.plan.bands[0])} vs "
@@ -450,6 +467,12 @@ def _write_item(out: Path, layout: StackLayout, flights: list[StackFlight], opti
     item = stack_item(out, fmt=ZARR, grid=layout.grid, band_indices=layout.bands, wavelengths=layout.wavelengths,
                       fwhm=layout.fwhm, variable=layout.variable, attrs=layout.attrs,
                       flights=[f.to_dict() for f in flights], command=command, request=options)
+    if layout.names is not None:   # index bands: their names, and which camera band each symbol took
+        indices = layout.attrs.get("indices", [])
+        props = item["properties"]
+        props["cube:dimensions"]["band"]["values"] = list(layout.names)
+        props["archive:wavelengths"] = sorted({float(nm) for i in indices for nm in i["bands"].values()})
+        props["archive:recipe"]["indices"] = indices
     write_item(out.with_name(out.name + ".json"), item)
 
 
