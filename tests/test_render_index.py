@@ -6,7 +6,8 @@ NDVI output against NDVI computed from a plain render of its two bands, rendered
 (equal where both have data, NaN where neither); the simulator's true NDVI on a homogeneous patch;
 band names read back by rasterio (COG), xarray (Zarr) and the ENVI header; an expression; a
 per-flight batch; a time stack of index bands (two flights: equal to ``stack_index`` of the plain
-stack, resumed and replaced as stacks are); the refusals in one line.
+stack, resumed and replaced as stacks are); tiles (equal to the single render of their union);
+the refusals in one line.
 """
 
 from __future__ import annotations
@@ -219,3 +220,34 @@ def test_stack_of_index_bands_equals_stack_index_of_the_plain_stack(flight, seco
         assert list(ds["band_name"].values) == ["NDVI"]
         np.testing.assert_array_equal(ds["index"].values[:, 0], got[:, 0])
 
+
+def test_tiles_with_an_index_equal_the_single_render(flight, tmp_path):
+    """``render --tiles 10 --index NDVI`` of an ingested flight: each tile's NDVI is the NDVI of the
+    single render of the tiles' union (--bounds, --align), pixel for pixel."""
+    import rasterio
+
+    from archive.ingest.command import ingest
+
+    _, src, _ = flight
+    (r,) = ingest([str(src)], tmp_path / "archive", FOV, progress=False)
+    kw = dict(archive=str(tmp_path / "archive"), gsd=GSD, mode="reflectance", index=["NDVI"], format="tif")
+    s = archive.georectify([r.cid], str(tmp_path / "tiles"), tiles=10, **kw)
+    tiles = sorted((tmp_path / "tiles").glob("*.tif"))
+    assert s["failed"] == 0 and len(tiles) >= 2, s
+    corners = [tuple(int(v) for v in p.stem.split("_")[1:]) for p in tiles]
+    w, s_ = min(c[0] for c in corners), min(c[1] for c in corners)
+    e, n = max(c[0] for c in corners) + 10, max(c[1] for c in corners) + 10
+    union = tmp_path / "union.tif"
+    archive.georectify([r.cid], str(union), bounds=(w, s_, e, n), align=True, **kw)
+    with rasterio.open(union) as f:
+        assert f.descriptions == ("NDVI",)
+        whole = f.read(1)
+    side = round(10 / GSD)
+    for path, (e0, n0) in zip(tiles, corners):
+        r0, c0 = round((n - n0 - 10) / GSD), round((e0 - w) / GSD)
+        with rasterio.open(path) as f:
+            assert f.descriptions == ("NDVI",)
+            np.testing.assert_array_equal(f.read(1), whole[r0:r0 + side, c0:c0 + side], err_msg=path.name)
+        item = json.loads(path.with_name(path.name + ".json").read_text())
+        assert [i["name"] for i in item["properties"]["archive:recipe"]["indices"]] == ["NDVI"]
+    assert np.isfinite(whole).mean() > 0.1
