@@ -344,6 +344,9 @@ def _add_view(sub) -> None:
                         "(repeatable)")
     p.add_argument("--navigation", metavar="lcf|NAME", help="the navigation source drawn first: lcf (the recorder's "
                    "real-time solution) or a stored trajectory's name (default: each collection's own); the page switches it")
+    p.add_argument("--zones", metavar="FIELDS", help="polygons (.geojson, .gpkg, .shp; any CRS) drawn as outlines; a click "
+                   "on one plots its time series, one point per flight, of the index shown (as archive stats computes it)")
+    p.add_argument("--zone-id", metavar="PROP", help="the property naming each zone (default: the feature's id, else its number)")
 
 
 def _add_calibrate(sub) -> None:

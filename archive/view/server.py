@@ -41,6 +41,8 @@ trace):
   a tile of time step T (2-98 % stretch of that step), ``.../values/{z}/{x}/{y}?time=&bands=`` its
   float32 planes (each tile pixel the stack pixel under its centre: the Zarr's values),
   ``.../point?lon=&lat=&time=`` the spectrum of the stack pixel there (:mod:`archive.view.stacks`);
+- ``GET /api/zones`` the zones of ``--zones`` (lon/lat GeoJSON), ``GET /api/zones/series?zone=ID``
+  a zone's statistics per flight, by ``archive stats``' code (:mod:`archive.view.zones`);
 - ``/stac/...`` the STAC API of the archive's catalog (:mod:`archive.catalog.api`).
 
 All drawing runs on one render thread (:class:`~archive.view.worker.RenderThread`), the latest view
@@ -570,15 +572,20 @@ def run(args: argparse.Namespace) -> int:
     count = len(registry.catalog_ids()) + len(registry.raw)
     from archive.view.stacks import open_stacks
 
+    from archive.view.zones import open_zones, zone_routes
+
     stacks = open_stacks(getattr(args, "stack", None))
+    zones = open_zones(getattr(args, "zones", None), getattr(args, "zone_id", None), registry, stacks)
 
     def announce(url: str) -> None:
         print(f"archive view: {count} flight{'s' if count != 1 else ''} at {url}  (Ctrl-C stops)", flush=True)
 
     try:
         serve(registry, args.host, args.port, allow_remote=args.allow_remote, cache_mb=args.cache_mb,
-              announce=announce, stacks=stacks)
+              announce=announce, stacks=stacks, extra_routes=zone_routes(zones))
     except KeyboardInterrupt:  # Ctrl-C is how a viewer is stopped: uvicorn has shut down cleanly
         pass
+    finally:
+        zones.close()
     print("archive view: stopped", flush=True)
     return 0
