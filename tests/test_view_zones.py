@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = Path("/usr/bin/chromium")
 GSD = 0.25
 DAYS = ("2024-06-12", "2024-06-19")
-STATS = ("count", "coverage", "mean", "std", "p10", "median", "p90")
+STATS = ("count", "coverage", "saturated", "mean", "std", "p10", "median", "p90")
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ per flight, of the index the display shows.
   served stack, on its grid), of NDVI (default) or of (a - b) / (a + b), the index display's two bands
   (``R<nm>`` band math, nearest bands), in ``mode`` (default ``reflectance``, as ``archive stats``),
   on the time stack's grid at ``gsd`` (default: the coarsest nominal GSD of those flights). Rows in
-  time order: flight, datetime (UTC), count, coverage, mean, std, p10, median, p90 (a flight that
+  time order: flight, datetime (UTC), count, coverage, saturated, mean, std, p10, median, p90 (a flight that
   does not image the zone: count 0, the statistics null).
 
 The statistics are those of ``archive stats``: :func:`archive.analysis.zonal.zonal_table` called on
@@ -42,7 +42,7 @@ KEEP = 64
 #: Bytes of GeoJSON the page may send (a file loaded in the page: POST /api/zones).
 MAX_UPLOAD = 16 << 20
 #: The fields of each row of a series, in order.
-ROW_FIELDS = ("flight", "datetime", "count", "coverage", "mean", "std", "p10", "median", "p90")
+ROW_FIELDS = ("flight", "datetime", "count", "coverage", "saturated", "mean", "std", "p10", "median", "p90")
 
 
 def _number(value: float):
